@@ -1,0 +1,159 @@
+"""Pydantic v2 message models.
+
+Every message carries a `Header`; every float field rejects NaN and infinity
+(`allow_inf_nan=False`), so a non-finite number never crosses a process boundary.
+Units are SI, angles in radians wrapped to (-pi, pi], stamps in integer nanoseconds.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+SCHEMA_VERSION = 1
+
+Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
+
+
+class Strict(BaseModel):
+    """Base for every model here: no unknown fields, no NaN or infinity."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class Header(Strict):
+    stamp_ns: int = Field(0, ge=0, description="time of validity, integer nanoseconds")
+    frame_id: str = Field("map", description="coordinate frame of the pose fields")
+    seq: int = Field(0, ge=0, description="per-publisher sequence number")
+    schema_version: int = Field(SCHEMA_VERSION, description="message schema version")
+
+    @model_validator(mode="after")
+    def _known_version(self) -> Header:
+        if self.schema_version != SCHEMA_VERSION:
+            raise ValueError(
+                f"schema_version {self.schema_version} is not supported (this build speaks "
+                f"{SCHEMA_VERSION}); upgrade the older side"
+            )
+        return self
+
+
+class Message(Strict):
+    header: Header = Field(default_factory=Header)
+
+
+class State(Message):
+    """Estimated robot state: pose in `header.frame_id`, body-frame velocities."""
+
+    x: float = Field(description="position x [m]")
+    y: float = Field(description="position y [m]")
+    theta: float = Field(description="yaw [rad], counter-clockwise from x")
+    v: float = Field(description="body-frame forward velocity [m/s]")
+    omega: float = Field(description="body-frame yaw rate [rad/s]")
+    covariance: list[float] | None = Field(
+        None,
+        min_length=25,
+        max_length=25,
+        description="row-major 5x5 covariance of [x, y, theta, v, omega], if known",
+    )
+
+    def as_array(self) -> list[float]:
+        return [self.x, self.y, self.theta, self.v, self.omega]
+
+
+class Command(Message):
+    """Velocity command from the planner (or an excitation source) to the base."""
+
+    v_ref: float = Field(description="commanded forward velocity [m/s]")
+    omega_ref: float = Field(description="commanded yaw rate [rad/s]")
+
+
+class BaseCommand(Message):
+    """What egress sends to the base after limits and the watchdog."""
+
+    v: float = Field(description="forward velocity [m/s]")
+    omega: float = Field(description="yaw rate [rad/s]")
+    reason: Literal["planner", "watchdog", "estop", "limit"] = Field(
+        "planner", description="why this command has this value"
+    )
+
+
+class TerrainLabel(Message):
+    """Ground-truth terrain under the robot (datasets and simulation only)."""
+
+    terrain: str = Field(min_length=1, description="terrain name, as in the terrain file")
+
+
+class TerrainWeights(Message):
+    names: list[str] = Field(min_length=1, description="terrain names, model order")
+    weights: list[float] = Field(min_length=1, description="convex weights, same order as names")
+    solver_ok: bool = Field(True, description="False when the last solve failed and weights were kept")
+    residual: float = Field(0.0, ge=0.0, description="objective value of the last solve")
+
+    @model_validator(mode="after")
+    def _on_simplex(self) -> TerrainWeights:
+        if len(self.names) != len(self.weights):
+            raise ValueError(f"{len(self.names)} names but {len(self.weights)} weights")
+        if any(w < -1e-6 or w > 1 + 1e-6 for w in self.weights) or abs(sum(self.weights) - 1) > 1e-3:
+            raise ValueError(f"weights {self.weights} are not on the simplex (each in [0, 1], sum 1)")
+        return self
+
+
+class Circle(Strict):
+    x: float
+    y: float
+    r: float = Field(gt=0, description="radius [m]")
+
+
+class Task(Message):
+    """What the planner is asked to do: follow a lane, or reach a goal among obstacles."""
+
+    kind: Literal["lane", "goal"]
+    centerline: list[Vec2] = Field(default_factory=list, description="lane centre polyline [m]")
+    closed: bool = Field(True, description="lane polyline is a loop")
+    half_width: float = Field(1.75, gt=0, description="lane half-width [m]")
+    speed_target: float = Field(1.75, ge=0, description="desired forward speed [m/s]")
+    goal: Vec2 | None = Field(None, description="goal position [m]")
+    goal_tolerance: float = Field(0.5, gt=0, description="goal reached within this distance [m]")
+    obstacles: list[Circle] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _complete(self) -> Task:
+        if self.kind == "lane" and len(self.centerline) < 2:
+            raise ValueError("a lane task needs a centerline of at least 2 points")
+        if self.kind == "goal" and self.goal is None:
+            raise ValueError("a goal task needs a goal")
+        return self
+
+
+class Plan(Message):
+    """The planner's output for one cycle, for logging and visualization."""
+
+    command: Command
+    controls: list[Vec2] = Field(description="optimal control sequence, N x [v_ref, omega_ref]")
+    states: list[list[float]] = Field(description="nominal trajectory, (N+1) x [x, y, theta, v, omega]")
+    cov_xy: list[list[float]] = Field(
+        default_factory=list, description="(N+1) x [sxx, sxy, syy] position covariance"
+    )
+    tightened: list[float] = Field(
+        default_factory=list,
+        description="per step: tightened lane half-width, or obstacle inflation [m]",
+    )
+    samples: list[list[Vec2]] = Field(default_factory=list, description="subset of rollouts, XY only")
+    sample_costs: list[float] = Field(default_factory=list)
+    terrain_weights: list[float] = Field(default_factory=list)
+    timings_ms: dict[str, float] = Field(default_factory=dict)
+
+
+class Heartbeat(Message):
+    service: str
+    rate_hz: float = Field(0.0, ge=0)
+    received: int = Field(0, ge=0)
+    rejected: int = Field(0, ge=0)
+    published: int = Field(0, ge=0)
+    last_error: str = ""
+
+
+class EStop(Message):
+    engaged: bool
+    reason: str = ""

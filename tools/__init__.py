@@ -1,0 +1,1 @@
+"""Command line and offline jobs: dataset, train, evaluate, bench, replay, inspect."""

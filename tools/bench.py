@@ -1,0 +1,14 @@
+"""`gpmppi bench ...`: benchmarks that print numbers (speed goals live here, not in tests)."""
+
+from __future__ import annotations
+
+import typer
+
+from tools import bench_gp, bench_planner
+
+
+def register(app: typer.Typer) -> None:
+    bench_app = typer.Typer(help="Benchmarks: print timings and accuracy numbers.", no_args_is_help=True)
+    for module in (bench_gp, bench_planner):
+        module.register(bench_app)
+    app.add_typer(bench_app, name="bench")
