@@ -1,0 +1,53 @@
+"""What the planner is asked to do, as plain arrays: follow a lane, or reach a goal."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LaneTask:
+    """Follow a lane: a centre polyline (P, 2) [m] with a constant half-width [m]."""
+
+    centerline: np.ndarray
+    half_width: float
+    speed_target: float = 1.75
+    closed: bool = True
+
+    def __post_init__(self) -> None:
+        c = np.asarray(self.centerline, dtype=np.float64)
+        if c.ndim != 2 or c.shape[1] != 2 or c.shape[0] < 2:
+            raise ValueError(f"lane centerline must be (P>=2, 2) points, got shape {c.shape}")
+        if not np.all(np.isfinite(c)):
+            raise ValueError("lane centerline has non-finite points")
+        if not (np.isfinite(self.half_width) and self.half_width > 0):
+            raise ValueError(f"lane half_width must be a positive number, got {self.half_width}")
+        if not (np.isfinite(self.speed_target) and self.speed_target >= 0):
+            raise ValueError(f"lane speed_target must be >= 0, got {self.speed_target}")
+        object.__setattr__(self, "centerline", np.ascontiguousarray(c))
+
+
+@dataclass(frozen=True)
+class GoalTask:
+    """Reach `goal` (2,) within `tolerance` [m] avoiding circles `obstacles` (K, 3) = [x, y, r]."""
+
+    goal: np.ndarray
+    tolerance: float = 0.5
+    obstacles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def __post_init__(self) -> None:
+        g = np.asarray(self.goal, dtype=np.float64).reshape(-1)
+        o = np.asarray(self.obstacles, dtype=np.float64).reshape(-1, 3)
+        if g.shape != (2,) or not np.all(np.isfinite(g)):
+            raise ValueError(f"goal must be 2 finite numbers, got {self.goal!r}")
+        if not np.all(np.isfinite(o)) or np.any(o[:, 2] <= 0):
+            raise ValueError("obstacles must be finite [x, y, r] rows with r > 0")
+        if not (np.isfinite(self.tolerance) and self.tolerance > 0):
+            raise ValueError(f"goal tolerance must be > 0, got {self.tolerance}")
+        object.__setattr__(self, "goal", g)
+        object.__setattr__(self, "obstacles", np.ascontiguousarray(o))
+
+
+Task = LaneTask | GoalTask
