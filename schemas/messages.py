@@ -157,3 +157,10 @@ class Heartbeat(Message):
 class EStop(Message):
     engaged: bool
     reason: str = ""
+
+
+# Every top-level message model by class name (schema registry for files and tools).
+MODELS: dict[str, type[Message]] = {
+    m.__name__: m
+    for m in (State, Command, BaseCommand, TerrainLabel, TerrainWeights, Task, Plan, Heartbeat, EStop)
+}

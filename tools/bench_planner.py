@@ -1,9 +1,188 @@
-"""CLI commands of this area (filled in by its owner)."""
+"""`gpmppi bench planner`: time one planner iteration (p50/p99 ms, Hz), optionally against pytorch_mppi.
+
+The planner runs in closed loop on the circle lane (kinematic plant) so the warm start is
+realistic; weights of 3 terrains are fixed (the grid table collapse then happens once, as in
+steady state). With `--vs pytorch-mppi` the same kinematic-unicycle problem (same S, N, dt,
+noise, lambda; a simple quadratic lane-tracking cost) runs through pytorch_mppi in the same
+process, interleaved with our plain (unicycle) and our chosen-model iterations.
+"""
 
 from __future__ import annotations
 
+import json
+import time
+from enum import Enum
+from typing import Annotated
+
+import numpy as np
 import typer
+
+from gpmppi.models.kinematic_unicycle import kinematic_step
+from gpmppi.scenarios import circle_lane
+
+
+class ModelChoice(str, Enum):
+    gp = "gp"
+    edd5 = "edd5"
+    unicycle = "unicycle"
+
+
+class GpChoice(str, Enum):
+    grid = "grid"
+    exact = "exact"
+
+
+class BackendChoice(str, Enum):
+    auto = "auto"
+    cpu = "cpu"
+    cuda = "cuda"
+
+
+class Peer(str, Enum):
+    pytorch_mppi = "pytorch-mppi"
+
+
+def _load_model():
+    """The shipped model if there is one, else a synthetic one of the default grid size."""
+    from gpmppi.gp.grid import DEFAULT_NODES
+    from gpmppi.gp.model_file import DEFAULT_MODEL_PATH, load_default_model
+
+    if DEFAULT_MODEL_PATH.is_file():
+        return load_default_model(), "default"
+    from gpmppi.mppi.synthetic import synthetic_model
+
+    return synthetic_model(nodes=DEFAULT_NODES, n_train=300), "synthetic"
+
+
+class _Ours:
+    """One of our planners in closed loop on the circle lane."""
+
+    def __init__(self, config, model, weights: np.ndarray) -> None:
+        from gpmppi.mppi.planner import Planner
+
+        self.scenario = circle_lane()
+        self.planner = Planner(config, model)
+        self.weights = weights
+        self.x = self.scenario.start.copy()
+
+    def step(self) -> float:
+        t0 = time.perf_counter()
+        r = self.planner.plan(self.x, self.scenario.task, self.weights)
+        dt_ms = (time.perf_counter() - t0) * 1e3
+        self.x = kinematic_step(self.x, r.control, 0.1)
+        return dt_ms
+
+
+class _Peer:
+    """pytorch_mppi on the kinematic unicycle with a quadratic lane-tracking cost."""
+
+    def __init__(self, samples: int, horizon: int, dt: float, noise: tuple[float, float], lam: float) -> None:
+        import torch
+        from pytorch_mppi import MPPI
+
+        self.torch = torch
+        sc = circle_lane()
+        radius = float(np.hypot(*sc.task.centerline[0]))
+        speed = sc.task.speed_target
+
+        def dynamics(state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+            v = action[:, 0]
+            w = action[:, 1]
+            th = state[:, 2]
+            return torch.stack([state[:, 0] + v * torch.cos(th) * dt, state[:, 1] + v * torch.sin(th) * dt,
+                                th + w * dt], dim=1)
+
+        def running_cost(state: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+            r = torch.sqrt(state[:, 0] ** 2 + state[:, 1] ** 2)
+            return (r - radius) ** 2 + (action[:, 0] - speed) ** 2
+
+        dtype = torch.float32
+        self.mppi = MPPI(
+            dynamics, running_cost, 3, torch.diag(torch.tensor([noise[0] ** 2, noise[1] ** 2], dtype=dtype)),
+            num_samples=samples, horizon=horizon, lambda_=lam, device="cpu",
+            u_min=torch.tensor([0.0, -np.pi], dtype=dtype), u_max=torch.tensor([2.0, np.pi], dtype=dtype),
+        )
+        self.x = torch.tensor(sc.start[:3], dtype=dtype)
+
+    def step(self) -> float:
+        t0 = time.perf_counter()
+        u = self.mppi.command(self.x)
+        dt_ms = (time.perf_counter() - t0) * 1e3
+        x = self.x.numpy().astype(np.float64)
+        nxt = kinematic_step(np.array([x[0], x[1], x[2], 0.0, 0.0]), u.numpy().astype(np.float64), 0.1)
+        self.x = self.torch.tensor(nxt[:3], dtype=self.x.dtype)
+        return dt_ms
+
+
+def _stats(ts: list[float]) -> dict[str, float]:
+    a = np.asarray(ts)
+    p50 = float(np.percentile(a, 50))
+    return {"p50_ms": p50, "p99_ms": float(np.percentile(a, 99)), "hz": 1e3 / p50 if p50 > 0 else float("inf")}
+
+
+def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: str, vs: str | None, iters: int,
+              warmup: int = 5) -> dict:
+    from gpmppi.mppi.planner import PlannerConfig
+
+    model, source = _load_model()
+    m = len(model.terrains)
+    weights = np.linspace(1.0, 2.0, m)
+    weights /= weights.sum()
+    common = {"samples": samples, "horizon": horizon, "backend": backend, "gp_mode": gp}
+    runners: dict[str, object] = {"main": _Ours(PlannerConfig(dynamics=model_choice, **common), model, weights)}
+    cfg = runners["main"].planner.config  # type: ignore[attr-defined]
+    if vs is not None:
+        runners["plain"] = _Ours(PlannerConfig(dynamics="unicycle", **common), model, weights)
+        runners["peer"] = _Peer(samples, horizon, cfg.dt, cfg.noise_std, cfg.temperature)
+    times: dict[str, list[float]] = {k: [] for k in runners}
+    for i in range(warmup + iters):
+        for name, r in runners.items():  # interleaved, so machine load hits all alike
+            t = r.step()  # type: ignore[attr-defined]
+            if i >= warmup:
+                times[name].append(t)
+    out = {"samples": samples, "horizon": horizon, "model": model_choice, "gp": gp,
+           "backend": runners["main"].planner.backend, "iters": iters, "terrains": m,  # type: ignore[attr-defined]
+           "model_source": source, **_stats(times["main"])}
+    if vs is not None:
+        plain, peer = _stats(times["plain"]), _stats(times["peer"])
+        out.update({
+            "plain_p50_ms": plain["p50_ms"], "plain_p99_ms": plain["p99_ms"],
+            "peer": vs, "peer_p50_ms": peer["p50_ms"], "peer_p99_ms": peer["p99_ms"],
+            "ratio_gp_vs_peer": out["p50_ms"] / peer["p50_ms"],
+            "ratio_plain_vs_peer": plain["p50_ms"] / peer["p50_ms"],
+            "ratio_gp_vs_plain": out["p50_ms"] / plain["p50_ms"],
+        })
+    return out
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to `app`."""
+    """Add `bench planner`."""
+
+    @app.command("planner")
+    def planner_cmd(
+        samples: Annotated[int, typer.Option("--samples", min=1, help="Samples S")] = 1024,
+        horizon: Annotated[int, typer.Option("--horizon", min=1, help="Horizon N")] = 40,
+        model: Annotated[ModelChoice, typer.Option("--model", help="Rollout model")] = ModelChoice.gp,
+        gp: Annotated[GpChoice, typer.Option("--gp", help="GP evaluation")] = GpChoice.grid,
+        backend: Annotated[BackendChoice, typer.Option("--backend", help="Kernel backend")] = BackendChoice.auto,
+        vs: Annotated[Peer | None, typer.Option("--vs", help="Also time a peer MPPI on the same problem")] = None,
+        as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object")] = False,
+        iters: Annotated[int, typer.Option("--iters", min=1, help="Timed iterations (after 5 warm-up)")] = 50,
+    ) -> None:
+        """Time planner iterations: p50/p99 ms and Hz (the machine's load adds noise: re-run when quiet)."""
+        res = run_bench(samples, horizon, model.value, gp.value, backend.value, vs.value if vs else None, iters)
+        if as_json:
+            typer.echo(json.dumps(res))
+            return
+        typer.echo(
+            f"planner {res['model']}/{res['gp']} on {res['backend']}, S={samples} N={horizon}, "
+            f"{res['terrains']} terrains ({res['model_source']} model), {iters} iterations"
+        )
+        typer.echo(f"  ours:  p50 {res['p50_ms']:.2f} ms  p99 {res['p99_ms']:.2f} ms  {res['hz']:.0f} Hz")
+        if vs is not None:
+            typer.echo(f"  plain: p50 {res['plain_p50_ms']:.2f} ms  p99 {res['plain_p99_ms']:.2f} ms")
+            typer.echo(f"  {res['peer']}: p50 {res['peer_p50_ms']:.2f} ms  p99 {res['peer_p99_ms']:.2f} ms")
+            typer.echo(
+                f"  ratios: ours/peer {res['ratio_gp_vs_peer']:.2f}, plain/peer {res['ratio_plain_vs_peer']:.2f}, "
+                f"ours/plain {res['ratio_gp_vs_plain']:.2f}"
+            )

@@ -1,9 +1,353 @@
-"""CLI commands of this area (filled in by its owner)."""
+"""`gpmppi evaluate tracking|avoidance|table`: closed-loop evaluation, the paper's Table 1 and figures."""
 
 from __future__ import annotations
 
+import json
+import math
+import multiprocessing as mp
+import os
+import shlex
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
 import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from gpmppi.evaluation.runner import (
+    MODELS,
+    PAPER_NET_TERRAINS,
+    EvalSettings,
+    Job,
+    init_worker,
+    run_job_for_report,
+    summarize,
+)
+from gpmppi.scenarios import (
+    Scenario,
+    ScenarioFileError,
+    circle_lane,
+    load_lane,
+    load_scene,
+    paper_obstacle_scene,
+    square_lane,
+)
+
+
+class ModelName(str, Enum):
+    gp = "gp"
+    edd5 = "edd5"
+    unicycle = "unicycle"
+
+
+class PlantName(str, Enum):
+    physics = "physics"
+    residual_net = "residual-net"
+
+
+TerrainOpt = Annotated[list[str] | None, typer.Option("--terrain", "-t", help="Terrain(s) to drive on (repeat).")]
+ModelOpt = Annotated[list[ModelName] | None, typer.Option("--model", "-m", help="Planner model(s) (repeat).")]
+TrialsOpt = Annotated[int | None, typer.Option("--trials", "-n", min=1, help="Trials per cell (different seeds).")]
+SeedOpt = Annotated[int, typer.Option("--seed", help="First seed; trial i uses seed + i.")]
+PlantOpt = Annotated[PlantName, typer.Option("--plant", help="physics (default) or the paper's residual-net.")]
+PlantFileOpt = Annotated[Path | None, typer.Option("--plant-file", help="Residual-net JSON (e.g. fcnn.json).")]
+TerrainFileOpt = Annotated[Path | None, typer.Option("--terrain-file", help="Terrain set YAML for the physics plant.")]
+SceneFileOpt = Annotated[list[Path] | None, typer.Option("--scene-file", help="Obstacle scene YAML (repeat).")]
+LaneFileOpt = Annotated[list[Path] | None, typer.Option("--lane-file", help="Lane YAML (repeat).")]
+GpModelOpt = Annotated[Path | None, typer.Option("--gp-model", help="GP model file (default: the shipped one).")]
+QuickOpt = Annotated[bool, typer.Option("--quick", help="Reduced run: one terrain, few trials, 25 m of lane.")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object {results: {task: {terrain: {model}}}}.")]
+OutOpt = Annotated[Path | None, typer.Option("--output", "-o", help="Write table, CSV, JSON and figures here.")]
+WorkersOpt = Annotated[int, typer.Option("--workers", "-j", min=1, help="Worker processes.")]
+SamplesOpt = Annotated[int, typer.Option("--samples", min=16, help="MPPI samples per step.")]
+DistanceOpt = Annotated[float | None, typer.Option("--distance", min=1.0, help="Lane distance in m (100).")]
+LatencyOpt = Annotated[float, typer.Option("--latency", min=0.0, help="Command latency in seconds.")]
+LatencyCyclesOpt = Annotated[int, typer.Option("--latency-cycles", min=0, help="Latency in planner cycles.")]
+NoiseOpt = Annotated[bool, typer.Option("--noise/--no-noise", help="Physics plant sensor noise.")]
+RandomOpt = Annotated[bool, typer.Option("--random-scenes", help="Avoidance: a random scene per trial.")]
+SetOpt = Annotated[
+    list[str] | None,
+    typer.Option("--set", help="Planner setting for every model, KEY=VALUE (a PlannerConfig field; repeat)."),
+]
+SwitchOpt = Annotated[
+    list[str] | None, typer.Option("--switch", help="Switch the plant's terrain mid-run: TIME:TERRAIN (repeat).")
+]
+
+
+def _fail(message: str) -> None:
+    Console(stderr=True).print(f"[red]error:[/red] {message}")
+    raise typer.Exit(2)
+
+
+def _default_terrains(settings: EvalSettings) -> list[str]:
+    if settings.plant == "residual-net":
+        return list(PAPER_NET_TERRAINS)
+    from gpmppi.evaluation.runner import _gp_model
+
+    return list(_gp_model(settings.gp_model).terrains)
+
+
+def _check_terrains(settings: EvalSettings, terrains: list[str]) -> None:
+    if settings.plant == "residual-net":
+        bad = [t for t in terrains if t not in PAPER_NET_TERRAINS]
+        if bad:
+            _fail(f"the residual-net plant knows terrains {PAPER_NET_TERRAINS}, not {bad}")
+        return
+    from gpmppi.plant.terrains import TerrainFileError, load_terrains
+
+    try:
+        names = load_terrains(settings.terrain_file).names
+    except TerrainFileError as e:
+        _fail(str(e))
+    bad = [t for t in terrains if t not in names]
+    if bad:
+        _fail(f"unknown terrain(s) {bad}; the terrain set has {names} (see --terrain-file)")
+
+
+def _parse_switches(items: list[str] | None) -> tuple[tuple[float, str], ...]:
+    out = []
+    for item in items or []:
+        t, _, name = item.partition(":")
+        try:
+            out.append((float(t), name))
+        except ValueError:
+            _fail(f"--switch {item!r}: expected TIME:TERRAIN, e.g. 20:sand")
+        if not name:
+            _fail(f"--switch {item!r}: missing terrain name")
+    return tuple(out)
+
+
+def _parse_overrides(items: list[str] | None) -> tuple[tuple[str, object], ...]:
+    import yaml
+    from pydantic import ValidationError
+
+    from gpmppi.mppi.planner import PlannerConfig
+
+    out: dict[str, object] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or key not in PlannerConfig.model_fields or key in ("dynamics", "seed", "edd5_terrain"):
+            _fail(f"--set {item!r}: expected KEY=VALUE, KEY a planner setting (not dynamics, seed, edd5_terrain)")
+        parsed = yaml.safe_load(value)
+        out[key] = tuple(parsed) if isinstance(parsed, list) else parsed
+    try:
+        PlannerConfig(**out)
+    except ValidationError as e:
+        _fail(f"--set: {e.errors()[0]['loc']}: {e.errors()[0]['msg']}")
+    return tuple(out.items())
+
+
+def _settings(
+    plant: PlantName, plant_file: Path | None, terrain_file: Path | None, gp_model: Path | None, samples: int,
+    distance: float | None, quick: bool, latency: float, latency_cycles: int, noise: bool, overrides: list[str] | None,
+) -> EvalSettings:
+    if plant is PlantName.residual_net and plant_file is None:
+        _fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
+    for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), ("--gp-model", gp_model)):
+        if f is not None and not f.is_file():
+            _fail(f"{label} {f}: file not found")
+    if gp_model is not None:
+        from gpmppi.evaluation.runner import _gp_model
+        from gpmppi.gp.model_file import ModelFileError
+
+        try:
+            _gp_model(str(gp_model))
+        except (ModelFileError, OSError) as e:
+            _fail(f"--gp-model {gp_model}: {e}")
+    lane_m = distance if distance is not None else (25.0 if quick else 100.0)
+    planner_overrides = _parse_overrides(overrides)
+    return EvalSettings(
+        plant=plant.value,  # type: ignore[arg-type]
+        plant_file=str(plant_file) if plant_file else None,
+        terrain_file=str(terrain_file) if terrain_file else None,
+        gp_model=str(gp_model) if gp_model else None,
+        samples=samples,
+        lane_distance_m=lane_m,
+        latency_s=latency + latency_cycles * 0.1,
+        sensor_noise=noise,
+        planner_overrides=planner_overrides,
+    )
+
+
+def _lanes(lane_files: list[Path] | None) -> dict[str, Scenario]:
+    if not lane_files:
+        return {"circle": circle_lane(), "square": square_lane()}
+    try:
+        return {f.stem: load_lane(f) for f in lane_files}
+    except ScenarioFileError as e:
+        _fail(str(e))
+    raise AssertionError
+
+
+def _scenes(scene_files: list[Path] | None) -> dict[str, Scenario]:
+    if not scene_files:
+        return {"avoidance": paper_obstacle_scene()}
+    try:
+        return {("avoidance" if len(scene_files) == 1 else f.stem): load_scene(f) for f in scene_files}
+    except ScenarioFileError as e:
+        _fail(str(e))
+    raise AssertionError
+
+
+def _jobs(
+    lanes: dict[str, Scenario], scenes: dict[str, Scenario], terrains: list[str], models: list[str],
+    lane_trials: int, goal_trials: int, seed: int, switches: tuple, random_scenes: bool, chunk: int = 10,
+) -> list[Job]:
+    jobs: list[Job] = []
+    for label, sc in lanes.items():
+        for terrain in terrains:
+            for m in models:
+                seeds = tuple(range(seed, seed + lane_trials))
+                jobs.append(Job("tracking", sc, terrain, m, seeds, True, switches, label))  # type: ignore[arg-type]
+    for label, sc in scenes.items():
+        for terrain in terrains:
+            for m in models:
+                for i in range(0, goal_trials, chunk):
+                    seeds = tuple(range(seed + i, seed + min(goal_trials, i + chunk)))
+                    jobs.append(
+                        Job("avoidance", sc, terrain, m, seeds, i == 0, switches, label, random_scenes)  # type: ignore[arg-type]
+                    )
+    return jobs
+
+
+def _execute(jobs: list[Job], settings: EvalSettings, workers: int, quiet: bool) -> tuple[dict, dict, float]:
+    """Run all jobs (in spawn workers if workers > 1); results[task][terrain][model], figure paths, seconds."""
+    scores: dict = {}
+    paths: dict = {}
+    total = sum(len(j.seeds) for j in jobs)
+    console = Console(stderr=True, quiet=quiet)
+    t0 = time.perf_counter()
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+               TimeRemainingColumn())
+    with Progress(*columns, console=console, transient=False) as progress:
+        bar = progress.add_task("closed-loop runs", total=total)
+
+        def collect(job: Job, job_scores: list, record: dict | None) -> None:
+            scores.setdefault(job.label, {}).setdefault(job.terrain, {}).setdefault(job.dynamics, []).extend(job_scores)
+            if record is not None:
+                paths.setdefault(job.label, {}).setdefault(job.terrain, {})[job.dynamics] = record
+            progress.update(bar, advance=len(job.seeds), description=f"{job.label} {job.terrain} {job.dynamics}")
+
+        if workers == 1:
+            for job in jobs:
+                collect(*run_job_for_report(job, settings))
+        else:
+            threads = max(1, (os.cpu_count() or 2) // workers)
+            ctx = mp.get_context("spawn")
+            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker, initargs=(threads,)) as pool:
+                # long lane jobs first, so the pool does not end on one long straggler
+                ordered = sorted(jobs, key=lambda j: j.kind != "tracking")
+                futures = [pool.submit(run_job_for_report, job, settings) for job in ordered]
+                for fut in as_completed(futures):
+                    collect(*fut.result())
+    # cells in the order the jobs were listed (tasks, terrains, models), not in completion order
+    order = {}
+    for j in jobs:
+        order.setdefault(j.label, {}).setdefault(j.terrain, {}).setdefault(j.dynamics, None)
+    results = {
+        task: {t: {m: summarize(scores[task][t][m]) for m in by_m} for t, by_m in by_t.items()}
+        for task, by_t in order.items()
+    }
+    return results, paths, time.perf_counter() - t0
+
+
+def _print_results(results: dict) -> None:
+    table = Table(title="closed-loop evaluation")
+    for col in ("task", "terrain", "model", "RMSE [mm]", "success", "time-to-goal [s]", "lane exits", "planner [ms]"):
+        table.add_column(col)
+    for task, by_t in results.items():
+        for terrain, by_m in by_t.items():
+            for m, c in by_m.items():
+                ttg = c["time_to_goal_s"]
+                table.add_row(
+                    task, terrain, m,
+                    "-" if math.isnan(c["rmse_mm"]) else f"{c['rmse_mm']:.1f}",
+                    f"{c['success']}/{c['trials']}",
+                    "-" if math.isnan(ttg) else f"{ttg:.2f} ± {c['time_to_goal_std_s']:.2f}",
+                    str(c["lane_exits"]),
+                    "-" if math.isnan(c["planner_ms"]) else f"{c['planner_ms']:.1f}",
+                )
+    Console(width=max(Console().width, 110)).print(table)
+
+
+def _finish(
+    results: dict, paths: dict, scenarios: dict[str, Scenario], seconds: float, settings: EvalSettings,
+    terrains: list[str], models: list[str], out: Path | None, as_json: bool,
+) -> None:
+    meta = {
+        "command": "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "wall_time_s": round(seconds, 1),
+        "settings": settings.__dict__,
+        "terrains": terrains,
+        "models": models,
+    }
+    if out is not None:
+        from tools.report import write_figures, write_tables
+
+        written = write_tables(results, meta, out, models, terrains)
+        written += write_figures(paths, scenarios, results, out)
+        Console(stderr=True).print(f"wrote {', '.join(str(p) for p in written)}")
+    if as_json:
+        print(json.dumps({"results": results, "meta": meta}, default=float))
+    else:
+        _print_results(results)
+        Console().print(f"wall time {seconds:.1f} s")
+
+
+def _run(
+    kind: str, terrain: list[str] | None, model: list[ModelName] | None, trials: int | None, seed: int,
+    plant: PlantName, plant_file: Path | None, terrain_file: Path | None, scene_file: list[Path] | None,
+    lane_file: list[Path] | None, gp_model: Path | None, quick: bool, as_json: bool, out: Path | None,
+    workers: int, samples: int, distance: float | None, latency: float, latency_cycles: int, noise: bool,
+    random_scenes: bool, switch: list[str] | None, overrides: list[str] | None,
+) -> None:
+    settings = _settings(plant, plant_file, terrain_file, gp_model, samples, distance, quick, latency,
+                         latency_cycles, noise, overrides)
+    terrains = terrain or _default_terrains(settings)
+    if quick and not terrain:
+        terrains = terrains[:1]
+    _check_terrains(settings, terrains + [name for _, name in _parse_switches(switch)])
+    models = [m.value for m in model] if model else list(MODELS)
+    lanes = _lanes(lane_file) if kind in ("tracking", "table") else {}
+    scenes = _scenes(scene_file) if kind in ("avoidance", "table") else {}
+    goal_trials = trials or (5 if quick else 100)
+    lane_trials = trials if (trials and kind == "tracking") else 1
+    jobs = _jobs(lanes, scenes, terrains, models, lane_trials, goal_trials, seed, _parse_switches(switch),
+                 random_scenes)
+    results, paths, seconds = _execute(jobs, settings, workers, quiet=False)
+    _finish(results, paths, {**lanes, **scenes}, seconds, settings, terrains, models, out, as_json)
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to `app`."""
+    """Add `gpmppi evaluate ...`."""
+    ev = typer.Typer(help="Closed-loop evaluation: lanes, obstacle scenes, the paper's Table 1.", no_args_is_help=True)
+
+    def make(kind: str, doc: str):
+        def command(
+            terrain: TerrainOpt = None, model: ModelOpt = None, trials: TrialsOpt = None, seed: SeedOpt = 0,
+            plant: PlantOpt = PlantName.physics, plant_file: PlantFileOpt = None, terrain_file: TerrainFileOpt = None,
+            scene_file: SceneFileOpt = None, lane_file: LaneFileOpt = None, gp_model: GpModelOpt = None,
+            quick: QuickOpt = False, as_json: JsonOpt = False, out: OutOpt = None, workers: WorkersOpt = 2,
+            samples: SamplesOpt = 1024, distance: DistanceOpt = None, latency: LatencyOpt = 0.0,
+            latency_cycles: LatencyCyclesOpt = 0, noise: NoiseOpt = True, random_scenes: RandomOpt = False,
+            switch: SwitchOpt = None, set_: SetOpt = None,
+        ) -> None:
+            if kind == "table" and out is None:
+                out = Path("evaluation")
+            _run(kind, terrain, model, trials, seed, plant, plant_file, terrain_file, scene_file, lane_file,
+                 gp_model, quick, as_json, out, workers, samples, distance, latency, latency_cycles, noise,
+                 random_scenes, switch, set_)
+
+        command.__doc__ = doc
+        return command
+
+    ev.command("tracking")(make("tracking", "Lane tracking (circle and square, or --lane-file): RMSE, lane exits."))
+    ev.command("avoidance")(make("avoidance", "Obstacle avoidance (the paper's scene or --scene-file): success."))
+    ev.command("table")(make("table", "The whole grid (terrains x models x {circle, square, avoidance}) into -o DIR."))
+    app.add_typer(ev, name="evaluate")
+

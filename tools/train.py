@@ -1,9 +1,323 @@
-"""CLI commands of this area (filled in by its owner)."""
+"""`gpmppi train DATA -o MODEL`: fit the per-terrain residual GPs from an MCAP log or a residual CSV."""
 
 from __future__ import annotations
 
+import csv
+import json
+import math
+import re
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
 import typer
+from rich.console import Console
+from rich.table import Table
+
+INPUT_COLUMNS = ("cmd_lin", "cmd_ang", "curr_lin", "curr_ang")
+PAPER_PREFIX = "gp_ip_"
+_TARGET_RE = re.compile(r"^(?P<terrain>.+)_(?P<out>Lin|Ang)_Error$", re.IGNORECASE)
+
+
+class DataError(ValueError):
+    """Training or prediction data that cannot be used; the message says what, where, and what to do."""
+
+
+# ---- CSV ----------------------------------------------------------------------------------------
+def read_csv_columns(path: Path) -> dict[str, np.ndarray]:
+    """All columns of a numeric CSV as float arrays; errors name the file, row and column."""
+    if not path.is_file():
+        raise DataError(f"{path}: no such file")
+    with open(path, newline="") as f:
+        reader = csv.reader(f)
+        try:
+            header = next(reader)
+        except StopIteration:
+            raise DataError(f"{path}: empty file (expected a header row)") from None
+        header = [h.strip() for h in header]
+        rows: list[list[float]] = []
+        for line_no, row in enumerate(reader, start=2):
+            if not row or all(not c.strip() for c in row):
+                continue
+            if len(row) != len(header):
+                raise DataError(f"{path}:{line_no}: {len(row)} fields, the header has {len(header)}")
+            values = []
+            for name, cell in zip(header, row, strict=True):
+                try:
+                    value = float(cell)
+                except ValueError:
+                    raise DataError(f"{path}:{line_no}: column {name!r} holds {cell!r}, not a number") from None
+                if not math.isfinite(value):
+                    raise DataError(
+                        f"{path}:{line_no}: column {name!r} is {cell!r} (NaN/inf); remove or fix that row"
+                    )
+                values.append(value)
+            rows.append(values)
+    if not rows:
+        raise DataError(f"{path}: no data rows after the header")
+    data = np.asarray(rows, dtype=np.float64)
+    return {name: data[:, i] for i, name in enumerate(header)}
+
+
+def csv_inputs(cols: dict[str, np.ndarray], path: Path) -> np.ndarray:
+    """The (N, 4) GP inputs from `cmd_lin,cmd_ang,curr_lin,curr_ang` (or the paper's `gp_ip_*` names)."""
+    out = []
+    for name in INPUT_COLUMNS:
+        if name in cols:
+            out.append(cols[name])
+        elif PAPER_PREFIX + name in cols:
+            out.append(cols[PAPER_PREFIX + name])
+        else:
+            raise DataError(
+                f"{path}: missing input column {name!r} (or {PAPER_PREFIX + name!r}); "
+                f"columns present: {sorted(cols)}"
+            )
+    return np.column_stack(out)
+
+
+def csv_residuals(cols: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarray]:
+    """terrain (lower case) -> (N, 2) residual targets from `{Terrain}_{Lin,Ang}_Error` columns."""
+    found: dict[str, dict[str, np.ndarray]] = {}
+    for name, values in cols.items():
+        m = _TARGET_RE.match(name)
+        if m:
+            found.setdefault(m["terrain"].lower(), {})[m["out"].lower()] = values
+    if not found:
+        raise DataError(f"{path}: no residual columns named like 'Asphalt_Lin_Error' / 'Asphalt_Ang_Error'")
+    out = {}
+    for t, parts in found.items():
+        if set(parts) != {"lin", "ang"}:
+            missing = "Ang" if "lin" in parts else "Lin"
+            raise DataError(f"{path}: terrain {t!r} has no {missing}_Error column")
+        out[t] = np.column_stack([parts["lin"], parts["ang"]])
+    return out
+
+
+# ---- MCAP ---------------------------------------------------------------------------------------
+def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | None) -> dict[str, dict]:
+    """terrain -> {"v", "w", "v_ref", "w_ref", "seg"} series on a dt grid from a recorded log.
+
+    Ticks are the state stamps resampled every dt; the command over [t_k, t_k + dt) is the last one
+    stamped at or before t_k (+dt/4 for clock jitter) and at most 2 dt old; a terrain label the same.
+    A segment ends where a tick is missing, the command is stale, or the label changes.
+    """
+    from services.mcap_io import read_messages
+
+    states: dict[str, list[tuple[int, float, float]]] = {}
+    cmds: dict[str, list[tuple[int, float, float]]] = {}
+    labels: dict[str, list[tuple[int, str]]] = {}
+    try:
+        for key, _, msg in read_messages(path):
+            parts = key.split("/")
+            if len(parts) < 3 or parts[0] != "gpmppi":
+                continue
+            rob, rest = parts[1], "/".join(parts[2:])
+            stamp = msg.header.stamp_ns
+            if rest == "state":
+                states.setdefault(rob, []).append((stamp, msg.v, msg.omega))
+            elif rest == "cmd":
+                cmds.setdefault(rob, []).append((stamp, msg.v_ref, msg.omega_ref))
+            elif rest == "terrain/label":
+                labels.setdefault(rob, []).append((stamp, msg.terrain))
+    except FileNotFoundError as e:
+        raise DataError(str(e)) from None
+    except Exception as e:  # noqa: BLE001 - any reader failure means the file is not a usable log
+        raise DataError(f"{path}: not a readable MCAP log ({type(e).__name__}: {e})") from e
+    robots = sorted(set(states) & set(cmds))
+    if robot is None:
+        if len(robots) != 1:
+            raise DataError(f"{path}: expected state and cmd of one robot, found robots {robots}; pass --robot")
+        robot = robots[0]
+    if robot not in robots:
+        raise DataError(f"{path}: no state + cmd messages for robot {robot!r} (robots with both: {robots})")
+    st = np.array(sorted(states[robot]))
+    cm = np.array(sorted(cmds[robot]))
+    lab = sorted(labels.get(robot, []))
+    if not lab and terrain is None:
+        raise DataError(f"{path}: the log has no terrain labels; name the terrain with --terrain NAME")
+    dt_ns = int(round(dt * 1e9))
+    tol = dt_ns // 4
+    t_state = st[:, 0].astype(np.int64)
+    t_cmd = cm[:, 0].astype(np.int64)
+    t_lab = np.array([s for s, _ in lab], dtype=np.int64)
+    out: dict[str, dict[str, list]] = {}
+    seg_id = 0
+    prev: tuple[int, str] | None = None  # (tick index, terrain) of the previous usable tick
+    tick = 0
+    t0 = int(t_state[0])
+    n_ticks = int((t_state[-1] - t0) // dt_ns) + 1
+    for tick in range(n_ticks):
+        t = t0 + tick * dt_ns
+        i = int(np.searchsorted(t_state, t))
+        cand = [j for j in (i - 1, i) if 0 <= j < len(t_state)]
+        j = min(cand, key=lambda j: abs(int(t_state[j]) - t))
+        c = int(np.searchsorted(t_cmd, t + tol, side="right")) - 1
+        name = terrain
+        if lab:
+            li = int(np.searchsorted(t_lab, t + tol, side="right")) - 1
+            name = lab[li][1] if li >= 0 else None
+        ok = abs(int(t_state[j]) - t) <= tol and c >= 0 and t - int(t_cmd[c]) <= 2 * dt_ns and name is not None
+        if not ok:
+            prev = None
+            continue
+        if prev is None or prev[0] != tick - 1 or prev[1] != name:
+            seg_id += 1
+        series = out.setdefault(name, {"v": [], "w": [], "v_ref": [], "w_ref": [], "seg": []})
+        series["v"].append(st[j, 1])
+        series["w"].append(st[j, 2])
+        series["v_ref"].append(cm[c, 1])
+        series["w_ref"].append(cm[c, 2])
+        series["seg"].append(seg_id)
+        prev = (tick, name)
+    if not out:
+        raise DataError(f"{path}: no state/command pairs on a {dt} s grid (are the stamps in nanoseconds?)")
+    return {t: {k: np.asarray(v) for k, v in s.items()} for t, s in out.items()}
+
+
+# ---- the command --------------------------------------------------------------------------------
+def _load_json(path: Path | None, what: str) -> dict | None:
+    if path is None:
+        return None
+    try:
+        return json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise DataError(f"{path}: no such {what} file") from None
+    except json.JSONDecodeError as e:
+        raise DataError(f"{path}: {what} file is not valid JSON ({e})") from None
+
+
+def _edd5_from_json(data: dict, terrains: list[str], path: Path) -> dict[str, np.ndarray]:
+    lower = {str(k).lower(): v for k, v in data.items()}
+    missing = [t for t in terrains if t not in lower]
+    if missing:
+        raise DataError(f"{path}: no EDD5 parameters for terrains {missing} (file has {sorted(data)})")
+    out = {}
+    for t in terrains:
+        p = np.asarray(lower[t], dtype=np.float64)
+        if p.shape != (5,) or not np.all(np.isfinite(p)):
+            raise DataError(f"{path}: EDD5 parameters for {t!r} must be 5 finite numbers")
+        out[t] = p
+    return out
+
+
+def _theta_from_json(data: dict, path: Path) -> np.ndarray:
+    theta = np.asarray(data.get("theta", data) if isinstance(data, dict) else data, dtype=np.float64)
+    if theta.shape != (6,) or not np.all(np.isfinite(theta)) or np.any(theta[:2] <= 0):
+        raise DataError(f"{path}: theta must be 6 finite numbers with theta1, theta2 > 0 (layout of theta.json)")
+    return theta
+
+
+def _select(available: list[str], wanted: list[str] | None, where: str) -> list[str]:
+    if not wanted:
+        return available
+    unknown = [t for t in wanted if t.lower() not in available]
+    if unknown:
+        raise DataError(f"{where}: unknown terrain(s) {unknown}; the data has {available}")
+    return [t.lower() for t in wanted]
+
+
+def build_training_sets(
+    data: Path, terrain: list[str] | None, theta_path: Path | None, edd5_path: Path | None,
+    dt: float, robot: str | None, seed: int,
+) -> tuple[dict, np.ndarray, dict[str, np.ndarray]]:
+    """(terrain -> Transitions, theta, EDD5 per terrain) from a CSV or an MCAP log."""
+    from gpmppi.gp.train import Transitions, prepare_from_series
+    from gpmppi.models.dynamic_unicycle import velocity_step_exact
+    from gpmppi.models.identify import identify_edd5
+
+    theta_json, edd5_json = _load_json(theta_path, "theta"), _load_json(edd5_path, "EDD5")
+    if data.suffix.lower() == ".csv":
+        cols = read_csv_columns(data)
+        x = csv_inputs(cols, data)
+        res = csv_residuals(cols, data)
+        terrains = _select(list(res), terrain, str(data))
+        if theta_json is None:
+            raise DataError(
+                f"{data}: a residual CSV holds residuals of an unknown nominal model, so theta cannot be "
+                "identified from it; pass --theta THETA.json"
+            )
+        theta = _theta_from_json(theta_json, theta_path)
+        pv, pw = velocity_step_exact(theta, x[:, 2].copy(), x[:, 3].copy(), x[:, 0].copy(), x[:, 1].copy(), dt)
+        sets = {t: Transitions(x, res[t], np.column_stack([pv, pw]) + res[t]) for t in terrains}
+        if edd5_json is not None:
+            edd5 = _edd5_from_json(edd5_json, terrains, edd5_path)
+        else:  # EDD5 maps a command to the velocity it settles at: fit to the measured next velocities
+            edd5 = {t: identify_edd5(x[:, 0], x[:, 1], s.next_vw[:, 0], s.next_vw[:, 1], seed=seed)
+                    for t, s in sets.items()}
+        return sets, theta, edd5
+    series = read_log_series(data, dt, terrain[0] if terrain and len(terrain) == 1 else None, robot)
+    terrains = _select(sorted(series), terrain, str(data)) if terrain and len(series) > 1 else sorted(series)
+    th = _theta_from_json(theta_json, theta_path) if theta_json is not None else None
+    ed = _edd5_from_json(edd5_json, terrains, edd5_path) if edd5_json is not None else None
+    return prepare_from_series({t: series[t] for t in terrains}, dt, theta=th, edd5=ed, seed=seed)
+
+
+def print_report(report, console: Console) -> None:
+    table = Table(title=f"GP fit: one-step RMSE on {report.eval_set}")
+    for col in ("terrain", "output", "steps", "RMSE nominal", "RMSE nominal+GP", "NLL"):
+        table.add_column(col, justify="right")
+    for f in report.terrains:
+        for o, name in enumerate(("v", "omega")):
+            table.add_row(f.terrain, name, str(f.n_eval), f"{f.rmse_nominal[o]:.4f}", f"{f.rmse_gp[o]:.4f}",
+                          f"{f.nll[o]:.3f}")
+    console.print(table)
+    if report.final_loss is not None:
+        console.print(f"final negative marginal log likelihood per task (normalized targets): {report.final_loss:.4f}")
 
 
 def register(app: typer.Typer) -> None:
-    """Add this module's commands to `app`."""
+    """Add `gpmppi train`."""
+
+    @app.command("train")
+    def train_cmd(
+        data: Annotated[Path, typer.Argument(help="MCAP log (state, cmd, terrain labels) or residual CSV")],
+        output: Annotated[Path, typer.Option("--output", "-o", help="model file to write (.npz)")],
+        terrain: Annotated[list[str] | None, typer.Option(
+            help="terrain name of an unlabeled log; or, repeated, the terrains to keep")] = None,
+        hyperparameters: Annotated[Path | None, typer.Option(
+            help="fixed hyperparameters (layout of gp_hyperparameters.json) instead of fitting")] = None,
+        theta: Annotated[Path | None, typer.Option(help="nominal parameters JSON (layout of theta.json)")] = None,
+        edd5: Annotated[Path | None, typer.Option(help="EDD5 parameters per terrain JSON (edd5.json layout)")] = None,
+        test_data: Annotated[Path | None, typer.Option(help="residual CSV to report the fit on")] = None,
+        holdout: Annotated[float | None, typer.Option(
+            help="fraction held out for the fit report (default: 0.2 for logs, 0 for CSV)")] = None,
+        points: Annotated[int, typer.Option(help="number of shared GP training inputs")] = 300,
+        iters: Annotated[int, typer.Option(help="Adam iterations of the hyperparameter fit")] = 200,
+        seed: Annotated[int, typer.Option(help="seed of k-means, the holdout split and the fit")] = 0,
+        dt: Annotated[float, typer.Option(help="sampling step of the data [s]")] = 0.1,
+        robot: Annotated[str | None, typer.Option(help="robot name in the log keys (auto when only one)")] = None,
+        grid_nodes: Annotated[int, typer.Option(help="grid predictor nodes per axis stored in the file")] = 24,
+    ) -> None:
+        """Train the per-terrain residual GPs and write the model file."""
+        from gpmppi.gp.grid import build_grid
+        from gpmppi.gp.train import Transitions, train_model
+
+        console = Console()
+        try:
+            if not 0.0 <= (holdout or 0.0) < 1.0:
+                raise DataError(f"--holdout must be in [0, 1), got {holdout}")
+            sets, th, ed = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
+            test_sets = None
+            if test_data is not None:
+                cols = read_csv_columns(test_data)
+                tx, tres = csv_inputs(cols, test_data), csv_residuals(cols, test_data)
+                missing = [t for t in sets if t not in tres]
+                if missing:
+                    raise DataError(f"{test_data}: no residual columns for terrains {missing}")
+                test_sets = {t: Transitions(tx, tres[t]) for t in sets}
+            hold = holdout if holdout is not None else (0.0 if data.suffix.lower() == ".csv" else 0.2)
+            model, report = train_model(
+                sets, th, ed, dt=dt, points=points, iters=iters, seed=seed,
+                hyperparameters=_load_json(hyperparameters, "hyperparameter"), holdout=hold, test_sets=test_sets,
+            )
+            if grid_nodes > 0:
+                model.set_grid(build_grid(model, grid_nodes))
+        except ValueError as e:
+            Console(stderr=True).print(f"[red]error:[/red] {e}", highlight=False)
+            raise typer.Exit(code=2) from None
+        model.save(output)
+        print_report(report, console)
+        console.print(
+            f"wrote {output}: terrains {model.terrains}, {len(model.train_x)} training inputs, "
+            f"theta {np.array2string(model.theta, precision=4)}"
+        )

@@ -1,1 +1,5 @@
-"""gp"""
+"""Per-terrain residual GPs: the model file, training, and the exact and grid predictors."""
+
+from gpmppi.gp.model_file import GPModel, GridTable, ModelFileError, load_default_model
+
+__all__ = ["GPModel", "GridTable", "ModelFileError", "load_default_model"]

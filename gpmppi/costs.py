@@ -1,0 +1,170 @@
+"""Tracking and avoidance costs, and chance-constraint tightening.
+
+Costs are critic-style (as Nav2 MPPI): each term is a small numba function with its own weight,
+evaluated on the state after every rollout step k = 0..N-1 (the terminal term once on x_N).
+
+* tracking (lane):   variance + deviation (d / r)^2 + slip + discount^k [d > r_bar_k] + (v - v_target)^2
+* avoidance (goal):  variance + [inside an inflated circle] + |p - goal| per step + terminal |p_N - goal|
+
+The variance term (GP ensemble variance of the step's velocity residual) is counted at every step.
+
+Tightening (chance constraints at probability p_x, from the propagated covariance Sigma_XY):
+
+* lane half-width  r_bar = r - sqrt(chi2_2(p_x) * lambda_max(Sigma_XY)), clamped to >= min_fraction * r
+* obstacle radius  r_j + Phi^-1(p_x) * sqrt(n^T Sigma_XY n) with n the unit vector from the obstacle
+  centre to the nominal position, the inflation capped at `max_inflation`.
+
+Quantiles come from scipy.stats once per configuration (`ChanceQuantiles`), never per step.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+from scipy.stats import chi2, norm
+
+from gpmppi.mppi.flags import FASTMATH
+
+# indices into the cost-weight vector handed to the kernels
+W_VARIANCE = 0
+W_DEVIATION = 1
+W_SLIP = 2
+W_LANE_EXIT = 3
+W_SPEED = 4
+W_COLLISION = 5
+W_GOAL = 6
+W_TERMINAL = 7
+W_EXIT_DISCOUNT = 8
+N_COST_WEIGHTS = 9
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def variance_cost(var_v: float, var_w: float, weight: float) -> float:
+    """Penalise uncertain regions: the ensemble variance of the step's velocity residuals."""
+    return weight * (var_v + var_w)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def deviation_cost(dist: float, half_width: float, weight: float) -> float:
+    """Lane deviation normalised by the nominal half-width."""
+    e = dist / half_width
+    return weight * e * e
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def slip_cost(v: float, w: float, v_ref: float, w_ref: float, weight: float) -> float:
+    """Gap between the commanded and the resulting velocities (slip / lag of the base)."""
+    dv = v_ref - v
+    dw = w_ref - w
+    return weight * (dv * dv + dw * dw)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def lane_exit_cost(dist: float, tightened_half_width: float, discount_k: float, weight: float) -> float:
+    """Indicator of leaving the tightened lane, discounted along the horizon (discount^k)."""
+    return weight * discount_k if dist > tightened_half_width else 0.0
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def speed_cost(v: float, target: float, weight: float) -> float:
+    e = v - target
+    return weight * e * e
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def collision_cost(x: float, y: float, obstacles: np.ndarray, radii: np.ndarray, weight: float) -> float:
+    """Indicator of being inside any circle; `radii` (K,) are the inflated radii at this step."""
+    for j in range(obstacles.shape[0]):
+        dx = x - obstacles[j, 0]
+        dy = y - obstacles[j, 1]
+        r = radii[j]
+        if dx * dx + dy * dy < r * r:  # squared distance against squared radius
+            return weight
+    return 0.0
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def goal_cost(x: float, y: float, goal: np.ndarray, weight: float) -> float:
+    """Euclidean distance to the goal (stage term; the terminal term uses the same with its weight)."""
+    dx = x - goal[0]
+    dy = y - goal[1]
+    return weight * np.sqrt(dx * dx + dy * dy)
+
+
+@dataclass(frozen=True)
+class ChanceQuantiles:
+    """Quantiles for chance constraints at probability `p_x` (computed once per configuration)."""
+
+    p_x: float
+    chi2_2: float  # chi-square quantile with 2 degrees of freedom
+    normal: float  # standard normal quantile Phi^-1(p_x)
+
+    @classmethod
+    def for_probability(cls, p_x: float) -> ChanceQuantiles:
+        if not (0.0 < p_x < 1.0):
+            raise ValueError(f"p_x must be a probability in (0, 1), got {p_x}")
+        return cls(float(p_x), float(chi2.ppf(p_x, 2)), float(norm.ppf(p_x)))
+
+
+@njit(cache=True)
+def xy_lambda_max(cov: np.ndarray) -> float:
+    """Largest eigenvalue of the XY block of a 5x5 covariance (closed form for 2x2 symmetric)."""
+    a = cov[0, 0]
+    b = 0.5 * (cov[0, 1] + cov[1, 0])
+    c = cov[1, 1]
+    half_tr = 0.5 * (a + c)
+    disc = np.sqrt(max(0.25 * (a - c) * (a - c) + b * b, 0.0))
+    return max(half_tr + disc, 0.0)
+
+
+@njit(cache=True)
+def tighten_lane(covs: np.ndarray, half_width: float, chi2_q: float, min_fraction: float) -> tuple[np.ndarray, int]:
+    """(N+1,) tightened half-widths from (N+1, 5, 5) covariances, and how many steps were clamped."""
+    n = covs.shape[0]
+    out = np.empty(n)
+    floor = min_fraction * half_width
+    clamped = 0
+    for k in range(n):
+        r = half_width - np.sqrt(chi2_q * xy_lambda_max(covs[k]))
+        if r < floor:
+            r = floor
+            clamped += 1
+        out[k] = r
+    return out, clamped
+
+
+@njit(cache=True)
+def inflate_obstacles(
+    states: np.ndarray, covs: np.ndarray, obstacles: np.ndarray, normal_q: float, extra: float, max_inflation: float
+) -> tuple[np.ndarray, int]:
+    """(N+1, K) effective radii r_j + extra + min(Phi^-1(p) sqrt(n^T S n), cap), and the number capped.
+
+    `extra` is the robot radius. When the nominal position sits on the centre (no direction) the
+    worst direction (largest eigenvalue) is used.
+    """
+    n = states.shape[0]
+    k_n = obstacles.shape[0]
+    out = np.empty((n, k_n))
+    capped = 0
+    for k in range(n):
+        sxx = covs[k, 0, 0]
+        sxy = 0.5 * (covs[k, 0, 1] + covs[k, 1, 0])
+        syy = covs[k, 1, 1]
+        for j in range(k_n):
+            dx = states[k, 0] - obstacles[j, 0]
+            dy = states[k, 1] - obstacles[j, 1]
+            d = np.sqrt(dx * dx + dy * dy)
+            if d > 1e-9:
+                nx = dx / d
+                ny = dy / d
+                s2 = nx * nx * sxx + 2.0 * nx * ny * sxy + ny * ny * syy
+            else:
+                s2 = xy_lambda_max(covs[k])
+            infl = normal_q * np.sqrt(max(s2, 0.0))
+            if infl > max_inflation:
+                infl = max_inflation
+                capped += 1
+            out[k, j] = obstacles[j, 2] + extra + max(infl, 0.0)
+    return out, capped

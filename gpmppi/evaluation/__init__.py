@@ -1,0 +1,1 @@
+"""Closed-loop evaluation: run planner + terrain estimator + plant in one process, and score the runs."""

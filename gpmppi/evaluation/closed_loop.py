@@ -1,0 +1,205 @@
+"""One closed loop in one process: planner + terrain estimator + plant, exactly the code the services run.
+
+The plant advances at its own internal step (its `dt`, inside `Plant.step`), the planner runs every
+`planner_dt` on the measured state, the terrain estimator sees each measured transition and its
+weights feed the next plan, and a command can reach the plant late (latency in seconds; use
+`latency_from_cycles` for planner cycles). Nothing depends on wall-clock time, so a run is a pure
+function of its seeds (planner seed, plant seed).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Literal, Protocol
+
+import numpy as np
+
+from gpmppi.evaluation.metrics import first_collision_index
+from gpmppi.tasks import GoalTask, LaneTask
+
+Status = Literal["goal", "collision", "distance", "time_limit", "planner_error"]
+
+
+class PlantLike(Protocol):
+    dt: float
+
+    def reset(self, state: np.ndarray) -> None: ...
+    def step(self, command: np.ndarray, duration: float) -> np.ndarray: ...
+    def measure(self) -> np.ndarray: ...
+    def set_terrain(self, name: str) -> None: ...
+
+
+class PlannerLike(Protocol):
+    def plan(self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None): ...
+    def reset(self) -> None: ...
+
+
+class EstimatorLike(Protocol):
+    def observe(self, state: np.ndarray, command: np.ndarray, next_state: np.ndarray) -> None: ...
+    def estimate(self): ...
+
+
+@dataclass(frozen=True)
+class ClosedLoopConfig:
+    """How a closed-loop run is driven and when it stops."""
+
+    planner_dt: float = 0.1  # [s] planning period (the planner's own dt)
+    time_limit_s: float = 30.0  # [s] stop after this much simulated time
+    distance_limit_m: float | None = None  # [m] stop after driving this far (lanes: 100 m)
+    stop_at_goal: bool = True  # goal tasks: stop when the true position is within tolerance
+    stop_on_collision: bool = True  # goal tasks: stop at the first overlap with an obstacle
+    robot_radius: float = 0.0  # [m] robot disc for collisions (0 = point robot, as the paper scores it)
+    latency_s: float = 0.0  # [s] delay between a plan and its command reaching the plant
+    adapt_weights: bool = True  # run the terrain estimator each cycle and feed its weights to the planner
+    terrain_switches: tuple[tuple[float, str], ...] = ()  # (time [s], terrain) changes of the plant's ground
+
+    def __post_init__(self) -> None:
+        if not self.planner_dt > 0 or not self.time_limit_s > 0:
+            raise ValueError("planner_dt and time_limit_s must be > 0")
+        if self.latency_s < 0:
+            raise ValueError(f"latency must be >= 0 s, got {self.latency_s}")
+
+
+def latency_from_cycles(cycles: int, planner_dt: float = 0.1) -> float:
+    """Command latency [s] of a whole number of planner cycles."""
+    if cycles < 0:
+        raise ValueError(f"latency cycles must be >= 0, got {cycles}")
+    return cycles * planner_dt
+
+
+@dataclass
+class Trajectory:
+    """What happened in one run, sampled at planner cycles (index k = time k * planner_dt)."""
+
+    times: np.ndarray  # (T+1,) [s]
+    true_states: np.ndarray  # (T+1, 5)
+    measured_states: np.ndarray  # (T+1, 5) what the planner and estimator saw
+    commands: np.ndarray  # (T, 2) planned command at cycle k
+    weights: np.ndarray  # (T, M) terrain weights used by the plan at cycle k
+    weights_ok: np.ndarray  # (T,) whether the estimator produced the weights of that cycle
+    planner_ms: np.ndarray  # (T,) wall time of each plan() call [ms] (the only non-deterministic field)
+    tightened: list[np.ndarray]  # per cycle: lane (N+1,) tightened half-widths or goal (N+1, K) inflated radii
+    terrains: list[str]  # plant terrain during cycle k
+    status: Status = "time_limit"
+    message: str = ""
+    plans_xy: list[np.ndarray] = field(default_factory=list)  # nominal plans (N+1, 2) if recorded
+
+    @property
+    def positions(self) -> np.ndarray:
+        return self.true_states[:, :2]
+
+
+def run_closed_loop(
+    planner: PlannerLike,
+    plant: PlantLike,
+    task: LaneTask | GoalTask,
+    start: np.ndarray,
+    n_terrains: int,
+    config: ClosedLoopConfig | None = None,
+    estimator: EstimatorLike | None = None,
+    initial_weights: np.ndarray | None = None,
+    initial_terrain: str | None = None,
+    record_plans: bool = False,
+) -> Trajectory:
+    """Drive `plant` with `planner` on `task` from `start` until goal, collision, distance or time limit."""
+    cfg = config or ClosedLoopConfig()
+    dt = cfg.planner_dt
+    eps = 1e-9
+    weights = (
+        np.full(n_terrains, 1.0 / n_terrains) if initial_weights is None else np.asarray(initial_weights, float).copy()
+    )
+    switches = sorted(cfg.terrain_switches)
+    terrain = initial_terrain or ""
+    if initial_terrain is not None:
+        plant.set_terrain(initial_terrain)
+    planner.reset()
+    plant.reset(np.asarray(start, dtype=np.float64))
+    true_state = np.asarray(start, dtype=np.float64).copy()
+    measured = np.asarray(plant.measure(), dtype=np.float64)
+
+    times, trues, meas = [0.0], [true_state.copy()], [measured.copy()]
+    cmds, ws, oks, pms, tights, terrs, plans = [], [], [], [], [], [], []
+    pending: deque[tuple[float, np.ndarray]] = deque()
+    active = np.zeros(2)
+    driven = 0.0
+    status: Status = "time_limit"
+    message = ""
+    steps = int(np.ceil(cfg.time_limit_s / dt - eps))
+    for k in range(steps):
+        t = k * dt
+        while switches and switches[0][0] <= t + eps:
+            terrain = switches.pop(0)[1]
+            plant.set_terrain(terrain)
+        ok = False
+        if estimator is not None and cfg.adapt_weights and k > 0:
+            estimator.observe(meas[-2], cmds[-1], measured)
+            est = estimator.estimate()
+            ok = bool(est.ok)
+            if ok:
+                weights = np.asarray(est.weights, dtype=np.float64).copy()
+        t0 = time.perf_counter()
+        try:
+            result = planner.plan(measured, task, weights)
+        except (ValueError, FloatingPointError) as e:
+            status, message = "planner_error", f"planner failed at t={t:.1f} s: {e}"
+            break
+        pms.append((time.perf_counter() - t0) * 1e3)
+        command = np.asarray(result.control, dtype=np.float64).copy()
+        cmds.append(command)
+        ws.append(weights.copy())
+        oks.append(ok)
+        tights.append(np.asarray(result.tightened).copy())
+        terrs.append(terrain)
+        if record_plans:
+            plans.append(np.asarray(result.states)[:, :2].copy())
+        pending.append((t + cfg.latency_s, command))
+
+        # advance the plant over [t, t + dt), switching commands where delayed ones arrive
+        seg = t
+        end = t + dt
+        while seg < end - eps:
+            while pending and pending[0][0] <= seg + eps:
+                active = pending.popleft()[1]
+            seg_end = min(end, pending[0][0]) if pending else end
+            if seg_end <= seg + eps:
+                seg_end = end
+            true_state = np.asarray(plant.step(active, seg_end - seg), dtype=np.float64).copy()
+            seg = seg_end
+        measured = np.asarray(plant.measure(), dtype=np.float64).copy()
+        driven += float(np.linalg.norm(true_state[:2] - trues[-1][:2]))
+        times.append((k + 1) * dt)
+        trues.append(true_state.copy())
+        meas.append(measured.copy())
+
+        if not np.all(np.isfinite(true_state)):
+            status, message = "planner_error", f"plant state became non-finite at t={times[-1]:.1f} s"
+            break
+        if isinstance(task, GoalTask):
+            hit = first_collision_index(true_state[None, :2], task.obstacles, cfg.robot_radius)
+            if cfg.stop_on_collision and hit is not None:
+                status = "collision"
+                break
+            if cfg.stop_at_goal and np.linalg.norm(true_state[:2] - task.goal) <= task.tolerance:
+                status = "goal"
+                break
+        if cfg.distance_limit_m is not None and driven >= cfg.distance_limit_m:
+            status = "distance"
+            break
+
+    m = len(cmds)
+    return Trajectory(
+        times=np.asarray(times),
+        true_states=np.asarray(trues),
+        measured_states=np.asarray(meas),
+        commands=np.asarray(cmds).reshape(m, 2),
+        weights=np.asarray(ws).reshape(m, -1),
+        weights_ok=np.asarray(oks, dtype=bool),
+        planner_ms=np.asarray(pms),
+        tightened=tights,
+        terrains=terrs,
+        status=status,
+        message=message,
+        plans_xy=plans,
+    )

@@ -1,0 +1,263 @@
+"""Build planner, estimator and plant for one evaluation job, run its trials and score them.
+
+A job is one (scenario, terrain, model) cell with a list of seeds. Jobs are plain picklable data so
+the table can fan them out to worker processes (spawn context); each worker keeps its GP model
+and terrain set in a small per-process cache.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from gpmppi.evaluation.closed_loop import ClosedLoopConfig, Trajectory, run_closed_loop
+from gpmppi.evaluation.metrics import goal_outcome, lane_exit_count, lane_rmse_mm, mean_std, path_length
+from gpmppi.scenarios import Scenario, infeasibility, random_obstacle_scene
+from gpmppi.tasks import GoalTask, LaneTask
+
+Dynamics = Literal["gp", "edd5", "unicycle"]
+PlantKind = Literal["physics", "residual-net"]
+MODELS: tuple[Dynamics, ...] = ("gp", "edd5", "unicycle")
+# The paper's residual net orders its six outputs as the CSV columns: Asphalt, Grass, Tile (v then omega each).
+PAPER_NET_TERRAINS = ["asphalt", "grass", "tile"]
+
+
+@dataclass(frozen=True)
+class EvalSettings:
+    """Everything about an evaluation that is shared by all its jobs."""
+
+    plant: PlantKind = "physics"
+    plant_file: str | None = None  # residual-net: the network JSON (the paper's fcnn.json)
+    terrain_file: str | None = None  # physics: terrain set YAML (None = shipped)
+    gp_model: str | None = None  # GP model file (None = shipped default)
+    samples: int = 1024
+    horizon: int = 40
+    backend: Literal["auto", "cpu", "cuda"] = "cpu"
+    lane_distance_m: float = 100.0  # lanes: drive this far at the speed target
+    goal_time_limit_s: float = 30.0  # avoidance: time limit for success
+    sensor_noise: bool = True  # physics plant measurement noise
+    latency_s: float = 0.0  # command latency
+    robot_radius: float = 0.0  # collision radius of the robot (0 = point, as the paper scores)
+    planner_overrides: tuple[tuple[str, object], ...] = ()  # extra PlannerConfig fields, same for every model
+
+
+@dataclass(frozen=True)
+class Job:
+    """One table cell: a scenario on a terrain with one model, for the given seeds."""
+
+    kind: Literal["tracking", "avoidance"]
+    scenario: Scenario
+    terrain: str
+    dynamics: Dynamics
+    seeds: tuple[int, ...]
+    record: bool = False  # keep the first seed's trajectory (for figures)
+    terrain_switches: tuple[tuple[float, str], ...] = ()
+    label: str = ""  # the task column this job feeds (circle, square, avoidance, a file name)
+    random_scenes: bool = False  # avoidance: each seed drives its own random scene (`random_obstacle_scene(seed)`)
+
+
+@dataclass
+class RunScore:
+    """The numbers of one trial."""
+
+    seed: int
+    status: str
+    rmse_mm: float = float("nan")
+    lane_exits: int = 0
+    success: bool = False
+    time_to_goal_s: float = float("nan")
+    min_clearance_m: float = float("nan")
+    distance_m: float = 0.0
+    planner_ms_mean: float = float("nan")
+    planner_ms_p95: float = float("nan")
+    final_weights: list[float] = field(default_factory=list)
+    message: str = ""
+
+
+@functools.lru_cache(maxsize=4)
+def _gp_model(path: str | None):
+    from gpmppi.gp.model_file import GPModel, load_default_model
+
+    return load_default_model() if path is None else GPModel.load(path)
+
+
+@functools.lru_cache(maxsize=4)
+def _terrain_set(path: str | None):
+    from gpmppi.plant.terrains import load_terrains
+
+    return load_terrains(path)
+
+
+def make_plant(settings: EvalSettings, terrain: str, seed: int):
+    """The plant of this evaluation on `terrain`, seeded."""
+    if settings.plant == "physics":
+        from gpmppi.plant.physics import PhysicsPlant
+
+        return PhysicsPlant(_terrain_set(settings.terrain_file), terrain, seed=seed, noise=settings.sensor_noise)
+    from gpmppi.plant.residual_net import ResidualNetPlant
+
+    if settings.plant_file is None:
+        raise ValueError("the residual-net plant needs --plant-file (the network JSON, e.g. the paper's fcnn.json)")
+    model = _gp_model(settings.gp_model)
+    return ResidualNetPlant(settings.plant_file, model.theta, terrain, PAPER_NET_TERRAINS, seed=seed)
+
+
+def make_planner(settings: EvalSettings, dynamics: Dynamics, terrain: str, seed: int):
+    """A planner with the given model; EDD5 uses the parameters of the terrain it drives on when it has them."""
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+
+    model = _gp_model(settings.gp_model)
+    edd5_terrain = terrain if (dynamics == "edd5" and terrain in model.edd5) else None
+    fields: dict[str, object] = {
+        "backend": settings.backend,
+        "samples": settings.samples,
+        "horizon": settings.horizon,
+        "robot_radius": settings.robot_radius,
+    }
+    fields.update(settings.planner_overrides)
+    fields.update(dynamics=dynamics, seed=seed, edd5_terrain=edd5_terrain)
+    return Planner(PlannerConfig(**fields), model)
+
+
+def needs_estimator(settings: EvalSettings, job: Job) -> bool:
+    """GP-MPPI always adapts its weights; EDD5 does on a terrain it has no parameters for (it takes the top weight)."""
+    if job.dynamics == "gp":
+        return True
+    return job.dynamics == "edd5" and job.terrain not in _gp_model(settings.gp_model).edd5
+
+
+def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
+    task = job.scenario.task
+    adapt = needs_estimator(settings, job)
+    if isinstance(task, LaneTask):
+        speed = max(task.speed_target, 0.25)
+        return ClosedLoopConfig(
+            time_limit_s=1.5 * settings.lane_distance_m / speed + 10.0,
+            distance_limit_m=settings.lane_distance_m,
+            stop_on_collision=False,
+            latency_s=settings.latency_s,
+            robot_radius=settings.robot_radius,
+            adapt_weights=adapt,
+            terrain_switches=job.terrain_switches,
+        )
+    return ClosedLoopConfig(
+        time_limit_s=settings.goal_time_limit_s,
+        latency_s=settings.latency_s,
+        robot_radius=settings.robot_radius,
+        adapt_weights=adapt,
+        terrain_switches=job.terrain_switches,
+    )
+
+
+def score(traj: Trajectory, task: LaneTask | GoalTask, seed: int, cfg: ClosedLoopConfig) -> RunScore:
+    """Score one trajectory (true states, at planner cycles)."""
+    pos = traj.positions
+    s = RunScore(seed=seed, status=traj.status, message=traj.message, distance_m=path_length(pos))
+    if traj.planner_ms.size:
+        s.planner_ms_mean = float(np.mean(traj.planner_ms))
+        s.planner_ms_p95 = float(np.percentile(traj.planner_ms, 95))
+    if traj.weights.size:
+        s.final_weights = [float(w) for w in traj.weights[-1]]
+    if isinstance(task, LaneTask):
+        s.rmse_mm = lane_rmse_mm(pos, task.centerline, task.closed)
+        s.lane_exits = lane_exit_count(pos, task.centerline, task.half_width, task.closed)
+        s.success = traj.status == "distance" and s.lane_exits == 0
+    else:
+        limit, radius = cfg.time_limit_s, cfg.robot_radius
+        out = goal_outcome(traj.times, pos, task.goal, task.tolerance, task.obstacles, limit, radius)
+        s.success, s.time_to_goal_s, s.min_clearance_m = out.success, out.time_to_goal_s, out.min_clearance_m
+    return s
+
+
+def run_job(job: Job, settings: EvalSettings) -> tuple[list[RunScore], list[Trajectory]]:
+    """Run every seed of `job`; an infeasible scenario gives 'infeasible' scores instead of runs."""
+    model = _gp_model(settings.gp_model)
+    cfg = loop_config(settings, job)
+    scores: list[RunScore] = []
+    trajectories: list[Trajectory] = []
+    estimator = None
+    for seed in job.seeds:
+        scenario = random_obstacle_scene(seed) if job.random_scenes else job.scenario
+        problems = infeasibility(scenario, settings.robot_radius)
+        if problems:
+            scores.append(RunScore(seed=seed, status="infeasible", message="; ".join(problems)))
+            continue
+        if cfg.adapt_weights:
+            from gpmppi.terrain import TerrainEstimator
+
+            estimator = TerrainEstimator(model)
+        planner = make_planner(settings, job.dynamics, job.terrain, seed)
+        plant = make_plant(settings, job.terrain, seed)
+        traj = run_closed_loop(
+            planner,
+            plant,
+            scenario.task,
+            scenario.start,
+            model.n_terrains,
+            cfg,
+            estimator=estimator,
+            record_plans=False,
+        )
+        scores.append(score(traj, scenario.task, seed, cfg))
+        if job.record and not trajectories:
+            trajectories.append(traj)
+    return scores, trajectories
+
+
+def summarize(scores: list[RunScore]) -> dict:
+    """Aggregate one cell: mean RMSE, success count, time-to-goal mean and std over successes, etc."""
+    runs = [s for s in scores if s.status != "infeasible"]
+    rmse_m, rmse_s = mean_std([s.rmse_mm for s in runs])
+    ttg_m, ttg_s = mean_std([s.time_to_goal_s for s in runs if s.success])
+    ms = mean_std([s.planner_ms_mean for s in runs])[0]
+    clear = [s.min_clearance_m for s in runs if np.isfinite(s.min_clearance_m)]
+    return {
+        "rmse_mm": rmse_m,
+        "rmse_std_mm": rmse_s,
+        "success": int(sum(s.success for s in runs)),
+        "trials": len(scores),
+        "time_to_goal_s": ttg_m,
+        "time_to_goal_std_s": ttg_s,
+        "lane_exits": int(sum(s.lane_exits for s in runs)),
+        "collisions": int(sum(s.status == "collision" for s in runs)),
+        "min_clearance_m": float(min(clear)) if clear else float("nan"),
+        "planner_ms": ms,
+        "infeasible": len(scores) - len(runs),
+        "statuses": {st: sum(s.status == st for s in scores) for st in sorted({s.status for s in scores})},
+    }
+
+
+def score_dicts(scores: list[RunScore]) -> list[dict]:
+    return [asdict(s) for s in scores]
+
+
+def figure_record(traj: Trajectory) -> dict:
+    """The small part of a trajectory the figures need: the driven XY and typical inflated radii."""
+    rec: dict = {"xy": traj.positions.copy(), "inflated": None}
+    goal_tight = [t for t in traj.tightened if t.ndim == 2 and t.shape[1] > 0]
+    if goal_tight:
+        # per obstacle: the largest inflation along each plan's horizon, median over the run's cycles
+        rec["inflated"] = np.median(np.stack([t.max(axis=0) for t in goal_tight]), axis=0)
+    return rec
+
+
+def run_job_for_report(job: Job, settings: EvalSettings) -> tuple[Job, list[RunScore], dict | None]:
+    """Worker entry point: scores of every seed, and the first seed's figure record if `job.record`."""
+    scores, trajectories = run_job(job, settings)
+    return job, scores, (figure_record(trajectories[0]) if trajectories else None)
+
+
+def init_worker(threads: int) -> None:
+    """Worker initializer: share the cores between workers instead of oversubscribing them."""
+    import numba
+
+    numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        import torch
+
+        torch.set_num_threads(max(1, threads))
+    except ImportError:
+        pass

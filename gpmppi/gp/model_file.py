@@ -1,0 +1,320 @@
+"""The trained GP model and its file format.
+
+A model is a batch of 2M independent exact GPs (M terrains x {v, omega}) over the 4-D input
+`[v_ref, omega_ref, v, omega]`, each ScaleKernel(RBF-ARD) with zero mean, plus the nominal
+dynamic-unicycle parameters and the per-terrain EDD5 baselines it was trained with.
+
+File format: one `.npz` archive (no pickles) holding the arrays below and a `metadata` entry,
+a JSON string with the format name and version, terrain and task names, input names and dt.
+The grid predictor's table is stored as well when the writer built it; otherwise
+`GPModel.grid()` builds it on first use. To keep the file small the table is stored quantized
+to 16 bits per channel (offset + scale, error <= 1/131070 of the channel's range) and
+difference-coded along the four axes, which the archive's deflate then compresses ~3x
+(a smooth table has small differences).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+FORMAT_NAME = "gpmppi-gp-model"
+FORMAT_VERSION = 1
+INPUT_NAMES = ("v_ref", "omega_ref", "v", "omega")
+N_INPUT = 4
+DEFAULT_MODEL_PATH = Path(__file__).resolve().parents[1] / "data" / "default_gp_model.npz"
+
+_MODEL_ARRAYS = (
+    "theta", "edd5", "domain_lo", "domain_hi", "train_x", "lengthscale", "outputscale", "noise", "chol", "alpha"
+)
+_GRID_ARRAYS = ("grid_q", "grid_offset", "grid_scale", "grid_lo", "grid_inv_step")
+
+
+class ModelFileError(ValueError):
+    """A GP model file could not be read: the message says which file and what is wrong."""
+
+
+@dataclass
+class GridTable:
+    """Precomputed GP predictions on a regular 4-D grid, for `grid_interp`.
+
+    `table` has shape (G, G, G, G, 4M): the means of the 2M tasks, then their latent variances.
+    """
+
+    table: np.ndarray
+    lo: np.ndarray
+    inv_step: np.ndarray
+
+    @property
+    def nodes(self) -> int:
+        return int(self.table.shape[0])
+
+    @property
+    def hi(self) -> np.ndarray:
+        return self.lo + (np.asarray(self.table.shape[:4]) - 1) / self.inv_step
+
+
+@dataclass
+class GPModel:
+    """Batch of 2M exact GPs; task t = 2*m + (0 for v, 1 for omega) belongs to terrain m."""
+
+    terrains: list[str]
+    tasks: list[str]
+    theta: np.ndarray
+    edd5: dict[str, np.ndarray]
+    domain_lo: np.ndarray
+    domain_hi: np.ndarray
+    train_x: np.ndarray
+    lengthscale: np.ndarray
+    outputscale: np.ndarray
+    noise: np.ndarray
+    chol: np.ndarray
+    alpha: np.ndarray
+    dt: float = 0.1
+    _grid: GridTable | None = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        _validate(self, "GPModel")
+
+    @property
+    def n_terrains(self) -> int:
+        return len(self.terrains)
+
+    @property
+    def n_tasks(self) -> int:
+        return len(self.tasks)
+
+    def task_index(self, terrain: str, output: str) -> int:
+        """Index of the task for `terrain` and output `"v"` or `"omega"`."""
+        if terrain not in self.terrains:
+            raise ValueError(f"unknown terrain {terrain!r}; this model has {self.terrains}")
+        if output not in ("v", "omega"):
+            raise ValueError(f"output must be 'v' or 'omega', got {output!r}")
+        return 2 * self.terrains.index(terrain) + (0 if output == "v" else 1)
+
+    def grid(self) -> GridTable:
+        """The grid predictor's table: the stored one, else built from the exact GP once and cached."""
+        if self._grid is None:
+            from gpmppi.gp.grid import build_grid
+
+            self._grid = build_grid(self)
+        return self._grid
+
+    def set_grid(self, grid: GridTable) -> None:
+        """Attach a grid table (e.g. one just built) so `save` stores it."""
+        _check_grid(grid, self.n_tasks, "GPModel")
+        self._grid = grid
+
+    def has_stored_grid(self) -> bool:
+        return self._grid is not None
+
+    def metadata(self) -> dict:
+        return {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "terrains": list(self.terrains),
+            "tasks": list(self.tasks),
+            "inputs": list(INPUT_NAMES),
+            "dt": float(self.dt),
+        }
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the model atomically (temp file in the same folder, then rename)."""
+        path = Path(path)
+        arrays: dict[str, np.ndarray] = {
+            "metadata": np.array(json.dumps(self.metadata())),
+            "theta": self.theta,
+            "edd5": np.stack([self.edd5[t] for t in self.terrains]),
+            "domain_lo": self.domain_lo,
+            "domain_hi": self.domain_hi,
+            "train_x": self.train_x,
+            "lengthscale": self.lengthscale,
+            "outputscale": self.outputscale,
+            "noise": self.noise,
+            "chol": self.chol,
+            "alpha": self.alpha,
+        }
+        if self._grid is not None:
+            arrays.update(encode_grid_table(self._grid.table))
+            arrays["grid_lo"] = self._grid.lo
+            arrays["grid_inv_step"] = self._grid.inv_step
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                np.savez_compressed(f, **arrays)
+                f.flush()
+                os.fsync(f.fileno())
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> GPModel:
+        """Read and validate a model file; raise ModelFileError naming the problem."""
+        path = Path(path)
+        where = str(path)
+        if not path.is_file():
+            raise ModelFileError(f"{where}: no such model file (train one with `gpmppi train DATA -o {path.name}`)")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                names = set(z.files)
+                if "metadata" not in names:
+                    raise ModelFileError(f"{where}: not a gpmppi GP model file (no 'metadata' entry)")
+                meta = _parse_metadata(z["metadata"], where)
+                missing = [n for n in _MODEL_ARRAYS if n not in names]
+                if missing:
+                    raise ModelFileError(f"{where}: model file is missing arrays {missing}; retrain the model")
+                arr = {n: np.asarray(z[n], dtype=np.float64) for n in _MODEL_ARRAYS}
+                grid_present = [n for n in _GRID_ARRAYS if n in names]
+                if grid_present and len(grid_present) != len(_GRID_ARRAYS):
+                    raise ModelFileError(f"{where}: model file has only part of the grid table {grid_present}")
+                grid_arr = {n: z[n] for n in grid_present}
+        except ModelFileError:
+            raise
+        except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError) as e:
+            raise ModelFileError(f"{where}: not a readable model file (corrupt or not an .npz archive: {e})") from e
+        terrains, tasks = meta["terrains"], meta["tasks"]
+        edd5 = arr["edd5"]
+        if edd5.shape != (len(terrains), 5):
+            raise ModelFileError(f"{where}: 'edd5' has shape {edd5.shape}, expected ({len(terrains)}, 5)")
+        try:
+            model = cls(
+                terrains=terrains, tasks=tasks, theta=arr["theta"],
+                edd5={t: edd5[i].copy() for i, t in enumerate(terrains)},
+                domain_lo=arr["domain_lo"], domain_hi=arr["domain_hi"], train_x=arr["train_x"],
+                lengthscale=arr["lengthscale"], outputscale=arr["outputscale"], noise=arr["noise"],
+                chol=arr["chol"], alpha=arr["alpha"], dt=meta["dt"],
+            )
+            if grid_arr:
+                table = decode_grid_table(grid_arr["grid_q"], grid_arr["grid_offset"], grid_arr["grid_scale"])
+                lo = np.asarray(grid_arr["grid_lo"], dtype=np.float64)
+                inv_step = np.asarray(grid_arr["grid_inv_step"], dtype=np.float64)
+                model.set_grid(GridTable(table, lo, inv_step))
+        except ValueError as e:
+            raise ModelFileError(f"{where}: {e}") from e
+        return model
+
+
+def load_default_model() -> GPModel:
+    """The trained model shipped with the package (`gpmppi/data/default_gp_model.npz`)."""
+    return GPModel.load(DEFAULT_MODEL_PATH)
+
+
+def task_names(terrains: list[str]) -> list[str]:
+    """Task names in model order: [T0_Lin, T0_Ang, T1_Lin, T1_Ang, ...]."""
+    return [f"{t}_{o}" for t in terrains for o in ("Lin", "Ang")]
+
+
+def encode_grid_table(table: np.ndarray) -> dict[str, np.ndarray]:
+    """16-bit per-channel quantization, then wrapping (mod 2^16) differences along the 4 grid axes."""
+    table = np.asarray(table, dtype=np.float64)
+    offset = table.min(axis=(0, 1, 2, 3))
+    span = table.max(axis=(0, 1, 2, 3)) - offset
+    scale = np.where(span > 0, span / 65535.0, 1.0)
+    q = np.round((table - offset) / scale).astype(np.uint16)
+    for axis in range(4):
+        q = np.diff(q, axis=axis, prepend=np.zeros_like(q.take([0], axis=axis)))
+    return {"grid_q": q, "grid_offset": offset, "grid_scale": scale}
+
+
+def decode_grid_table(q: np.ndarray, offset: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Inverse of `encode_grid_table` (exact on the quantized values)."""
+    q = np.asarray(q)
+    if q.dtype != np.uint16 or q.ndim != 5:
+        raise ValueError(f"grid_q must be a 5-D uint16 array, got {q.dtype} {q.shape}")
+    offset = np.asarray(offset, dtype=np.float64)
+    scale = np.asarray(scale, dtype=np.float64)
+    if offset.shape != (q.shape[4],) or scale.shape != (q.shape[4],):
+        raise ValueError(f"grid_offset/grid_scale shapes {offset.shape}/{scale.shape} do not match grid_q {q.shape}")
+    for axis in range(4):
+        q = np.cumsum(q, axis=axis, dtype=np.uint16)
+    return np.ascontiguousarray(offset + scale * q)
+
+
+def _parse_metadata(raw: np.ndarray, where: str) -> dict:
+    try:
+        meta = json.loads(str(raw[()]))
+    except (json.JSONDecodeError, TypeError, IndexError) as e:
+        raise ModelFileError(f"{where}: corrupt metadata entry (not JSON: {e})") from e
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
+        raise ModelFileError(f"{where}: not a gpmppi GP model file (format is not {FORMAT_NAME!r})")
+    if meta.get("version") != FORMAT_VERSION:
+        raise ModelFileError(
+            f"{where}: model file format version {meta.get('version')!r}, this gpmppi reads version "
+            f"{FORMAT_VERSION}; retrain the model with this version"
+        )
+    for key, kind in (("terrains", list), ("tasks", list), ("dt", (int, float))):
+        if not isinstance(meta.get(key), kind):
+            raise ModelFileError(f"{where}: metadata field {key!r} is missing or has the wrong type")
+    if list(meta.get("inputs", INPUT_NAMES)) != list(INPUT_NAMES):
+        raise ModelFileError(f"{where}: model inputs {meta.get('inputs')} differ from {list(INPUT_NAMES)}")
+    return meta
+
+
+def _shape(name: str, a: np.ndarray, expected: tuple[int, ...], where: str) -> None:
+    if a.shape != expected:
+        raise ValueError(f"{where}: {name!r} has shape {a.shape}, expected {expected}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{where}: {name!r} holds non-finite values (NaN or inf)")
+
+
+def _check_grid(grid: GridTable, n_tasks: int, where: str) -> None:
+    t = np.asarray(grid.table)
+    if t.ndim != 5 or t.shape[4] != 2 * n_tasks or min(t.shape[:4]) < 2:
+        raise ValueError(f"{where}: grid table has shape {t.shape}, expected (G, G, G, G, {2 * n_tasks}) with G >= 2")
+    _shape("grid_table", t, t.shape, where)
+    _shape("grid_lo", np.asarray(grid.lo), (N_INPUT,), where)
+    _shape("grid_inv_step", np.asarray(grid.inv_step), (N_INPUT,), where)
+    if np.any(np.asarray(grid.inv_step) <= 0):
+        raise ValueError(f"{where}: grid_inv_step must be positive")
+
+
+def _validate(m: GPModel, where: str) -> None:
+    """Coerce arrays to float64 and check every shape, value range and name list."""
+    if len(m.terrains) == 0 or len(set(m.terrains)) != len(m.terrains):
+        raise ValueError(f"{where}: terrains must be a non-empty list of distinct names, got {m.terrains}")
+    n_tasks = 2 * len(m.terrains)
+    if len(m.tasks) != n_tasks:
+        raise ValueError(f"{where}: {len(m.tasks)} task names for {len(m.terrains)} terrains (expected {n_tasks})")
+    if set(m.edd5) != set(m.terrains):
+        raise ValueError(f"{where}: EDD5 terrains {sorted(m.edd5)} differ from model terrains {m.terrains}")
+    if not (isinstance(m.dt, (int, float)) and np.isfinite(m.dt) and m.dt > 0):
+        raise ValueError(f"{where}: dt must be a positive number, got {m.dt!r}")
+    m.dt = float(m.dt)
+    for name in ("theta", "domain_lo", "domain_hi", "train_x", "lengthscale", "outputscale", "noise", "chol", "alpha"):
+        setattr(m, name, np.ascontiguousarray(getattr(m, name), dtype=np.float64))
+    m.edd5 = {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in m.edd5.items()}
+    if m.train_x.ndim != 2 or m.train_x.shape[0] < 1:
+        raise ValueError(f"{where}: 'train_x' has shape {m.train_x.shape}, expected (n, {N_INPUT}) with n >= 1")
+    n = m.train_x.shape[0]
+    _shape("theta", m.theta, (6,), where)
+    for t, p in m.edd5.items():
+        _shape(f"edd5[{t}]", p, (5,), where)
+    _shape("domain_lo", m.domain_lo, (N_INPUT,), where)
+    _shape("domain_hi", m.domain_hi, (N_INPUT,), where)
+    _shape("train_x", m.train_x, (n, N_INPUT), where)
+    _shape("lengthscale", m.lengthscale, (n_tasks, N_INPUT), where)
+    _shape("outputscale", m.outputscale, (n_tasks,), where)
+    _shape("noise", m.noise, (n_tasks,), where)
+    _shape("chol", m.chol, (n_tasks, n, n), where)
+    _shape("alpha", m.alpha, (n_tasks, n), where)
+    if np.any(m.theta[:2] <= 0):
+        raise ValueError(f"{where}: theta1 and theta2 (inertia terms) must be positive, got {m.theta[:2]}")
+    if np.any(m.domain_hi <= m.domain_lo):
+        raise ValueError(f"{where}: domain_hi must exceed domain_lo on every axis ({m.domain_lo} vs {m.domain_hi})")
+    for name in ("lengthscale", "outputscale", "noise"):
+        if np.any(getattr(m, name) <= 0):
+            raise ValueError(f"{where}: {name!r} must be positive")
+    if np.any(np.diagonal(m.chol, axis1=1, axis2=2) <= 0):
+        raise ValueError(f"{where}: 'chol' is not a valid Cholesky factor (non-positive diagonal)")

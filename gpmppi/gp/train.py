@@ -1,0 +1,350 @@
+"""Training the batch of per-terrain residual GPs (pure: arrays in, a GPModel and a fit report out).
+
+Pipeline: one-step transitions per terrain -> residual targets (measured next velocity minus the
+nominal model integrated exactly over dt) -> ~300 shared training inputs chosen by k-means over the
+4-D input `[v_ref, omega_ref, v, omega]` -> a batch of 2M independent exact GPs (zero mean,
+ScaleKernel(RBF-ARD)) fitted with GPyTorch, or given hyperparameters -> Cholesky factors and
+alphas in float64 -> a `GPModel`.
+
+Shared training inputs. The model stores one input set for all 2M tasks (the planner then
+evaluates one kernel row per input for every task). When all terrains were driven with the same
+inputs (the paper's CSV), the chosen inputs are actual samples (the sample nearest each k-means
+centre), so targets are measured values. Otherwise (terrain logs driven separately) the inputs
+are the k-means centres of the pooled data and each terrain's target at a centre is the mean of
+that terrain's `LOCAL_NEIGHBOURS` nearest samples (standardized input distance): a local average
+that exists for every terrain at every centre and also averages out measurement noise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.linalg import cho_solve
+from sklearn.cluster import KMeans
+from sklearn.neighbors import NearestNeighbors
+
+from gpmppi.gp.grid import predict_dense
+from gpmppi.gp.model_file import GPModel, task_names
+from gpmppi.models.dynamic_unicycle import velocity_step_exact
+
+LOCAL_NEIGHBOURS = 3
+
+
+@dataclass
+class Transitions:
+    """One terrain's one-step data: inputs x (N, 4) = [v_ref, omega_ref, v, omega], residual (N, 2)."""
+
+    x: np.ndarray
+    residual: np.ndarray
+    next_vw: np.ndarray | None = None  # measured next (v, omega), when known
+
+
+@dataclass
+class Hyperparameters:
+    """Per-task kernel hyperparameters in model task order."""
+
+    lengthscale: np.ndarray  # (T, 4)
+    outputscale: np.ndarray  # (T,)
+    noise: np.ndarray  # (T,)
+
+
+@dataclass
+class TerrainFit:
+    terrain: str
+    n_eval: int
+    rmse_nominal: tuple[float, float]  # (v, omega)
+    rmse_gp: tuple[float, float]
+    nll: tuple[float, float]  # mean negative log predictive density per step
+
+
+@dataclass
+class FitReport:
+    eval_set: str  # "held-out" / "test data" / "training data"
+    terrains: list[TerrainFit] = field(default_factory=list)
+    final_loss: float | None = None
+
+
+def residual_targets(theta: np.ndarray, x: np.ndarray, next_vw: np.ndarray, dt: float) -> np.ndarray:
+    """Measured next (v, omega) minus the nominal model integrated exactly over dt."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    pv, pw = velocity_step_exact(
+        np.asarray(theta, dtype=np.float64), x[:, 2].copy(), x[:, 3].copy(), x[:, 0].copy(), x[:, 1].copy(), dt
+    )
+    return np.column_stack([next_vw[:, 0] - pv, next_vw[:, 1] - pw])
+
+
+def prepare_from_series(
+    series: dict[str, dict[str, np.ndarray]],
+    dt: float,
+    theta: np.ndarray | None = None,
+    edd5: dict[str, np.ndarray] | None = None,
+    seed: int = 0,
+) -> tuple[dict[str, Transitions], np.ndarray, dict[str, np.ndarray]]:
+    """Per-terrain time series -> (transitions with residual targets, theta, EDD5 per terrain).
+
+    series[terrain] has equal-length arrays "v", "w" (measured at t_k), "v_ref", "w_ref" (applied
+    over [t_k, t_k + dt)) and "seg" (segment id; nothing is paired across a segment change).
+    theta is identified from all terrains pooled when not given (the nominal model is shared), and
+    each terrain's EDD5 from its commands and the velocities measured one step later.
+    """
+    from gpmppi.models.identify import identify_edd5, identify_theta, one_step_pairs
+
+    if not series:
+        raise ValueError("no terrain data to train on")
+    keys = ("v", "w", "v_ref", "w_ref")
+    for t, s in series.items():
+        missing = [k for k in (*keys, "seg") if k not in s]
+        if missing:
+            raise ValueError(f"terrain {t!r}: series lacks {missing}")
+        if any(not np.all(np.isfinite(s[k])) for k in keys):
+            raise ValueError(f"terrain {t!r}: non-finite velocities or commands in the data")
+        if len(s["v"]) < 2:
+            raise ValueError(f"terrain {t!r}: fewer than 2 samples")
+    if theta is None:
+        pooled = {k: np.concatenate([s[k] for s in series.values()]) for k in keys}
+        # segment ids made unique across terrains so no pair spans two terrains
+        pooled_seg = np.concatenate([np.asarray(s["seg"]) * len(series) + i for i, s in enumerate(series.values())])
+        theta = identify_theta(*(pooled[k] for k in keys), dt, segment_ids=pooled_seg, seed=seed)
+    sets: dict[str, Transitions] = {}
+    for t, s in series.items():
+        v, w, vr, wr, vn, wn = one_step_pairs(s["v"], s["w"], s["v_ref"], s["w_ref"], segment_ids=np.asarray(s["seg"]))
+        x = np.column_stack([vr, wr, v, w])
+        nxt = np.column_stack([vn, wn])
+        sets[t] = Transitions(x, residual_targets(theta, x, nxt, dt), nxt)
+    if edd5 is None:
+        edd5 = {t: identify_edd5(s.x[:, 0], s.x[:, 1], s.next_vw[:, 0], s.next_vw[:, 1], seed=seed)
+                for t, s in sets.items()}
+    return sets, np.asarray(theta, dtype=np.float64), edd5
+
+
+def hyperparameters_from_json(data: dict, tasks: list[str]) -> Hyperparameters:
+    """Read the paper's hyperparameter layout (lengthscale, outputscale, task_noise, shared_noise)."""
+    for key in ("tasks", "lengthscale", "outputscale", "task_noise"):
+        if key not in data:
+            raise ValueError(f"hyperparameter file has no {key!r} field (expected the gp_hyperparameters layout)")
+    names = [str(t).lower() for t in data["tasks"]]
+    try:
+        order = [names.index(t.lower()) for t in tasks]
+    except ValueError as e:
+        raise ValueError(f"hyperparameter file tasks {data['tasks']} do not cover the model tasks {tasks}") from e
+    ls = np.asarray(data["lengthscale"], dtype=np.float64)
+    os_ = np.asarray(data["outputscale"], dtype=np.float64)
+    noise = np.asarray(data["task_noise"], dtype=np.float64) + float(data.get("shared_noise", 0.0))
+    if ls.shape != (len(names), 4) or os_.shape != (len(names),) or noise.shape != (len(names),):
+        raise ValueError(
+            f"hyperparameter shapes lengthscale {ls.shape}, outputscale {os_.shape}, noise {noise.shape} "
+            f"do not match {len(names)} tasks x 4 inputs"
+        )
+    hp = Hyperparameters(ls[order], os_[order], noise[order])
+    for name in ("lengthscale", "outputscale", "noise"):
+        a = getattr(hp, name)
+        if not np.all(np.isfinite(a)) or np.any(a <= 0):
+            raise ValueError(f"hyperparameter {name!r} must be finite and positive")
+    return hp
+
+
+def _shared_inputs(sets: dict[str, Transitions]) -> bool:
+    xs = [s.x for s in sets.values()]
+    return all(x.shape == xs[0].shape and np.array_equal(x, xs[0]) for x in xs[1:])
+
+
+def select_training_data(
+    sets: dict[str, Transitions], points: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(train_x (n, 4), train_y (2M, n)) with shared inputs (see the module docstring)."""
+    terrains = list(sets)
+    if _shared_inputs(sets):
+        x = sets[terrains[0]].x
+        if len(x) <= points:
+            idx = np.arange(len(x))
+        else:
+            scale = x.std(0) + 1e-9
+            km = KMeans(n_clusters=points, random_state=seed, n_init=1).fit(x / scale)
+            nn = NearestNeighbors(n_neighbors=1).fit(x / scale)
+            idx = np.unique(nn.kneighbors(km.cluster_centers_, return_distance=False)[:, 0])
+        ys = [sets[t].residual[idx].T for t in terrains]
+        return x[idx].copy(), np.concatenate(ys, axis=0)
+    pooled = np.concatenate([s.x for s in sets.values()])
+    scale = pooled.std(0) + 1e-9
+    n_clusters = min(points, len(pooled))
+    km = KMeans(n_clusters=n_clusters, random_state=seed, n_init=1).fit(pooled / scale)
+    centres = km.cluster_centers_
+    ys = []
+    for t in terrains:
+        s = sets[t]
+        k = min(LOCAL_NEIGHBOURS, len(s.x))
+        nbr = NearestNeighbors(n_neighbors=k).fit(s.x / scale).kneighbors(centres, return_distance=False)
+        ys.append(s.residual[nbr].mean(axis=1).T)  # (2, n)
+    return centres * scale, np.concatenate(ys, axis=0)
+
+
+def fit_hyperparameters(
+    train_x: np.ndarray, train_y: np.ndarray, iters: int, seed: int, lr: float = 0.05
+) -> tuple[Hyperparameters, float]:
+    """Maximize each task's exact marginal likelihood with Adam (GPyTorch, float64, seeded)."""
+    import gpytorch
+    import torch
+
+    torch.manual_seed(seed)
+    n_tasks = train_y.shape[0]
+    batch = torch.Size([n_tasks])
+    y_scale = np.maximum(np.sqrt((train_y**2).mean(1)), 1e-9)  # zero-mean GP: scale by RMS, not std
+    x_t = torch.as_tensor(train_x, dtype=torch.float64).expand(n_tasks, *train_x.shape).contiguous()
+    y_t = torch.as_tensor(train_y / y_scale[:, None], dtype=torch.float64)
+
+    class BatchGP(gpytorch.models.ExactGP):
+        def __init__(self) -> None:
+            lik = gpytorch.likelihoods.GaussianLikelihood(
+                batch_shape=batch, noise_constraint=gpytorch.constraints.GreaterThan(1e-6)
+            )
+            super().__init__(x_t, y_t, lik)
+            self.mean_module = gpytorch.means.ZeroMean(batch_shape=batch)
+            self.covar_module = gpytorch.kernels.ScaleKernel(
+                gpytorch.kernels.RBFKernel(ard_num_dims=4, batch_shape=batch), batch_shape=batch
+            )
+
+        def forward(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
+            return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
+
+    model = BatchGP().double()
+    span = np.maximum(train_x.std(0), 1e-3)
+    model.covar_module.base_kernel.lengthscale = torch.as_tensor(np.tile(span, (n_tasks, 1, 1)))
+    model.covar_module.outputscale = torch.ones(n_tasks, dtype=torch.float64)
+    model.likelihood.noise = torch.full((n_tasks, 1), 0.1, dtype=torch.float64)
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    mll = gpytorch.mlls.ExactMarginalLogLikelihood(model.likelihood, model)
+    loss_value = float("nan")
+    for _ in range(iters):
+        opt.zero_grad()
+        loss = -mll(model(x_t), y_t).sum()
+        loss.backward()
+        opt.step()
+        loss_value = float(loss.detach()) / n_tasks
+    hp = Hyperparameters(
+        lengthscale=model.covar_module.base_kernel.lengthscale.detach().numpy().reshape(n_tasks, 4).copy(),
+        outputscale=model.covar_module.outputscale.detach().numpy().reshape(n_tasks) * y_scale**2,
+        noise=model.likelihood.noise.detach().numpy().reshape(n_tasks) * y_scale**2,
+    )
+    return hp, loss_value
+
+
+def factorize(train_x: np.ndarray, train_y: np.ndarray, hp: Hyperparameters) -> tuple[np.ndarray, np.ndarray]:
+    """Lower Cholesky factors of K + noise I and alpha = (K + noise I)^-1 y, per task (float64)."""
+    n_tasks, n = train_y.shape
+    chol = np.empty((n_tasks, n, n))
+    alpha = np.empty((n_tasks, n))
+    for t in range(n_tasks):
+        z = train_x / hp.lengthscale[t]
+        sq = ((z[:, None, :] - z[None, :, :]) ** 2).sum(-1)
+        k = hp.outputscale[t] * np.exp(-0.5 * sq) + hp.noise[t] * np.eye(n)
+        try:
+            chol[t] = np.linalg.cholesky(k)
+        except np.linalg.LinAlgError as e:
+            raise ValueError(f"task {t}: kernel matrix is not positive definite (duplicate inputs, tiny noise?)") from e
+        alpha[t] = cho_solve((chol[t], True), train_y[t])
+    return chol, alpha
+
+
+def domain_box(x: np.ndarray, pad_fraction: float = 0.05, min_pad: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = x.min(0), x.max(0)
+    pad = np.maximum(pad_fraction * (hi - lo), min_pad)
+    return lo - pad, hi + pad
+
+
+def evaluate_fit(model: GPModel, sets: dict[str, Transitions], eval_set: str) -> FitReport:
+    """Per terrain: one-step RMSE of nominal alone (|residual|) vs nominal + GP mean, and the NLL."""
+    report = FitReport(eval_set=eval_set)
+    for m, t in enumerate(model.terrains):
+        s = sets[t]
+        if len(s.x) == 0:
+            continue
+        mean, var = predict_dense(model, s.x)
+        rn, rg, nll = [], [], []
+        for o in range(2):
+            task = 2 * m + o
+            err = s.residual[:, o] - mean[:, task]
+            rn.append(float(np.sqrt(np.mean(s.residual[:, o] ** 2))))
+            rg.append(float(np.sqrt(np.mean(err**2))))
+            pv = var[:, task] + model.noise[task]
+            nll.append(float(np.mean(0.5 * np.log(2 * np.pi * pv) + 0.5 * err**2 / pv)))
+        report.terrains.append(TerrainFit(t, len(s.x), tuple(rn), tuple(rg), tuple(nll)))
+    return report
+
+
+def split_holdout(
+    sets: dict[str, Transitions], fraction: float, seed: int
+) -> tuple[dict[str, Transitions], dict[str, Transitions]]:
+    """Seeded random split into (train, held-out); shared-input sets are split with the same rows."""
+    if fraction <= 0:
+        return sets, {t: Transitions(s.x[:0], s.residual[:0]) for t, s in sets.items()}
+    rng = np.random.default_rng(seed)
+    shared = _shared_inputs(sets)
+    first_mask: np.ndarray | None = None
+    train, held = {}, {}
+    for t, s in sets.items():
+        if shared and first_mask is not None:
+            mask = first_mask
+        else:
+            mask = rng.random(len(s.x)) < fraction
+            first_mask = mask
+        train[t] = Transitions(s.x[~mask], s.residual[~mask])
+        held[t] = Transitions(s.x[mask], s.residual[mask])
+        if len(train[t].x) == 0:
+            raise ValueError(f"terrain {t!r}: no training data left after holding out {fraction:.0%}")
+    return train, held
+
+
+def train_model(
+    sets: dict[str, Transitions],
+    theta: np.ndarray,
+    edd5: dict[str, np.ndarray],
+    dt: float = 0.1,
+    points: int = 300,
+    iters: int = 200,
+    seed: int = 0,
+    hyperparameters: dict | None = None,
+    holdout: float = 0.2,
+    test_sets: dict[str, Transitions] | None = None,
+) -> tuple[GPModel, FitReport]:
+    """Fit the GP batch to per-terrain residual transitions; return the model and its fit report."""
+    if not sets:
+        raise ValueError("no terrain data to train on")
+    for t, s in sets.items():
+        if len(s.x) == 0:
+            raise ValueError(f"terrain {t!r} has no transitions")
+        if s.x.shape[1:] != (4,) or s.residual.shape != (len(s.x), 2):
+            raise ValueError(f"terrain {t!r}: inputs {s.x.shape} / residuals {s.residual.shape} malformed")
+        if not (np.all(np.isfinite(s.x)) and np.all(np.isfinite(s.residual))):
+            raise ValueError(f"terrain {t!r}: non-finite inputs or residuals")
+    missing = [t for t in sets if t not in edd5]
+    if missing:
+        raise ValueError(f"no EDD5 parameters for terrains {missing}")
+    if points < 2:
+        raise ValueError(f"--points must be at least 2, got {points}")
+    terrains = list(sets)
+    tasks = task_names(terrains)
+    train_sets, held = split_holdout(sets, 0.0 if test_sets is not None else holdout, seed)
+    train_x, train_y = select_training_data(train_sets, points, seed)
+    loss = None
+    if hyperparameters is not None:
+        hp = hyperparameters_from_json(hyperparameters, tasks)
+    else:
+        hp, loss = fit_hyperparameters(train_x, train_y, iters, seed)
+    chol, alpha = factorize(train_x, train_y, hp)
+    lo, hi = domain_box(np.concatenate([s.x for s in train_sets.values()]))
+    model = GPModel(
+        terrains=terrains, tasks=tasks, theta=np.asarray(theta, dtype=np.float64),
+        edd5={t: np.asarray(edd5[t], dtype=np.float64) for t in terrains},
+        domain_lo=lo, domain_hi=hi, train_x=train_x, lengthscale=hp.lengthscale, outputscale=hp.outputscale,
+        noise=hp.noise, chol=chol, alpha=alpha, dt=dt,
+    )
+    if test_sets is not None:
+        report = evaluate_fit(model, {t: test_sets[t] for t in terrains}, "test data")
+    elif holdout > 0:
+        report = evaluate_fit(model, held, f"held-out {holdout:.0%}")
+    else:
+        report = evaluate_fit(model, train_sets, "training data (no held-out set)")
+    report.final_loss = loss
+    return model, report

@@ -1,0 +1,150 @@
+"""Fast distance from a point to a lane centre polyline (closed or open), for the rollout kernels.
+
+A brute-force distance to P segments at every sample-step costs O(P); instead `LaneLookup`
+precomputes, once per lane, a grid over the lane's surroundings whose cells list the few segments
+that can be nearest to any point of the cell (see `_cell_candidates`). A query measures the exact
+distance to those only, so it is exact, and costs a handful of segment distances near the lane.
+Nothing here assumes a particular shape: circles, squares and chicanes are all just polylines.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit, prange
+
+from gpmppi.mppi.flags import FASTMATH
+
+# segment rows: [ax, ay, dx, dy, 1/|d|^2]
+SEG_COLS = 5
+
+
+@dataclass(frozen=True)
+class LaneLookup:
+    """Segments (n_seg, 5) of the polyline and the nearest-segment index grid (H, W)."""
+
+    segments: np.ndarray
+    cell_start: np.ndarray  # (W*H + 1,) int64: cell i = r*W + c lists candidates[start[i]:start[i+1]]
+    candidates: np.ndarray  # int32 segment indices
+    origin: np.ndarray  # (2,) world position of cell (0, 0)'s corner [m]
+    inv_cell: float  # 1 / cell size [1/m]
+    width: int  # W cells along x
+    height: int  # H cells along y
+
+
+def polyline_segments(points: np.ndarray, closed: bool) -> np.ndarray:
+    """(n_seg, 5) rows [ax, ay, dx, dy, 1/|d|^2]; zero-length segments are dropped."""
+    p = np.asarray(points, dtype=np.float64)
+    b = np.roll(p, -1, axis=0) if closed else p[1:]
+    a = p if closed else p[:-1]
+    d = b - a
+    len2 = (d * d).sum(1)
+    keep = len2 > 1e-18
+    if not np.any(keep):
+        raise ValueError("task.centerline: all points coincide, the lane has no length")
+    a, d, len2 = a[keep], d[keep], len2[keep]
+    return np.ascontiguousarray(np.column_stack([a, d, 1.0 / len2]))
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def segment_distance2(seg: np.ndarray, j: int, x: float, y: float) -> float:
+    """Squared distance from (x, y) to segment j."""
+    ax = seg[j, 0]
+    ay = seg[j, 1]
+    dx = seg[j, 2]
+    dy = seg[j, 3]
+    t = ((x - ax) * dx + (y - ay) * dy) * seg[j, 4]
+    if t < 0.0:
+        t = 0.0
+    elif t > 1.0:
+        t = 1.0
+    ex = x - (ax + t * dx)
+    ey = y - (ay + t * dy)
+    return ex * ex + ey * ey
+
+
+@njit(cache=True, parallel=True)
+def _cell_candidates(seg: np.ndarray, origin: np.ndarray, cell: float, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """CSR lists: cell i's candidates are cand[start[i]:start[i + 1]].
+
+    For a point p in a cell with centre c (|p - c| <= cell / sqrt 2) the nearest segment j* obeys
+    d(c, j*) <= d(p, j*) + |p - c| <= d(p, j_c) + |p - c| <= d_min(c) + sqrt(2) cell, so every
+    segment within d_min(c) + sqrt(2) cell of the centre is kept: the lookup is exact inside the grid.
+    """
+    n_seg = seg.shape[0]
+    n_cells = h * w
+    slack = np.sqrt(2.0) * cell * 1.0001
+    counts = np.zeros(n_cells + 1, dtype=np.int64)
+    dmin = np.empty(n_cells)
+    for i in prange(n_cells):
+        y = origin[1] + (i // w + 0.5) * cell
+        x = origin[0] + (i % w + 0.5) * cell
+        best = np.inf
+        for j in range(n_seg):
+            best = min(best, segment_distance2(seg, j, x, y))
+        dmin[i] = np.sqrt(best)
+        limit = (dmin[i] + slack) ** 2
+        c = 0
+        for j in range(n_seg):
+            if segment_distance2(seg, j, x, y) <= limit:
+                c += 1
+        counts[i + 1] = c
+    start = np.cumsum(counts)
+    cand = np.empty(start[-1], dtype=np.int32)
+    for i in prange(n_cells):
+        y = origin[1] + (i // w + 0.5) * cell
+        x = origin[0] + (i % w + 0.5) * cell
+        limit = (dmin[i] + slack) ** 2
+        pos = start[i]
+        for j in range(n_seg):
+            if segment_distance2(seg, j, x, y) <= limit:
+                cand[pos] = j
+                pos += 1
+    return start, cand
+
+
+def build_lane_lookup(
+    centerline: np.ndarray, closed: bool, margin: float, cell: float = 0.1, max_cells: int = 1_000_000
+) -> LaneLookup:
+    """Lookup over the polyline's bounding box grown by `margin` [m]; the cell grows if the grid would be huge."""
+    seg = polyline_segments(centerline, closed)
+    p = np.asarray(centerline, dtype=np.float64)
+    lo = p.min(0) - margin
+    hi = p.max(0) + margin
+    size = hi - lo
+    area_cells = size[0] * size[1] / (cell * cell)
+    if area_cells > max_cells:
+        cell = float(np.sqrt(size[0] * size[1] / max_cells))
+    w = max(int(np.ceil(size[0] / cell)), 1)
+    h = max(int(np.ceil(size[1] / cell)), 1)
+    start, cand = _cell_candidates(seg, lo, cell, h, w)
+    return LaneLookup(seg, start, cand, lo, 1.0 / cell, w, h)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def lane_distance(
+    seg: np.ndarray, cell_start: np.ndarray, cand: np.ndarray, origin: np.ndarray, inv_cell: float, w: int, h: int,
+    x: float, y: float,
+) -> float:
+    """Distance [m] from (x, y) to the polyline; exact (brute force over all segments outside the grid)."""
+    fc = (x - origin[0]) * inv_cell
+    fr = (y - origin[1]) * inv_cell
+    best = np.inf
+    if fc >= 0.0 and fr >= 0.0 and fc < w and fr < h:
+        i = int(fr) * w + int(fc)
+        for q in range(cell_start[i], cell_start[i + 1]):
+            best = min(best, segment_distance2(seg, cand[q], x, y))
+    else:
+        for j in range(seg.shape[0]):
+            best = min(best, segment_distance2(seg, j, x, y))
+    return np.sqrt(best)
+
+
+@njit(cache=True)
+def brute_force_distance(seg: np.ndarray, x: float, y: float) -> float:
+    """Reference: distance to the nearest of all segments."""
+    best = np.inf
+    for j in range(seg.shape[0]):
+        best = min(best, segment_distance2(seg, j, x, y))
+    return np.sqrt(best)

@@ -1,0 +1,69 @@
+"""Counter-based Gaussian noise for MPPI: the noise of (seed, iteration, sample, step) is a pure function.
+
+Every sample draws its own noise inside the rollout kernel from a hash of its counter, so the
+result does not depend on how threads (CPU `prange`) or blocks (CUDA) are scheduled, and the CPU
+and CUDA backends draw exactly the same numbers. The hash is SplitMix64's finaliser; one 64-bit
+hash gives two 32-bit uniforms, and Box-Muller turns them into the two control-noise normals.
+
+The functions are plain Python so each backend compiles them for its own target
+(`numba.njit` here, `numba.cuda.jit(device=True)` in the CUDA backend).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_MIX1 = np.uint64(0xBF58476D1CE4E5B9)
+_MIX2 = np.uint64(0x94D049BB133111EB)
+_LOW32 = np.uint64(0xFFFFFFFF)
+_S30 = np.uint64(30)
+_S27 = np.uint64(27)
+_S31 = np.uint64(31)
+_S32 = np.uint64(32)
+_INV_2_32 = 1.0 / 4294967296.0
+_TWO_PI = 2.0 * math.pi
+
+
+def _normal_pair_py(seed: int, counter: int) -> tuple[float, float]:
+    """Two independent standard normals for the 64-bit `counter` under `seed`."""
+    # the seed is mixed on its own first so that (seed, counter) pairs never alias each other
+    k = np.uint64(seed) * _GOLDEN + _GOLDEN
+    k = (k ^ (k >> _S30)) * _MIX1
+    k = (k ^ (k >> _S27)) * _MIX2
+    k = k ^ (k >> _S31)
+    z = k + np.uint64(counter) * _GOLDEN
+    z = (z ^ (z >> _S30)) * _MIX1
+    z = (z ^ (z >> _S27)) * _MIX2
+    z = z ^ (z >> _S31)
+    u1 = (float(z >> _S32) + 0.5) * _INV_2_32  # in (0, 1): log is finite
+    u2 = float(z & _LOW32) * _INV_2_32
+    r = math.sqrt(-2.0 * math.log(u1))
+    c = math.cos(_TWO_PI * u2)
+    s = math.sqrt(max(1.0 - c * c, 0.0))  # sin from cos: one transcendental fewer; sin < 0 on (pi, 2 pi)
+    if u2 >= 0.5:
+        s = -s
+    return r * c, r * s
+
+
+normal_pair = njit(cache=True, inline="always")(_normal_pair_py)
+
+
+def noise_counter(iteration: int, sample: int, step: int, samples: int, horizon: int) -> int:
+    """The counter of (iteration, sample, step); the kernels compute the same expression inline."""
+    return (iteration * samples + sample) * horizon + step
+
+
+@njit(cache=True)
+def standard_noise(seed: int, iteration: int, samples: int, horizon: int) -> np.ndarray:
+    """The (samples, horizon, 2) standard normals the kernels draw for one iteration (for tests)."""
+    out = np.empty((samples, horizon, 2))
+    for s in range(samples):
+        for k in range(horizon):
+            a, b = normal_pair(seed, (iteration * samples + s) * horizon + k)
+            out[s, k, 0] = a
+            out[s, k, 1] = b
+    return out

@@ -1,0 +1,158 @@
+"""Excitation commands and in-memory datasets: drive a plant over terrains and return arrays.
+
+The excitation mixes segment kinds so the data cover the whole command box
+(v in [0, v_max], omega in [-w_max, w_max]), the coupled region the planner uses (fast forward
+driving with moderate turning), and the jumpy commands MPPI produces:
+
+- hold:   a random command held 0.5-4 s (uniform over the box, or from the planner's region);
+- ramp:   a linear ramp from the current command to a random one over 1-4 s;
+- chirp:  a forward speed with a sinusoidal yaw-rate command swept 0.1 -> 1.5 Hz over 4-10 s;
+- jitter: a random walk of the command, changing every tick, 2-6 s (MPPI-like).
+
+Array form of a run (agreed with the trainer): per tick k at t_k = k dt, `state[k]` is the measured
+`[X, Y, yaw, v, omega]` at t_k and `command[k]` the `[v_ref, omega_ref]` applied over [t_k, t_k + dt).
+One run is one contiguous segment (so a residual pairs tick k with tick k+1 of the same run).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from gpmppi.plant.physics import PhysicsPlant
+from gpmppi.plant.terrains import TerrainSet
+
+SEGMENT_KINDS = ("hold", "ramp", "chirp", "jitter")
+SEGMENT_PROBS = (0.35, 0.2, 0.15, 0.3)
+
+
+class Excitation:
+    """Seeded stream of excitation command segments, each an (n, 2) array of per-tick commands."""
+
+    def __init__(self, seed: int = 0, dt: float = 0.1, v_max: float = 2.0, w_max: float = np.pi) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.dt = dt
+        self.v_max = v_max
+        self.w_max = w_max
+        self.current = np.zeros(2)
+
+    def _random_command(self) -> np.ndarray:
+        if self.rng.random() < 0.5:  # uniform over the box
+            return np.array([self.rng.uniform(0.0, self.v_max), self.rng.uniform(-self.w_max, self.w_max)])
+        # the planner's region: fast forward, moderate turning
+        v = self.rng.uniform(0.8, self.v_max)
+        w = float(np.clip(self.rng.normal(0.0, 0.7), -self.w_max, self.w_max))
+        return np.array([v, w])
+
+    def _ticks(self, lo: float, hi: float) -> int:
+        return max(1, int(round(self.rng.uniform(lo, hi) / self.dt)))
+
+    def next_segment(self) -> np.ndarray:
+        kind = SEGMENT_KINDS[self.rng.choice(len(SEGMENT_KINDS), p=SEGMENT_PROBS)]
+        if kind == "hold":
+            seg = np.tile(self._random_command(), (self._ticks(0.5, 4.0), 1))
+        elif kind == "ramp":
+            n = self._ticks(1.0, 4.0)
+            frac = (np.arange(1, n + 1) / n)[:, None]
+            seg = self.current + frac * (self._random_command() - self.current)
+        elif kind == "chirp":
+            n = self._ticks(4.0, 10.0)
+            t = np.arange(n) * self.dt
+            f0, f1, duration = 0.1, 1.5, n * self.dt
+            phase = 2 * np.pi * (f0 * t + 0.5 * (f1 - f0) / duration * t**2)
+            amp = self.rng.uniform(0.3, self.w_max)
+            seg = np.column_stack([np.full(n, self.rng.uniform(0.0, self.v_max)), amp * np.sin(phase)])
+        else:
+            n = self._ticks(2.0, 6.0)
+            steps = self.rng.normal(0.0, 1.0, (n, 2)) * np.array([0.15, 0.35])
+            seg = np.empty((n, 2))
+            c = self.current.copy()
+            for k in range(n):
+                c = c + steps[k]
+                c[0] = np.clip(c[0], 0.0, self.v_max)
+                c[1] = np.clip(c[1], -self.w_max, self.w_max)
+                seg[k] = c
+        seg[:, 0] = np.clip(seg[:, 0], 0.0, self.v_max)
+        seg[:, 1] = np.clip(seg[:, 1], -self.w_max, self.w_max)
+        self.current = seg[-1].copy()
+        return seg
+
+
+@dataclass
+class TerrainRun:
+    """One contiguous drive on one terrain, sampled every `dt` (see the module docstring)."""
+
+    terrain: str
+    dt: float
+    time: np.ndarray  # (n,) seconds since the start of the run
+    state: np.ndarray  # (n, 5) measured [X, Y, yaw, v, omega] at t_k
+    command: np.ndarray  # (n, 2) [v_ref, omega_ref] applied over [t_k, t_k + dt)
+    true_state: np.ndarray  # (n, 5) noise-free state at t_k
+
+    @property
+    def distance(self) -> float:
+        return float(np.sum(np.hypot(*np.diff(self.true_state[:, :2], axis=0).T)))
+
+
+def drive(
+    plant: PhysicsPlant,
+    terrain: str,
+    distance: float,
+    seed: int = 0,
+    dt: float = 0.1,
+    max_time: float | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> TerrainRun:
+    """Drive `plant` on `terrain` with excitation commands until `distance` metres are covered."""
+    if not distance > 0:
+        raise ValueError(f"distance must be positive, got {distance}")
+    limit = max_time if max_time is not None else 20.0 * distance + 600.0
+    plant.set_terrain(terrain)
+    plant.reset(np.zeros(5))
+    exc = Excitation(seed=seed, dt=dt)
+    states, trues, cmds = [], [], []
+    travelled = 0.0
+    true = plant.state()
+    while travelled < distance:
+        if len(cmds) * dt > limit:
+            raise RuntimeError(f"terrain {terrain!r}: {travelled:.0f} m after {limit:.0f} s; the robot is stuck")
+        for cmd in exc.next_segment():
+            states.append(plant.measure())
+            trues.append(true)
+            cmds.append(cmd)
+            nxt = plant.step(cmd, dt)
+            travelled += float(np.hypot(nxt[0] - true[0], nxt[1] - true[1]))
+            true = nxt
+            if progress is not None:
+                progress(min(travelled, distance))
+            if travelled >= distance:
+                break
+    n = len(cmds)
+    return TerrainRun(terrain, dt, np.arange(n) * dt, np.array(states), np.array(cmds), np.array(trues))
+
+
+def simulate_dataset(
+    terrains: TerrainSet,
+    names: list[str] | None = None,
+    distance: float = 2000.0,
+    seed: int = 0,
+    dt: float = 0.1,
+    noise: bool = True,
+    progress: Callable[[str, float], None] | None = None,
+) -> dict[str, TerrainRun]:
+    """One run per terrain (default: every terrain but sand).
+
+    Every terrain gets the same excitation command stream (seeded by `seed`; matched commands, as in
+    the paper's data, so terrain differences are not confounded with different inputs) and its own
+    sensor-noise seed.
+    """
+    names = names if names is not None else [n for n in terrains.names if n != "sand"]
+    runs: dict[str, TerrainRun] = {}
+    for i, name in enumerate(names):
+        terrains.get(name)
+        plant = PhysicsPlant(terrains, name, seed=seed * 1000 + i, noise=noise)
+        cb = (lambda d, _n=name: progress(_n, d)) if progress is not None else None
+        runs[name] = drive(plant, name, distance, seed=seed, dt=dt, progress=cb)
+    return runs

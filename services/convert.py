@@ -1,0 +1,80 @@
+"""Messages <-> the core's arrays and tasks (one place, so every service converts the same way)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from gpmppi.tasks import GoalTask, LaneTask
+from schemas import Circle, Header, State, Task
+
+
+def now_ns() -> int:
+    return time.time_ns()
+
+
+def wrap_angle(a: float) -> float:
+    """Angle wrapped to (-pi, pi]."""
+    w = math.remainder(a, 2.0 * math.pi)
+    return math.pi if w == -math.pi else w
+
+
+def state_to_array(msg: State) -> np.ndarray:
+    return np.array([msg.x, msg.y, msg.theta, msg.v, msg.omega], dtype=np.float64)
+
+
+def state_from_array(
+    x: np.ndarray, stamp_ns: int, frame_id: str = "map", covariance: np.ndarray | None = None
+) -> State:
+    """A State message from [X, Y, theta, v, omega]; raises ValueError on non-finite input."""
+    values = [float(v) for v in np.asarray(x, dtype=np.float64).reshape(5)]
+    cov = None if covariance is None else [float(v) for v in np.asarray(covariance, dtype=np.float64).reshape(25)]
+    return State(
+        header=Header(stamp_ns=stamp_ns, frame_id=frame_id),
+        x=values[0],
+        y=values[1],
+        theta=wrap_angle(values[2]),
+        v=values[3],
+        omega=values[4],
+        covariance=cov,
+    )
+
+
+def task_to_message(task: LaneTask | GoalTask, stamp_ns: int = 0) -> Task:
+    header = Header(stamp_ns=stamp_ns)
+    if isinstance(task, LaneTask):
+        return Task(
+            header=header,
+            kind="lane",
+            centerline=[[float(p[0]), float(p[1])] for p in task.centerline],
+            closed=task.closed,
+            half_width=task.half_width,
+            speed_target=task.speed_target,
+        )
+    return Task(
+        header=header,
+        kind="goal",
+        goal=[float(task.goal[0]), float(task.goal[1])],
+        goal_tolerance=task.tolerance,
+        obstacles=[Circle(x=float(o[0]), y=float(o[1]), r=float(o[2])) for o in task.obstacles],
+    )
+
+
+def task_from_message(msg: Task) -> LaneTask | GoalTask:
+    if msg.kind == "lane":
+        return LaneTask(
+            np.asarray(msg.centerline, dtype=np.float64),
+            half_width=msg.half_width,
+            speed_target=msg.speed_target,
+            closed=msg.closed,
+        )
+    assert msg.goal is not None  # the Task model guarantees a goal for kind == "goal"
+    obstacles = np.array([[o.x, o.y, o.r] for o in msg.obstacles], dtype=np.float64).reshape(-1, 3)
+    return GoalTask(goal=np.asarray(msg.goal, dtype=np.float64), tolerance=msg.goal_tolerance, obstacles=obstacles)
+
+
+def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
+    """Yaw (rotation about z) of a unit quaternion, REP-103."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))

@@ -1,0 +1,205 @@
+"""The launcher's view of a run: an outside Zenoh client on `gpmppi/**`, and the end-of-run summary
+(task result, planner rate and latency, messages per key, restarts, start-up times)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import zenoh
+
+from schemas import Command, DecodeError, Heartbeat, Plan, State, Task, decode, model_for_key
+from services.node import ZenohSettings
+
+if TYPE_CHECKING:
+    from services.launcher import Launcher
+
+
+# the key each service's first real output appears on (start-up time is measured to it)
+PRIMARY_OUTPUT = {
+    "sim": "odom/raw",
+    "ingress": "state",
+    "terrain": "terrain/weights",
+    "planner": "cmd",
+    "egress": "base/cmd",
+}
+
+
+class Monitor:
+    """Counts every key and keeps what the summary needs; opens its own client session."""
+
+    def __init__(self, robot: str, zenoh_settings: ZenohSettings, t_start: float) -> None:
+        self.robot = robot
+        self.t_start = t_start
+        self.lock = threading.Lock()
+        self.counts: Counter[str] = Counter()
+        self.first_seen_s: dict[str, float] = {}
+        self.heartbeats: dict[str, Heartbeat] = {}
+        self.states: list[tuple[int, float, float]] = []
+        self.latencies_ms: list[float] = []
+        self.plan_total_ms: list[float] = []
+        self.task: Task | None = None
+        self.undecodable = 0
+        self.session = zenoh.open(zenoh_settings.to_config())
+        self._sub = self.session.declare_subscriber("gpmppi/**", self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        received_ns = time.time_ns()
+        key = str(sample.key_expr)
+        with self.lock:
+            self.counts[key] += 1
+            self.first_seen_s.setdefault(key, time.monotonic() - self.t_start)
+        try:
+            model = model_for_key(key)
+            if model not in (State, Command, Plan, Heartbeat, Task):
+                return
+            msg = decode(model, sample.payload.to_bytes())
+        except (KeyError, DecodeError):
+            with self.lock:
+                self.undecodable += 1
+            return
+        with self.lock:
+            if isinstance(msg, Heartbeat):
+                self.heartbeats[msg.service] = msg
+            elif isinstance(msg, State) and key.endswith("/state"):
+                self.states.append((msg.header.stamp_ns, msg.x, msg.y))
+            elif isinstance(msg, Command) and key.endswith("/cmd"):
+                self.latencies_ms.append((received_ns - msg.header.stamp_ns) / 1e6)
+            elif isinstance(msg, Plan):
+                if "total" in msg.timings_ms:
+                    self.plan_total_ms.append(msg.timings_ms["total"])
+            elif isinstance(msg, Task):
+                self.task = msg
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+            self.session.close()
+        except Exception:  # noqa: BLE001 - closing twice or after the router went away is harmless
+            pass
+
+
+@dataclass
+class Summary:
+    duration_s: float = 0.0
+    task_kind: str = ""
+    lane_rmse_mm: float | None = None
+    lane_exits: int | None = None
+    goal_reached: bool | None = None
+    final_goal_distance_m: float | None = None
+    distance_driven_m: float = 0.0
+    planner_rate_hz: float | None = None
+    latency_p50_ms: float | None = None
+    latency_p99_ms: float | None = None
+    plan_p99_ms: float | None = None
+    messages: dict[str, int] = field(default_factory=dict)
+    heartbeats_from: list[str] = field(default_factory=list)
+    first_heartbeat_s: dict[str, float] = field(default_factory=dict)  # service -> s from its process start
+    first_output_s: dict[str, float] = field(default_factory=dict)  # service -> s from process start to output
+    restarts: dict[str, int] = field(default_factory=dict)
+    failed: list[str] = field(default_factory=list)
+    recording: str | None = None
+
+    def lines(self) -> list[str]:
+        out = [f"duration {self.duration_s:.1f} s, driven {self.distance_driven_m:.1f} m"]
+        if self.task_kind == "lane" and self.lane_rmse_mm is not None:
+            out.append(f"task: lane, RMSE to centre {self.lane_rmse_mm:.0f} mm, lane exits {self.lane_exits}")
+        elif self.task_kind == "goal":
+            out.append(f"task: goal, reached {self.goal_reached}, final distance {self.final_goal_distance_m:.2f} m")
+        else:
+            out.append("task: no task or no states seen")
+        out.append(
+            f"planner: {_fmt(self.planner_rate_hz, 'Hz')}; state stamp -> command p50 {_fmt(self.latency_p50_ms, 'ms')}"
+            f" p99 {_fmt(self.latency_p99_ms, 'ms')}; plan compute p99 {_fmt(self.plan_p99_ms, 'ms')}"
+        )
+        out.append("messages per key:")
+        out += [f"  {k}: {n}" for k, n in sorted(self.messages.items())]
+        out.append(f"heartbeats from: {', '.join(sorted(self.heartbeats_from)) or 'none'}")
+        starts = ", ".join(f"{k} {v:.2f}" for k, v in sorted(self.first_output_s.items()))
+        out.append(f"start-up, process start -> first output [s]: {starts or 'n/a'}")
+        out.append(f"restarts: {self.restarts or 'none'}; failed for good: {self.failed or 'none'}")
+        if self.recording:
+            out.append(f"recording: {self.recording}")
+        return out
+
+
+def _fmt(v: float | None, unit: str) -> str:
+    return "n/a" if v is None else f"{v:.1f} {unit}"
+
+
+def summarize(monitor: Monitor | None, launcher: Launcher, service_names: list[str], record: str | None) -> Summary:
+    s = Summary(duration_s=time.monotonic() - launcher.t0, recording=record)
+    s.restarts = {c.name: c.restarts for c in launcher.children if c.restarts}
+    s.failed = [c.name for c in launcher.children if c.failed]
+    if monitor is None:
+        return s
+    with monitor.lock:
+        s.messages = dict(monitor.counts)
+        s.heartbeats_from = sorted(monitor.heartbeats)
+        first_seen = dict(monitor.first_seen_s)
+        states = np.array([[x, y] for _, x, y in sorted(monitor.states)]).reshape(-1, 2)
+        task = monitor.task
+        latencies = np.array(monitor.latencies_ms)
+        plan_ms = np.array(monitor.plan_total_ms)
+        planner_hb = monitor.heartbeats.get("planner")
+    started = {c.name: c.first_started_at - monitor.t_start for c in launcher.children}
+    prefix = f"gpmppi/{monitor.robot}/"
+    for key, t in first_seen.items():
+        if key.startswith(prefix + "health/") and key[len(prefix + "health/") :] in started:
+            name = key[len(prefix + "health/") :]
+            s.first_heartbeat_s[name] = t - started[name]
+    for name, key in PRIMARY_OUTPUT.items():
+        if name in started and prefix + key in first_seen:
+            s.first_output_s[name] = first_seen[prefix + key] - started[name]
+    if record and Path(record).is_file():
+        states, task, s.messages = _from_recording(record, monitor.robot, states, task)
+    if latencies.size:
+        s.latency_p50_ms = float(np.percentile(latencies, 50))
+        s.latency_p99_ms = float(np.percentile(latencies, 99))
+    if plan_ms.size:
+        s.plan_p99_ms = float(np.percentile(plan_ms, 99))
+    if planner_hb is not None:
+        s.planner_rate_hz = planner_hb.rate_hz
+    if states.shape[0] > 1:
+        s.distance_driven_m = float(np.sum(np.linalg.norm(np.diff(states, axis=0), axis=1)))
+    if task is not None and states.shape[0]:
+        score_task(s, task, states)
+    return s
+
+
+def score_task(s: Summary, task: Task, states: np.ndarray) -> None:
+    from gpmppi.evaluation import metrics
+
+    s.task_kind = task.kind
+    if task.kind == "lane":
+        centre = np.asarray(task.centerline)
+        s.lane_rmse_mm = metrics.lane_rmse_mm(states, centre, task.closed)
+        s.lane_exits = metrics.lane_exit_count(states, centre, task.half_width, task.closed)
+    elif task.goal is not None:
+        d = np.linalg.norm(states - np.asarray(task.goal)[None, :], axis=1)
+        s.goal_reached = bool(np.any(d <= task.goal_tolerance))
+        s.final_goal_distance_m = float(d[-1])
+
+
+def _from_recording(
+    record: str, robot: str, states: np.ndarray, task: Task | None
+) -> tuple[np.ndarray, Task | None, dict[str, int]]:
+    from services.mcap_io import read_messages
+
+    counts: Counter[str] = Counter()
+    rec_states: list[tuple[int, float, float]] = []
+    rec_task = None
+    for key, _, msg in read_messages(record):
+        counts[key] += 1
+        if isinstance(msg, State) and key == f"gpmppi/{robot}/state":
+            rec_states.append((msg.header.stamp_ns, msg.x, msg.y))
+        elif isinstance(msg, Task):
+            rec_task = msg
+    if rec_states:
+        states = np.array([[x, y] for _, x, y in sorted(rec_states)])
+    return states, rec_task or task, dict(counts)

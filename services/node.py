@@ -1,0 +1,363 @@
+"""The shared runtime of every gpmppi service: settings, Zenoh session, typed pub/sub, heartbeat, logs.
+
+A service is a short event loop over a `Node`:
+
+    node = Node(settings)            # nothing networked yet
+    with node:                       # opens the Zenoh session (after the process started, never across a fork)
+        pub = node.publisher("cmd")
+        sub = node.subscribe("state")            # newest-only (RingChannel(1)) by default
+        while node.ok():                         # False after SIGINT/SIGTERM
+            msg = sub.take()                     # decoded + validated, or None; bad input counted, never raised
+            ...
+            node.spin_once()                     # heartbeat at `heartbeat_hz`, short sleep
+
+Sessions are Zenoh clients of a router (the launcher starts one; `zenohd` works too) or listening peers.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from types import FrameType, TracebackType
+from typing import Any, Generic, Literal, TypeVar
+
+import zenoh
+from pydantic import BaseModel, ConfigDict, Field
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
+
+from schemas import DecodeError, Heartbeat, Message, decode, encode, key_for
+from schemas.codec import ENCODING, MAX_PAYLOAD_BYTES
+from schemas.keys import DEFAULT_ROBOT
+
+M = TypeVar("M", bound=Message)
+S = TypeVar("S", bound="NodeSettings")
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+LIVELINESS_PREFIX = "gpmppi/{robot}/alive/{service}"
+
+
+# ---- settings ---------------------------------------------------------------------------------
+class ZenohSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    mode: Literal["client", "peer"] = Field("client", description="client of a router, or a peer")
+    connect: list[str] = Field(default_factory=lambda: [DEFAULT_ROUTER], description="endpoints to connect to")
+    listen: list[str] = Field(default_factory=list, description="endpoints to listen on (peers)")
+    multicast_scouting: bool = Field(False, description="discover peers by UDP multicast (off: loopback only)")
+    config_file: str | None = Field(None, description="a Zenoh json5 config applied before the fields above")
+
+    def to_config(self) -> zenoh.Config:
+        config = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
+        config.insert_json5("mode", json.dumps(self.mode))
+        config.insert_json5("connect/endpoints", json.dumps(self.connect))
+        config.insert_json5("listen/endpoints", json.dumps(self.listen))
+        config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        return config
+
+
+class NodeSettings(BaseSettings):
+    """Settings common to every service. YAML file, then `GPMPPI_<FIELD>` environment overrides
+    (nested with `__`, e.g. `GPMPPI_ZENOH__CONNECT='["tcp/127.0.0.1:7447"]'`)."""
+
+    model_config = SettingsConfigDict(env_prefix="GPMPPI_", env_nested_delimiter="__", extra="forbid")
+
+    service: str = Field("node", description="service name: health key, liveliness token, log prefix")
+    robot: str = Field(DEFAULT_ROBOT, description="robot name, the second level of every key")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")
+    heartbeat_hz: float = Field(1.0, gt=0, description="heartbeat rate on gpmppi/{robot}/health/{service}")
+    poll_s: float = Field(0.002, gt=0, description="sleep between loop iterations when idle [s]")
+    max_payload_bytes: int = Field(MAX_PAYLOAD_BYTES, gt=0, description="larger payloads are rejected")
+    log_level: str = Field("INFO", description="logging level")
+    log_json: bool = Field(True, description="JSON-lines logs (False: plain text)")
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # precedence: explicit arguments > environment > YAML file (set by `load`) > defaults
+        return init_settings, env_settings, YamlConfigSettingsSource(settings_cls)
+
+    @classmethod
+    def load(cls: type[S], path: str | Path | None = None, **overrides: Any) -> S:
+        """Settings from a YAML file (if given) with environment and keyword overrides on top."""
+        if path is None:
+            return cls(**overrides)
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"config file {path} does not exist; pass an existing YAML file")
+        bound = type(cls.__name__, (cls,), {"model_config": {**cls.model_config, "yaml_file": str(path)}})
+        return bound(**overrides)
+
+
+# ---- logging ----------------------------------------------------------------------------------
+class JsonFormatter(logging.Formatter):
+    def __init__(self, service: str) -> None:
+        super().__init__()
+        self.service = service
+
+    def format(self, record: logging.LogRecord) -> str:
+        entry: dict[str, Any] = {
+            "t": round(record.created, 3),
+            "level": record.levelname,
+            "service": self.service,
+            "logger": record.name,
+            "msg": record.getMessage(),
+        }
+        extra = getattr(record, "fields", None)
+        if isinstance(extra, dict):
+            entry.update(extra)
+        if record.exc_info:
+            entry["exc"] = self.formatException(record.exc_info)
+        return json.dumps(entry, default=str)
+
+
+def setup_logging(service: str, level: str = "INFO", as_json: bool = True) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(
+        JsonFormatter(service) if as_json else logging.Formatter(f"%(asctime)s {service} %(levelname)s %(message)s")
+    )
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+
+
+# ---- typed pub/sub ----------------------------------------------------------------------------
+class Counters:
+    def __init__(self) -> None:
+        self.received = 0
+        self.rejected = 0
+        self.published = 0
+        self.cycles = 0
+        self.last_error = ""
+        self.lock = threading.Lock()
+
+
+class TypedPublisher(Generic[M]):
+    """Publishes one message type on one key; JSON with `application/json` encoding; validated before sending."""
+
+    def __init__(self, node: Node, key: str, model: type[M], publisher: zenoh.Publisher) -> None:
+        self.node = node
+        self.key = key
+        self.model = model
+        self._publisher = publisher
+        self._seq = 0
+
+    def put(self, msg: M, attachment: bytes | None = None) -> None:
+        if not isinstance(msg, self.model):
+            raise TypeError(f"{self.key} carries {self.model.__name__}, not {type(msg).__name__}")
+        msg.header.seq = self._seq
+        payload = encode(msg)
+        # re-validate what goes out (fields may have been assigned after construction): never send NaN/inf
+        decode(self.model, payload, self.node.settings.max_payload_bytes)
+        self._publisher.put(payload, attachment=attachment)
+        self._seq += 1
+        with self.node.counters.lock:
+            self.node.counters.published += 1
+
+
+class TypedSubscription(Generic[M]):
+    """Receives one message type; bad payloads are counted, logged and dropped (never raised)."""
+
+    def __init__(
+        self, node: Node, key: str, model: type[M], newest_only: bool, capacity: int, remote_only: bool = False
+    ) -> None:
+        self.node = node
+        self.key = key
+        self.model = model
+        handler = zenoh.handlers.RingChannel(1) if newest_only else zenoh.handlers.FifoChannel(capacity)
+        assert node.session is not None
+        origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
+        self._sub = node.session.declare_subscriber(key, handler, allowed_origin=origin)
+        self.last: M | None = None
+
+    def _decode(self, sample: zenoh.Sample) -> M | None:
+        counters = self.node.counters
+        with counters.lock:
+            counters.received += 1
+        try:
+            msg = decode(self.model, sample.payload.to_bytes(), self.node.settings.max_payload_bytes)
+        except DecodeError as exc:
+            self.node.reject(f"{sample.key_expr}: {exc}")
+            return None
+        self.last = msg
+        return msg
+
+    def take(self) -> M | None:
+        """The newest valid message since the last call, or None (newest-only: at most one is queued)."""
+        newest = None
+        while (sample := self._sub.try_recv()) is not None:
+            msg = self._decode(sample)
+            newest = msg if msg is not None else newest
+        return newest
+
+    def drain(self, limit: int = 10_000) -> list[M]:
+        """Every valid queued message, oldest first."""
+        out: list[M] = []
+        while len(out) < limit and (sample := self._sub.try_recv()) is not None:
+            msg = self._decode(sample)
+            if msg is not None:
+                out.append(msg)
+        return out
+
+
+# ---- the node ---------------------------------------------------------------------------------
+class Node:
+    """One service's connection to the rest: session, token, heartbeat, counters, stop flag."""
+
+    def __init__(self, settings: NodeSettings, install_signals: bool = True) -> None:
+        self.settings = settings
+        self.name = settings.service
+        self.log = logging.getLogger(f"gpmppi.{self.name}")
+        self.counters = Counters()
+        self.session: zenoh.Session | None = None
+        self._stop = threading.Event()
+        self._token: zenoh.LivelinessToken | None = None
+        self._health: TypedPublisher[Heartbeat] | None = None
+        self._next_heartbeat = 0.0
+        self._cycle_times: deque[float] = deque(maxlen=512)
+        self._reject_log_times: deque[float] = deque(maxlen=20)
+        self.started = time.monotonic()
+        if install_signals and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, self._on_signal)
+            signal.signal(signal.SIGTERM, self._on_signal)
+
+    # lifecycle
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        self.log.info("signal %s: stopping", signal.Signals(signum).name)
+        self._stop.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    def ok(self) -> bool:
+        return not self._stop.is_set()
+
+    def open(self) -> Node:
+        if self.session is not None:
+            return self
+        self.session = zenoh.open(self.settings.zenoh.to_config())
+        robot, service = self.settings.robot, self.name
+        self._token = self.session.liveliness().declare_token(LIVELINESS_PREFIX.format(robot=robot, service=service))
+        self._health = self.publisher("health")
+        self.log.info(
+            "session open", extra={"fields": {"zid": str(self.session.zid()), "mode": self.settings.zenoh.mode}}
+        )
+        return self
+
+    def close(self) -> None:
+        if self.session is None:
+            return
+        try:
+            self.heartbeat()
+            if self._token is not None:
+                self._token.undeclare()
+            self.session.close()
+        finally:
+            self.session = None
+            self.log.info("session closed")
+
+    def __enter__(self) -> Node:
+        return self.open()
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if exc is not None and not isinstance(exc, KeyboardInterrupt):
+            self.error(f"{type(exc).__name__}: {exc}")
+        self.close()
+
+    # pub/sub
+    def key(self, name: str) -> str:
+        return key_for(name, self.settings.robot, self.name)
+
+    def publisher(self, name: str, key: str | None = None, model: type[M] | None = None) -> TypedPublisher[M]:
+        """A typed publisher on the registered key `name` (or an explicit key and model)."""
+        from schemas import KEYS
+
+        if self.session is None:
+            raise RuntimeError("open the node (with node: ...) before declaring publishers")
+        key = key or self.key(name)
+        model = model or KEYS[name][1]  # type: ignore[assignment]
+        pub = self.session.declare_publisher(key, encoding=zenoh.Encoding(ENCODING))
+        return TypedPublisher(self, key, model, pub)  # type: ignore[arg-type]
+
+    def subscribe(
+        self,
+        name: str,
+        newest_only: bool = True,
+        capacity: int = 1024,
+        key: str | None = None,
+        model: type[M] | None = None,
+        remote_only: bool = False,
+    ) -> TypedSubscription[M]:
+        """A typed subscription; newest-only (RingChannel(1)) or FIFO; `remote_only` ignores this node's own."""
+        from schemas import KEYS
+
+        if self.session is None:
+            raise RuntimeError("open the node (with node: ...) before declaring subscriptions")
+        key = key or self.key(name)
+        model = model or KEYS[name][1]  # type: ignore[assignment]
+        return TypedSubscription(self, key, model, newest_only, capacity, remote_only)  # type: ignore[arg-type]
+
+    # health
+    def reject(self, reason: str) -> None:
+        with self.counters.lock:
+            self.counters.rejected += 1
+            self.counters.last_error = reason[:500]
+        now = time.monotonic()
+        # rate-limited so a flood of bad input cannot flood the log
+        if len(self._reject_log_times) < 20 or now - self._reject_log_times[0] > 1.0:
+            self._reject_log_times.append(now)
+            self.log.warning("rejected input: %s", reason, extra={"fields": {"rejected": self.counters.rejected}})
+
+    def error(self, reason: str) -> None:
+        with self.counters.lock:
+            self.counters.last_error = reason[:500]
+        self.log.error(reason)
+
+    def cycle(self) -> None:
+        """Mark one unit of the service's main work (its rate goes in the heartbeat)."""
+        now = time.monotonic()
+        self._cycle_times.append(now)
+        self.counters.cycles += 1
+
+    def rate_hz(self, window_s: float = 2.0) -> float:
+        now = time.monotonic()
+        recent = [t for t in self._cycle_times if now - t <= window_s]
+        span = min(window_s, now - self.started)
+        return len(recent) / span if span > 0 else 0.0
+
+    def heartbeat(self) -> None:
+        if self._health is None:
+            return
+        c = self.counters
+        with c.lock:
+            hb = Heartbeat(
+                service=self.name,
+                rate_hz=self.rate_hz(),
+                received=c.received,
+                rejected=c.rejected,
+                published=c.published,
+                last_error=c.last_error,
+            )
+        hb.header.stamp_ns = time.time_ns()
+        self._health.put(hb)
+
+    def spin_once(self, sleep_s: float | None = None) -> None:
+        """Heartbeat when due, then sleep a little (or `sleep_s`); returns early on stop."""
+        now = time.monotonic()
+        if now >= self._next_heartbeat:
+            self._next_heartbeat = now + 1.0 / self.settings.heartbeat_hz
+            self.heartbeat()
+        self._stop.wait(self.settings.poll_s if sleep_s is None else max(0.0, sleep_s))

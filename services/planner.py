@@ -1,0 +1,157 @@
+"""planner: GP-MPPI on each new state (or at a fixed rate) with the newest terrain weights and task.
+
+Publishes `cmd` (stamped with the state's stamp, so stamp -> publish is the control latency) and `plan`
+(nominal trajectory, position covariances, tightened bounds, a subset of rollouts, timings). The task is the
+configured scenario's, re-published once a second on `task`; a Task from another publisher replaces it.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from gpmppi.mppi.planner import PlannerConfig
+from schemas import Command, Plan, State, TerrainWeights
+from services.convert import state_to_array, task_from_message, task_to_message
+from services.node import Node, NodeSettings
+
+
+class Settings(NodeSettings):
+    service: str = Field("planner", description="service name")
+    planner: PlannerConfig = Field(default_factory=PlannerConfig, description="GP-MPPI settings")
+    scenario: str = Field(
+        "circle", description="task: 'circle', 'square', 'paper_obstacles', or a lane_*.yaml / scene_*.yaml file"
+    )
+    model_file: str | None = Field(None, description="GP model file (None: the shipped model)")
+    trigger: Literal["state", "rate"] = Field("state", description="plan on each new state, or at rate_hz")
+    rate_hz: float = Field(10.0, gt=0, description="planning rate when trigger == 'rate' [Hz]")
+    max_state_age_s: float = Field(0.5, gt=0, description="do not plan from a state older than this [s]")
+    plan_samples: int = Field(16, ge=0, description="rollouts (XY) included in each Plan message")
+    plan_every: int = Field(1, ge=1, description="publish a Plan every n-th cycle (cmd every cycle)")
+    task_period_s: float = Field(1.0, gt=0, description="re-publish the task this often [s]")
+
+
+def load_scenario(name: str):  # -> gpmppi.scenarios.Scenario
+    from gpmppi import scenarios
+
+    if name == "paper_obstacles":
+        return scenarios.paper_obstacle_scene()
+    if name in ("circle", "square"):
+        return scenarios.lane_scenario(name)
+    path = Path(name)
+    if not path.is_file():
+        raise FileNotFoundError(f"scenario {name!r}: not 'circle', 'square', 'paper_obstacles' nor an existing file")
+    try:
+        return scenarios.load_lane(path)
+    except ValueError:
+        return scenarios.load_scene(path)
+
+
+def load_model(model_file: str | None):  # -> GPModel
+    from gpmppi.gp.model_file import GPModel, load_default_model
+
+    return load_default_model() if model_file is None else GPModel.load(model_file)
+
+
+def plan_message(result, stamp_ns: int, task, n_samples: int) -> Plan:  # result: PlanResult
+    from gpmppi.tasks import GoalTask
+
+    covs = np.asarray(result.covariances)
+    cov_xy = np.stack([covs[:, 0, 0], covs[:, 0, 1], covs[:, 1, 1]], axis=1)
+    tightened = np.asarray(result.tightened, dtype=np.float64)
+    if isinstance(task, GoalTask) and tightened.ndim == 2:
+        # per step: the largest inflation of any obstacle radius
+        radii = task.obstacles[:, 2] if task.obstacles.shape[0] else np.zeros(0)
+        tightened = (tightened - radii[None, :]).max(axis=1) if radii.size else np.zeros(tightened.shape[0])
+    samples = np.asarray(result.sample_states)[:n_samples]
+    command = Command(v_ref=float(result.control[0]), omega_ref=float(result.control[1]))
+    command.header.stamp_ns = stamp_ns
+    plan = Plan(
+        command=command,
+        controls=np.asarray(result.controls, dtype=np.float64).tolist(),
+        states=np.asarray(result.states, dtype=np.float64).tolist(),
+        cov_xy=cov_xy.tolist(),
+        tightened=tightened.reshape(-1).tolist(),
+        samples=samples.tolist(),
+        sample_costs=np.asarray(result.sample_costs, dtype=np.float64)[:n_samples].tolist(),
+        terrain_weights=np.asarray(result.weights, dtype=np.float64).tolist(),
+        timings_ms={k: float(v) for k, v in result.timings_ms.items()},
+    )
+    plan.header.stamp_ns = stamp_ns
+    return plan
+
+
+def run(settings: Settings) -> int:
+    from gpmppi.mppi.planner import Planner
+
+    model = load_model(settings.model_file)
+    scenario = load_scenario(settings.scenario)
+    task = scenario.task
+    planner = Planner(settings.planner, model)
+    planner.plan(np.asarray(scenario.start, dtype=np.float64), task)  # compile / load the numba cache before going live
+    planner.reset()
+    weights: np.ndarray | None = None
+    with Node(settings) as node:
+        cmd_pub = node.publisher("cmd")
+        plan_pub = node.publisher("plan")
+        task_pub = node.publisher("task")
+        state_sub = node.subscribe("state")
+        weights_sub = node.subscribe("terrain_weights")
+        task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
+        next_task = 0.0
+        next_rate_tick = time.monotonic()
+        latest: State | None = None
+        fresh = False
+        cycle = 0
+        while node.ok():
+            now = time.monotonic()
+            if now >= next_task:
+                next_task = now + settings.task_period_s
+                task_pub.put(task_to_message(task, time.time_ns()))
+            if (new_task := task_sub.take()) is not None:
+                try:
+                    task = task_from_message(new_task)
+                    planner.reset()
+                    node.log.info("new task: %s", new_task.kind)
+                except ValueError as exc:
+                    node.reject(f"task: {exc}")
+            if (w := weights_sub.take()) is not None:
+                weights = _weights_in_model_order(node, w, model.terrains, weights)
+            if (s := state_sub.take()) is not None:
+                latest, fresh = s, True
+            due = fresh if settings.trigger == "state" else now >= next_rate_tick
+            if not due or latest is None:
+                node.spin_once()
+                continue
+            if settings.trigger == "rate":
+                next_rate_tick = max(next_rate_tick + 1.0 / settings.rate_hz, now - 1.0)
+            fresh = False
+            age_s = (time.time_ns() - latest.header.stamp_ns) / 1e9
+            if age_s > settings.max_state_age_s:
+                node.reject(f"state is {age_s:.3f} s old (limit {settings.max_state_age_s} s): not planning")
+                continue
+            result = planner.plan(state_to_array(latest), task, weights)
+            cmd = Command(v_ref=float(result.control[0]), omega_ref=float(result.control[1]))
+            cmd.header.stamp_ns = latest.header.stamp_ns
+            cmd.header.frame_id = "base_link"
+            cmd_pub.put(cmd)
+            if cycle % settings.plan_every == 0:
+                plan_pub.put(plan_message(result, latest.header.stamp_ns, task, settings.plan_samples))
+            cycle += 1
+            node.cycle()
+            node.spin_once(0.0)
+    return 0
+
+
+def _weights_in_model_order(
+    node: Node, msg: TerrainWeights, terrains: list[str], previous: np.ndarray | None
+) -> np.ndarray | None:
+    if sorted(msg.names) != sorted(terrains):
+        node.reject(f"terrain weights for {msg.names} but the model has {terrains}: kept the previous weights")
+        return previous
+    by_name = dict(zip(msg.names, msg.weights, strict=True))
+    return np.array([by_name[t] for t in terrains], dtype=np.float64)

@@ -1,0 +1,195 @@
+"""ROS 2 over Zenoh without ROS: CDR (de)serialization with rosbags, rmw_zenoh key expressions and attachments.
+
+rmw_zenoh publishes a topic on `<domain_id>/<fully qualified topic without leading slash>/<DDS type name>/<type hash>`,
+e.g. `0/jackal/cmd_vel/geometry_msgs::msg::dds_::Twist_/RIHS01_9c45...`, with an attachment serialized in the
+Zenoh serialization format: "sequence_number" int64, "source_timestamp" int64 [ns], "source_gid" 16 bytes.
+(Humble's rmw_zenoh has no type hashes and uses `TypeHashNotSupported`.) zenoh-bridge-ros2dds publishes
+plain `<namespace>/<topic>` keys with the same CDR payload and no attachment.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any, Literal
+
+import numpy as np
+from rosbags.typesys import Stores, get_typestore
+from zenoh import ZBytes
+from zenoh.ext import Int64, z_deserialize, z_serialize
+
+from services.convert import yaw_from_quaternion
+
+TYPE_HASH_UNSUPPORTED = "TypeHashNotSupported"
+GID_SIZE = 16
+
+KeyStyle = Literal["rmw_zenoh", "bridge"]
+Distro = Literal["humble", "jazzy"]
+
+
+@lru_cache(maxsize=4)
+def typestore(distro: Distro = "jazzy") -> Any:
+    return get_typestore(Stores.ROS2_HUMBLE if distro == "humble" else Stores.ROS2_JAZZY)
+
+
+def dds_type_name(ros_type: str) -> str:
+    """'geometry_msgs/msg/Twist' -> 'geometry_msgs::msg::dds_::Twist_' (the name rmw_zenoh puts in keys)."""
+    package, kind, name = ros_type.split("/")
+    return f"{package}::{kind}::dds_::{name}_"
+
+
+def type_hash(ros_type: str, distro: Distro = "jazzy") -> str:
+    """The RIHS01 type-description hash (jazzy and later) or Humble's placeholder."""
+    if distro == "humble":
+        return TYPE_HASH_UNSUPPORTED
+    return typestore(distro).hash_rihs01(ros_type)
+
+
+def _strip(name: str) -> str:
+    return "/".join(part for part in name.split("/") if part)
+
+
+def topic_key(
+    topic: str,
+    ros_type: str,
+    namespace: str = "",
+    domain_id: int = 0,
+    style: KeyStyle = "rmw_zenoh",
+    distro: Distro = "jazzy",
+    hash_wildcard: bool = False,
+) -> str:
+    """The Zenoh key a ROS 2 topic travels on (rmw_zenoh or zenoh-bridge-ros2dds style)."""
+    fq_topic = _strip(f"{namespace}/{topic}")
+    if not fq_topic:
+        raise ValueError(f"empty ROS topic name (namespace={namespace!r}, topic={topic!r})")
+    if style == "bridge":
+        return fq_topic
+    hash_part = "*" if hash_wildcard else type_hash(ros_type, distro)
+    return f"{domain_id}/{fq_topic}/{dds_type_name(ros_type)}/{hash_part}"
+
+
+@dataclass
+class Attachment:
+    sequence_number: int
+    source_timestamp: int
+    source_gid: bytes
+
+    def to_bytes(self) -> bytes:
+        if len(self.source_gid) != GID_SIZE:
+            raise ValueError(f"source_gid must be {GID_SIZE} bytes, got {len(self.source_gid)}")
+        return z_serialize(
+            (
+                "sequence_number",
+                Int64(self.sequence_number),
+                "source_timestamp",
+                Int64(self.source_timestamp),
+                "source_gid",
+                bytes(self.source_gid),
+            )
+        ).to_bytes()
+
+    @classmethod
+    def from_bytes(cls, data: bytes) -> Attachment:
+        parts = z_deserialize(tuple[str, Int64, str, Int64, str, bytes], ZBytes(data))  # type: ignore[arg-type]
+        if (parts[0], parts[2], parts[4]) != ("sequence_number", "source_timestamp", "source_gid"):
+            raise ValueError(f"not an rmw_zenoh attachment: keys {parts[0]!r}, {parts[2]!r}, {parts[4]!r}")
+        return cls(int(parts[1]), int(parts[3]), bytes(parts[5]))
+
+
+def new_gid(seed: int | None = None) -> bytes:
+    """A 16-byte publisher id (random unless seeded)."""
+    if seed is None:
+        return os.urandom(GID_SIZE)
+    return np.random.default_rng(seed).integers(0, 256, GID_SIZE, dtype=np.uint8).tobytes()
+
+
+# ---- messages ---------------------------------------------------------------------------------
+def twist_cdr(
+    v: float,
+    omega: float,
+    stamped: bool,
+    frame_id: str = "base_link",
+    stamp_ns: int | None = None,
+    distro: Distro = "jazzy",
+) -> bytes:
+    """CDR bytes of geometry_msgs/msg/Twist or TwistStamped with linear.x = v, angular.z = omega."""
+    ts = typestore(distro)
+    vector3 = ts.types["geometry_msgs/msg/Vector3"]
+    twist = ts.types["geometry_msgs/msg/Twist"](
+        linear=vector3(float(v), 0.0, 0.0), angular=vector3(0.0, 0.0, float(omega))
+    )
+    if not stamped:
+        return bytes(ts.serialize_cdr(twist, "geometry_msgs/msg/Twist"))
+    stamp_ns = time.time_ns() if stamp_ns is None else stamp_ns
+    header = ts.types["std_msgs/msg/Header"](
+        stamp=ts.types["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
+        frame_id=frame_id,
+    )
+    msg = ts.types["geometry_msgs/msg/TwistStamped"](header=header, twist=twist)
+    return bytes(ts.serialize_cdr(msg, "geometry_msgs/msg/TwistStamped"))
+
+
+@dataclass
+class OdometryReading:
+    stamp_ns: int
+    frame_id: str
+    state: np.ndarray  # [X, Y, yaw, v, omega], body-frame velocities
+    covariance: np.ndarray | None  # (5, 5) over [X, Y, yaw, v, omega], None if unknown (all zeros)
+
+
+# indices of [x, y, yaw] in the 6x6 pose covariance and [vx, wz] in the 6x6 twist covariance (x y z rx ry rz)
+_POSE_IDX = [0, 1, 5]
+_TWIST_IDX = [0, 5]
+
+
+def odometry_from_cdr(data: bytes, distro: Distro = "jazzy") -> OdometryReading:
+    """Decode nav_msgs/msg/Odometry CDR bytes; raises ValueError naming what was wrong."""
+    try:
+        msg = typestore(distro).deserialize_cdr(data, "nav_msgs/msg/Odometry")
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several types on malformed CDR
+        raise ValueError(f"not a nav_msgs/msg/Odometry CDR payload ({type(exc).__name__}: {exc})") from exc
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+    state = np.array([p.x, p.y, yaw_from_quaternion(q.x, q.y, q.z, q.w), lin.x, ang.z], dtype=np.float64)
+    pose_cov = np.asarray(msg.pose.covariance, dtype=np.float64).reshape(6, 6)
+    twist_cov = np.asarray(msg.twist.covariance, dtype=np.float64).reshape(6, 6)
+    cov: np.ndarray | None = np.zeros((5, 5))
+    cov[:3, :3] = pose_cov[np.ix_(_POSE_IDX, _POSE_IDX)]
+    cov[3:, 3:] = twist_cov[np.ix_(_TWIST_IDX, _TWIST_IDX)]
+    if not np.any(cov):
+        cov = None
+    stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+    return OdometryReading(stamp_ns, msg.header.frame_id or "odom", state, cov)
+
+
+def odometry_cdr(
+    state: np.ndarray,
+    stamp_ns: int,
+    frame_id: str = "odom",
+    child_frame_id: str = "base_link",
+    distro: Distro = "jazzy",
+) -> bytes:
+    """CDR bytes of a nav_msgs/msg/Odometry for [X, Y, yaw, v, omega] (for tests and replay tools)."""
+    ts = typestore(distro)
+    t = ts.types
+    x, y, yaw, v, omega = (float(s) for s in state)
+    header = t["std_msgs/msg/Header"](
+        stamp=t["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000),
+        frame_id=frame_id,
+    )
+    pose = t["geometry_msgs/msg/PoseWithCovariance"](
+        pose=t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](x, y, 0.0),
+            orientation=t["geometry_msgs/msg/Quaternion"](0.0, 0.0, float(np.sin(yaw / 2)), float(np.cos(yaw / 2))),
+        ),
+        covariance=np.zeros(36),
+    )
+    vec = t["geometry_msgs/msg/Vector3"]
+    twist = t["geometry_msgs/msg/TwistWithCovariance"](
+        twist=t["geometry_msgs/msg/Twist"](linear=vec(v, 0.0, 0.0), angular=vec(0.0, 0.0, omega)),
+        covariance=np.zeros(36),
+    )
+    msg = t["nav_msgs/msg/Odometry"](header=header, child_frame_id=child_frame_id, pose=pose, twist=twist)
+    return bytes(ts.serialize_cdr(msg, "nav_msgs/msg/Odometry"))

@@ -1,0 +1,83 @@
+"""sim: the simulated robot. Steps the physics plant in real time with the newest `base/cmd`,
+publishes the measured state on `odom/raw` at `publish_hz` and the true terrain on `terrain/label`."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from pydantic import Field
+
+from schemas import TerrainLabel
+from services.convert import state_from_array
+from services.node import Node, NodeSettings
+
+
+class Settings(NodeSettings):
+    service: str = Field("sim", description="service name")
+    terrain: str = Field("asphalt", description="terrain under the robot (a name in the terrain file)")
+    terrain_file: str | None = Field(None, description="terrain set YAML (None: the shipped one)")
+    start: list[float] | None = Field(
+        None, min_length=5, max_length=5, description="initial [X, Y, theta, v, omega] (None: the lane's start)"
+    )
+    lane: str = Field("circle", description="lane whose start pose is used when `start` is None")
+    step_hz: float = Field(50.0, gt=0, description="plant stepping rate (commands take effect at this rate) [Hz]")
+    publish_hz: float = Field(10.0, gt=0, description="odom/raw publication rate [Hz]")
+    seed: int = Field(0, description="sensor-noise seed")
+    noise: bool = Field(True, description="add sensor noise to the published state")
+    command_timeout_s: float = Field(0.5, gt=0, description="apply zero when base/cmd is older than this [s]")
+    frame_id: str = Field("odom", description="frame of the published pose")
+
+
+def initial_state(settings: Settings) -> np.ndarray:
+    if settings.start is not None:
+        return np.asarray(settings.start, dtype=np.float64)
+    from gpmppi.scenarios import lane_scenario
+
+    return np.asarray(lane_scenario(settings.lane).start, dtype=np.float64)
+
+
+def run(settings: Settings) -> int:
+    from gpmppi.plant.physics import PhysicsPlant
+    from gpmppi.plant.terrains import load_terrains
+
+    plant = PhysicsPlant(
+        load_terrains(settings.terrain_file), settings.terrain, seed=settings.seed, noise=settings.noise
+    )
+    plant.reset(initial_state(settings))
+    step_dt = 1.0 / settings.step_hz
+    publish_every = max(1, round(settings.step_hz / settings.publish_hz))
+    with Node(settings) as node:
+        odom = node.publisher("odom_raw")
+        label = node.publisher("terrain_label")
+        base_cmd = node.subscribe("base_cmd")
+        command = np.zeros(2)
+        command_time = -np.inf
+        tick = 0
+        next_tick = time.monotonic()
+        while node.ok():
+            msg = base_cmd.take()
+            if msg is not None:
+                command = np.array([msg.v, msg.omega])
+                command_time = time.monotonic()
+            if time.monotonic() - command_time > settings.command_timeout_s:
+                command = np.zeros(2)  # the base's own safety: no fresh command, no motion
+            if tick % publish_every == 0:
+                stamp = time.time_ns()
+                measured = plant.measure()
+                if np.all(np.isfinite(measured)):
+                    odom.put(state_from_array(measured, stamp, settings.frame_id))
+                    terrain_label = TerrainLabel(terrain=settings.terrain)
+                    terrain_label.header.stamp_ns = stamp
+                    label.put(terrain_label)
+                    node.cycle()
+                else:
+                    node.error(f"plant produced a non-finite state {measured}; not published")
+            plant.step(command, step_dt)
+            tick += 1
+            next_tick += step_dt
+            delay = next_tick - time.monotonic()
+            if delay < -1.0:  # fell far behind (machine stalled): resynchronise instead of racing
+                next_tick = time.monotonic()
+            node.spin_once(max(0.0, delay))
+    return 0

@@ -1,0 +1,80 @@
+"""Cost terms and the lane distance lookup (against brute force over all segments)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpmppi.costs import (
+    collision_cost,
+    deviation_cost,
+    goal_cost,
+    lane_exit_cost,
+    slip_cost,
+    speed_cost,
+    variance_cost,
+)
+from gpmppi.mppi.lane import LaneLookup, brute_force_distance, build_lane_lookup, lane_distance, polyline_segments
+from gpmppi.scenarios import circle_lane, square_lane
+
+
+def _dist(lane: LaneLookup, x: float, y: float) -> float:
+    return lane_distance(lane.segments, lane.cell_start, lane.candidates, lane.origin, lane.inv_cell, lane.width,
+                         lane.height, x, y)
+
+
+def _check_lookup(points: np.ndarray, closed: bool, box: tuple[float, float, float, float], seed: int) -> None:
+    lane = build_lane_lookup(points, closed, margin=3.0, cell=0.1)
+    rng = np.random.default_rng(seed)
+    # points inside and outside the lookup grid (outside falls back to brute force)
+    xs = rng.uniform(box[0] - 4, box[1] + 4, 4000)
+    ys = rng.uniform(box[2] - 4, box[3] + 4, 4000)
+    got = np.array([_dist(lane, x, y)
+                    for x, y in zip(xs, ys, strict=True)])
+    ref = np.array([brute_force_distance(lane.segments, x, y) for x, y in zip(xs, ys, strict=True)])
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+
+
+def test_circle_lane_distance_matches_brute_force() -> None:
+    sc = circle_lane()
+    _check_lookup(sc.task.centerline, True, (-11, 11, -11, 11), 0)
+    # and it is the distance to the circle itself up to the chord sagitta
+    lane = build_lane_lookup(sc.task.centerline, True, margin=3.0)
+    d = _dist(lane, 9.0, 0.0)
+    assert d == pytest.approx(0.75, abs=2e-3)
+
+
+def test_square_and_open_polyline_distance_match_brute_force() -> None:
+    _check_lookup(square_lane().task.centerline, True, (-4, 24, -4, 24), 1)
+    zigzag = np.array([[0.0, 0.0], [3.0, 2.0], [6.0, -1.0], [9.0, 3.0], [12.0, 0.0]])
+    _check_lookup(zigzag, False, (-3, 15, -4, 6), 2)
+
+
+def test_open_polyline_has_no_closing_segment() -> None:
+    pts = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
+    assert polyline_segments(pts, closed=False).shape[0] == 2
+    assert polyline_segments(pts, closed=True).shape[0] == 3
+    lane = build_lane_lookup(pts, False, margin=2.0)
+    # (2, 8) is 2 m from the closing chord (0,0)-(10,10) of a closed lane but 8 m from the open one
+    d = _dist(lane, 2.0, 8.0)
+    assert d == pytest.approx(8.0)
+
+
+def test_degenerate_polyline_is_rejected() -> None:
+    with pytest.raises(ValueError, match="centerline"):
+        polyline_segments(np.zeros((4, 2)), closed=True)
+
+
+def test_cost_terms() -> None:
+    assert variance_cost(0.01, 0.02, 10.0) == pytest.approx(0.3)
+    assert deviation_cost(0.5, 2.0, 4.0) == pytest.approx(0.25)
+    assert slip_cost(1.0, 0.5, 1.5, 0.0, 2.0) == pytest.approx(1.0)
+    assert lane_exit_cost(1.0, 0.9, 0.9**3, 100.0) == pytest.approx(72.9)
+    assert lane_exit_cost(0.8, 0.9, 1.0, 100.0) == 0.0
+    assert speed_cost(1.0, 1.75, 1.0) == pytest.approx(0.5625)
+    obstacles = np.array([[0.0, 0.0, 1.0], [5.0, 0.0, 0.5]])
+    # the indicator compares distances with radii (not squared distance with a length)
+    assert collision_cost(0.0, 1.2, obstacles, np.array([1.3, 0.5]), 7.0) == 7.0
+    assert collision_cost(0.0, 1.2, obstacles, np.array([1.1, 0.5]), 7.0) == 0.0
+    assert collision_cost(5.3, 0.0, obstacles, np.array([1.1, 0.5]), 7.0) == 7.0
+    assert goal_cost(3.0, 4.0, np.zeros(2), 2.0) == pytest.approx(10.0)

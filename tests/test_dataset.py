@@ -1,0 +1,95 @@
+"""`gpmppi dataset`: excitation over terrains recorded to MCAP, and the in-memory array form."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from typer.testing import CliRunner
+
+from gpmppi.plant import load_terrains
+from gpmppi.plant.excitation import Excitation, simulate_dataset
+from tools.cli import app
+from tools.dataset import read_dataset
+
+DISTANCE = 50.0
+
+
+@pytest.fixture(scope="module")
+def small_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("ds") / "data.mcap"
+    result = CliRunner().invoke(app, ["dataset", "-o", str(out), "--distance", str(DISTANCE), "--seed", "3"])
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_dataset_file_has_matched_ticks_keys_labels(small_dataset: Path) -> None:
+    assert sorted(p.name for p in small_dataset.parent.iterdir()) == ["data.mcap"]  # no temporary left behind
+    per_stamp: dict[int, Counter] = defaultdict(Counter)
+    labels: dict[int, str] = {}
+    with open(small_dataset, "rb") as f:
+        reader = make_reader(f)
+        topics = {c.topic for c in reader.get_summary().channels.values()}
+        assert topics == {"gpmppi/jackal/state", "gpmppi/jackal/cmd", "gpmppi/jackal/terrain/label"}
+        for schema, channel, message in reader.iter_messages():
+            assert channel.message_encoding == "json" and schema.encoding == "jsonschema"
+            body = json.loads(message.data)
+            stamp = body["header"]["stamp_ns"]
+            assert message.log_time == stamp
+            per_stamp[stamp][channel.topic] += 1
+            values = [v for k, v in body.items() if k != "header" and isinstance(v, float)]
+            assert np.all(np.isfinite(values))
+            if channel.topic.endswith("label"):
+                labels[stamp] = body["terrain"]
+    assert all(c == Counter({"gpmppi/jackal/state": 1, "gpmppi/jackal/cmd": 1, "gpmppi/jackal/terrain/label": 1})
+               for c in per_stamp.values())
+    assert set(labels.values()) == {"tile", "asphalt", "grass"}
+    # terrains follow one another on one timeline (grouped, in the order given)
+    order = [labels[s] for s in sorted(labels)]
+    assert [k for i, k in enumerate(order) if i == 0 or order[i - 1] != k] == ["tile", "asphalt", "grass"]
+
+
+def test_dataset_reads_back_to_the_in_memory_arrays(small_dataset: Path) -> None:
+    runs = read_dataset(small_dataset)
+    direct = simulate_dataset(load_terrains(), ["tile", "asphalt", "grass"], distance=DISTANCE, seed=3)
+    for name, run in direct.items():
+        assert len(runs[name]) == 1
+        back = runs[name][0]
+        np.testing.assert_allclose(back.state, run.state, atol=1e-12)
+        np.testing.assert_allclose(back.command, run.command, atol=1e-12)
+        np.testing.assert_allclose(back.time, run.time, atol=1e-6)
+        assert run.distance >= DISTANCE - 0.25  # the last tick's motion ends after its recorded state
+        # sampled at dt = 0.1 s: positions move by at most ~v_max dt per tick
+        assert np.max(np.hypot(*np.diff(run.true_state[:, :2], axis=0).T)) < 0.25
+
+
+def test_unlabelled_log_needs_a_terrain_name(tmp_path: Path, small_dataset: Path) -> None:
+    runs = read_dataset(small_dataset, terrain="ignored")  # labels win when present
+    assert set(runs) == {"tile", "asphalt", "grass"}
+    with pytest.raises(ValueError, match="wrong --robot"):
+        read_dataset(small_dataset, robot="husky")
+
+
+def test_dataset_rejects_unknown_terrain(tmp_path: Path) -> None:
+    out = tmp_path / "x.mcap"
+    result = CliRunner().invoke(app, ["dataset", "-o", str(out), "--terrain", "mud", "--distance", "5"])
+    assert result.exit_code == 2
+    assert "unknown terrain 'mud'" in result.output
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_excitation_covers_the_command_box() -> None:
+    exc = Excitation(seed=0)
+    cmds = np.vstack([exc.next_segment() for _ in range(400)])
+    assert cmds[:, 0].min() >= 0 and cmds[:, 0].max() <= 2.0
+    assert np.abs(cmds[:, 1]).max() <= np.pi
+    hist, _, _ = np.histogram2d(cmds[:, 0], cmds[:, 1], bins=[4, 4], range=[[0, 2], [-np.pi, np.pi]])
+    assert hist.min() > 0.01 * len(cmds)  # every cell of a 4x4 grid over the box is visited
+    fast = (cmds[:, 0] > 1.2) & (np.abs(cmds[:, 1]) < 1.0)  # the planner's region is well covered
+    assert fast.mean() > 0.2
+    again = Excitation(seed=0)
+    np.testing.assert_array_equal(again.next_segment(), Excitation(seed=0).next_segment())

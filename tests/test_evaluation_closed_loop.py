@@ -1,0 +1,93 @@
+"""A short closed loop with the real planner, terrain estimator and physics plant; and the CLI end to end."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from gpmppi.evaluation.runner import EvalSettings, Job, run_job, summarize
+from gpmppi.scenarios import circle_lane, paper_obstacle_scene
+from tools.cli import app
+
+SHORT = EvalSettings(lane_distance_m=15.0, samples=512)
+
+
+def _terrain() -> str:
+    from gpmppi.gp.model_file import load_default_model
+
+    return load_default_model().terrains[0]
+
+
+def test_gp_beats_unicycle_on_a_short_circle() -> None:
+    terrain = _terrain()
+    cells = {}
+    for model in ("gp", "unicycle"):
+        scores, trajs = run_job(Job("tracking", circle_lane(), terrain, model, (0,), record=True), SHORT)
+        assert trajs[0].status == "distance", trajs[0].message
+        cells[model] = summarize(scores)
+        if model == "gp":
+            # the estimator ran every cycle and its weights stayed on the simplex
+            w = trajs[0].weights
+            assert trajs[0].weights_ok[1:].mean() > 0.9
+            np.testing.assert_allclose(w.sum(axis=1), 1.0, atol=1e-6)
+            assert np.all(w >= -1e-9)
+    assert cells["gp"]["rmse_mm"] < cells["unicycle"]["rmse_mm"], cells
+
+
+def test_avoidance_run_is_deterministic_per_seed() -> None:
+    terrain = _terrain()
+    job = Job("avoidance", paper_obstacle_scene(), terrain, "gp", (5,), record=True)
+    (a,), (ta,) = run_job(job, SHORT)
+    (b,), (tb,) = run_job(job, SHORT)
+    np.testing.assert_array_equal(ta.true_states, tb.true_states)
+    assert a.success == b.success and a.status == b.status
+
+
+def test_cli_json_and_files(tmp_path: Path) -> None:
+    res = CliRunner().invoke(
+        app,
+        ["evaluate", "table", "--quick", "--json", "-j", "1", "-m", "gp", "-m", "unicycle", "--trials", "2",
+         "--distance", "5", "--samples", "256", "-o", str(tmp_path)],
+    )
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    terrain = _terrain()
+    for task in ("circle", "square", "avoidance"):
+        for model in ("gp", "unicycle"):
+            cell = out["results"][task][terrain][model]
+            assert set(cell) >= {"rmse_mm", "success", "trials", "time_to_goal_s"}
+    assert out["results"]["avoidance"][terrain]["gp"]["trials"] == 2
+    for name in ("results.md", "results.csv", "results.json", "trajectories_circle.png", "trajectories_avoidance.png",
+                 "rmse_bars.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    assert "| Terrain |" in (tmp_path / "results.md").read_text()
+
+
+def test_cli_reports_infeasible_scene_and_rejects_malformed_files(tmp_path: Path) -> None:
+    bad = tmp_path / "scene_bad.yaml"
+    bad.write_text("start: {x: 0, y: 0}\ngoal: [5, 0]\nobstacles: [{x: 5, y: 0, r: 1.0}]\n")
+    res = CliRunner().invoke(app, ["evaluate", "avoidance", "--json", "-j", "1", "-n", "1", "-m", "unicycle",
+                                   "--scene-file", str(bad), "-t", _terrain()])
+    assert res.exit_code == 0, res.output
+    cell = json.loads(res.stdout.strip().splitlines()[-1])["results"]["avoidance"][_terrain()]["unicycle"]
+    assert cell["infeasible"] == 1 and cell["success"] == 0
+    broken = tmp_path / "lane_broken.yaml"
+    broken.write_text("centerline: [[0, 0], [1, 0]]\nhalf_width: -2\n")
+    res = CliRunner().invoke(app, ["evaluate", "tracking", "--lane-file", str(broken)])
+    assert res.exit_code == 2
+    assert str(broken) in res.output.replace("\n", "") and "half_width" in res.output
+
+
+@pytest.mark.parametrize("field", ["terrains.grass.mu_long"])
+def test_cli_rejects_malformed_terrain_file(tmp_path: Path, field: str) -> None:
+    f = tmp_path / "terrains.yaml"
+    f.write_text("terrains:\n  grass: {mu_long: -1, mu_lat: 0.5, slip_scale_long: 0.1, slip_scale_lat: 0.1, "
+                 "rolling: 0.01}\n")
+    res = CliRunner().invoke(app, ["evaluate", "tracking", "--terrain-file", str(f), "-t", "grass"])
+    assert res.exit_code == 2
+    text = res.output.replace("\n", "")
+    assert str(f) in text and field in text

@@ -1,0 +1,165 @@
+"""Closed-loop mechanics with hand-made stand-ins: plant rate, latency, terrain switches, stops, determinism."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from gpmppi.evaluation.closed_loop import ClosedLoopConfig, latency_from_cycles, run_closed_loop
+from gpmppi.tasks import GoalTask, LaneTask
+
+
+class KinematicPlant:
+    """Integrates a kinematic unicycle at its own step and logs every command it received, with time."""
+
+    def __init__(self, dt: float = 0.02, noise: float = 0.0, seed: int = 0) -> None:
+        self.dt = dt
+        self.rng = np.random.default_rng(seed)
+        self.noise = noise
+        self.t = 0.0
+        self.log: list[tuple[float, float]] = []  # (time, v_ref) at each internal step
+        self.terrain_log: list[tuple[float, str]] = []
+
+    def reset(self, state: np.ndarray) -> None:
+        self.x = np.asarray(state, float).copy()
+        self.t = 0.0
+
+    def set_terrain(self, name: str) -> None:
+        self.terrain_log.append((self.t, name))
+
+    def step(self, command: np.ndarray, duration: float) -> np.ndarray:
+        n = max(1, round(duration / self.dt))
+        h = duration / n
+        for _ in range(n):
+            self.log.append((self.t, float(command[0])))
+            self.x[3], self.x[4] = command
+            self.x[0] += self.x[3] * np.cos(self.x[2]) * h
+            self.x[1] += self.x[3] * np.sin(self.x[2]) * h
+            self.x[2] += self.x[4] * h
+            self.t += h
+        return self.x.copy()
+
+    def measure(self) -> np.ndarray:
+        return self.x + self.noise * self.rng.standard_normal(5)
+
+
+@dataclass
+class Result:
+    control: np.ndarray
+    tightened: np.ndarray
+    states: np.ndarray
+
+
+class CountingPlanner:
+    """Commands v = 1 + 0.1 k (so each cycle's command is recognisable) straight ahead; records weights seen."""
+
+    def __init__(self) -> None:
+        self.k = 0
+        self.weights_seen: list[np.ndarray] = []
+
+    def reset(self) -> None:
+        self.k = 0
+
+    def plan(self, state, task, weights=None) -> Result:
+        self.weights_seen.append(np.asarray(weights).copy())
+        u = np.array([1.0 + 0.1 * self.k, 0.0])
+        self.k += 1
+        return Result(u, np.full(3, 1.0), np.zeros((3, 5)))
+
+
+@dataclass
+class Estimate:
+    weights: np.ndarray
+    ok: bool = True
+    residual: float = 0.0
+    message: str = ""
+
+
+class RecordingEstimator:
+    def __init__(self) -> None:
+        self.seen: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def observe(self, state, command, next_state) -> None:
+        self.seen.append((state.copy(), command.copy(), next_state.copy()))
+
+    def estimate(self) -> Estimate:
+        return Estimate(np.array([0.2, 0.8]))
+
+
+LANE = LaneTask(np.array([[0.0, 0.0], [100.0, 0.0]]), half_width=1.0, closed=False)
+
+
+def test_no_latency_applies_each_command_over_its_cycle() -> None:
+    plant = KinematicPlant(dt=0.02)
+    traj = run_closed_loop(CountingPlanner(), plant, LANE, np.zeros(5), 2, ClosedLoopConfig(time_limit_s=0.5))
+    assert traj.status == "time_limit" and traj.commands.shape == (5, 2)
+    np.testing.assert_allclose(traj.times, np.arange(6) * 0.1)
+    assert len(plant.log) == 25  # the plant ran at its own 0.02 s step
+    # x after 5 cycles = 0.1 * (1.0 + 1.1 + 1.2 + 1.3 + 1.4)
+    assert traj.true_states[-1, 0] == pytest.approx(0.6)
+
+
+def test_latency_of_one_cycle_delays_commands() -> None:
+    plant = KinematicPlant(dt=0.02)
+    cfg = ClosedLoopConfig(time_limit_s=0.5, latency_s=latency_from_cycles(1))
+    traj = run_closed_loop(CountingPlanner(), plant, LANE, np.zeros(5), 2, cfg)
+    # first cycle applies zero (nothing has arrived), then the previous cycle's command
+    assert traj.true_states[-1, 0] == pytest.approx(0.1 * (0.0 + 1.0 + 1.1 + 1.2 + 1.3))
+
+
+def test_fractional_latency_switches_inside_a_cycle() -> None:
+    plant = KinematicPlant(dt=0.01)
+    cfg = ClosedLoopConfig(time_limit_s=0.3, latency_s=0.05)
+    run_closed_loop(CountingPlanner(), plant, LANE, np.zeros(5), 2, cfg)
+    v_at = {round(t, 3): v for t, v in plant.log}
+    assert v_at[0.04] == 0.0 and v_at[0.05] == 1.0 and v_at[0.14] == 1.0 and v_at[0.15] == pytest.approx(1.1)
+
+
+def test_estimator_sees_measured_transitions_and_feeds_weights() -> None:
+    est = RecordingEstimator()
+    planner = CountingPlanner()
+    traj = run_closed_loop(planner, KinematicPlant(), LANE, np.zeros(5), 2, ClosedLoopConfig(time_limit_s=0.4),
+                           estimator=est)
+    assert len(est.seen) == 3  # cycles 1..3 observe the transitions of cycles 0..2
+    for k, (s, u, s_next) in enumerate(est.seen):
+        np.testing.assert_array_equal(s, traj.measured_states[k])
+        np.testing.assert_array_equal(u, traj.commands[k])
+        np.testing.assert_array_equal(s_next, traj.measured_states[k + 1])
+    np.testing.assert_allclose(planner.weights_seen[0], [0.5, 0.5])
+    np.testing.assert_allclose(planner.weights_seen[1], [0.2, 0.8])
+    assert traj.weights_ok.tolist() == [False, True, True, True]
+
+
+def test_terrain_switch_and_distance_stop() -> None:
+    plant = KinematicPlant()
+    cfg = ClosedLoopConfig(time_limit_s=10.0, distance_limit_m=2.0, terrain_switches=((0.5, "sand"),))
+    traj = run_closed_loop(CountingPlanner(), plant, LANE, np.zeros(5), 2, cfg, initial_terrain="grass")
+    assert traj.status == "distance"
+    assert [n for _, n in plant.terrain_log] == ["grass", "sand"]
+    assert plant.terrain_log[1][0] == pytest.approx(0.5)
+    assert traj.terrains[4] == "grass" and traj.terrains[5] == "sand"
+    # the run stops at the first cycle whose cumulative distance 0.1 * sum(1 + 0.1 k) reaches 2 m
+    driven = np.cumsum(0.1 * (1.0 + 0.1 * np.arange(20)))
+    assert len(traj.commands) == int(np.argmax(driven >= 2.0 - 1e-9)) + 1
+
+
+def test_goal_and_collision_stops() -> None:
+    goal = GoalTask(goal=np.array([1.0, 0.0]), tolerance=0.2)
+    traj = run_closed_loop(CountingPlanner(), KinematicPlant(), goal, np.zeros(5), 2, ClosedLoopConfig())
+    assert traj.status == "goal" and np.linalg.norm(traj.positions[-1] - goal.goal) <= 0.2
+    wall = GoalTask(goal=np.array([5.0, 0.0]), tolerance=0.2, obstacles=np.array([[2.0, 0.0, 0.5]]))
+    traj = run_closed_loop(CountingPlanner(), KinematicPlant(), wall, np.zeros(5), 2, ClosedLoopConfig())
+    assert traj.status == "collision" and traj.positions[-1, 0] >= 1.5
+
+
+def test_same_seed_same_run_and_noise_reaches_planner_only_through_measurements() -> None:
+    runs = [
+        run_closed_loop(CountingPlanner(), KinematicPlant(noise=0.01, seed=s), LANE, np.zeros(5), 2,
+                        ClosedLoopConfig(time_limit_s=0.5))
+        for s in (3, 3, 4)
+    ]
+    np.testing.assert_array_equal(runs[0].measured_states, runs[1].measured_states)
+    assert not np.array_equal(runs[0].measured_states, runs[2].measured_states)
+    np.testing.assert_array_equal(runs[0].true_states, runs[2].true_states)  # this planner ignores the state

@@ -1,0 +1,171 @@
+"""The launcher: the whole stack on loopback (every heartbeat, every key in the MCAP, lane tracking close to
+the in-process evaluation, a real .rrd), restarts and failure, and the shipped deploy files."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+import zenoh
+from test_services import client, free_port, wait_for
+
+from schemas import KEYS, EStop, State, encode, key_for
+from services.launcher import DEFAULT_LAUNCH, LaunchFile, run_launch
+from services.mcap_io import read_messages
+from services.run import settings_class
+
+REPO = Path(__file__).resolve().parents[1]
+SERVICES = ["sim", "ingress", "terrain", "planner", "egress", "recorder", "viewer"]
+
+
+def _in_process_rmse(duration_s: float) -> float:
+    """The same scenario (circle lane, asphalt, seed 0, the services' model) in one process, no middleware."""
+    from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+    from gpmppi.evaluation.metrics import lane_rmse_mm
+    from gpmppi.gp.model_file import GPModel, load_default_model
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.plant.physics import PhysicsPlant
+    from gpmppi.plant.terrains import load_terrains
+    from gpmppi.scenarios import circle_lane
+    from gpmppi.terrain import TerrainEstimator
+
+    # the services take GPMPPI_MODEL_FILE from the environment (settings override), so the reference does too
+    path = os.environ.get("GPMPPI_MODEL_FILE")
+    model = GPModel.load(path) if path else load_default_model()
+    scenario = circle_lane()
+    plant = PhysicsPlant(load_terrains(None), "asphalt", seed=0)
+    traj = run_closed_loop(
+        Planner(PlannerConfig(), model),
+        plant,
+        scenario.task,
+        scenario.start,
+        len(model.terrains),
+        ClosedLoopConfig(time_limit_s=duration_s),
+        estimator=TerrainEstimator(model),
+    )
+    return lane_rmse_mm(traj.positions, scenario.task.centerline, closed=True)
+
+
+def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    port = free_port()
+    record, rrd = tmp_path / "run.mcap", tmp_path / "run.rrd"
+    out = io.StringIO()
+    result: dict = {}
+
+    def estop_released() -> None:
+        # an outside client joins mid-run and releases the e-stop, so the estop key is on the wire too
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            try:
+                s = client(port)
+                break
+            except zenoh.ZError:
+                time.sleep(0.2)
+        else:
+            return
+        pub = s.declare_publisher(key_for("estop"))
+        for _ in range(5):
+            pub.put(encode(EStop(engaged=False, reason="test")))
+            time.sleep(0.5)
+        s.close()
+
+    side = threading.Thread(target=estop_released, daemon=True)
+    side.start()
+    code, summary = run_launch(None, duration=15.0, record=str(record), rerun=["save", str(rrd)], port=port, out=out)
+    side.join(5)
+    result["log"] = out.getvalue()
+    assert code == 0, result["log"][-4000:]
+    assert set(summary.heartbeats_from) >= set(SERVICES), summary.heartbeats_from
+    assert summary.restarts == {} and summary.failed == []
+    # the recording holds every registered key (health for each service)
+    recorded = {key for key, _, _ in read_messages(record)}
+    expected = {key_for(name) for name in KEYS if name != "health"}
+    expected |= {key_for("health", service=s) for s in SERVICES}
+    assert expected <= recorded, f"missing from the MCAP: {expected - recorded}"
+    # the robot drove the lane: compare with the in-process evaluation of the same scenario
+    states = [(m.header.stamp_ns, m.x, m.y) for k, _, m in read_messages(record, [key_for("state")])]
+    assert all(isinstance(m, State) for _, _, m in read_messages(record, [key_for("state")]))
+    states.sort()
+    xy = np.array([[x, y] for _, x, y in states])
+    driven_s = (states[-1][0] - states[0][0]) / 1e9
+    assert driven_s > 8.0 and summary.distance_driven_m > 5.0
+    assert summary.lane_exits == 0
+    reference = _in_process_rmse(driven_s)
+    assert summary.lane_rmse_mm is not None and summary.lane_rmse_mm <= 1.5 * reference + 20.0, (
+        f"over Zenoh {summary.lane_rmse_mm:.0f} mm vs in-process {reference:.0f} mm"
+    )
+    assert np.all(np.isfinite(xy))
+    # a real .rrd: rerun reads it back with the map and plot entities
+    from rerun.chunk import RrdReader
+
+    paths = {str(c.entity_path) for c in RrdReader(rrd).stream().to_chunks()}
+    assert {"/map/robot", "/map/plan/nominal", "/map/lane/edges", "/plots/velocity/v"} <= paths
+    assert summary.planner_rate_hz is not None and summary.planner_rate_hz > 2.0
+    assert summary.latency_p99_ms is not None and "lane, RMSE" in result["log"]
+
+
+def test_crashing_required_service_fails_the_launch(tmp_path: Path) -> None:
+    launch = tmp_path / "bad.yaml"
+    port = free_port()
+    launch.write_text(
+        yaml.safe_dump(
+            {
+                "router": {"listen": [f"tcp/127.0.0.1:{port}"]},
+                "zenoh": {"connect": [f"tcp/127.0.0.1:{port}"]},
+                "max_restarts": 2,
+                "restart_backoff_s": 0.1,
+                "services": [
+                    {"name": "egress"},
+                    {"name": "ingress", "config": {"max_age_s": "not a number"}},
+                ],
+            }
+        )
+    )
+    out = io.StringIO()
+    t0 = time.monotonic()
+    code, summary = run_launch(launch, duration=30.0, out=out)
+    log = out.getvalue()
+    assert code == 1, log[-3000:]
+    assert time.monotonic() - t0 < 25.0, "a required service failing for good must stop the launch early"
+    assert summary.restarts.get("ingress") == 2 and summary.failed == ["ingress"]
+    assert "restart 1 in 0.1 s" in log and "restart 2 in 0.2 s" in log and "failed for good" in log
+    assert "bad configuration" in log and "max_age_s" in log
+    # everything else was stopped in reverse order, politely
+    assert log.index("stopped egress") < log.index("stopped router")
+
+
+def test_shipped_launch_and_deploy_files_validate(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(REPO)
+    for path in [DEFAULT_LAUNCH, *sorted((REPO / "deploy").glob("*.yaml"))]:
+        launch = LaunchFile.load(path)
+        assert launch.services, path
+        for entry in launch.services:
+            kind = entry.kind or entry.name
+            settings_class(kind).model_validate({**entry.config, "service": entry.name})
+        if launch.router.enabled:
+            settings_class("router").model_validate({"listen": launch.router.listen, **launch.router.config})
+        if launch.zenoh.config_file:
+            launch.zenoh.to_config()
+    for path in sorted((REPO / "deploy" / "zenoh").glob("*.json5")):
+        zenoh.Config.from_file(str(path))
+    for path in sorted((REPO / "deploy" / "systemd" / "etc").glob("*.yaml")):
+        settings_class(path.stem).model_validate(yaml.safe_load(path.read_text()))
+    unit = (REPO / "deploy" / "systemd" / "gpmppi@.service").read_text()
+    assert "KillSignal=SIGINT" in unit and "Restart=on-failure" in unit and "PartOf=gpmppi.target" in unit
+
+
+def test_monitor_summary_reads_json_logs() -> None:
+    from services.launcher import readable
+
+    line = json.dumps({"t": 1.0, "level": "WARNING", "service": "x", "logger": "l", "msg": "hello", "n": 3})
+    assert readable(line) == "WARNING hello n=3"
+    assert readable("plain text\n") == "plain text\n"
+    assert wait_for(lambda: True, 0.1)

@@ -1,0 +1,320 @@
+"""Node runtime and safety over real Zenoh sessions on loopback: router and peers, an outside observer,
+bad input counted and survived, the egress watchdog and e-stop, settings from YAML + environment."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+import yaml
+import zenoh
+
+from schemas import BaseCommand, Command, EStop, Header, Heartbeat, State, decode, encode
+from services.node import Node, NodeSettings, ZenohSettings
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+# ---- helpers (also used by the other test_services_* / test_ros2_* / test_launch_* files) ----------
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def endpoint(port: int) -> str:
+    return f"tcp/127.0.0.1:{port}"
+
+
+@contextmanager
+def router(port: int) -> Iterator[zenoh.Session]:
+    config = zenoh.Config()
+    config.insert_json5("mode", '"router"')
+    config.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+    try:
+        yield session
+    finally:
+        session.close()
+
+
+def client(port: int) -> zenoh.Session:
+    return zenoh.open(ZenohSettings(mode="client", connect=[endpoint(port)]).to_config())
+
+
+def wait_for(predicate: Callable[[], bool], timeout: float, step: float = 0.02) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(step)
+    return predicate()
+
+
+class Collector:
+    """An outside observer: every sample on a key expression, with arrival times."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str = "gpmppi/**") -> None:
+        self.samples: list[tuple[float, str, bytes, bytes | None]] = []
+        self.lock = threading.Lock()
+        self._sub = session.declare_subscriber(key_expr, self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        att = sample.attachment.to_bytes() if sample.attachment is not None else None
+        with self.lock:
+            self.samples.append((time.monotonic(), str(sample.key_expr), sample.payload.to_bytes(), att))
+
+    def on(self, key: str) -> list[tuple[float, bytes, bytes | None]]:
+        with self.lock:
+            return [(t, p, a) for t, k, p, a in self.samples if k == key]
+
+    def keys(self) -> set[str]:
+        with self.lock:
+            return {k for _, k, _, _ in self.samples}
+
+
+class ServiceProcess:
+    """A service in its own process, as the launcher runs it."""
+
+    def __init__(self, kind: str, config: dict, tmp_path: Path) -> None:
+        path = tmp_path / f"{kind}-{config.get('service', kind)}.yaml"
+        path.write_text(yaml.safe_dump(config))
+        env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
+        self.log_path = tmp_path / f"{kind}.log"
+        self._log = open(self.log_path, "wb")  # noqa: SIM115 - closed in stop()
+        self.process = subprocess.Popen(
+            [sys.executable, "-m", "services.run", kind, "--config", str(path)],
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            env=env,
+            cwd=tmp_path,
+        )
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def stop(self, timeout: float = 10.0) -> int:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGINT)
+            try:
+                self.process.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+                raise AssertionError(f"service did not exit within {timeout} s of SIGINT") from None
+        self._log.close()
+        return self.process.returncode
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+
+def heartbeats(col: Collector, robot: str, service: str) -> list[Heartbeat]:
+    return [decode(Heartbeat, p) for _, p, _ in col.on(f"gpmppi/{robot}/health/{service}")]
+
+
+def settings(service: str, port: int, robot: str = "r1", **extra) -> dict:
+    return {"service": service, "robot": robot, "zenoh": {"mode": "client", "connect": [endpoint(port)]}, **extra}
+
+
+# ---- node-level tests (in-process sessions) ------------------------------------------------------
+def _node(name: str, zenoh_settings: ZenohSettings, robot: str = "r1") -> Node:
+    return Node(NodeSettings(service=name, robot=robot, zenoh=zenoh_settings), install_signals=False)
+
+
+def _exchange(a: Node, b: Node, observer_port: int) -> None:
+    with a, b:
+        observer = client(observer_port)  # an outside client, joining after the services
+        col = Collector(observer)
+        pub = a.publisher("cmd")
+        sub = b.subscribe("cmd", newest_only=False)
+        back = b.publisher("state")
+        back_sub = a.subscribe("state")
+        got: list[Command] = []
+        got_state: list[State] = []
+
+        def step() -> bool:
+            pub.put(Command(v_ref=0.5, omega_ref=0.1))
+            back.put(State(x=1.0, y=2.0, theta=0.0, v=0.5, omega=0.1))
+            a.heartbeat()
+            got.extend(sub.drain())
+            if (s := back_sub.take()) is not None:
+                got_state.append(s)
+            return bool(got) and bool(got_state)
+
+        assert wait_for(step, 10.0, step=0.05), "the two nodes did not receive each other's messages"
+        assert got[0].v_ref == 0.5 and got_state[0].x == 1.0
+        assert got[-1].header.seq > 0 or len(got) == 1
+
+        def seen_all() -> bool:
+            pub.put(Command(v_ref=0.5, omega_ref=0.1))
+            back.put(State(x=1.0, y=2.0, theta=0.0, v=0.5, omega=0.1))
+            a.heartbeat()
+            return {"gpmppi/r1/cmd", "gpmppi/r1/state", "gpmppi/r1/health/a"} <= col.keys()
+
+        assert wait_for(seen_all, 5.0, step=0.05), f"the outside client saw only {col.keys()}"
+        _, payload, _ = col.on("gpmppi/r1/cmd")[0]
+        assert decode(Command, payload).v_ref == 0.5
+        observer.close()
+
+
+def test_two_nodes_through_a_router_and_an_outside_client_sees_every_key() -> None:
+    port = free_port()
+    with router(port):
+        zs = ZenohSettings(mode="client", connect=[endpoint(port)])
+        _exchange(_node("a", zs), _node("b", zs), port)
+
+
+def test_two_nodes_as_listening_peers() -> None:
+    pa, pb = free_port(), free_port()
+    a = _node("a", ZenohSettings(mode="peer", listen=[endpoint(pa)], connect=[]))
+    b = _node("b", ZenohSettings(mode="peer", listen=[endpoint(pb)], connect=[endpoint(pa)]))
+    _exchange(a, b, pa)
+
+
+def test_publisher_sets_json_encoding_and_refuses_non_finite() -> None:
+    port = free_port()
+    with router(port):
+        observer = client(port)
+        encodings: list[str] = []
+        sub = observer.declare_subscriber("gpmppi/r1/cmd", lambda s: encodings.append(str(s.encoding)))
+        node = _node("a", ZenohSettings(mode="client", connect=[endpoint(port)]))
+        with node:
+            pub = node.publisher("cmd")
+            cmd = Command(v_ref=1.0, omega_ref=0.0)
+            assert wait_for(lambda: (pub.put(cmd), bool(encodings))[1], 5.0, step=0.05)
+            cmd.v_ref = math.nan  # assignment is not validated; the publisher re-validates
+            with pytest.raises(ValueError):
+                pub.put(cmd)
+            with pytest.raises(TypeError):
+                pub.put(State(x=0, y=0, theta=0, v=0, omega=0))  # type: ignore[arg-type]
+        sub.undeclare()
+        observer.close()
+        assert encodings[0].startswith("application/json")
+
+
+def test_settings_yaml_then_environment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from services.egress import Settings as EgressSettings
+
+    path = tmp_path / "egress.yaml"
+    path.write_text(
+        yaml.safe_dump({"robot": "r9", "watchdog_timeout_s": 0.3, "zenoh": {"connect": ["tcp/127.0.0.1:1"]}})
+    )
+    s = EgressSettings.load(path)
+    assert (s.robot, s.watchdog_timeout_s, s.zenoh.connect, s.rate_hz) == ("r9", 0.3, ["tcp/127.0.0.1:1"], 20.0)
+    monkeypatch.setenv("GPMPPI_WATCHDOG_TIMEOUT_S", "0.7")
+    monkeypatch.setenv("GPMPPI_ZENOH__MODE", "peer")
+    s = EgressSettings.load(path)
+    assert s.watchdog_timeout_s == 0.7 and s.zenoh.mode == "peer" and s.robot == "r9"
+    monkeypatch.delenv("GPMPPI_WATCHDOG_TIMEOUT_S")
+    path.write_text(yaml.safe_dump({"watchdog_timeout_s": -1}))
+    with pytest.raises(ValueError, match="watchdog_timeout_s"):
+        EgressSettings.load(path)
+    with pytest.raises(FileNotFoundError):
+        EgressSettings.load(tmp_path / "missing.yaml")
+    for name, f in EgressSettings.model_fields.items():
+        assert f.description, f"setting {name} has no description"
+
+
+# ---- services in their own processes -------------------------------------------------------------
+def _bad_payloads() -> list[tuple[str, bytes]]:
+    good = json.loads(encode(Command(v_ref=0.3, omega_ref=0.0)))
+    wrong_version = {**good, "header": {**good["header"], "schema_version": 99}}
+    return [
+        ("invalid json", b"{not json"),
+        ("wrong type", json.dumps({**good, "v_ref": "fast"}).encode()),
+        ("NaN", json.dumps({**good, "v_ref": float("nan")}).encode()),  # json.dumps writes NaN
+        ("infinity", b'{"v_ref": Infinity, "omega_ref": 0.0}'),
+        ("wrong schema_version", json.dumps(wrong_version).encode()),
+        ("oversized", b'{"v_ref": 1.0, "omega_ref": 0.0, "pad": "' + b"x" * (5 * 1024 * 1024) + b'"}'),
+        ("missing field", b'{"v_ref": 1.0}'),
+    ]
+
+
+def test_egress_survives_bad_input_and_never_publishes_non_finite(tmp_path: Path) -> None:
+    port = free_port()
+    with router(port):
+        observer = client(port)
+        col = Collector(observer)
+        egress = ServiceProcess("egress", settings("egress", port, rate_hz=20.0), tmp_path)
+        try:
+            assert wait_for(lambda: bool(heartbeats(col, "r1", "egress")), 15.0), egress.log()
+            pub = observer.declare_publisher("gpmppi/r1/cmd", congestion_control=zenoh.CongestionControl.BLOCK)
+            for _, payload in _bad_payloads():
+                pub.put(payload)
+                time.sleep(0.05)
+            n_bad = len(_bad_payloads())
+            assert wait_for(lambda: any(h.rejected >= n_bad for h in heartbeats(col, "r1", "egress")), 5.0)
+            # still alive and obeying valid commands
+            for _ in range(10):
+                pub.put(encode(Command(v_ref=0.4, omega_ref=0.2, header=Header(stamp_ns=time.time_ns()))))
+                time.sleep(0.05)
+            assert egress.alive()
+            base = [decode(BaseCommand, p) for _, p, _ in col.on("gpmppi/r1/base/cmd")]
+            assert base and all(math.isfinite(b.v) and math.isfinite(b.omega) for b in base)
+            assert any(b.reason == "planner" and abs(b.v - 0.4) < 1e-9 and abs(b.omega - 0.2) < 1e-9 for b in base)
+            hb = heartbeats(col, "r1", "egress")[-1]
+            assert hb.rejected >= n_bad and hb.last_error
+        finally:
+            assert egress.stop() == 0
+            observer.close()
+    log = egress.log()
+    assert log.count("rejected input") >= 5 and "schema_version" in log and "exceeds" in log
+
+
+def test_egress_watchdog_limits_and_estop(tmp_path: Path) -> None:
+    port = free_port()
+    with router(port):
+        observer = client(port)
+        col = Collector(observer)
+        cfg = settings("egress", port, rate_hz=20.0, watchdog_timeout_s=0.3, accel_limit=2.0, v_limits=[0.0, 1.0])
+        egress = ServiceProcess("egress", cfg, tmp_path)
+        try:
+            assert wait_for(lambda: bool(heartbeats(col, "r1", "egress")), 15.0), egress.log()
+            cmd_pub = observer.declare_publisher("gpmppi/r1/cmd")
+            estop_pub = observer.declare_publisher("gpmppi/r1/estop")
+            t_cmd = time.monotonic()
+            for _ in range(20):  # 1 s of commands above the velocity limit
+                cmd_pub.put(encode(Command(v_ref=5.0, omega_ref=0.0)))
+                time.sleep(0.05)
+            t_stop = time.monotonic()
+            time.sleep(1.0)
+            base = [(t, decode(BaseCommand, p)) for t, p, _ in col.on("gpmppi/r1/base/cmd")]
+            during = [b for t, b in base if t_cmd < t < t_stop]
+            assert max(b.v for b in during) == pytest.approx(1.0)  # velocity limit
+            ramp = [b.v for b in during[:5]]
+            assert ramp[0] < 0.5 and all(b2 >= b1 for b1, b2 in zip(ramp, ramp[1:], strict=False))  # accel limit
+            after = [b for t, b in base if t > t_stop + 0.3 + 0.15]
+            assert len(after) >= 8, "the watchdog must keep sending at a steady rate"
+            assert all(b.v == 0.0 and b.omega == 0.0 and b.reason == "watchdog" for b in after)
+            # e-stop: zero while engaged even with fresh commands, planner again once released
+            estop_pub.put(encode(EStop(engaged=True, reason="test")))
+            time.sleep(0.2)
+            t_e = time.monotonic()
+            for _ in range(10):
+                cmd_pub.put(encode(Command(v_ref=0.5, omega_ref=0.0)))
+                time.sleep(0.05)
+            estop_pub.put(encode(EStop(engaged=False)))
+            time.sleep(0.1)
+            for _ in range(10):
+                cmd_pub.put(encode(Command(v_ref=0.5, omega_ref=0.0)))
+                time.sleep(0.05)
+            base = [(t, decode(BaseCommand, p)) for t, p, _ in col.on("gpmppi/r1/base/cmd")]
+            engaged = [b for t, b in base if t_e < t < t_e + 0.45]
+            assert engaged and all(b.v == 0.0 and b.reason == "estop" for b in engaged)
+            assert base[-1][1].reason in ("planner", "limit") and base[-1][1].v > 0.0
+        finally:
+            assert egress.stop() == 0
+            observer.close()

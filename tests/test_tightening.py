@@ -1,0 +1,119 @@
+"""Chance-constraint tightening (closed form, scipy quantiles) and covariance propagation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import chi2, norm
+
+from gpmppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
+from gpmppi.models.dynamic_unicycle import euler_step, jacobian
+from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, collapse_table, empty_packed_table, propagate
+from gpmppi.mppi.synthetic import synthetic_model
+
+
+def _random_covs(n: int, seed: int, scale: float = 0.05) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n, 5, 5)) * scale
+    return a @ a.transpose(0, 2, 1)
+
+
+def test_quantiles_come_from_scipy() -> None:
+    q = ChanceQuantiles.for_probability(0.95)
+    assert q.chi2_2 == pytest.approx(chi2.ppf(0.95, 2))
+    assert q.chi2_2 == pytest.approx(-2 * np.log(0.05))  # chi2 with 2 dof has a closed-form quantile
+    assert q.normal == pytest.approx(1.6448536269514722)
+    with pytest.raises(ValueError, match="p_x"):
+        ChanceQuantiles.for_probability(1.0)
+
+
+def test_lane_tightening_equals_closed_form() -> None:
+    covs = _random_covs(12, 0)
+    r = 1.75
+    got, clamped = tighten_lane(covs, r, chi2.ppf(0.9, 2), 0.1)
+    lam = np.array([np.linalg.eigvalsh(c[:2, :2]).max() for c in covs])
+    expected = np.maximum(r - np.sqrt(chi2.ppf(0.9, 2) * lam), 0.1 * r)
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+    assert clamped == int(np.sum(r - np.sqrt(chi2.ppf(0.9, 2) * lam) < 0.1 * r))
+
+
+def test_lane_tightening_clamps_and_counts() -> None:
+    covs = np.zeros((3, 5, 5))
+    covs[1, 0, 0] = 100.0
+    covs[2, 1, 1] = 0.01
+    got, clamped = tighten_lane(covs, 2.0, chi2.ppf(0.95, 2), 0.1)
+    assert got[0] == 2.0
+    assert got[1] == pytest.approx(0.2)  # clamped at 10 % of r, never negative
+    assert got[2] == pytest.approx(2.0 - np.sqrt(chi2.ppf(0.95, 2) * 0.01))
+    assert clamped == 1
+
+
+def test_obstacle_inflation_equals_closed_form() -> None:
+    covs = _random_covs(6, 1)
+    rng = np.random.default_rng(2)
+    states = rng.normal(size=(6, 5)) * 3
+    obstacles = np.array([[1.0, 2.0, 0.5], [-2.0, 0.5, 0.8]])
+    zq = norm.ppf(0.95)
+    got, capped = inflate_obstacles(states, covs, obstacles, zq, 0.2, 10.0)
+    for k in range(6):
+        for j in range(2):
+            n = states[k, :2] - obstacles[j, :2]
+            n /= np.linalg.norm(n)
+            expected = obstacles[j, 2] + 0.2 + zq * np.sqrt(n @ covs[k, :2, :2] @ n)
+            assert got[k, j] == pytest.approx(expected, rel=1e-12)
+    assert capped == 0
+    capped_r, n_capped = inflate_obstacles(states, covs * 1e6, obstacles, zq, 0.0, 0.3)
+    np.testing.assert_allclose(capped_r, np.tile(obstacles[:, 2] + 0.3, (6, 1)))
+    assert n_capped == 12
+
+
+def _fd_jacobian(theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+    jac = np.zeros((5, 5))
+    for i in range(5):
+        h = 1e-6
+        e = np.zeros(5)
+        e[i] = h
+        jac[:, i] = (euler_step(theta, x + e, u, dt) - euler_step(theta, x - e, u, dt)) / (2 * h)
+    return jac
+
+
+def test_propagation_matches_finite_difference_jacobians() -> None:
+    model = synthetic_model()
+    w = np.array([0.5, 0.3, 0.2])
+    g = model.grid()
+    table = empty_packed_table(g.table.shape)
+    collapse_table(np.ascontiguousarray(g.table, dtype=np.float32), w, table)
+    rng = np.random.default_rng(3)
+    controls = np.column_stack([rng.uniform(0.5, 2.0, 15), rng.uniform(-2, 2, 15)])
+    x0 = np.array([1.0, -2.0, 0.4, 0.8, 0.3])
+    m2 = 2 * len(model.terrains)
+    dummy = (np.zeros((m2, 1, 4)), np.ones((m2, 4)), np.zeros(m2), np.zeros((m2, 1)), np.ones((m2, 1, 1)))
+    states, covs, step_var = propagate(x0, controls, 0.1, DYN_GP, model.theta, model.edd5["grass"], GP_GRID,
+                                       table, g.lo, g.inv_step, *dummy, w)
+    sigma = np.zeros((5, 5))
+    for k in range(15):
+        jac_fd = _fd_jacobian(model.theta, states[k], controls[k], 0.1)
+        np.testing.assert_allclose(jacobian(model.theta, states[k], controls[k], 0.1), jac_fd, atol=1e-7)
+        sigma = jac_fd @ sigma @ jac_fd.T + np.diag([0, 0, 0, step_var[k, 0], step_var[k, 1]])
+        np.testing.assert_allclose(covs[k + 1], sigma, rtol=1e-6, atol=1e-12)
+    assert np.all(step_var > 0)
+    assert covs[-1][0, 0] > 0 and covs[-1][1, 1] > 0  # velocity noise reaches the position
+
+
+def test_collapsed_table_interpolates_like_the_weighted_model_grid() -> None:
+    from gpmppi.gp.grid_interp import grid_interp
+    from gpmppi.mppi.dynamics import interp4
+
+    model = synthetic_model()
+    g = model.grid()
+    w = np.array([0.6, 0.1, 0.3])
+    packed = empty_packed_table(g.table.shape)
+    collapse_table(np.ascontiguousarray(g.table, dtype=np.float32), w, packed)
+    rng = np.random.default_rng(4)
+    full = np.empty(g.table.shape[4])
+    for _ in range(200):
+        x = model.domain_lo - 0.3 + (model.domain_hi - model.domain_lo + 0.6) * rng.uniform(size=4)  # some outside
+        grid_interp(g.table, g.lo, g.inv_step, x, full)
+        t = len(model.terrains) * 2
+        expected = [w @ full[0:t:2], w @ full[1:t:2], w**2 @ full[t::2], w**2 @ full[t + 1 :: 2]]
+        np.testing.assert_allclose(interp4(packed, g.lo, g.inv_step, *x), expected, rtol=1e-5, atol=1e-8)

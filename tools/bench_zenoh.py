@@ -1,0 +1,44 @@
+"""`gpmppi bench zenoh`: the whole stack over Zenoh on loopback (router + sim + ingress + terrain + planner +
+egress, each its own process): planner rate, state-stamp -> command latency p50/p99 (as an outside client
+receives the command), planner compute p99, and each service's time to its first heartbeat."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import typer
+
+
+def register(bench_app: typer.Typer) -> None:
+    @bench_app.command("zenoh")
+    def bench_zenoh(
+        duration: float = typer.Option(20.0, help="seconds of closed-loop running"),
+        port: int = typer.Option(7461, help="router port on 127.0.0.1"),
+        as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
+        show_logs: bool = typer.Option(False, help="print the services' logs too"),
+    ) -> None:
+        """Planner rate and stamp -> command latency over Zenoh (timings are noisy on a shared machine)."""
+        from services.launcher import run_launch
+
+        logs = io.StringIO()
+        code, s = run_launch(duration=duration, port=port, out=None if show_logs else logs)
+        result = {
+            "duration_s": round(s.duration_s, 1),
+            "planner_rate_hz": s.planner_rate_hz,
+            "cmd_latency_p50_ms": s.latency_p50_ms,
+            "cmd_latency_p99_ms": s.latency_p99_ms,
+            "plan_compute_p99_ms": s.plan_p99_ms,
+            "cmd_messages": s.messages.get("gpmppi/jackal/cmd", 0),
+            "first_heartbeat_s": {k: round(v, 2) for k, v in s.first_heartbeat_s.items()},
+            "first_output_s": {k: round(v, 2) for k, v in s.first_output_s.items()},
+            "lane_rmse_mm": s.lane_rmse_mm,
+            "restarts": s.restarts,
+            "failed": s.failed,
+        }
+        if as_json:
+            typer.echo(json.dumps(result))
+        else:
+            for k, v in result.items():
+                typer.echo(f"{k:>22}: {v}")
+        raise typer.Exit(code)

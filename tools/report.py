@@ -1,0 +1,175 @@
+"""Write an evaluation's results: the paper-style table (Markdown, CSV, JSON) and PNG figures.
+
+`results[task][terrain][model]` holds one cell's summary (see `gpmppi.evaluation.runner.summarize`);
+`paths[task][terrain][model]` holds a recorded run for the figures: {"xy": (T, 2), "inflated": (K,) or None}.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from gpmppi.scenarios import Scenario
+from gpmppi.tasks import GoalTask, LaneTask
+
+MODEL_LABELS = {"gp": "GP-MPPI", "edd5": "EDD5-MPPI", "unicycle": "Unicycle-MPPI"}
+MODEL_COLOURS = {"gp": "tab:blue", "edd5": "tab:orange", "unicycle": "tab:green"}
+LANE_TASKS = ("circle", "square")
+
+
+def _fmt(x: float, digits: int = 1) -> str:
+    return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def _cell(results: dict, task: str, terrain: str, model: str) -> dict | None:
+    return results.get(task, {}).get(terrain, {}).get(model)
+
+
+def markdown_table(results: dict, models: list[str], terrains: list[str]) -> str:
+    """Table 1 layout: a row per terrain; per model circle RMSE, square RMSE, avoidance success, time-to-goal."""
+    head = ["Terrain"]
+    for m in models:
+        name = MODEL_LABELS.get(m, m)
+        head += [f"{name} circle RMSE [mm]", f"{name} square RMSE [mm]", f"{name} success", f"{name} time-to-goal [s]"]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for terrain in terrains:
+        row = [terrain]
+        for m in models:
+            for lane in LANE_TASKS:
+                c = _cell(results, lane, terrain, m)
+                row.append(_fmt(c["rmse_mm"]) if c else "-")
+            c = _cell(results, "avoidance", terrain, m)
+            if c:
+                row.append(f"{c['success']}/{c['trials']}")
+                row.append(f"{_fmt(c['time_to_goal_s'], 2)} ± {_fmt(c['time_to_goal_std_s'], 2)}")
+            else:
+                row += ["-", "-"]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def write_tables(results: dict, meta: dict, out_dir: Path, models: list[str], terrains: list[str]) -> list[Path]:
+    """results.md (paper layout + details), results.csv (one row per cell), results.json."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    md = markdown_table(results, models, terrains)
+    details = ["", "| task | terrain | model | RMSE [mm] | success | lane exits | collisions | min clearance [m] "
+               "| planner [ms/step] |", "|---|---|---|---|---|---|---|---|---|"]
+    rows = []
+    for task, by_terrain in results.items():
+        for terrain, by_model in by_terrain.items():
+            for model, c in by_model.items():
+                rows.append({"task": task, "terrain": terrain, "model": model,
+                             **{k: v for k, v in c.items() if k != "statuses"}})
+                details.append(
+                    f"| {task} | {terrain} | {model} | {_fmt(c['rmse_mm'])} | {c['success']}/{c['trials']} "
+                    f"| {c['lane_exits']} | {c['collisions']} | {_fmt(c['min_clearance_m'], 3)} "
+                    f"| {_fmt(c['planner_ms'])} |"
+                )
+    command = meta.get("command", "")
+    text = f"# Closed-loop evaluation\n\nCommand: `{command}`\n\n{md}" + "\n".join(details) + "\n"
+    paths = [out_dir / "results.md", out_dir / "results.csv", out_dir / "results.json"]
+    _atomic_write(paths[0], text)
+    if rows:
+        fields = list(rows[0])
+        tmp = paths[1].with_name("results.csv.tmp")
+        with tmp.open("w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=fields)
+            w.writeheader()
+            w.writerows(rows)
+        os.replace(tmp, paths[1])
+    _atomic_write(paths[2], json.dumps({"results": results, "meta": meta}, indent=2, default=float))
+    return paths
+
+
+def _lane_axes(ax, task: LaneTask) -> None:
+    c = task.centerline
+    closed = np.vstack([c, c[:1]]) if task.closed else c
+    d = np.gradient(closed, axis=0)
+    n = np.stack([-d[:, 1], d[:, 0]], 1)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    ax.plot(closed[:, 0], closed[:, 1], color="0.6", lw=0.8, ls="--", label="centre line")
+    for s in (1.0, -1.0):
+        edge = closed + s * task.half_width * n
+        ax.plot(edge[:, 0], edge[:, 1], color="0.2", lw=1.0)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+
+
+def write_figures(paths: dict, scenarios: dict[str, Scenario], results: dict, out_dir: Path) -> list[Path]:
+    """Lane trajectories per lane, an avoidance scene with the three paths, RMSE bars."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Circle
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    for task_name, by_terrain in paths.items():
+        sc = scenarios.get(task_name)
+        if sc is None or not by_terrain:
+            continue
+        terrains = list(by_terrain)
+        fig, axes = plt.subplots(1, len(terrains), figsize=(5.0 * len(terrains), 5.0), squeeze=False)
+        for ax, terrain in zip(axes[0], terrains, strict=True):
+            if isinstance(sc.task, LaneTask):
+                _lane_axes(ax, sc.task)
+            else:
+                task: GoalTask = sc.task
+                inflated = by_terrain[terrain].get("gp", {}).get("inflated")
+                for i, (x, y, r) in enumerate(task.obstacles):
+                    ax.add_patch(Circle((x, y), r, color="0.3", alpha=0.6))
+                    if inflated is not None and i < len(inflated) and inflated[i] > r:
+                        ax.add_patch(Circle((x, y), inflated[i], fill=False, ls="--", color="tab:red", lw=1.0))
+                ax.add_patch(Circle(tuple(task.goal), task.tolerance, fill=False, color="tab:purple", lw=1.5))
+                ax.plot(*sc.start[:2], "k^")
+                ax.set_aspect("equal")
+                ax.set_xlabel("x [m]")
+                ax.set_ylabel("y [m]")
+            for model, rec in by_terrain[terrain].items():
+                xy = np.asarray(rec["xy"])
+                cell = _cell(results, task_name, terrain, model)
+                extra = f" ({_fmt(cell['rmse_mm'])} mm)" if cell and isinstance(sc.task, LaneTask) else ""
+                ax.plot(xy[:, 0], xy[:, 1], color=MODEL_COLOURS.get(model), lw=1.2,
+                        label=MODEL_LABELS.get(model, model) + extra)
+            ax.set_title(f"{task_name} on {terrain}")
+            ax.legend(fontsize=8, loc="best")
+        fig.tight_layout()
+        p = out_dir / f"trajectories_{task_name}.png"
+        fig.savefig(p, dpi=120)
+        plt.close(fig)
+        written.append(p)
+
+    lanes = [t for t in LANE_TASKS if t in results]
+    if lanes:
+        fig, axes = plt.subplots(1, len(lanes), figsize=(6.0 * len(lanes), 4.0), squeeze=False)
+        for ax, lane in zip(axes[0], lanes, strict=True):
+            terrains = list(results[lane])
+            models = sorted({m for t in terrains for m in results[lane][t]}, key=list(MODEL_LABELS).index)
+            width = 0.8 / max(len(models), 1)
+            for j, m in enumerate(models):
+                vals = [results[lane][t].get(m, {}).get("rmse_mm", np.nan) for t in terrains]
+                ax.bar(np.arange(len(terrains)) + (j - (len(models) - 1) / 2) * width, vals, width,
+                       color=MODEL_COLOURS.get(m), label=MODEL_LABELS.get(m, m))
+            ax.set_xticks(np.arange(len(terrains)), terrains)
+            ax.set_ylabel("RMSE to lane centre [mm]")
+            ax.set_title(f"{lane} lane")
+            ax.legend(fontsize=8)
+        fig.tight_layout()
+        p = out_dir / "rmse_bars.png"
+        fig.savefig(p, dpi=120)
+        plt.close(fig)
+        written.append(p)
+    return written
