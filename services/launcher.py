@@ -260,8 +260,10 @@ def run_launch(
     rerun: list[str] | None = None,
     port: int | None = None,
     out: IO[str] | None = None,
+    ready_timeout_s: float = 600.0,
 ) -> tuple[int, Summary]:
-    """Run a launch file (default: the simulated Jackal) until `duration` or Ctrl-C; (exit code, summary)."""
+    """Run a launch file (default: the simulated Jackal) for `duration` seconds after every service is up
+    (first heartbeat; a cold numba cache can take minutes), or until Ctrl-C; (exit code, summary)."""
     launch = LaunchFile.load(launch_path or DEFAULT_LAUNCH)
     launcher, service_names = build(launch, record, rerun, port)
     launcher.out = out or sys.stdout
@@ -277,10 +279,21 @@ def run_launch(
     try:
         launcher.start_all()
         monitor = Monitor(launch.robot, launch.zenoh, t_start)
-        deadline = None if duration is None else time.monotonic() + duration
+        expected = {c.name for c in launcher.children if c.kind != "router"}
+        ready_by = time.monotonic() + ready_timeout_s
+        deadline: float | None = None
         while not launcher.stop_event.is_set():
             launcher.supervise()
-            if deadline is not None and time.monotonic() >= deadline:
+            now = time.monotonic()
+            if deadline is None and duration is not None:
+                with monitor.lock:
+                    seen = set(monitor.heartbeats)
+                up = expected - {c.name for c in launcher.children if c.failed} <= seen
+                if up or now >= ready_by:
+                    state = "all services up" if up else f"not all services up after {ready_timeout_s:.0f} s"
+                    launcher.say("launch", f"{state} ({now - t_start:.1f} s); running {duration:.0f} s")
+                    deadline = now + duration
+            if deadline is not None and now >= deadline:
                 break
             launcher.stop_event.wait(0.1)
     finally:

@@ -31,7 +31,7 @@ import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
-from schemas import DecodeError, Heartbeat, Message, decode, encode, key_for
+from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_for
 from schemas.codec import ENCODING, MAX_PAYLOAD_BYTES
 from schemas.keys import DEFAULT_ROBOT
 
@@ -283,8 +283,6 @@ class Node:
 
     def publisher(self, name: str, key: str | None = None, model: type[M] | None = None) -> TypedPublisher[M]:
         """A typed publisher on the registered key `name` (or an explicit key and model)."""
-        from schemas import KEYS
-
         if self.session is None:
             raise RuntimeError("open the node (with node: ...) before declaring publishers")
         key = key or self.key(name)
@@ -302,8 +300,6 @@ class Node:
         remote_only: bool = False,
     ) -> TypedSubscription[M]:
         """A typed subscription; newest-only (RingChannel(1)) or FIFO; `remote_only` ignores this node's own."""
-        from schemas import KEYS
-
         if self.session is None:
             raise RuntimeError("open the node (with node: ...) before declaring subscriptions")
         key = key or self.key(name)

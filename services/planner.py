@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from pydantic import Field
@@ -18,6 +18,12 @@ from gpmppi.mppi.planner import PlannerConfig
 from schemas import Command, Plan, State, TerrainWeights
 from services.convert import state_to_array, task_from_message, task_to_message
 from services.node import Node, NodeSettings
+
+if TYPE_CHECKING:
+    from gpmppi.gp.model_file import GPModel
+    from gpmppi.mppi.planner import PlanResult
+    from gpmppi.scenarios import Scenario
+    from gpmppi.tasks import GoalTask, LaneTask
 
 
 class Settings(NodeSettings):
@@ -35,7 +41,7 @@ class Settings(NodeSettings):
     task_period_s: float = Field(1.0, gt=0, description="re-publish the task this often [s]")
 
 
-def load_scenario(name: str):  # -> gpmppi.scenarios.Scenario
+def load_scenario(name: str) -> Scenario:
     from gpmppi import scenarios
 
     if name == "paper_obstacles":
@@ -51,13 +57,13 @@ def load_scenario(name: str):  # -> gpmppi.scenarios.Scenario
         return scenarios.load_scene(path)
 
 
-def load_model(model_file: str | None):  # -> GPModel
+def load_model(model_file: str | None) -> GPModel:
     from gpmppi.gp.model_file import GPModel, load_default_model
 
     return load_default_model() if model_file is None else GPModel.load(model_file)
 
 
-def plan_message(result, stamp_ns: int, task, n_samples: int) -> Plan:  # result: PlanResult
+def plan_message(result: PlanResult, stamp_ns: int, task: LaneTask | GoalTask, n_samples: int) -> Plan:
     from gpmppi.tasks import GoalTask
 
     covs = np.asarray(result.covariances)
@@ -134,7 +140,12 @@ def run(settings: Settings) -> int:
             if age_s > settings.max_state_age_s:
                 node.reject(f"state is {age_s:.3f} s old (limit {settings.max_state_age_s} s): not planning")
                 continue
-            result = planner.plan(state_to_array(latest), task, weights)
+            try:
+                result = planner.plan(state_to_array(latest), task, weights)
+            except (ValueError, FloatingPointError) as exc:
+                # no command this cycle: egress's watchdog stops the robot if this persists
+                node.error(f"planning failed: {exc}")
+                continue
             cmd = Command(v_ref=float(result.control[0]), omega_ref=float(result.control[1]))
             cmd.header.stamp_ns = latest.header.stamp_ns
             cmd.header.frame_id = "base_link"

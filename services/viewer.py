@@ -8,7 +8,7 @@ covariance ellipses, the driven path. Time series: speeds, commands, planner tim
 from __future__ import annotations
 
 import time
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import zenoh
@@ -28,6 +28,10 @@ from schemas import (
     model_for_key,
 )
 from services.node import Node, NodeSettings
+
+if TYPE_CHECKING:
+    import rerun as rr
+    import rerun.blueprint as rrb
 
 TIMELINE = "stamp"
 
@@ -71,7 +75,7 @@ def _offset(polyline: np.ndarray, distance: np.ndarray | float, closed: bool) ->
 class RerunMapper:
     """Logs gpmppi messages to a rerun recording stream."""
 
-    def __init__(self, rec, path_length: int = 2000, ellipse_every: int = 5) -> None:  # rec: rr.RecordingStream
+    def __init__(self, rec: rr.RecordingStream, path_length: int = 2000, ellipse_every: int = 5) -> None:
         self.rec = rec
         self.path: list[list[float]] = []
         self.path_length = path_length
@@ -79,7 +83,7 @@ class RerunMapper:
         self.task: Task | None = None
 
     @staticmethod
-    def blueprint():
+    def blueprint() -> rrb.Blueprint:
         import rerun.blueprint as rrb
 
         return rrb.Blueprint(
@@ -188,7 +192,7 @@ class RerunMapper:
         self.rec.log("map/lane/tightened", rr.LineStrips2D(edges, colors=[[255, 200, 0]], radii=0.02))
 
 
-def open_stream(settings: Settings):  # -> rr.RecordingStream | None
+def open_stream(settings: Settings) -> rr.RecordingStream | None:
     import rerun as rr
 
     if settings.mode == "off":

@@ -12,7 +12,9 @@ from mcap.reader import make_reader
 from typer.testing import CliRunner
 
 from gpmppi.plant import load_terrains
-from gpmppi.plant.excitation import Excitation, simulate_dataset
+from gpmppi.plant.excitation import Excitation, runs_to_series, simulate_dataset
+from schemas.messages import Command, Header, State
+from services.mcap_io import McapWriter
 from tools.cli import app
 from tools.dataset import read_dataset
 
@@ -67,11 +69,26 @@ def test_dataset_reads_back_to_the_in_memory_arrays(small_dataset: Path) -> None
         assert np.max(np.hypot(*np.diff(run.true_state[:, :2], axis=0).T)) < 0.25
 
 
-def test_unlabelled_log_needs_a_terrain_name(tmp_path: Path, small_dataset: Path) -> None:
+def test_labels_win_and_robot_must_match(small_dataset: Path) -> None:
     runs = read_dataset(small_dataset, terrain="ignored")  # labels win when present
     assert set(runs) == {"tile", "asphalt", "grass"}
     with pytest.raises(ValueError, match="wrong --robot"):
         read_dataset(small_dataset, robot="husky")
+
+
+def test_unlabelled_log_needs_a_terrain_name(tmp_path: Path) -> None:
+    """A real robot log has state + cmd only; it splits into segments at gaps in the stamps."""
+    path = tmp_path / "robot.mcap"
+    with McapWriter(path) as writer:
+        for k in list(range(20)) + list(range(30, 45)):  # a 1 s gap after tick 19
+            header = Header(stamp_ns=k * 100_000_000)
+            writer.write("gpmppi/jackal/state", State(header=header, x=0, y=0, theta=0, v=0.1 * k, omega=0.0))
+            writer.write("gpmppi/jackal/cmd", Command(header=header, v_ref=1.0, omega_ref=0.2))
+    with pytest.raises(ValueError, match="no terrain labels"):
+        read_dataset(path)
+    runs = read_dataset(path, terrain="lawn")
+    assert [len(r.command) for r in runs["lawn"]] == [20, 15]
+    np.testing.assert_allclose(runs["lawn"][1].state[:, 3], 0.1 * np.arange(30, 45))
 
 
 def test_dataset_rejects_unknown_terrain(tmp_path: Path) -> None:
@@ -93,3 +110,13 @@ def test_excitation_covers_the_command_box() -> None:
     assert fast.mean() > 0.2
     again = Excitation(seed=0)
     np.testing.assert_array_equal(again.next_segment(), Excitation(seed=0).next_segment())
+
+
+def test_runs_to_series_matches_the_trainer_layout(small_dataset: Path) -> None:
+    runs = read_dataset(small_dataset)
+    series = runs_to_series(runs)
+    for name, s in series.items():
+        assert set(s) == {"v", "w", "v_ref", "w_ref", "seg"}
+        assert len({len(a) for a in s.values()}) == 1
+        np.testing.assert_array_equal(s["v_ref"], runs[name][0].command[:, 0])
+        np.testing.assert_array_equal(s["w"], runs[name][0].state[:, 4])

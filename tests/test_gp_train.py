@@ -187,3 +187,12 @@ def test_residual_targets_vanish_for_nominal_data() -> None:
     x = np.array([[1.0, 0.5, 0.8, 0.1], [0.0, -1.0, 0.3, 0.0]])
     pv, pw = velocity_step_exact(THETA, x[:, 2].copy(), x[:, 3].copy(), x[:, 0].copy(), x[:, 1].copy(), DT)
     np.testing.assert_allclose(residual_targets(THETA, x, np.column_stack([pv, pw]), DT), 0.0, atol=1e-15)
+
+
+def test_labeled_log_rejects_an_unknown_terrain(runs, tmp_path: Path) -> None:
+    log = tmp_path / "d.mcap"
+    write_log(log, runs, labels=True)
+    out = tmp_path / "m.npz"
+    result = runner.invoke(app, ["train", str(log), "-o", str(out), "--terrain", "sand"])
+    assert result.exit_code == 2 and "unknown terrain(s) ['sand']" in " ".join(result.output.split())
+    assert not out.exists()

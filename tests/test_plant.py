@@ -15,7 +15,7 @@ from gpmppi.plant.excitation import drive
 from gpmppi.plant.residual_net import NetworkFileError, load_residual_net
 
 DT = 0.1
-PAPER_THETA = np.array([0.2155, 0.3266, 0.0514, 1.0670, 0.1660, 1.0790])
+THETA = np.array([0.25, 0.30, 0.04, 1.0, 0.15, 1.1])  # a plausible made-up nominal model
 
 
 @pytest.fixture(scope="module")
@@ -156,14 +156,14 @@ def _tiny_net(tmp_path: Path, with_names: bool) -> Path:
 
 def test_residual_net_plant_step_is_nominal_plus_residual(tmp_path: Path) -> None:
     path = _tiny_net(tmp_path, with_names=True)
-    plant = ResidualNetPlant(path, PAPER_THETA, "snow", terrain_names=None)
+    plant = ResidualNetPlant(path, THETA, "snow", terrain_names=None)
     assert isinstance(plant, Plant)
     start = np.array([1.0, 2.0, 0.3, 0.8, 0.2])
     plant.reset(start)
     cmd = np.array([1.2, -0.4])
     out = plant.step(cmd, DT)
     res = plant.net(np.array([[1.2, -0.4, 0.8, 0.2]]))[0, 2:4]
-    pv, pw = velocity_step_exact(PAPER_THETA, start[3:4], start[4:5], cmd[:1], cmd[1:], DT)
+    pv, pw = velocity_step_exact(THETA, start[3:4], start[4:5], cmd[:1], cmd[1:], DT)
     assert out[3] == pytest.approx(pv[0] + res[0], abs=1e-9)
     assert out[4] == pytest.approx(pw[0] + res[1], abs=1e-9)
     # the pose moved about v dt along the heading
@@ -174,7 +174,7 @@ def test_residual_net_plant_step_is_nominal_plus_residual(tmp_path: Path) -> Non
     with pytest.raises(KeyError, match="unknown terrain"):
         plant.set_terrain("tile")
     with pytest.raises(ValueError, match="terrain_names"):
-        ResidualNetPlant(_tiny_net(tmp_path, with_names=False), PAPER_THETA, "snow")
+        ResidualNetPlant(_tiny_net(tmp_path, with_names=False), THETA, "snow")
 
 
 def test_residual_net_file_errors(tmp_path: Path) -> None:
@@ -205,7 +205,64 @@ def test_residual_net_forward_matches_torch(jackal: Path) -> None:
     ref = ref * sc["output_scale"] + sc["output_mean"]
     net = load_residual_net(path)
     np.testing.assert_allclose(net(x), ref, rtol=1e-10, atol=1e-12)
-    plant = ResidualNetPlant(path, PAPER_THETA, "Grass", terrain_names=["Asphalt", "Grass", "Tile"])
+    plant = ResidualNetPlant(path, THETA, "Grass", terrain_names=["Asphalt", "Grass", "Tile"])
     plant.reset(np.array([0.0, 0.0, 0.0, 1.0, 0.0]))
     out = plant.step(np.array([1.0, 0.0]), 1.0)
     assert np.all(np.isfinite(out)) and 0.5 < out[3] < 1.5
+
+
+def test_terrain_names_must_be_lower_case_words(tmp_path: Path) -> None:
+    bad = tmp_path / "names.yaml"
+    bad.write_text("terrains:\n  Wet Tile: {mu_long: 0.5, mu_lat: 0.5, slip_scale_long: 0.1, slip_scale_lat: 0.1, "
+                   "rolling: 0.01}\n")
+    with pytest.raises(TerrainFileError, match=r"names\.yaml.*Wet Tile"):
+        load_terrains(bad)
+
+
+def test_straight_line_force_balance_matches_hand_calculation(terrains) -> None:
+    """At steady speed on grass the motors' torque carries rolling resistance + drag (+ drivetrain damping)."""
+    from gpmppi.plant.physics import GRAVITY, ROLLING_SMOOTHING, Z_IL, Z_IR, Z_WL, Z_WR, _motor_torque
+
+    plant = PhysicsPlant(terrains, "grass", noise=False)
+    run(plant, (1.2, 0.0), 6.0)
+    robot, ground = terrains.robot, terrains.get("grass")
+    v = plant.state()[3]
+    normal = robot.mass * GRAVITY / 4
+    per_side_force = 2 * (ground.rolling * normal * np.tanh(v / ROLLING_SMOOTHING) + ground.drag * v)
+    z, p = plant._z, plant._params
+    for w_idx, i_idx in ((Z_WL, Z_IL), (Z_WR, Z_IR)):
+        tau, saturated = _motor_torque(p, z[w_idx], z[w_idx], z[i_idx])  # error ~0 at steady state
+        expected = robot.wheel_radius * per_side_force + robot.drivetrain_damping * z[w_idx]
+        assert not saturated
+        assert tau == pytest.approx(expected, rel=0.02)
+
+
+def test_internal_step_is_converged(terrains) -> None:
+    """Halving the integration step barely changes a demanding manoeuvre (fast turn on high grip)."""
+    fine = terrains.model_copy(update={"robot": terrains.robot.model_copy(update={"internal_dt": 0.00025})})
+    commands = [(2.0, 2.5)] * 10 + [(0.5, -3.0)] * 10 + [(1.5, 0.0)] * 10
+    finals = []
+    for ts in (terrains, fine):
+        plant = PhysicsPlant(ts, "asphalt", noise=False)
+        plant.reset(np.zeros(5))
+        traj = np.array([plant.step(np.array(c), DT) for c in commands])
+        finals.append(traj)
+    np.testing.assert_allclose(finals[0][:, 3:], finals[1][:, 3:], atol=0.01)
+    np.testing.assert_allclose(finals[0][:, :2], finals[1][:, :2], atol=0.01)
+
+
+def test_residual_net_reproduces_the_paper_residuals_in_csv_order(jackal: Path) -> None:
+    """The network was fit to gp_train.csv: its outputs follow the CSV's column order (Asphalt, Grass, Tile)."""
+    data = np.genfromtxt(jackal / "gp_train.csv", delimiter=",", names=True)
+    theta = np.asarray(json.loads((jackal / "theta.json").read_text())["theta"])
+    x = np.column_stack([data[k] for k in data.dtype.names[:4]])
+    targets = np.column_stack([data[k] for k in data.dtype.names[4:]])
+    err = load_residual_net(jackal / "fcnn.json")(x) - targets
+    assert np.all(np.sqrt(np.mean(err**2, axis=0)) < 0.3 * np.sqrt(np.mean(targets**2, axis=0)))
+    plant = ResidualNetPlant(jackal / "fcnn.json", theta, "tile", ["Asphalt", "Grass", "Tile"])
+    k = 7
+    plant.reset(np.array([0.0, 0.0, 0.0, x[k, 2], x[k, 3]]))
+    out = plant.step(x[k, :2], DT)
+    pv, pw = velocity_step_exact(theta, x[k, 2:3], x[k, 3:4], x[k, 0:1], x[k, 1:2], DT)
+    assert out[3] - pv[0] == pytest.approx(targets[k, 4], abs=0.02)
+    assert out[4] - pw[0] == pytest.approx(targets[k, 5], abs=0.02)

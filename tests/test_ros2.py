@@ -11,7 +11,17 @@ import numpy as np
 import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
-from test_services import Collector, ServiceProcess, client, free_port, heartbeats, router, settings, wait_for
+from test_services import (
+    Collector,
+    ServiceProcess,
+    client,
+    free_port,
+    heartbeats,
+    matched_publisher,
+    router,
+    settings,
+    wait_for,
+)
 from zenoh.ext import Int64, z_deserialize
 
 from schemas import Command, State, decode, encode
@@ -32,7 +42,7 @@ def _attachment(data: bytes) -> tuple[int, int, bytes]:
 
 def _drive(port: int, v: float, omega: float, n: int = 10) -> None:
     s = client(port)
-    pub = s.declare_publisher("gpmppi/r1/cmd")
+    pub = matched_publisher(s, "gpmppi/r1/cmd")
     for _ in range(n):
         pub.put(encode(Command(v_ref=v, omega_ref=omega)))
         time.sleep(0.05)
@@ -127,11 +137,11 @@ def test_ingress_turns_ros2_odometry_into_state(tmp_path: Path) -> None:
         ingress = ServiceProcess("ingress", settings("ingress", port, source="ros2", max_age_s=1.0), tmp_path)
         try:
             assert wait_for(lambda: bool(heartbeats(col, "r1", "ingress")), 15.0), ingress.log()
-            pub = observer.declare_publisher(key)
+            pub = matched_publisher(observer, key)
             pub.put(b"\x00\x01\x00\x00garbage")  # malformed CDR
-            time.sleep(0.1)
+            time.sleep(0.2)
             pub.put(_odometry(1.0, 2.0, 0.3, 0.7, 0.1, time.time_ns() - 5 * 10**9))  # stale
-            time.sleep(0.1)
+            time.sleep(0.2)
             stamp = time.time_ns()
             pub.put(_odometry(3.0, -4.0, 2.5, 1.25, -0.5, stamp))
             assert wait_for(lambda: bool(col.on("gpmppi/r1/state")), 5.0), ingress.log()

@@ -8,7 +8,7 @@ from scipy.stats import chi2, norm
 
 from gpmppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.models.dynamic_unicycle import euler_step, jacobian
-from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, collapse_table, empty_packed_table, propagate
+from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, TABLE_AXES, collapse_table, propagate
 from gpmppi.mppi.synthetic import synthetic_model
 
 
@@ -81,15 +81,14 @@ def test_propagation_matches_finite_difference_jacobians() -> None:
     model = synthetic_model()
     w = np.array([0.5, 0.3, 0.2])
     g = model.grid()
-    table = empty_packed_table(g.table.shape)
-    collapse_table(np.ascontiguousarray(g.table, dtype=np.float32), w, table)
+    table = collapse_table(np.ascontiguousarray(g.table, dtype=np.float32), w)
     rng = np.random.default_rng(3)
     controls = np.column_stack([rng.uniform(0.5, 2.0, 15), rng.uniform(-2, 2, 15)])
     x0 = np.array([1.0, -2.0, 0.4, 0.8, 0.3])
     m2 = 2 * len(model.terrains)
     dummy = (np.zeros((m2, 1, 4)), np.ones((m2, 4)), np.zeros(m2), np.zeros((m2, 1)), np.ones((m2, 1, 1)))
     states, covs, step_var = propagate(x0, controls, 0.1, DYN_GP, model.theta, model.edd5["grass"], GP_GRID,
-                                       table, g.lo, g.inv_step, *dummy, w)
+                                       table, g.lo[TABLE_AXES], g.inv_step[TABLE_AXES], *dummy, w)
     sigma = np.zeros((5, 5))
     for k in range(15):
         jac_fd = _fd_jacobian(model.theta, states[k], controls[k], 0.1)
@@ -107,8 +106,7 @@ def test_collapsed_table_interpolates_like_the_weighted_model_grid() -> None:
     model = synthetic_model()
     g = model.grid()
     w = np.array([0.6, 0.1, 0.3])
-    packed = empty_packed_table(g.table.shape)
-    collapse_table(np.ascontiguousarray(g.table, dtype=np.float32), w, packed)
+    packed = collapse_table(np.ascontiguousarray(g.table, dtype=np.float32), w)
     rng = np.random.default_rng(4)
     full = np.empty(g.table.shape[4])
     for _ in range(200):
@@ -116,4 +114,5 @@ def test_collapsed_table_interpolates_like_the_weighted_model_grid() -> None:
         grid_interp(g.table, g.lo, g.inv_step, x, full)
         t = len(model.terrains) * 2
         expected = [w @ full[0:t:2], w @ full[1:t:2], w**2 @ full[t::2], w**2 @ full[t + 1 :: 2]]
-        np.testing.assert_allclose(interp4(packed, g.lo, g.inv_step, *x), expected, rtol=1e-5, atol=1e-8)
+        got = interp4(packed, g.lo[TABLE_AXES], g.inv_step[TABLE_AXES], *x[TABLE_AXES])
+        np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-8)

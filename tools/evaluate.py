@@ -87,9 +87,9 @@ def _fail(message: str) -> None:
 def _default_terrains(settings: EvalSettings) -> list[str]:
     if settings.plant == "residual-net":
         return list(PAPER_NET_TERRAINS)
-    from gpmppi.evaluation.runner import _gp_model
+    from gpmppi.evaluation.runner import cached_gp_model
 
-    return list(_gp_model(settings.gp_model).terrains)
+    return list(cached_gp_model(settings.gp_model).terrains)
 
 
 def _check_terrains(settings: EvalSettings, terrains: list[str]) -> None:
@@ -152,11 +152,11 @@ def _settings(
         if f is not None and not f.is_file():
             _fail(f"{label} {f}: file not found")
     if gp_model is not None:
-        from gpmppi.evaluation.runner import _gp_model
+        from gpmppi.evaluation.runner import cached_gp_model
         from gpmppi.gp.model_file import ModelFileError
 
         try:
-            _gp_model(str(gp_model))
+            cached_gp_model(str(gp_model))
         except (ModelFileError, OSError) as e:
             _fail(f"--gp-model {gp_model}: {e}")
     lane_m = distance if distance is not None else (25.0 if quick else 100.0)
@@ -290,7 +290,9 @@ def _finish(
         from tools.report import write_figures, write_tables
 
         written = write_tables(results, meta, out, models, terrains)
-        written += write_figures(paths, scenarios, results, out)
+        from gpmppi.evaluation.runner import cached_gp_model
+
+        written += write_figures(paths, scenarios, results, out, list(cached_gp_model(settings.gp_model).terrains))
         Console(stderr=True).print(f"wrote {', '.join(str(p) for p in written)}")
     if as_json:
         print(json.dumps({"results": results, "meta": meta}, default=float))

@@ -22,6 +22,10 @@ MODEL_COLOURS = {"gp": "tab:blue", "edd5": "tab:orange", "unicycle": "tab:green"
 LANE_TASKS = ("circle", "square")
 
 
+def _model_rank(model: str) -> int:
+    return list(MODEL_LABELS).index(model) if model in MODEL_LABELS else len(MODEL_LABELS)
+
+
 def _fmt(x: float, digits: int = 1) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
 
@@ -107,8 +111,11 @@ def _lane_axes(ax, task: LaneTask) -> None:
     ax.set_ylabel("y [m]")
 
 
-def write_figures(paths: dict, scenarios: dict[str, Scenario], results: dict, out_dir: Path) -> list[Path]:
-    """Lane trajectories per lane, an avoidance scene with the three paths, RMSE bars."""
+def write_figures(
+    paths: dict, scenarios: dict[str, Scenario], results: dict, out_dir: Path, terrain_names: list[str] | None = None
+) -> list[Path]:
+    """Lane trajectories per lane, an avoidance scene with the three paths, terrain weights, RMSE bars."""
+    terrain_names = terrain_names or []
     import matplotlib
 
     matplotlib.use("Agg")
@@ -138,7 +145,7 @@ def write_figures(paths: dict, scenarios: dict[str, Scenario], results: dict, ou
                 ax.set_aspect("equal")
                 ax.set_xlabel("x [m]")
                 ax.set_ylabel("y [m]")
-            for model, rec in by_terrain[terrain].items():
+            for model, rec in sorted(by_terrain[terrain].items(), key=lambda kv: _model_rank(kv[0])):
                 xy = np.asarray(rec["xy"])
                 cell = _cell(results, task_name, terrain, model)
                 extra = f" ({_fmt(cell['rmse_mm'])} mm)" if cell and isinstance(sc.task, LaneTask) else ""
@@ -152,12 +159,31 @@ def write_figures(paths: dict, scenarios: dict[str, Scenario], results: dict, ou
         plt.close(fig)
         written.append(p)
 
+    adaptive = [(task, terrain, rec["gp"]) for task, by_t in paths.items() for terrain, rec in by_t.items()
+                if "gp" in rec and rec["gp"].get("weights") is not None and len(rec["gp"]["weights"])]
+    if adaptive:
+        fig, axes = plt.subplots(len(adaptive), 1, figsize=(7.0, 2.2 * len(adaptive)), squeeze=False, sharex=False)
+        for ax, (task, terrain, rec) in zip(axes[:, 0], adaptive, strict=True):
+            w = np.asarray(rec["weights"])
+            for i in range(w.shape[1]):
+                ax.plot(rec["times"], w[:, i], label=(terrain_names[i] if i < len(terrain_names) else f"w{i}"))
+            ax.set_ylim(-0.05, 1.05)
+            ax.set_ylabel("weight")
+            ax.set_title(f"GP-MPPI terrain weights: {task} on {terrain}", fontsize=9)
+            ax.legend(fontsize=7, loc="upper right")
+        axes[-1, 0].set_xlabel("time [s]")
+        fig.tight_layout()
+        p = out_dir / "terrain_weights.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        written.append(p)
+
     lanes = [t for t in LANE_TASKS if t in results]
     if lanes:
         fig, axes = plt.subplots(1, len(lanes), figsize=(6.0 * len(lanes), 4.0), squeeze=False)
         for ax, lane in zip(axes[0], lanes, strict=True):
             terrains = list(results[lane])
-            models = sorted({m for t in terrains for m in results[lane][t]}, key=list(MODEL_LABELS).index)
+            models = sorted({m for t in terrains for m in results[lane][t]}, key=_model_rank)
             width = 0.8 / max(len(models), 1)
             for j, m in enumerate(models):
                 vals = [results[lane][t].get(m, {}).get("rmse_mm", np.nan) for t in terrains]

@@ -14,6 +14,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from gpmppi.gp.grid import DEFAULT_NODES
+
 INPUT_COLUMNS = ("cmd_lin", "cmd_ang", "curr_lin", "curr_ang")
 PAPER_PREFIX = "gp_ip_"
 _TARGET_RE = re.compile(r"^(?P<terrain>.+)_(?P<out>Lin|Ang)_Error$", re.IGNORECASE)
@@ -208,12 +210,14 @@ def _theta_from_json(data: dict, path: Path) -> np.ndarray:
 
 
 def _select(available: list[str], wanted: list[str] | None, where: str) -> list[str]:
+    """The wanted terrains (matched case-insensitively, in the data's spelling), or all available."""
     if not wanted:
         return available
-    unknown = [t for t in wanted if t.lower() not in available]
+    by_lower = {a.lower(): a for a in available}
+    unknown = [t for t in wanted if t.lower() not in by_lower]
     if unknown:
         raise DataError(f"{where}: unknown terrain(s) {unknown}; the data has {available}")
-    return [t.lower() for t in wanted]
+    return [by_lower[t.lower()] for t in wanted]
 
 
 def build_training_sets(
@@ -246,7 +250,7 @@ def build_training_sets(
                     for t, s in sets.items()}
         return sets, theta, edd5
     series = read_log_series(data, dt, terrain[0] if terrain and len(terrain) == 1 else None, robot)
-    terrains = _select(sorted(series), terrain, str(data)) if terrain and len(series) > 1 else sorted(series)
+    terrains = _select(sorted(series), terrain, str(data))
     th = _theta_from_json(theta_json, theta_path) if theta_json is not None else None
     ed = _edd5_from_json(edd5_json, terrains, edd5_path) if edd5_json is not None else None
     return prepare_from_series({t: series[t] for t in terrains}, dt, theta=th, edd5=ed, seed=seed)
@@ -286,7 +290,8 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option(help="seed of k-means, the holdout split and the fit")] = 0,
         dt: Annotated[float, typer.Option(help="sampling step of the data [s]")] = 0.1,
         robot: Annotated[str | None, typer.Option(help="robot name in the log keys (auto when only one)")] = None,
-        grid_nodes: Annotated[int, typer.Option(help="grid predictor nodes per axis stored in the file")] = 24,
+        grid_nodes: Annotated[int, typer.Option(
+            help="grid predictor nodes per axis stored in the file (0: build on first use)")] = DEFAULT_NODES,
     ) -> None:
         """Train the per-terrain residual GPs and write the model file."""
         from gpmppi.gp.grid import build_grid
@@ -310,6 +315,8 @@ def register(app: typer.Typer) -> None:
                 sets, th, ed, dt=dt, points=points, iters=iters, seed=seed,
                 hyperparameters=_load_json(hyperparameters, "hyperparameter"), holdout=hold, test_sets=test_sets,
             )
+            if grid_nodes == 1 or grid_nodes < 0:
+                raise DataError(f"--grid-nodes must be 0 (no stored grid) or at least 2, got {grid_nodes}")
             if grid_nodes > 0:
                 model.set_grid(build_grid(model, grid_nodes))
         except ValueError as e:

@@ -78,14 +78,14 @@ class RunScore:
 
 
 @functools.lru_cache(maxsize=4)
-def _gp_model(path: str | None):
+def cached_gp_model(path: str | None):
     from gpmppi.gp.model_file import GPModel, load_default_model
 
     return load_default_model() if path is None else GPModel.load(path)
 
 
 @functools.lru_cache(maxsize=4)
-def _terrain_set(path: str | None):
+def cached_terrain_set(path: str | None):
     from gpmppi.plant.terrains import load_terrains
 
     return load_terrains(path)
@@ -96,12 +96,12 @@ def make_plant(settings: EvalSettings, terrain: str, seed: int):
     if settings.plant == "physics":
         from gpmppi.plant.physics import PhysicsPlant
 
-        return PhysicsPlant(_terrain_set(settings.terrain_file), terrain, seed=seed, noise=settings.sensor_noise)
+        return PhysicsPlant(cached_terrain_set(settings.terrain_file), terrain, seed=seed, noise=settings.sensor_noise)
     from gpmppi.plant.residual_net import ResidualNetPlant
 
     if settings.plant_file is None:
         raise ValueError("the residual-net plant needs --plant-file (the network JSON, e.g. the paper's fcnn.json)")
-    model = _gp_model(settings.gp_model)
+    model = cached_gp_model(settings.gp_model)
     return ResidualNetPlant(settings.plant_file, model.theta, terrain, PAPER_NET_TERRAINS, seed=seed)
 
 
@@ -109,7 +109,7 @@ def make_planner(settings: EvalSettings, dynamics: Dynamics, terrain: str, seed:
     """A planner with the given model; EDD5 uses the parameters of the terrain it drives on when it has them."""
     from gpmppi.mppi.planner import Planner, PlannerConfig
 
-    model = _gp_model(settings.gp_model)
+    model = cached_gp_model(settings.gp_model)
     edd5_terrain = terrain if (dynamics == "edd5" and terrain in model.edd5) else None
     fields: dict[str, object] = {
         "backend": settings.backend,
@@ -126,7 +126,7 @@ def needs_estimator(settings: EvalSettings, job: Job) -> bool:
     """GP-MPPI always adapts its weights; EDD5 does on a terrain it has no parameters for (it takes the top weight)."""
     if job.dynamics == "gp":
         return True
-    return job.dynamics == "edd5" and job.terrain not in _gp_model(settings.gp_model).edd5
+    return job.dynamics == "edd5" and job.terrain not in cached_gp_model(settings.gp_model).edd5
 
 
 def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
@@ -174,7 +174,7 @@ def score(traj: Trajectory, task: LaneTask | GoalTask, seed: int, cfg: ClosedLoo
 
 def run_job(job: Job, settings: EvalSettings) -> tuple[list[RunScore], list[Trajectory]]:
     """Run every seed of `job`; an infeasible scenario gives 'infeasible' scores instead of runs."""
-    model = _gp_model(settings.gp_model)
+    model = cached_gp_model(settings.gp_model)
     cfg = loop_config(settings, job)
     scores: list[RunScore] = []
     trajectories: list[Trajectory] = []
@@ -214,6 +214,7 @@ def summarize(scores: list[RunScore]) -> dict:
     ttg_m, ttg_s = mean_std([s.time_to_goal_s for s in runs if s.success])
     ms = mean_std([s.planner_ms_mean for s in runs])[0]
     clear = [s.min_clearance_m for s in runs if np.isfinite(s.min_clearance_m)]
+    finals = [s.final_weights for s in runs if s.final_weights]
     return {
         "rmse_mm": rmse_m,
         "rmse_std_mm": rmse_s,
@@ -226,6 +227,7 @@ def summarize(scores: list[RunScore]) -> dict:
         "min_clearance_m": float(min(clear)) if clear else float("nan"),
         "planner_ms": ms,
         "infeasible": len(scores) - len(runs),
+        "final_weights_mean": [float(x) for x in np.mean(finals, axis=0)] if finals else [],
         "statuses": {st: sum(s.status == st for s in scores) for st in sorted({s.status for s in scores})},
     }
 
@@ -236,7 +238,8 @@ def score_dicts(scores: list[RunScore]) -> list[dict]:
 
 def figure_record(traj: Trajectory) -> dict:
     """The small part of a trajectory the figures need: the driven XY and typical inflated radii."""
-    rec: dict = {"xy": traj.positions.copy(), "inflated": None}
+    rec: dict = {"xy": traj.positions.copy(), "inflated": None, "times": traj.times[:-1].copy(),
+                 "weights": traj.weights.copy(), "weights_ok": traj.weights_ok.copy()}
     goal_tight = [t for t in traj.tightened if t.ndim == 2 and t.shape[1] > 0]
     if goal_tight:
         # per obstacle: the largest inflation along each plan's horizon, median over the run's cycles

@@ -14,7 +14,7 @@ from scipy.linalg import solve_triangular
 from gpmppi.gp.grid_interp import grid_interp
 from gpmppi.gp.model_file import GPModel, GridTable
 
-DEFAULT_NODES = 24
+DEFAULT_NODES = 30  # 24 nodes left ~1.3% RMS mean error on the plant model; 30 keep every task < 1%
 
 
 def predict_dense(model: GPModel, x: np.ndarray, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:

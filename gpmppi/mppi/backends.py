@@ -54,6 +54,7 @@ _NO_SEG = np.zeros((1, 5))
 _NO_SEG[0, 4] = 1.0
 _NO_START = np.zeros(2, dtype=np.int64)
 _NO_CAND = np.zeros(0, dtype=np.int32)
+_NO_FIELD = np.zeros((1, 1))
 
 
 @dataclass
@@ -62,10 +63,9 @@ class TaskArrays:
     seg: np.ndarray
     cell_start: np.ndarray
     candidates: np.ndarray
+    field: np.ndarray
     grid_origin: np.ndarray
     inv_cell: float
-    grid_w: int
-    grid_h: int
     half_width: float
     tightened_hw: np.ndarray
     speed_target: float
@@ -75,14 +75,15 @@ class TaskArrays:
 
     @classmethod
     def for_lane(cls, lane: LaneLookup, half_width: float, tightened: np.ndarray, speed: float) -> TaskArrays:
-        return cls(TASK_LANE, lane.segments, lane.cell_start, lane.candidates, lane.origin, lane.inv_cell, lane.width,
-                   lane.height, half_width,
+        return cls(TASK_LANE, lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell,
+                   half_width,
                    np.ascontiguousarray(tightened), speed, np.zeros(2), np.zeros((0, 3)),
                    np.zeros((tightened.shape[0], 0)))
 
     @classmethod
     def for_goal(cls, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray) -> TaskArrays:
-        return cls(TASK_GOAL, _NO_SEG, _NO_START, _NO_CAND, np.zeros(2), 1.0, 1, 1, 1.0, np.ones(radii.shape[0]), 0.0,
+        return cls(TASK_GOAL, _NO_SEG, _NO_START, _NO_CAND, _NO_FIELD, np.zeros(2), 1.0, 1.0,
+                   np.ones(radii.shape[0]), 0.0,
                    np.ascontiguousarray(goal, dtype=np.float64), np.ascontiguousarray(obstacles, dtype=np.float64),
                    np.ascontiguousarray(radii))
 
@@ -99,8 +100,7 @@ def rollouts(
     args = (
         x0, np.ascontiguousarray(nominal), noise_std, u_lo, u_hi, float(dt), int(seed), int(iteration),
         m.dyn_mode, m.theta, m.edd5_p, m.gp_mode, m.table, m.lo, m.inv_step, *m.exact, m.terrain_w,
-        t.kind, t.seg, t.cell_start, t.candidates, t.grid_origin, float(t.inv_cell), int(t.grid_w), int(t.grid_h),
-        float(t.half_width),
+        t.kind, t.seg, t.cell_start, t.candidates, t.field, t.grid_origin, float(t.inv_cell), float(t.half_width),
         t.tightened_hw, float(t.speed_target), t.goal, t.obstacles, t.radii, cost_w,
     )
     if backend == "cuda":

@@ -31,7 +31,7 @@ from gpmppi.costs import (
 )
 from gpmppi.mppi.dynamics import step_state
 from gpmppi.mppi.flags import FASTMATH
-from gpmppi.mppi.lane import lane_distance
+from gpmppi.mppi.lane import lane_distance_near
 from gpmppi.mppi.rng import normal_pair
 
 TASK_LANE = 0
@@ -46,8 +46,8 @@ def rollout_kernel(
     gp_mode: int, table: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray,
-    task_kind: int, seg: np.ndarray, cell_start: np.ndarray, candidates: np.ndarray, grid_origin: np.ndarray,
-    inv_cell: float, grid_w: int, grid_h: int, half_width: float, tightened_hw: np.ndarray, speed_target: float,
+    task_kind: int, seg: np.ndarray, cell_start: np.ndarray, candidates: np.ndarray, field: np.ndarray,
+    grid_origin: np.ndarray, inv_cell: float, half_width: float, tightened_hw: np.ndarray, speed_target: float,
     goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray, cost_w: np.ndarray,
     eps_out: np.ndarray, cost_out: np.ndarray, xy_out: np.ndarray,
 ) -> None:
@@ -91,7 +91,9 @@ def rollout_kernel(
                 xy_out[s, k + 1, 1] = py
             c = variance_cost(cv, cw, cost_w[W_VARIANCE])
             if task_kind == TASK_LANE:
-                d = lane_distance(seg, cell_start, candidates, grid_origin, inv_cell, grid_w, grid_h, px, py)
+                d = lane_distance_near(
+                    seg, cell_start, candidates, field, grid_origin, inv_cell, px, py, tightened_hw[k + 1]
+                )
                 c += deviation_cost(d, half_width, cost_w[W_DEVIATION])
                 c += slip_cost(v, w, u0, u1, cost_w[W_SLIP])
                 c += lane_exit_cost(d, tightened_hw[k + 1], discount_k, cost_w[W_LANE_EXIT])

@@ -6,8 +6,7 @@ mean `sum_i w_i m_i`, variance `sum_i w_i^2 C_i` (C = latent variance).
 
 GP evaluation (`GP_*`): `grid` interpolates a table of [mean_v, mean_w, var_v, var_w] collapsed
 from the model's (G, G, G, G, 4M) table with the current weights (`collapse_table`, run only when
-the weights change; packed so one interpolation reads 4 cache lines); `exact` evaluates the exact
-GP (`gpmppi.gp.exact.exact_point`).
+the weights change); `exact` evaluates the exact GP (`gpmppi.gp.exact.exact_point`).
 """
 
 from __future__ import annotations
@@ -27,59 +26,41 @@ GP_GRID = 0
 GP_EXACT = 1
 
 
-def packed_table_shape(grid_shape: tuple[int, ...]) -> tuple[int, int, int, int, int, int]:
-    g0, g1, g2, g3 = grid_shape[:4]
-    return (g0, g1, g2 - 1, g3 - 1, 4, 4)
-
-
-def empty_packed_table(grid_shape: tuple[int, ...]) -> np.ndarray:
-    """A float32 packed table whose 64-byte blocks start on cache-line boundaries."""
-    shape = packed_table_shape(grid_shape)
-    n = int(np.prod(shape))
-    buf = np.empty(n + 16, dtype=np.float32)
-    off = (-buf.ctypes.data % 64) // 4
-    return buf[off : off + n].reshape(shape)
+TABLE_AXES = np.array([2, 3, 0, 1])  # collapsed table axes in terms of the GP input [v_ref, omega_ref, v, omega]
 
 
 @njit(cache=True, parallel=True)
-def collapse_table(table: np.ndarray, weights: np.ndarray, out: np.ndarray) -> None:
-    """Model table (G,G,G,G,4M) -> weighted-ensemble table in `out`, packed for interpolation.
+def collapse_table(table: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(G,G,G,G,4M) model table -> (G,G,G,G,4) float32 [sum w m_v, sum w m_w, sum w^2 C_v, sum w^2 C_w].
 
-    Channels [sum w m_v, sum w m_w, sum w^2 C_v, sum w^2 C_w]. Layout (G, G, G-1, G-1, 4, 4): for
-    each cell corner (i0, i1, i2, i3) the 2x2 nodes (i2 + b2, i3 + b3) along the last two axes sit in
-    one 64-byte block (q = 2 b2 + b3), so an interpolation touches 4 cache lines instead of ~12.
+    The output's axes are reordered to (v, omega, v_ref, omega_ref) (`TABLE_AXES`): a rollout's
+    velocities change slowly from step to step while its noisy commands jump, so with the velocity
+    axes outermost one sample's lookups stay within a few 9 kB planes (cache hits) instead of
+    hopping over the whole table (measured ~2x faster interpolation in the rollout kernel).
     """
     g0, g1, g2, g3, c = table.shape
     m = c // 4
+    out = np.empty((g2, g3, g0, g1, 4), dtype=np.float32)
     for i0 in prange(g0):
         for i1 in range(g1):
-            for j2 in range(g2):
-                for j3 in range(g3):
+            for i2 in range(g2):
+                for i3 in range(g3):
+                    node = table[i0, i1, i2, i3]
                     mv = 0.0
                     mw = 0.0
                     cv = 0.0
                     cw = 0.0
-                    node = table[i0, i1, j2, j3]
                     for t in range(m):
                         wt = weights[t]
                         mv += wt * node[2 * t]
                         mw += wt * node[2 * t + 1]
                         cv += wt * wt * node[2 * m + 2 * t]
                         cw += wt * wt * node[2 * m + 2 * t + 1]
-                    # node (j2, j3) is corner (b2, b3) of cells (j2 - b2, j3 - b3)
-                    for b2 in range(2):
-                        i2 = j2 - b2
-                        if i2 < 0 or i2 > g2 - 2:
-                            continue
-                        for b3 in range(2):
-                            i3 = j3 - b3
-                            if i3 < 0 or i3 > g3 - 2:
-                                continue
-                            q = 2 * b2 + b3
-                            out[i0, i1, i2, i3, q, 0] = mv
-                            out[i0, i1, i2, i3, q, 1] = mw
-                            out[i0, i1, i2, i3, q, 2] = cv
-                            out[i0, i1, i2, i3, q, 3] = cw
+                    out[i2, i3, i0, i1, 0] = mv
+                    out[i2, i3, i0, i1, 1] = mw
+                    out[i2, i3, i0, i1, 2] = cv
+                    out[i2, i3, i0, i1, 3] = cw
+    return out
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -95,17 +76,13 @@ def _axis(x: float, lo: float, inv_step: float, g: int) -> tuple[int, float]:
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def interp4(
-    packed: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float, a3: float
+    table: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float, a3: float
 ) -> tuple[float, float, float, float]:
-    """Multilinear interpolation of the 4 channels of a packed table (clamped at the faces)."""
-    i0, f0 = _axis(a0, lo[0], inv_step[0], packed.shape[0])
-    i1, f1 = _axis(a1, lo[1], inv_step[1], packed.shape[1])
-    i2, f2 = _axis(a2, lo[2], inv_step[2], packed.shape[2] + 1)
-    i3, f3 = _axis(a3, lo[3], inv_step[3], packed.shape[3] + 1)
-    w23_0 = (1.0 - f2) * (1.0 - f3)
-    w23_1 = (1.0 - f2) * f3
-    w23_2 = f2 * (1.0 - f3)
-    w23_3 = f2 * f3
+    """Multilinear interpolation of the 4 channels of a (G,G,G,G,4) table (clamped at the faces)."""
+    i0, f0 = _axis(a0, lo[0], inv_step[0], table.shape[0])
+    i1, f1 = _axis(a1, lo[1], inv_step[1], table.shape[1])
+    i2, f2 = _axis(a2, lo[2], inv_step[2], table.shape[2])
+    i3, f3 = _axis(a3, lo[3], inv_step[3], table.shape[3])
     c0 = 0.0
     c1 = 0.0
     c2 = 0.0
@@ -114,17 +91,15 @@ def interp4(
         w0 = f0 if b0 else 1.0 - f0
         for b1 in range(2):
             w01 = w0 * (f1 if b1 else 1.0 - f1)
-            blk = packed[i0 + b0, i1 + b1, i2, i3]
-            for ch in range(4):
-                v = (w23_0 * blk[0, ch] + w23_1 * blk[1, ch] + w23_2 * blk[2, ch] + w23_3 * blk[3, ch]) * w01
-                if ch == 0:
-                    c0 += v
-                elif ch == 1:
-                    c1 += v
-                elif ch == 2:
-                    c2 += v
-                else:
-                    c3 += v
+            for b2 in range(2):
+                w012 = w01 * (f2 if b2 else 1.0 - f2)
+                for b3 in range(2):
+                    w = w012 * (f3 if b3 else 1.0 - f3)
+                    node = table[i0 + b0, i1 + b1, i2 + b2, i3 + b3]
+                    c0 += w * node[0]
+                    c1 += w * node[1]
+                    c2 += w * node[2]
+                    c3 += w * node[3]
     return c0, c1, c2, c3
 
 
@@ -135,9 +110,12 @@ def gp_residual(
     ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_in: np.ndarray, gp_mean: np.ndarray,
     gp_var: np.ndarray, v_ref: float, w_ref: float, v: float, w: float,
 ) -> tuple[float, float, float, float]:
-    """Ensemble residual (mean_v, mean_w, var_v, var_w) at GP input [v_ref, w_ref, v, w]."""
+    """Ensemble residual (mean_v, mean_w, var_v, var_w) at GP input [v_ref, w_ref, v, w].
+
+    Grid mode: `table`, `lo`, `inv_step` are in the collapsed table's axis order (`TABLE_AXES`).
+    """
     if gp_mode == GP_GRID:
-        return interp4(table, lo, inv_step, v_ref, w_ref, v, w)
+        return interp4(table, lo, inv_step, v, w, v_ref, w_ref)
     gp_in[0] = v_ref
     gp_in[1] = w_ref
     gp_in[2] = v
@@ -167,6 +145,13 @@ def nominal_velocity_step(
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def _cos_sin(yaw: float) -> tuple[float, float]:
+    """cos and sin in single precision (3x faster; 1e-7 relative is far below the model's errors)."""
+    a = np.float32(yaw)
+    return float(np.cos(a)), float(np.sin(a))
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def step_state(
     dyn_mode: int, dt: float, theta: np.ndarray, edd5_p: np.ndarray,
     gp_mode: int, table: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
@@ -184,8 +169,7 @@ def step_state(
         )
         v1, w1 = nominal_velocity_step(theta, v, w, u0, u1, dt)
         # dynamic model: the pose advances with the current velocities (explicit Euler)
-        c = np.cos(yaw)
-        s = np.sin(yaw)
+        c, s = _cos_sin(yaw)
         return px + v * c * dt, py + v * s * dt, yaw + w * dt, v1 + mv, w1 + mw, cv, cw
     if dyn_mode == DYN_EDD5:
         v1, w1 = edd5_velocity(edd5_p, u0, u1)
@@ -193,8 +177,7 @@ def step_state(
         v1 = u0
         w1 = u1
     # kinematic models: velocities follow the command at once, then the pose advances
-    c = np.cos(yaw)
-    s = np.sin(yaw)
+    c, s = _cos_sin(yaw)
     return px + v1 * c * dt, py + v1 * s * dt, yaw + w1 * dt, v1, w1, cv, cw
 
 

@@ -29,8 +29,8 @@ from gpmppi.mppi.dynamics import (
     DYN_UNICYCLE,
     GP_EXACT,
     GP_GRID,
+    TABLE_AXES,
     collapse_table,
-    empty_packed_table,
     propagate,
 )
 from gpmppi.mppi.lane import LaneLookup, build_lane_lookup
@@ -147,15 +147,14 @@ class Planner:
         self._u_hi = np.array([c.v_limits[1], c.omega_limits[1]])
         self._std = np.array(c.noise_std, dtype=np.float64)
         self._table_full: np.ndarray | None = None
-        self._table = np.zeros((2, 2, 1, 1, 4, 4), dtype=np.float32)
+        self._table = np.zeros((2, 2, 2, 2, 4), dtype=np.float32)
         self._grid_lo = np.zeros(4)
         self._grid_inv = np.ones(4)
         if self._dyn == DYN_GP and self._gp_mode == GP_GRID:
             g = model.grid()
             self._table_full = np.ascontiguousarray(g.table, dtype=np.float32)
-            self._table = empty_packed_table(g.table.shape)
-            self._grid_lo = np.ascontiguousarray(g.lo, dtype=np.float64)
-            self._grid_inv = np.ascontiguousarray(g.inv_step, dtype=np.float64)
+            self._grid_lo = np.ascontiguousarray(np.asarray(g.lo, dtype=np.float64)[TABLE_AXES])
+            self._grid_inv = np.ascontiguousarray(np.asarray(g.inv_step, dtype=np.float64)[TABLE_AXES])
         if self._dyn == DYN_GP and self._gp_mode == GP_EXACT:
             inv_ls = 1.0 / model.lengthscale
             self._ex = (
@@ -228,7 +227,7 @@ class Planner:
         """Collapse the grid table when the weights changed; pick the EDD5 terrain. Returns (edd5_p, ms)."""
         t0 = time.perf_counter()
         if self._table_full is not None and (self._table_weights is None or not np.array_equal(w, self._table_weights)):
-            collapse_table(self._table_full, w, self._table)
+            self._table = collapse_table(self._table_full, w)
             self._table_weights = w.copy()
         name = self.config.edd5_terrain
         idx = self.model.terrains.index(name) if name is not None else int(np.argmax(w))

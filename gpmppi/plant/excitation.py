@@ -156,3 +156,18 @@ def simulate_dataset(
         cb = (lambda d, _n=name: progress(_n, d)) if progress is not None else None
         runs[name] = drive(plant, name, distance, seed=seed, dt=dt, progress=cb)
     return runs
+
+
+def runs_to_series(runs: dict[str, TerrainRun] | dict[str, list[TerrainRun]]) -> dict[str, dict[str, np.ndarray]]:
+    """The trainer's series form: terrain -> {"v", "w", "v_ref", "w_ref", "seg"} (one segment per run)."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for name, value in runs.items():
+        parts = value if isinstance(value, list) else [value]
+        out[name] = {
+            "v": np.concatenate([r.state[:, 3] for r in parts]),
+            "w": np.concatenate([r.state[:, 4] for r in parts]),
+            "v_ref": np.concatenate([r.command[:, 0] for r in parts]),
+            "w_ref": np.concatenate([r.command[:, 1] for r in parts]),
+            "seg": np.concatenate([np.full(len(r.command), i) for i, r in enumerate(parts)]),
+        }
+    return out

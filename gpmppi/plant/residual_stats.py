@@ -18,8 +18,8 @@ from gpmppi.plant.excitation import TerrainRun
 
 V_REF_EDGES = np.array([0.0, 0.7, 1.4, 2.0001])
 W_REF_EDGES = np.array([-np.pi - 1e-9, -1.0, -0.3, 0.3, 1.0, np.pi + 1e-9])
-# the paper's data lie in this box: v_ref <= 1.7, |omega_ref| <= 1.5, v <= 1.5, |omega| <= 1.5
-PAPER_BOX_HI = np.array([1.7, 1.5, 1.5, 1.5])
+# moderate driving (hand-driven logs usually stay here): v_ref <= 1.7, |omega_ref| <= 1.5, v <= 1.5, |omega| <= 1.5
+MODERATE_BOX_HI = np.array([1.7, 1.5, 1.5, 1.5])
 
 
 @dataclass
@@ -28,8 +28,8 @@ class ResidualStats:
     n: int
     rms: np.ndarray  # (2,) [v, omega]
     mean: np.ndarray  # (2,)
-    rms_paper_box: np.ndarray  # (2,) restricted to the paper data's input box
-    n_paper_box: int
+    rms_moderate: np.ndarray  # (2,) restricted to moderate driving (MODERATE_BOX_HI)
+    n_moderate: int
     bin_mean: np.ndarray  # (B, 2) mean residual per command bin (NaN where empty)
     bin_sem: np.ndarray  # (B, 2) standard error of that mean
     bin_count: np.ndarray  # (B,)
@@ -55,7 +55,7 @@ def theta_from_runs(runs: list[TerrainRun]) -> np.ndarray:
 
 def residual_stats(theta: np.ndarray, terrain: str, runs: list[TerrainRun]) -> ResidualStats:
     x, y = one_step_residuals(theta, runs)
-    box = np.all(np.abs(x) <= PAPER_BOX_HI, axis=1)
+    box = np.all(np.abs(x) <= MODERATE_BOX_HI, axis=1)
     iv = np.clip(np.searchsorted(V_REF_EDGES, x[:, 0], side="right") - 1, 0, len(V_REF_EDGES) - 2)
     iw = np.clip(np.searchsorted(W_REF_EDGES, x[:, 1], side="right") - 1, 0, len(W_REF_EDGES) - 2)
     b = iv * (len(W_REF_EDGES) - 1) + iw
@@ -71,8 +71,8 @@ def residual_stats(theta: np.ndarray, terrain: str, runs: list[TerrainRun]) -> R
         n=len(y),
         rms=np.sqrt(np.mean(y**2, axis=0)),
         mean=y.mean(axis=0),
-        rms_paper_box=np.sqrt(np.mean(y[box] ** 2, axis=0)) if box.any() else np.full(2, np.nan),
-        n_paper_box=int(box.sum()),
+        rms_moderate=np.sqrt(np.mean(y[box] ** 2, axis=0)) if box.any() else np.full(2, np.nan),
+        n_moderate=int(box.sum()),
         bin_mean=mean,
         bin_sem=sem,
         bin_count=count,

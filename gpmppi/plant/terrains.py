@@ -11,12 +11,14 @@ plus rolling resistance `rolling N` opposing the contact-point velocity.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 TERRAIN_FILE_VERSION = 1
+TERRAIN_NAME = re.compile(r"[a-z][a-z0-9_-]*")
 
 
 class TerrainFileError(ValueError):
@@ -80,6 +82,9 @@ class TerrainSet(_Strict):
     def _check(self) -> TerrainSet:
         if self.version != TERRAIN_FILE_VERSION:
             raise ValueError(f"version {self.version} is not supported (this build reads {TERRAIN_FILE_VERSION})")
+        bad = [n for n in self.terrains if not TERRAIN_NAME.fullmatch(n)]
+        if bad:
+            raise ValueError(f"terrain names {bad} must be lower-case words (letters, digits, '_' or '-')")
         return self
 
     def get(self, name: str) -> TerrainParams:
