@@ -50,8 +50,9 @@ class Settings(NodeSettings):
     watchdog_timeout_s: float = Field(0.5, gt=0, description="commands older than this are replaced by zero [s]")
     v_limits: tuple[float, float] = Field((-0.5, 2.0), description="forward velocity limits [m/s]")
     omega_limit: float = Field(3.1416, gt=0, description="|yaw rate| limit [rad/s]")
-    accel_limit: float = Field(4.0, gt=0, description="|dv/dt| limit [m/s^2] (planner commands only)")
-    yaw_accel_limit: float = Field(8.0, gt=0, description="|domega/dt| limit [rad/s^2] (planner commands only)")
+    # a safety envelope, not a shaping filter: the planner's own limits shape its commands
+    accel_limit: float = Field(10.0, gt=0, description="|dv/dt| limit [m/s^2] (planner commands only)")
+    yaw_accel_limit: float = Field(40.0, gt=0, description="|domega/dt| limit [rad/s^2] (planner commands only)")
     gid_seed: int | None = Field(None, description="seed of the rmw_zenoh source gid (None: random)")
 
 
@@ -68,7 +69,10 @@ class Safety:
     def __init__(self, settings: Settings) -> None:
         self.s = settings
         self.last_output = np.zeros(2)
-        self.last_time: float | None = None
+        # per axis: when the output last changed. The slew budget accrues from then (repeats of the same
+        # value at the steady rate do not reset it), capped at two output periods so a long hold cannot
+        # bank a jump
+        self.change_time = np.full(2, -np.inf)
         self.command: np.ndarray | None = None
         self.command_time = -np.inf
         self.estop = False
@@ -77,28 +81,27 @@ class Safety:
         self.command = np.array([v_ref, omega_ref], dtype=np.float64)
         self.command_time = now
 
+    def _set(self, value: np.ndarray, now: float) -> None:
+        self.change_time[value != self.last_output] = now
+        self.last_output = value
+
     def output(self, now: float) -> SafetyOutput:
-        dt = 0.0 if self.last_time is None else max(0.0, now - self.last_time)
-        self.last_time = now
         if self.estop:
-            self.last_output = np.zeros(2)
+            self._set(np.zeros(2), now)
             return SafetyOutput(0.0, 0.0, "estop")
         if self.command is None or now - self.command_time > self.s.watchdog_timeout_s:
             # a stale command must not keep the robot moving: zero at once (no ramp)
-            self.last_output = np.zeros(2)
+            self._set(np.zeros(2), now)
             return SafetyOutput(0.0, 0.0, "watchdog")
         target = self.command.copy()
-        if not np.all(np.isfinite(target)):
-            self.last_output = np.zeros(2)
-            return SafetyOutput(0.0, 0.0, "limit")
         limited = np.array(
             [np.clip(target[0], *self.s.v_limits), np.clip(target[1], -self.s.omega_limit, self.s.omega_limit)]
         )
-        if dt > 0.0:
-            step = np.array([self.s.accel_limit, self.s.yaw_accel_limit]) * dt
-            limited = np.clip(limited, self.last_output - step, self.last_output + step)
+        dt = np.minimum(now - self.change_time, 2.0 / self.s.rate_hz)
+        step = np.array([self.s.accel_limit, self.s.yaw_accel_limit]) * dt
+        limited = np.clip(limited, self.last_output - step, self.last_output + step)
         reason: Literal["planner", "limit"] = "planner" if np.allclose(limited, target, atol=1e-9) else "limit"
-        self.last_output = limited
+        self._set(limited, now)
         return SafetyOutput(float(limited[0]), float(limited[1]), reason)
 
 

@@ -21,7 +21,7 @@ class Settings(NodeSettings):
         None, min_length=5, max_length=5, description="initial [X, Y, theta, v, omega] (None: the lane's start)"
     )
     lane: str = Field("circle", description="lane whose start pose is used when `start` is None")
-    step_hz: float = Field(50.0, gt=0, description="plant stepping rate (commands take effect at this rate) [Hz]")
+    step_hz: float = Field(100.0, gt=0, description="plant stepping rate (commands take effect at this rate) [Hz]")
     publish_hz: float = Field(10.0, gt=0, description="odom/raw publication rate [Hz]")
     seed: int = Field(0, description="sensor-noise seed")
     noise: bool = Field(True, description="add sensor noise to the published state")

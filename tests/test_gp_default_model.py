@@ -49,4 +49,4 @@ def test_default_model_beats_nominal_on_fresh_plant_data(model) -> None:
                 t = model.task_index(name, out)
                 rmse_nominal = np.sqrt(np.mean(res[:, o] ** 2))
                 rmse_gp = np.sqrt(np.mean((res[:, o] - mean[:, t]) ** 2))
-                assert rmse_gp < 0.9 * rmse_nominal, (type(predictor).__name__, name, out, rmse_gp, rmse_nominal)
+                assert rmse_gp < 0.8 * rmse_nominal, (type(predictor).__name__, name, out, rmse_gp, rmse_nominal)

@@ -203,3 +203,15 @@ def test_goal_scene_reaches_goal_without_collision() -> None:
             reached = True
             break
     assert reached
+
+
+def test_backend_choice() -> None:
+    from gpmppi.mppi.backends import cuda_available
+
+    with pytest.raises(ValueError, match="grid"):
+        Planner(PlannerConfig(gp_mode="exact", backend="cuda"), _model())
+    assert Planner(PlannerConfig(gp_mode="exact", backend="auto", samples=8), _model()).backend == "cpu"
+    if not cuda_available():
+        assert Planner(PlannerConfig(backend="auto", samples=8), _model()).backend == "cpu"
+        with pytest.raises(ValueError, match="cuda"):
+            Planner(PlannerConfig(backend="cuda", samples=8), _model())

@@ -88,7 +88,8 @@ def test_propagation_matches_finite_difference_jacobians() -> None:
     m2 = 2 * len(model.terrains)
     dummy = (np.zeros((m2, 1, 4)), np.ones((m2, 4)), np.zeros(m2), np.zeros((m2, 1)), np.ones((m2, 1, 1)))
     states, covs, step_var = propagate(x0, controls, 0.1, DYN_GP, model.theta, model.edd5["grass"], GP_GRID,
-                                       table, g.lo[TABLE_AXES], g.inv_step[TABLE_AXES], *dummy, w)
+                                       table.reshape(-1, 4), np.array(table.shape[:4]), g.lo[TABLE_AXES],
+                                       g.inv_step[TABLE_AXES], *dummy, w)
     sigma = np.zeros((5, 5))
     for k in range(15):
         jac_fd = _fd_jacobian(model.theta, states[k], controls[k], 0.1)
@@ -114,5 +115,6 @@ def test_collapsed_table_interpolates_like_the_weighted_model_grid() -> None:
         grid_interp(g.table, g.lo, g.inv_step, x, full)
         t = len(model.terrains) * 2
         expected = [w @ full[0:t:2], w @ full[1:t:2], w**2 @ full[t::2], w**2 @ full[t + 1 :: 2]]
-        got = interp4(packed, g.lo[TABLE_AXES], g.inv_step[TABLE_AXES], *x[TABLE_AXES])
+        got = interp4(packed.reshape(-1, 4), np.array(packed.shape[:4]), g.lo[TABLE_AXES], g.inv_step[TABLE_AXES],
+                      *x[TABLE_AXES])
         np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-8)

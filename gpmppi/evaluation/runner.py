@@ -71,6 +71,7 @@ class RunScore:
     time_to_goal_s: float = float("nan")
     min_clearance_m: float = float("nan")
     distance_m: float = 0.0
+    mean_speed_mps: float = float("nan")
     planner_ms_mean: float = float("nan")
     planner_ms_p95: float = float("nan")
     final_weights: list[float] = field(default_factory=list)
@@ -156,6 +157,8 @@ def score(traj: Trajectory, task: LaneTask | GoalTask, seed: int, cfg: ClosedLoo
     """Score one trajectory (true states, at planner cycles)."""
     pos = traj.positions
     s = RunScore(seed=seed, status=traj.status, message=traj.message, distance_m=path_length(pos))
+    if traj.times[-1] > 0:
+        s.mean_speed_mps = s.distance_m / float(traj.times[-1])
     if traj.planner_ms.size:
         s.planner_ms_mean = float(np.mean(traj.planner_ms))
         s.planner_ms_p95 = float(np.percentile(traj.planner_ms, 95))
@@ -226,6 +229,7 @@ def summarize(scores: list[RunScore]) -> dict:
         "collisions": int(sum(s.status == "collision" for s in runs)),
         "min_clearance_m": float(min(clear)) if clear else float("nan"),
         "planner_ms": ms,
+        "mean_speed_mps": mean_std([s.mean_speed_mps for s in runs])[0],
         "infeasible": len(scores) - len(runs),
         "final_weights_mean": [float(x) for x in np.mean(finals, axis=0)] if finals else [],
         "statuses": {st: sum(s.status == st for s in scores) for st in sorted({s.status for s in scores})},

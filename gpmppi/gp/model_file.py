@@ -207,7 +207,14 @@ class GPModel:
 
 
 def load_default_model() -> GPModel:
-    """The trained model shipped with the package (`gpmppi/data/default_gp_model.npz`)."""
+    """The trained model shipped with the package (`gpmppi/data/default_gp_model.npz`).
+
+    It is regenerated from the physics plant with the default settings (tile, asphalt, grass;
+    2000 m each; seed 0) by
+
+        gpmppi dataset -o /tmp/default.mcap
+        gpmppi train /tmp/default.mcap -o gpmppi/data/default_gp_model.npz
+    """
     return GPModel.load(DEFAULT_MODEL_PATH)
 
 

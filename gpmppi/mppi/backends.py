@@ -43,7 +43,8 @@ class ModelArrays:
     theta: np.ndarray
     edd5_p: np.ndarray
     gp_mode: int
-    table: np.ndarray
+    table: np.ndarray  # (nodes, 4) float32 collapsed GP table
+    dims: np.ndarray  # (4,) int64 grid nodes per axis
     lo: np.ndarray
     inv_step: np.ndarray
     exact: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # scaled_x, inv_ls, os, alpha, chol
@@ -99,7 +100,7 @@ def rollouts(
     xy = np.empty((n_xy, horizon + 1, 2))
     args = (
         x0, np.ascontiguousarray(nominal), noise_std, u_lo, u_hi, float(dt), int(seed), int(iteration),
-        m.dyn_mode, m.theta, m.edd5_p, m.gp_mode, m.table, m.lo, m.inv_step, *m.exact, m.terrain_w,
+        m.dyn_mode, m.theta, m.edd5_p, m.gp_mode, m.table, m.dims, m.lo, m.inv_step, *m.exact, m.terrain_w,
         t.kind, t.seg, t.cell_start, t.candidates, t.field, t.grid_origin, float(t.inv_cell), float(t.half_width),
         t.tightened_hw, float(t.speed_target), t.goal, t.obstacles, t.radii, cost_w,
     )

@@ -43,7 +43,7 @@ def rollout_kernel(
     x0: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray, dt: float,
     seed: int, iteration: int,
     dyn_mode: int, theta: np.ndarray, edd5_p: np.ndarray,
-    gp_mode: int, table: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
+    gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray,
     task_kind: int, seg: np.ndarray, cell_start: np.ndarray, candidates: np.ndarray, field: np.ndarray,
@@ -82,7 +82,7 @@ def rollout_kernel(
             eps_out[s, k, 0] = u0 - nominal[k, 0]
             eps_out[s, k, 1] = u1 - nominal[k, 1]
             px, py, yaw, v, w, cv, cw = step_state(
-                dyn_mode, dt, theta, edd5_p, gp_mode, table, lo, inv_step, ex_scaled_x, ex_inv_ls,
+                dyn_mode, dt, theta, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls,
                 ex_outputscale, ex_alpha, ex_chol, terrain_w, work, gp_in, gp_mean, gp_var,
                 px, py, yaw, v, w, u0, u1,
             )

@@ -76,36 +76,121 @@ def _axis(x: float, lo: float, inv_step: float, g: int) -> tuple[int, float]:
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def interp4(
-    table: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float, a3: float
+    table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float,
+    a3: float,
 ) -> tuple[float, float, float, float]:
-    """Multilinear interpolation of the 4 channels of a (G,G,G,G,4) table (clamped at the faces)."""
-    i0, f0 = _axis(a0, lo[0], inv_step[0], table.shape[0])
-    i1, f1 = _axis(a1, lo[1], inv_step[1], table.shape[1])
-    i2, f2 = _axis(a2, lo[2], inv_step[2], table.shape[2])
-    i3, f3 = _axis(a3, lo[3], inv_step[3], table.shape[3])
-    c0 = 0.0
-    c1 = 0.0
-    c2 = 0.0
-    c3 = 0.0
-    for b0 in range(2):
-        w0 = f0 if b0 else 1.0 - f0
-        for b1 in range(2):
-            w01 = w0 * (f1 if b1 else 1.0 - f1)
-            for b2 in range(2):
-                w012 = w01 * (f2 if b2 else 1.0 - f2)
-                for b3 in range(2):
-                    w = w012 * (f3 if b3 else 1.0 - f3)
-                    node = table[i0 + b0, i1 + b1, i2 + b2, i3 + b3]
-                    c0 += w * node[0]
-                    c1 += w * node[1]
-                    c2 += w * node[2]
-                    c3 += w * node[3]
-    return c0, c1, c2, c3
+    """Multilinear interpolation of a (G0*G1*G2*G3, 4) float32 table with grid `dims` (clamped at the faces).
+
+    Flat node indices and single-precision accumulation (no float64 conversion of the 64 loaded
+    values); measured faster than 5-D indexing and than a 1-D table.
+    """
+    i0, f0 = _axis(a0, lo[0], inv_step[0], dims[0])
+    i1, f1 = _axis(a1, lo[1], inv_step[1], dims[1])
+    i2, f2 = _axis(a2, lo[2], inv_step[2], dims[2])
+    i3, f3 = _axis(a3, lo[3], inv_step[3], dims[3])
+    s2 = dims[3]
+    s1 = dims[2] * s2
+    s0 = dims[1] * s1
+    base = i0 * s0 + i1 * s1 + i2 * s2 + i3
+    g0 = np.float32(f0)
+    g1 = np.float32(f1)
+    g2 = np.float32(f2)
+    g3 = np.float32(f3)
+    one = np.float32(1.0)
+    e0 = one - g0
+    e1 = one - g1
+    e2 = one - g2
+    e3 = one - g3
+    c0 = np.float32(0.0)
+    c1 = np.float32(0.0)
+    c2 = np.float32(0.0)
+    c3 = np.float32(0.0)
+    # 8 pairs of nodes adjacent along the last axis
+    for b in range(8):
+        b0 = b >> 2
+        b1 = (b >> 1) & 1
+        b2 = b & 1
+        w = (g0 if b0 else e0) * (g1 if b1 else e1) * (g2 if b2 else e2)
+        lo_w = w * e3
+        hi_w = w * g3
+        n = base + b0 * s0 + b1 * s1 + b2 * s2
+        c0 += lo_w * table[n, 0] + hi_w * table[n + 1, 0]
+        c1 += lo_w * table[n, 1] + hi_w * table[n + 1, 1]
+        c2 += lo_w * table[n, 2] + hi_w * table[n + 1, 2]
+        c3 += lo_w * table[n, 3] + hi_w * table[n + 1, 3]
+    return float(c0), float(c1), float(c2), float(c3)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _cswap(fa: float, sa: int, fb: float, sb: int) -> tuple[float, int, float, int]:
+    """Order two (fraction, stride) pairs by descending fraction."""
+    if fb > fa:
+        return fb, sb, fa, sa
+    return fa, sa, fb, sb
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def interp4_simplex(
+    table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float,
+    a3: float,
+) -> tuple[float, float, float, float]:
+    """Simplex (Kuhn / Freudenthal) interpolation of the same (nodes, 4) table: 5 nodes instead of 16.
+
+    The cell is split into 24 simplices by the order of the fractional coordinates; the value is
+    the barycentric blend of the simplex's 5 vertices. Like multilinear interpolation it is exact
+    at the nodes, continuous, and second-order accurate, but reads 5 nodes instead of 16: on a
+    table larger than the caches that is the difference (it is memory-bound).
+    """
+    i0, f0 = _axis(a0, lo[0], inv_step[0], dims[0])
+    i1, f1 = _axis(a1, lo[1], inv_step[1], dims[1])
+    i2, f2 = _axis(a2, lo[2], inv_step[2], dims[2])
+    i3, f3 = _axis(a3, lo[3], inv_step[3], dims[3])
+    s3 = 1
+    s2 = dims[3]
+    s1 = dims[2] * s2
+    s0 = dims[1] * s1
+    n = i0 * s0 + i1 * s1 + i2 * s2 + i3
+    # sorting network for 4 elements (5 compare-exchanges), descending by fraction
+    f0, s0, f1, s1 = _cswap(f0, s0, f1, s1)
+    f2, s2, f3, s3 = _cswap(f2, s2, f3, s3)
+    f0, s0, f2, s2 = _cswap(f0, s0, f2, s2)
+    f1, s1, f3, s3 = _cswap(f1, s1, f3, s3)
+    f1, s1, f2, s2 = _cswap(f1, s1, f2, s2)
+    w = np.float32(1.0 - f0)
+    c0 = w * table[n, 0]
+    c1 = w * table[n, 1]
+    c2 = w * table[n, 2]
+    c3 = w * table[n, 3]
+    n += s0
+    w = np.float32(f0 - f1)
+    c0 += w * table[n, 0]
+    c1 += w * table[n, 1]
+    c2 += w * table[n, 2]
+    c3 += w * table[n, 3]
+    n += s1
+    w = np.float32(f1 - f2)
+    c0 += w * table[n, 0]
+    c1 += w * table[n, 1]
+    c2 += w * table[n, 2]
+    c3 += w * table[n, 3]
+    n += s2
+    w = np.float32(f2 - f3)
+    c0 += w * table[n, 0]
+    c1 += w * table[n, 1]
+    c2 += w * table[n, 2]
+    c3 += w * table[n, 3]
+    n += s3
+    w = np.float32(f3)
+    c0 += w * table[n, 0]
+    c1 += w * table[n, 1]
+    c2 += w * table[n, 2]
+    c3 += w * table[n, 3]
+    return float(c0), float(c1), float(c2), float(c3)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def gp_residual(
-    gp_mode: int, table: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
+    gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_in: np.ndarray, gp_mean: np.ndarray,
     gp_var: np.ndarray, v_ref: float, w_ref: float, v: float, w: float,
@@ -115,7 +200,7 @@ def gp_residual(
     Grid mode: `table`, `lo`, `inv_step` are in the collapsed table's axis order (`TABLE_AXES`).
     """
     if gp_mode == GP_GRID:
-        return interp4(table, lo, inv_step, v, w, v_ref, w_ref)
+        return interp4(table, dims, lo, inv_step, v, w, v_ref, w_ref)
     gp_in[0] = v_ref
     gp_in[1] = w_ref
     gp_in[2] = v
@@ -154,7 +239,7 @@ def _cos_sin(yaw: float) -> tuple[float, float]:
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def step_state(
     dyn_mode: int, dt: float, theta: np.ndarray, edd5_p: np.ndarray,
-    gp_mode: int, table: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
+    gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_in: np.ndarray, gp_mean: np.ndarray,
     gp_var: np.ndarray, px: float, py: float, yaw: float, v: float, w: float, u0: float, u1: float,
@@ -164,7 +249,7 @@ def step_state(
     cw = 0.0
     if dyn_mode == DYN_GP:
         mv, mw, cv, cw = gp_residual(
-            gp_mode, table, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
+            gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
             terrain_w, work, gp_in, gp_mean, gp_var, u0, u1, v, w,
         )
         v1, w1 = nominal_velocity_step(theta, v, w, u0, u1, dt)
@@ -184,7 +269,7 @@ def step_state(
 @njit(cache=True)
 def propagate(
     x0: np.ndarray, controls: np.ndarray, dt: float, dyn_mode: int, theta: np.ndarray, edd5_p: np.ndarray,
-    gp_mode: int, table: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
+    gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -206,7 +291,7 @@ def propagate(
     for k in range(n):
         x = states[k]
         r = step_state(
-            dyn_mode, dt, theta, edd5_p, gp_mode, table, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale,
+            dyn_mode, dt, theta, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale,
             ex_alpha, ex_chol, terrain_w, work, gp_in, gp_mean, gp_var, x[0], x[1], x[2], x[3], x[4],
             controls[k, 0], controls[k, 1],
         )

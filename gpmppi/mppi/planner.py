@@ -48,7 +48,9 @@ class PlannerConfig(BaseModel):
         "gp", description="Rollout model: nominal dynamic unicycle + GP ensemble residual, EDD5, or kinematic unicycle"
     )
     gp_mode: Literal["grid", "exact"] = Field("grid", description="GP evaluation: interpolated grid table or exact GP")
-    backend: Literal["auto", "cpu", "cuda"] = Field("auto", description="Kernels: numba CPU, numba CUDA, or auto")
+    backend: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="Kernels: numba CPU, numba CUDA (grid GP only), or auto (CUDA when numba finds a GPU)"
+    )
     samples: int = Field(1024, ge=1, description="Number of sampled control sequences S")
     horizon: int = Field(40, ge=1, description="Horizon N [steps]")
     dt: float = Field(0.1, gt=0, description="Step of the rollouts [s]")
@@ -136,7 +138,10 @@ class Planner:
         m = len(model.terrains)
         if c.edd5_terrain is not None and c.edd5_terrain not in model.terrains:
             raise ValueError(f"edd5_terrain {c.edd5_terrain!r} is not a model terrain ({model.terrains})")
-        self.backend = backends.resolve(c.backend)
+        exact_gp = c.dynamics == "gp" and c.gp_mode == "exact"
+        if exact_gp and c.backend == "cuda":
+            raise ValueError("backend='cuda' evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
+        self.backend = "cpu" if exact_gp else backends.resolve(c.backend)
         self._dyn = _DYN[c.dynamics]
         self._gp_mode = GP_EXACT if c.gp_mode == "exact" else GP_GRID
         self._theta = np.ascontiguousarray(model.theta, dtype=np.float64)
@@ -147,12 +152,14 @@ class Planner:
         self._u_hi = np.array([c.v_limits[1], c.omega_limits[1]])
         self._std = np.array(c.noise_std, dtype=np.float64)
         self._table_full: np.ndarray | None = None
-        self._table = np.zeros((2, 2, 2, 2, 4), dtype=np.float32)
+        self._table = np.zeros((16, 4), dtype=np.float32)
+        self._table_dims = np.full(4, 2, dtype=np.int64)
         self._grid_lo = np.zeros(4)
         self._grid_inv = np.ones(4)
         if self._dyn == DYN_GP and self._gp_mode == GP_GRID:
             g = model.grid()
             self._table_full = np.ascontiguousarray(g.table, dtype=np.float32)
+            self._table_dims = np.array(g.table.shape[:4], dtype=np.int64)[TABLE_AXES]
             self._grid_lo = np.ascontiguousarray(np.asarray(g.lo, dtype=np.float64)[TABLE_AXES])
             self._grid_inv = np.ascontiguousarray(np.asarray(g.inv_step, dtype=np.float64)[TABLE_AXES])
         if self._dyn == DYN_GP and self._gp_mode == GP_EXACT:
@@ -227,7 +234,7 @@ class Planner:
         """Collapse the grid table when the weights changed; pick the EDD5 terrain. Returns (edd5_p, ms)."""
         t0 = time.perf_counter()
         if self._table_full is not None and (self._table_weights is None or not np.array_equal(w, self._table_weights)):
-            self._table = collapse_table(self._table_full, w)
+            self._table = collapse_table(self._table_full, w).reshape(-1, 4)
             self._table_weights = w.copy()
         name = self.config.edd5_terrain
         idx = self.model.terrains.index(name) if name is not None else int(np.argmax(w))
@@ -235,7 +242,7 @@ class Planner:
 
     def _propagate(self, x: np.ndarray, controls: np.ndarray, edd5_p: np.ndarray, w: np.ndarray) -> tuple:
         return propagate(x, controls, self.config.dt, self._dyn, self._theta, edd5_p, self._gp_mode, self._table,
-                         self._grid_lo, self._grid_inv, *self._ex, w)
+                         self._table_dims, self._grid_lo, self._grid_inv, *self._ex, w)
 
     def _bounds(self, task: LaneTask | GoalTask, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
         """Tightened half-widths (N+1,) or effective obstacle radii (N+1, K), and the clamp count."""
@@ -266,7 +273,8 @@ class Planner:
         else:
             task_arrays = backends.TaskArrays.for_goal(task.goal, task.obstacles, bounds)
         model_arrays = backends.ModelArrays(
-            self._dyn, self._theta, edd5_p, self._gp_mode, self._table, self._grid_lo, self._grid_inv, self._ex, w
+            self._dyn, self._theta, edd5_p, self._gp_mode, self._table, self._table_dims, self._grid_lo, self._grid_inv,
+            self._ex, w,
         )
         n_xy = min(c.sample_output, c.samples)
         eps, costs, xy = backends.rollouts(
