@@ -49,6 +49,9 @@ def run_service(kind: str, config: str | Path | None = None) -> int:
     setup_logging(settings.service, settings.log_level, settings.log_json)
     try:
         return int(module.run(settings) or 0)
+    except KeyboardInterrupt:
+        # SIGINT before the service's node took over the signal (e.g. while the planner compiles)
+        return 0
     except Exception:
         logging.getLogger(f"gpmppi.{settings.service}").exception("service failed")
         return 1

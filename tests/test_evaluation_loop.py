@@ -163,3 +163,15 @@ def test_same_seed_same_run_and_noise_reaches_planner_only_through_measurements(
     np.testing.assert_array_equal(runs[0].measured_states, runs[1].measured_states)
     assert not np.array_equal(runs[0].measured_states, runs[2].measured_states)
     np.testing.assert_array_equal(runs[0].true_states, runs[2].true_states)  # this planner ignores the state
+
+
+def test_plant_failure_ends_the_run_with_a_status() -> None:
+    class FailingPlant(KinematicPlant):
+        def step(self, command: np.ndarray, duration: float) -> np.ndarray:
+            if self.t > 0.25:
+                raise FloatingPointError("diverged")
+            return super().step(command, duration)
+
+    traj = run_closed_loop(CountingPlanner(), FailingPlant(), LANE, np.zeros(5), 2, ClosedLoopConfig(time_limit_s=1.0))
+    assert traj.status == "plant_error" and "diverged" in traj.message
+    assert len(traj.commands) == len(traj.times) - 1 == 3

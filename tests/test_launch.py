@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import os
 import threading
 import time
@@ -14,6 +15,7 @@ import numpy as np
 import pytest
 import yaml
 import zenoh
+from mcap.reader import make_reader
 from test_services import client, free_port, wait_for
 
 from gpmppi.evaluation.metrics import lane_rmse_mm
@@ -60,24 +62,45 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     out = io.StringIO()
     result: dict = {}
 
-    def estop_released() -> None:
-        # an outside client joins mid-run and releases the e-stop, so the estop key is on the wire too
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
+    bad_inputs = {
+        "state": [
+            b"{bad json",
+            b'{"x": NaN, "y": 0, "theta": 0, "v": 0, "omega": 0}',
+            b'{"header": {"schema_version": 7}, "x": 0, "y": 0, "theta": 0, "v": 0, "omega": 0}',
+        ],
+        "task": [b'{"kind": "lane", "centerline": [[0, 0]]}'],
+        "terrain_weights": [b'{"names": ["asphalt", "grass", "tile"], "weights": [1.0, 1.0, 1.0]}'],
+    }
+
+    def outside_client() -> None:
+        # joins once the planner is up: releases the e-stop (so the estop key is on the wire too) and sends
+        # bad input on the keys the planner subscribes to
+        deadline = time.monotonic() + 600
+        s = None
+        while s is None and time.monotonic() < deadline:
             try:
                 s = client(port)
-                break
             except zenoh.ZError:
                 time.sleep(0.2)
-        else:
+        if s is None:
             return
+        planner_up = threading.Event()
+        sub = s.declare_subscriber(key_for("health", service="planner"), lambda _: planner_up.set())
+        planner_up.wait(max(0.0, deadline - time.monotonic()))
+        time.sleep(1.0)
         pub = s.declare_publisher(key_for("estop"))
-        for _ in range(5):
+        for _ in range(3):
             pub.put(encode(EStop(engaged=False, reason="test")))
-            time.sleep(0.5)
+            time.sleep(0.3)
+        for name, payloads in bad_inputs.items():
+            bad_pub = s.declare_publisher(key_for(name))
+            for payload in payloads:
+                bad_pub.put(payload)
+                time.sleep(0.3)
+        sub.undeclare()
         s.close()
 
-    side = threading.Thread(target=estop_released, daemon=True)
+    side = threading.Thread(target=outside_client, daemon=True)
     side.start()
     code, summary = run_launch(None, duration=15.0, record=str(record), rerun=["save", str(rrd)], port=port, out=out)
     side.join(5)
@@ -90,6 +113,19 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     expected = {key_for(name) for name in KEYS if name != "health"}
     expected |= {key_for("health", service=s) for s in SERVICES}
     assert expected <= recorded, f"missing from the MCAP: {expected - recorded}"
+    # the planner counted the bad input, kept running, and every command on the wire is valid and finite
+    planner_hb = [m for _, _, m in read_messages(record, [key_for("health", service="planner")])]
+    assert planner_hb[-1].rejected >= sum(len(v) for v in bad_inputs.values()) - 1, planner_hb[-1]
+    with open(record, "rb") as f:
+        raw = [
+            (c.topic, m.data) for _, c, m in make_reader(f).iter_messages(topics=[key_for("cmd"), key_for("base_cmd")])
+        ]
+    assert len(raw) > 50
+    for topic, data in raw:
+        values = json.loads(data)
+        numbers = [values["v_ref"], values["omega_ref"]] if topic.endswith("/cmd") and "v_ref" in values else []
+        numbers += [values["v"], values["omega"]] if "v" in values else []
+        assert numbers and all(isinstance(x, float | int) and math.isfinite(x) for x in numbers), data
     # the robot drove the lane: compare with the in-process evaluation of the same scenario over the same time,
     # counted from the planner's first command (before it the robot waits at the start, on the centre line)
     first_cmd = min(m.header.stamp_ns for _, _, m in read_messages(record, [key_for("cmd")]))

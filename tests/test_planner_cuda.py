@@ -26,12 +26,13 @@ assert cuda.is_available()
 model = synthetic_model(nodes=5, n_train=30)
 w = np.array([0.5, 0.3, 0.2])
 out = {}
-for dyn in ["gp", "edd5", "unicycle"]:
+for dyn in ["gp", "gp-multilinear", "edd5", "unicycle"]:
     for sc in [circle_lane(), paper_obstacle_scene()]:
         runs = {}
         for backend in ["cpu", "cuda"]:
-            p = Planner(PlannerConfig(dynamics=dyn, backend=backend, samples=16, horizon=5, sample_output=4,
-                                      seed=3), model)
+            interp = "multilinear" if dyn.endswith("multilinear") else "simplex"
+            p = Planner(PlannerConfig(dynamics=dyn.split("-")[0], backend=backend, samples=16, horizon=5,
+                                      sample_output=4, seed=3, grid_interpolation=interp), model)
             assert p.backend == backend
             x = sc.start.copy()
             res = []
@@ -41,7 +42,7 @@ for dyn in ["gp", "edd5", "unicycle"]:
                             "xy": r.sample_states.tolist(), "cost": r.cost})
                 x = kinematic_step(x, r.control, 0.1)
             runs[backend] = res
-        auto = Planner(PlannerConfig(dynamics=dyn, samples=16, horizon=5), model)
+        auto = Planner(PlannerConfig(dynamics=dyn.split("-")[0], samples=16, horizon=5), model)
         runs["auto_backend"] = auto.backend
         out[f"{dyn}/{type(sc.task).__name__}"] = runs
 print(json.dumps(out))
@@ -58,7 +59,7 @@ def sim_results() -> dict:
 
 
 def test_cuda_simulator_matches_cpu_backend(sim_results: dict) -> None:
-    assert len(sim_results) == 6
+    assert len(sim_results) == 8
     for case, runs in sim_results.items():
         assert runs["auto_backend"] == "cuda", case  # auto picks CUDA when numba sees a device
         for cpu, gpu in zip(runs["cpu"], runs["cuda"], strict=True):

@@ -118,3 +118,37 @@ def test_collapsed_table_interpolates_like_the_weighted_model_grid() -> None:
         got = interp4(packed.reshape(-1, 4), np.array(packed.shape[:4]), g.lo[TABLE_AXES], g.inv_step[TABLE_AXES],
                       *x[TABLE_AXES])
         np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-8)
+
+
+def test_simplex_interpolation_is_exact_on_linear_data_and_as_accurate_as_multilinear() -> None:
+    from gpmppi.gp.grid import predict_dense
+    from gpmppi.mppi.dynamics import interp4, interp4_simplex
+
+    g_n = 7
+    dims = np.array([g_n] * 4)
+    lo = np.array([0.0, -1.0, 0.5, 2.0])
+    inv = np.array([3.0, 1.5, 2.0, 4.0])
+    idx = np.indices((g_n,) * 4).reshape(4, -1).T
+    coords = lo + idx / inv
+    lin = np.stack([coords @ np.array(c) for c in ([1, 2, -1, 0.5], [0, 0, 0, 1], [3, -1, 0, 0], [1, 1, 1, 1])], 1)
+    table = lin.astype(np.float32)
+    rng = np.random.default_rng(5)
+    for _ in range(100):
+        x = lo + rng.uniform(size=4) * (g_n - 1) / inv
+        want = np.array([x @ np.array(c) for c in ([1, 2, -1, 0.5], [0, 0, 0, 1], [3, -1, 0, 0], [1, 1, 1, 1])])
+        np.testing.assert_allclose(interp4_simplex(table, dims, lo, inv, *x), want, rtol=1e-5, atol=1e-5)
+    # on the GP itself: errors against the exact GP comparable to the multilinear interpolation's
+    model = synthetic_model(nodes=9)
+    g = model.grid()
+    w = np.array([0.2, 0.5, 0.3])
+    t = collapse_table(np.ascontiguousarray(g.table, dtype=np.float32), w)
+    flat, tdims = t.reshape(-1, 4), np.array(t.shape[:4])
+    pts = model.domain_lo + rng.uniform(size=(300, 4)) * (model.domain_hi - model.domain_lo)
+    mean, var = predict_dense(model, pts)
+    exact = np.stack([mean[:, 0::2] @ w, mean[:, 1::2] @ w, var[:, 0::2] @ w**2, var[:, 1::2] @ w**2], 1)
+    args = (flat, tdims, g.lo[TABLE_AXES], g.inv_step[TABLE_AXES])
+    err_s = np.array([interp4_simplex(*args, *p[TABLE_AXES]) for p in pts]) - exact
+    err_m = np.array([interp4(*args, *p[TABLE_AXES]) for p in pts]) - exact
+    rms_s, rms_m = np.sqrt((err_s**2).mean(0)), np.sqrt((err_m**2).mean(0))
+    assert np.all(rms_s < 2.0 * rms_m + 1e-7), (rms_s, rms_m)
+    assert np.all(rms_s[:2] < 0.1 * np.abs(exact[:, :2]).max(0))

@@ -80,12 +80,12 @@ def register(app: typer.Typer) -> None:
         from gpmppi.gp.model_file import ModelFileError
 
         if points < 1:
-            Console(stderr=True).print("[red]error:[/red] --points must be at least 1")
+            Console(stderr=True, soft_wrap=True).print("[red]error:[/red] --points must be at least 1")
             raise typer.Exit(code=2)
         try:
             r = bench_gp(model, points, seed)
         except ModelFileError as e:
-            Console(stderr=True).print(f"[red]error:[/red] {e}", highlight=False)
+            Console(stderr=True, soft_wrap=True).print(f"[red]error:[/red] {e}", highlight=False)
             raise typer.Exit(code=2) from None
         if as_json:
             typer.echo(json.dumps(r, indent=1))

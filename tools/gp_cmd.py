@@ -48,7 +48,7 @@ def register(app: typer.Typer) -> None:
         from gpmppi.gp.grid import GridPredictor
         from gpmppi.gp.model_file import GPModel
 
-        err = Console(stderr=True)
+        err = Console(stderr=True, soft_wrap=True)
         try:
             if mode not in ("exact", "grid"):
                 raise DataError(f"--mode must be 'exact' or 'grid', got {mode!r}")

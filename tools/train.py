@@ -320,7 +320,7 @@ def register(app: typer.Typer) -> None:
             if grid_nodes > 0:
                 model.set_grid(build_grid(model, grid_nodes))
         except ValueError as e:
-            Console(stderr=True).print(f"[red]error:[/red] {e}", highlight=False)
+            Console(stderr=True, soft_wrap=True).print(f"[red]error:[/red] {e}", highlight=False)
             raise typer.Exit(code=2) from None
         model.save(output)
         print_report(report, console)

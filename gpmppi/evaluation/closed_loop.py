@@ -19,7 +19,7 @@ import numpy as np
 from gpmppi.evaluation.metrics import first_collision_index
 from gpmppi.tasks import GoalTask, LaneTask
 
-Status = Literal["goal", "collision", "distance", "time_limit", "planner_error"]
+Status = Literal["goal", "collision", "distance", "time_limit", "planner_error", "plant_error"]
 
 
 class PlantLike(Protocol):
@@ -159,14 +159,21 @@ def run_closed_loop(
         # advance the plant over [t, t + dt), switching commands where delayed ones arrive
         seg = t
         end = t + dt
-        while seg < end - eps:
-            while pending and pending[0][0] <= seg + eps:
-                active = pending.popleft()[1]
-            seg_end = min(end, pending[0][0]) if pending else end
-            if seg_end <= seg + eps:
-                seg_end = end
-            true_state = np.asarray(plant.step(active, seg_end - seg), dtype=np.float64).copy()
-            seg = seg_end
+        try:
+            while seg < end - eps:
+                while pending and pending[0][0] <= seg + eps:
+                    active = pending.popleft()[1]
+                seg_end = min(end, pending[0][0]) if pending else end
+                if seg_end <= seg + eps:
+                    seg_end = end
+                true_state = np.asarray(plant.step(active, seg_end - seg), dtype=np.float64).copy()
+                seg = seg_end
+        except FloatingPointError as e:
+            status, message = "plant_error", f"plant failed at t={seg:.2f} s: {e}"
+            cmds.pop(), ws.pop(), oks.pop(), pms.pop(), tights.pop(), terrs.pop()
+            if record_plans:
+                plans.pop()
+            break
         measured = np.asarray(plant.measure(), dtype=np.float64).copy()
         driven += float(np.linalg.norm(true_state[:2] - trues[-1][:2]))
         times.append((k + 1) * dt)
@@ -174,7 +181,7 @@ def run_closed_loop(
         meas.append(measured.copy())
 
         if not np.all(np.isfinite(true_state)):
-            status, message = "planner_error", f"plant state became non-finite at t={times[-1]:.1f} s"
+            status, message = "plant_error", f"plant state became non-finite at t={times[-1]:.1f} s"
             break
         if isinstance(task, GoalTask):
             hit = first_collision_index(true_state[None, :2], task.obstacles, cfg.robot_radius)

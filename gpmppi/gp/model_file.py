@@ -112,6 +112,7 @@ class GPModel:
         self._grid = grid
 
     def has_stored_grid(self) -> bool:
+        """True when a grid table is attached (read from the file, set, or already built), so `save` writes it."""
         return self._grid is not None
 
     def metadata(self) -> dict:

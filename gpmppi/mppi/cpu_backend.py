@@ -1,5 +1,7 @@
 """CPU backend: one numba kernel runs every sample's whole horizon (noise, model, GP, costs) in `prange`.
 
+Threads take groups of `GROUP` samples and step them in lockstep over the horizon.
+
 Each sample draws its noise from the counter-based generator (`rng.normal_pair`), so the result
 is identical whatever the thread schedule. Per sample it writes the applied perturbation (the
 clipped control minus the nominal one, float32), its total cost, and for the first `xy_out.shape[0]`
@@ -29,13 +31,16 @@ from gpmppi.costs import (
     speed_cost,
     variance_cost,
 )
-from gpmppi.mppi.dynamics import step_state
+from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, simplex_nodes
 from gpmppi.mppi.flags import FASTMATH
 from gpmppi.mppi.lane import lane_distance_near
 from gpmppi.mppi.rng import normal_pair
 
 TASK_LANE = 0
 TASK_GOAL = 1
+# samples a thread steps in lockstep: each sample's step waits on its own GP table reads (the next
+# state needs them), so interleaving independent samples lets those memory reads overlap
+GROUP = 16
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -57,57 +62,104 @@ def rollout_kernel(
     n_tasks = ex_alpha.shape[0]
     n_train = ex_alpha.shape[1]
     discount = cost_w[W_EXIT_DISCOUNT]
-    for s in prange(samples):
+    n_groups = (samples + GROUP - 1) // GROUP
+    for g in prange(n_groups):
         work = np.empty(n_train)
         gp_in = np.empty(4)
         gp_mean = np.empty(n_tasks)
         gp_var = np.empty(n_tasks)
-        px = x0[0]
-        py = x0[1]
-        yaw = x0[2]
-        v = x0[3]
-        w = x0[4]
-        if s < n_xy:
-            xy_out[s, 0, 0] = px
-            xy_out[s, 0, 1] = py
-        total = 0.0
+        first = g * GROUP
+        n_in = min(GROUP, samples - first)
+        st = np.empty((GROUP, 5))
+        total = np.zeros(GROUP)
+        cmd = np.empty((GROUP, 2))
+        res = np.zeros((GROUP, 4))  # GP residual [mean_v, mean_w, var_v, var_w]; zero for the other models
+        nodes = np.zeros((GROUP, 5), dtype=np.int64)
+        node_w = np.zeros((GROUP, 5), dtype=np.float32)
+        for j in range(n_in):
+            for i in range(5):
+                st[j, i] = x0[i]
+            if first + j < n_xy:
+                xy_out[first + j, 0, 0] = x0[0]
+                xy_out[first + j, 0, 1] = x0[1]
         discount_k = 1.0
-        base = (iteration * samples + s) * horizon
         for k in range(horizon):
-            z0, z1 = normal_pair(seed, base + k)
-            u0 = nominal[k, 0] + noise_std[0] * z0
-            u1 = nominal[k, 1] + noise_std[1] * z1
-            u0 = min(max(u0, u_lo[0]), u_hi[0])
-            u1 = min(max(u1, u_lo[1]), u_hi[1])
-            eps_out[s, k, 0] = u0 - nominal[k, 0]
-            eps_out[s, k, 1] = u1 - nominal[k, 1]
-            px, py, yaw, v, w, cv, cw = step_state(
-                dyn_mode, dt, theta, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls,
-                ex_outputscale, ex_alpha, ex_chol, terrain_w, work, gp_in, gp_mean, gp_var,
-                px, py, yaw, v, w, u0, u1,
-            )
-            if s < n_xy:
-                xy_out[s, k + 1, 0] = px
-                xy_out[s, k + 1, 1] = py
-            c = variance_cost(cv, cw, cost_w[W_VARIANCE])
-            if task_kind == TASK_LANE:
-                d = lane_distance_near(
-                    seg, cell_start, candidates, field, grid_origin, inv_cell, px, py, tightened_hw[k + 1]
+            # phase 1: commands and GP residuals of the whole group (independent memory reads overlap)
+            for j in range(n_in):
+                s = first + j
+                z0, z1 = normal_pair(seed, (iteration * samples + s) * horizon + k)
+                u0 = min(max(nominal[k, 0] + noise_std[0] * z0, u_lo[0]), u_hi[0])
+                u1 = min(max(nominal[k, 1] + noise_std[1] * z1, u_lo[1]), u_hi[1])
+                eps_out[s, k, 0] = u0 - nominal[k, 0]
+                eps_out[s, k, 1] = u1 - nominal[k, 1]
+                cmd[j, 0] = u0
+                cmd[j, 1] = u1
+                if dyn_mode == DYN_GP:
+                    if gp_mode == GP_SIMPLEX:
+                        (nodes[j, 0], nodes[j, 1], nodes[j, 2], nodes[j, 3], nodes[j, 4], node_w[j, 0], node_w[j, 1],
+                         node_w[j, 2], node_w[j, 3], node_w[j, 4]) = simplex_nodes(
+                            dims, lo, inv_step, st[j, 3], st[j, 4], u0, u1)
+                    else:
+                        res[j, 0], res[j, 1], res[j, 2], res[j, 3] = gp_residual(
+                            gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha,
+                            ex_chol, terrain_w, work, gp_in, gp_mean, gp_var, u0, u1, st[j, 3], st[j, 4],
+                        )
+            if dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX:
+                # gather the table rows of the whole group in a short loop: many reads in flight at once
+                for j in range(n_in):
+                    c0 = np.float32(0.0)
+                    c1 = np.float32(0.0)
+                    c2 = np.float32(0.0)
+                    c3 = np.float32(0.0)
+                    for q in range(5):
+                        n = nodes[j, q]
+                        wq = node_w[j, q]
+                        c0 += wq * table[n, 0]
+                        c1 += wq * table[n, 1]
+                        c2 += wq * table[n, 2]
+                        c3 += wq * table[n, 3]
+                    res[j, 0] = c0
+                    res[j, 1] = c1
+                    res[j, 2] = c2
+                    res[j, 3] = c3
+            # phase 2: states and costs
+            for j in range(n_in):
+                s = first + j
+                u0 = cmd[j, 0]
+                u1 = cmd[j, 1]
+                px, py, yaw, v, w = advance(
+                    dyn_mode, dt, theta, edd5_p, st[j, 0], st[j, 1], st[j, 2], st[j, 3], st[j, 4], u0, u1,
+                    res[j, 0], res[j, 1],
                 )
-                c += deviation_cost(d, half_width, cost_w[W_DEVIATION])
-                c += slip_cost(v, w, u0, u1, cost_w[W_SLIP])
-                c += lane_exit_cost(d, tightened_hw[k + 1], discount_k, cost_w[W_LANE_EXIT])
-                c += speed_cost(v, speed_target, cost_w[W_SPEED])
-            else:
-                c += collision_cost(px, py, obstacles, radii[k + 1], cost_w[W_COLLISION])
-                c += goal_cost(px, py, goal, cost_w[W_GOAL])
-            total += c
+                st[j, 0] = px
+                st[j, 1] = py
+                st[j, 2] = yaw
+                st[j, 3] = v
+                st[j, 4] = w
+                if s < n_xy:
+                    xy_out[s, k + 1, 0] = px
+                    xy_out[s, k + 1, 1] = py
+                c = variance_cost(res[j, 2], res[j, 3], cost_w[W_VARIANCE])
+                if task_kind == TASK_LANE:
+                    d = lane_distance_near(
+                        seg, cell_start, candidates, field, grid_origin, inv_cell, px, py, tightened_hw[k + 1]
+                    )
+                    c += deviation_cost(d, half_width, cost_w[W_DEVIATION])
+                    c += slip_cost(v, w, u0, u1, cost_w[W_SLIP])
+                    c += lane_exit_cost(d, tightened_hw[k + 1], discount_k, cost_w[W_LANE_EXIT])
+                    c += speed_cost(v, speed_target, cost_w[W_SPEED])
+                else:
+                    c += collision_cost(px, py, obstacles, radii[k + 1], cost_w[W_COLLISION])
+                    c += goal_cost(px, py, goal, cost_w[W_GOAL])
+                total[j] += c
             discount_k *= discount
-        if task_kind == TASK_GOAL:
-            total += goal_cost(px, py, goal, cost_w[W_TERMINAL])
-        if not np.isfinite(total):
-            total = np.inf
-        cost_out[s] = total
+        for j in range(n_in):
+            t = total[j]
+            if task_kind == TASK_GOAL:
+                t += goal_cost(st[j, 0], st[j, 1], goal, cost_w[W_TERMINAL])
+            if not np.isfinite(t):
+                t = np.inf
+            cost_out[first + j] = t
 
 
 @njit(cache=True)

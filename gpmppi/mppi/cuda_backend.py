@@ -4,7 +4,7 @@ Same math and the same counter-based noise as the CPU kernel (`cpu_backend.rollo
 both backends agree to rounding (single- vs double-precision transcendentals). Leaf functions
 (noise, cost terms, segment distance) are compiled from the very Python source the CPU backend
 compiles; functions that call others are written out here as device functions. The grid GP
-interpolation is this file's own device function. The exact GP runs on the CPU backend only
+interpolations (simplex and multilinear) are this file's own device functions. The exact GP runs on the CPU backend only
 (`Planner` refuses `backend="cuda"` with `gp_mode="exact"`).
 
 Tested under the CUDA simulator (`NUMBA_ENABLE_CUDASIM=1`) against the CPU backend.
@@ -35,7 +35,8 @@ from gpmppi.costs import (
     variance_cost,
 )
 from gpmppi.models.edd5 import TRACK_B, WHEEL_R
-from gpmppi.mppi.dynamics import DYN_EDD5, DYN_GP
+from gpmppi.mppi.dynamics import DYN_EDD5, DYN_GP, GP_EXACT, GP_SIMPLEX
+from gpmppi.mppi.dynamics import _cswap as cswap
 from gpmppi.mppi.lane import segment_distance2
 from gpmppi.mppi.rng import _normal_pair_py
 
@@ -50,6 +51,7 @@ _lane_exit_cost = cuda.jit(device=True)(lane_exit_cost.py_func)
 _speed_cost = cuda.jit(device=True)(speed_cost.py_func)
 _goal_cost = cuda.jit(device=True)(goal_cost.py_func)
 _segment_distance2 = cuda.jit(device=True)(segment_distance2.py_func)
+_cswap = cuda.jit(device=True)(cswap.py_func)
 
 
 @cuda.jit(device=True)
@@ -133,11 +135,56 @@ def _interp4(table, dims, lo, inv_step, a0, a1, a2, a3):
 
 
 @cuda.jit(device=True)
-def _step_state(dyn_mode, dt, theta, edd5_p, table, dims, lo, inv_step, px, py, yaw, v, w, u0, u1):
+def _interp4_simplex(table, dims, lo, inv_step, a0, a1, a2, a3):
+    i0, f0 = _axis(a0, lo[0], inv_step[0], dims[0])
+    i1, f1 = _axis(a1, lo[1], inv_step[1], dims[1])
+    i2, f2 = _axis(a2, lo[2], inv_step[2], dims[2])
+    i3, f3 = _axis(a3, lo[3], inv_step[3], dims[3])
+    s3 = 1
+    s2 = dims[3]
+    s1 = dims[2] * s2
+    s0 = dims[1] * s1
+    n = i0 * s0 + i1 * s1 + i2 * s2 + i3
+    f0, s0, f1, s1 = _cswap(f0, s0, f1, s1)
+    f2, s2, f3, s3 = _cswap(f2, s2, f3, s3)
+    f0, s0, f2, s2 = _cswap(f0, s0, f2, s2)
+    f1, s1, f3, s3 = _cswap(f1, s1, f3, s3)
+    f1, s1, f2, s2 = _cswap(f1, s1, f2, s2)
+    c0 = 0.0
+    c1 = 0.0
+    c2 = 0.0
+    c3 = 0.0
+    for j in range(5):
+        if j == 0:
+            wj = 1.0 - f0
+        elif j == 1:
+            n += s0
+            wj = f0 - f1
+        elif j == 2:
+            n += s1
+            wj = f1 - f2
+        elif j == 3:
+            n += s2
+            wj = f2 - f3
+        else:
+            n += s3
+            wj = f3
+        c0 += wj * table[n, 0]
+        c1 += wj * table[n, 1]
+        c2 += wj * table[n, 2]
+        c3 += wj * table[n, 3]
+    return c0, c1, c2, c3
+
+
+@cuda.jit(device=True)
+def _step_state(dyn_mode, dt, theta, edd5_p, gp_mode, table, dims, lo, inv_step, px, py, yaw, v, w, u0, u1):
     cy = math.cos(np.float32(yaw))
     sy = math.sin(np.float32(yaw))
     if dyn_mode == DYN_GP:
-        mv, mw, cv, cw = _interp4(table, dims, lo, inv_step, v, w, u0, u1)
+        if gp_mode == GP_SIMPLEX:
+            mv, mw, cv, cw = _interp4_simplex(table, dims, lo, inv_step, v, w, u0, u1)
+        else:
+            mv, mw, cv, cw = _interp4(table, dims, lo, inv_step, v, w, u0, u1)
         vdot = (theta[2] / theta[0]) * w * w - (theta[3] / theta[0]) * v + u0 / theta[0]
         wdot = -(theta[4] / theta[1]) * v * w - (theta[5] / theta[1]) * w + u1 / theta[1]
         return px + v * cy * dt, py + v * sy * dt, yaw + w * dt, v + vdot * dt + mv, w + wdot * dt + mw, cv, cw
@@ -155,9 +202,9 @@ def _step_state(dyn_mode, dt, theta, edd5_p, table, dims, lo, inv_step, px, py, 
 
 @cuda.jit(cache=True)
 def _rollout_kernel(
-    x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, theta, edd5_p, table, dims, lo, inv_step,
-    task_kind, seg, cell_start, candidates, field, grid_origin, inv_cell, half_width, tightened_hw, speed_target,
-    goal, obstacles, radii, cost_w, eps_out, cost_out, xy_out,
+    x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, theta, edd5_p, gp_mode, table, dims, lo,
+    inv_step, task_kind, seg, cell_start, candidates, field, grid_origin, inv_cell, half_width, tightened_hw,
+    speed_target, goal, obstacles, radii, cost_w, eps_out, cost_out, xy_out,
 ):
     s = cuda.grid(1)
     samples = eps_out.shape[0]
@@ -183,7 +230,7 @@ def _rollout_kernel(
         u1 = min(max(nominal[k, 1] + noise_std[1] * z1, u_lo[1]), u_hi[1])
         eps_out[s, k, 0] = u0 - nominal[k, 0]
         eps_out[s, k, 1] = u1 - nominal[k, 1]
-        px, py, yaw, v, w, cv, cw = _step_state(dyn_mode, dt, theta, edd5_p, table, dims, lo, inv_step,
+        px, py, yaw, v, w, cv, cw = _step_state(dyn_mode, dt, theta, edd5_p, gp_mode, table, dims, lo, inv_step,
                                                 px, py, yaw, v, w, u0, u1)
         if s < n_xy:
             xy_out[s, k + 1, 0] = px
@@ -213,7 +260,7 @@ def cuda_rollouts(args: tuple, eps: np.ndarray, costs: np.ndarray, xy: np.ndarra
     (x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, theta, edd5_p, gp_mode, table, dims, lo,
      inv_step, _sx, _il, _os, _al, _ch, _tw, task_kind, seg, cell_start, candidates, field, grid_origin, inv_cell,
      half_width, tightened_hw, speed_target, goal, obstacles, radii, cost_w) = args
-    if dyn_mode == DYN_GP and gp_mode != 0:
+    if dyn_mode == DYN_GP and gp_mode == GP_EXACT:
         raise ValueError("the CUDA backend evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
     dev = cuda.to_device
     d_eps = cuda.device_array(eps.shape, dtype=eps.dtype)
@@ -223,7 +270,7 @@ def cuda_rollouts(args: tuple, eps: np.ndarray, costs: np.ndarray, xy: np.ndarra
     # (under the simulator numpy runs the uint64 hash and warns about its intended wrap-around)
     _rollout_kernel[blocks, THREADS_PER_BLOCK](
         dev(x0), dev(nominal), dev(noise_std), dev(u_lo), dev(u_hi), dt, np.uint64(seed), np.uint64(iteration),
-        dyn_mode, dev(theta), dev(edd5_p), dev(table), dev(dims), dev(lo), dev(inv_step), task_kind, dev(seg),
+        dyn_mode, dev(theta), dev(edd5_p), gp_mode, dev(table), dev(dims), dev(lo), dev(inv_step), task_kind, dev(seg),
         dev(cell_start), dev(candidates), dev(field), dev(grid_origin), inv_cell, half_width, dev(tightened_hw),
         speed_target, dev(goal), dev(obstacles), dev(radii), dev(cost_w), d_eps, d_costs, d_xy,
     )

@@ -4,7 +4,7 @@ Models (`DYN_*`): the kinematic unicycle; EDD5 of one terrain; the nominal dynam
 (explicit Euler) plus the weighted GP ensemble residual on the velocities,
 mean `sum_i w_i m_i`, variance `sum_i w_i^2 C_i` (C = latent variance).
 
-GP evaluation (`GP_*`): `grid` interpolates a table of [mean_v, mean_w, var_v, var_w] collapsed
+GP evaluation (`GP_*`): `grid` interpolates (simplex or multilinear) a table of [mean_v, mean_w, var_v, var_w] collapsed
 from the model's (G, G, G, G, 4M) table with the current weights (`collapse_table`, run only when
 the weights change); `exact` evaluates the exact GP (`gpmppi.gp.exact.exact_point`).
 """
@@ -22,14 +22,14 @@ from gpmppi.mppi.flags import FASTMATH
 DYN_UNICYCLE = 0
 DYN_EDD5 = 1
 DYN_GP = 2
-GP_GRID = 0
-GP_EXACT = 1
+GP_GRID = 0  # grid table, multilinear interpolation (16 nodes)
+GP_EXACT = 1  # exact GP
+GP_SIMPLEX = 2  # grid table, simplex interpolation (5 nodes)
 
 
 TABLE_AXES = np.array([2, 3, 0, 1])  # collapsed table axes in terms of the GP input [v_ref, omega_ref, v, omega]
 
 
-@njit(cache=True, parallel=True)
 def collapse_table(table: np.ndarray, weights: np.ndarray) -> np.ndarray:
     """(G,G,G,G,4M) model table -> (G,G,G,G,4) float32 [sum w m_v, sum w m_w, sum w^2 C_v, sum w^2 C_w].
 
@@ -38,9 +38,18 @@ def collapse_table(table: np.ndarray, weights: np.ndarray) -> np.ndarray:
     axes outermost one sample's lookups stay within a few 9 kB planes (cache hits) instead of
     hopping over the whole table (measured ~2x faster interpolation in the rollout kernel).
     """
+    g0, g1, g2, g3, _ = table.shape
+    # allocated by numpy, which asks the kernel for huge pages on large arrays: the rollouts read
+    # this table at random, and with 4 kB pages the TLB misses cost more than the arithmetic
+    out = np.empty((g2, g3, g0, g1, 4), dtype=np.float32)
+    _collapse_into(table, np.ascontiguousarray(weights, dtype=np.float64), out)
+    return out
+
+
+@njit(cache=True, parallel=True)
+def _collapse_into(table: np.ndarray, weights: np.ndarray, out: np.ndarray) -> None:
     g0, g1, g2, g3, c = table.shape
     m = c // 4
-    out = np.empty((g2, g3, g0, g1, 4), dtype=np.float32)
     for i0 in prange(g0):
         for i1 in range(g1):
             for i2 in range(g2):
@@ -60,7 +69,6 @@ def collapse_table(table: np.ndarray, weights: np.ndarray) -> np.ndarray:
                     out[i2, i3, i0, i1, 1] = mw
                     out[i2, i3, i0, i1, 2] = cv
                     out[i2, i3, i0, i1, 3] = cw
-    return out
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -130,6 +138,33 @@ def _cswap(fa: float, sa: int, fb: float, sb: int) -> tuple[float, int, float, i
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def simplex_nodes(
+    dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float, a3: float
+) -> tuple[int, int, int, int, int, float, float, float, float, float]:
+    """The 5 node indices and barycentric weights of the Kuhn simplex holding the point (see `interp4_simplex`)."""
+    i0, f0 = _axis(a0, lo[0], inv_step[0], dims[0])
+    i1, f1 = _axis(a1, lo[1], inv_step[1], dims[1])
+    i2, f2 = _axis(a2, lo[2], inv_step[2], dims[2])
+    i3, f3 = _axis(a3, lo[3], inv_step[3], dims[3])
+    s3 = 1
+    s2 = dims[3]
+    s1 = dims[2] * s2
+    s0 = dims[1] * s1
+    n0 = i0 * s0 + i1 * s1 + i2 * s2 + i3
+    # sorting network for 4 elements (5 compare-exchanges), descending by fraction
+    f0, s0, f1, s1 = _cswap(f0, s0, f1, s1)
+    f2, s2, f3, s3 = _cswap(f2, s2, f3, s3)
+    f0, s0, f2, s2 = _cswap(f0, s0, f2, s2)
+    f1, s1, f3, s3 = _cswap(f1, s1, f3, s3)
+    f1, s1, f2, s2 = _cswap(f1, s1, f2, s2)
+    n1 = n0 + s0
+    n2 = n1 + s1
+    n3 = n2 + s2
+    n4 = n3 + s3
+    return n0, n1, n2, n3, n4, 1.0 - f0, f0 - f1, f1 - f2, f2 - f3, f3
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def interp4_simplex(
     table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float,
     a3: float,
@@ -141,50 +176,17 @@ def interp4_simplex(
     at the nodes, continuous, and second-order accurate, but reads 5 nodes instead of 16: on a
     table larger than the caches that is the difference (it is memory-bound).
     """
-    i0, f0 = _axis(a0, lo[0], inv_step[0], dims[0])
-    i1, f1 = _axis(a1, lo[1], inv_step[1], dims[1])
-    i2, f2 = _axis(a2, lo[2], inv_step[2], dims[2])
-    i3, f3 = _axis(a3, lo[3], inv_step[3], dims[3])
-    s3 = 1
-    s2 = dims[3]
-    s1 = dims[2] * s2
-    s0 = dims[1] * s1
-    n = i0 * s0 + i1 * s1 + i2 * s2 + i3
-    # sorting network for 4 elements (5 compare-exchanges), descending by fraction
-    f0, s0, f1, s1 = _cswap(f0, s0, f1, s1)
-    f2, s2, f3, s3 = _cswap(f2, s2, f3, s3)
-    f0, s0, f2, s2 = _cswap(f0, s0, f2, s2)
-    f1, s1, f3, s3 = _cswap(f1, s1, f3, s3)
-    f1, s1, f2, s2 = _cswap(f1, s1, f2, s2)
-    w = np.float32(1.0 - f0)
-    c0 = w * table[n, 0]
-    c1 = w * table[n, 1]
-    c2 = w * table[n, 2]
-    c3 = w * table[n, 3]
-    n += s0
-    w = np.float32(f0 - f1)
-    c0 += w * table[n, 0]
-    c1 += w * table[n, 1]
-    c2 += w * table[n, 2]
-    c3 += w * table[n, 3]
-    n += s1
-    w = np.float32(f1 - f2)
-    c0 += w * table[n, 0]
-    c1 += w * table[n, 1]
-    c2 += w * table[n, 2]
-    c3 += w * table[n, 3]
-    n += s2
-    w = np.float32(f2 - f3)
-    c0 += w * table[n, 0]
-    c1 += w * table[n, 1]
-    c2 += w * table[n, 2]
-    c3 += w * table[n, 3]
-    n += s3
-    w = np.float32(f3)
-    c0 += w * table[n, 0]
-    c1 += w * table[n, 1]
-    c2 += w * table[n, 2]
-    c3 += w * table[n, 3]
+    n0, n1, n2, n3, n4, w0, w1, w2, w3, w4 = simplex_nodes(dims, lo, inv_step, a0, a1, a2, a3)
+    c0 = np.float32(0.0)
+    c1 = np.float32(0.0)
+    c2 = np.float32(0.0)
+    c3 = np.float32(0.0)
+    for n, wd in ((n0, w0), (n1, w1), (n2, w2), (n3, w3), (n4, w4)):
+        w = np.float32(wd)
+        c0 += w * table[n, 0]
+        c1 += w * table[n, 1]
+        c2 += w * table[n, 2]
+        c3 += w * table[n, 3]
     return float(c0), float(c1), float(c2), float(c3)
 
 
@@ -199,6 +201,8 @@ def gp_residual(
 
     Grid mode: `table`, `lo`, `inv_step` are in the collapsed table's axis order (`TABLE_AXES`).
     """
+    if gp_mode == GP_SIMPLEX:
+        return interp4_simplex(table, dims, lo, inv_step, v, w, v_ref, w_ref)
     if gp_mode == GP_GRID:
         return interp4(table, dims, lo, inv_step, v, w, v_ref, w_ref)
     gp_in[0] = v_ref
@@ -237,6 +241,26 @@ def _cos_sin(yaw: float) -> tuple[float, float]:
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def advance(
+    dyn_mode: int, dt: float, theta: np.ndarray, edd5_p: np.ndarray, px: float, py: float, yaw: float, v: float,
+    w: float, u0: float, u1: float, mv: float, mw: float,
+) -> tuple[float, float, float, float, float]:
+    """Next state (5 scalars) of the chosen model; GP model: (mv, mw) is the step's residual mean."""
+    c, s = _cos_sin(yaw)
+    if dyn_mode == DYN_GP:
+        v1, w1 = nominal_velocity_step(theta, v, w, u0, u1, dt)
+        # dynamic model: the pose advances with the current velocities (explicit Euler)
+        return px + v * c * dt, py + v * s * dt, yaw + w * dt, v1 + mv, w1 + mw
+    if dyn_mode == DYN_EDD5:
+        v1, w1 = edd5_velocity(edd5_p, u0, u1)
+    else:
+        v1 = u0
+        w1 = u1
+    # kinematic models: velocities follow the command at once, then the pose advances
+    return px + v1 * c * dt, py + v1 * s * dt, yaw + w1 * dt, v1, w1
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def step_state(
     dyn_mode: int, dt: float, theta: np.ndarray, edd5_p: np.ndarray,
     gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
@@ -245,6 +269,8 @@ def step_state(
     gp_var: np.ndarray, px: float, py: float, yaw: float, v: float, w: float, u0: float, u1: float,
 ) -> tuple[float, float, float, float, float, float, float]:
     """Next state (5 scalars) and the step's residual variances (var_v, var_w) of the chosen model."""
+    mv = 0.0
+    mw = 0.0
     cv = 0.0
     cw = 0.0
     if dyn_mode == DYN_GP:
@@ -252,18 +278,8 @@ def step_state(
             gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
             terrain_w, work, gp_in, gp_mean, gp_var, u0, u1, v, w,
         )
-        v1, w1 = nominal_velocity_step(theta, v, w, u0, u1, dt)
-        # dynamic model: the pose advances with the current velocities (explicit Euler)
-        c, s = _cos_sin(yaw)
-        return px + v * c * dt, py + v * s * dt, yaw + w * dt, v1 + mv, w1 + mw, cv, cw
-    if dyn_mode == DYN_EDD5:
-        v1, w1 = edd5_velocity(edd5_p, u0, u1)
-    else:
-        v1 = u0
-        w1 = u1
-    # kinematic models: velocities follow the command at once, then the pose advances
-    c, s = _cos_sin(yaw)
-    return px + v1 * c * dt, py + v1 * s * dt, yaw + w1 * dt, v1, w1, cv, cw
+    px, py, yaw, v, w = advance(dyn_mode, dt, theta, edd5_p, px, py, yaw, v, w, u0, u1, mv, mw)
+    return px, py, yaw, v, w, cv, cw
 
 
 @njit(cache=True)

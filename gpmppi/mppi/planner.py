@@ -29,6 +29,7 @@ from gpmppi.mppi.dynamics import (
     DYN_UNICYCLE,
     GP_EXACT,
     GP_GRID,
+    GP_SIMPLEX,
     TABLE_AXES,
     collapse_table,
     propagate,
@@ -48,6 +49,11 @@ class PlannerConfig(BaseModel):
         "gp", description="Rollout model: nominal dynamic unicycle + GP ensemble residual, EDD5, or kinematic unicycle"
     )
     gp_mode: Literal["grid", "exact"] = Field("grid", description="GP evaluation: interpolated grid table or exact GP")
+    grid_interpolation: Literal["simplex", "multilinear"] = Field(
+        "simplex",
+        description="Grid GP interpolation: simplex (5 nodes, ~3x faster on tables larger than the caches) or "
+        "multilinear (16 nodes, as gpmppi.gp.grid_interp); both exact at the nodes and second-order accurate",
+    )
     backend: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="Kernels: numba CPU, numba CUDA (grid GP only), or auto (CUDA when numba finds a GPU)"
     )
@@ -143,7 +149,10 @@ class Planner:
             raise ValueError("backend='cuda' evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
         self.backend = "cpu" if exact_gp else backends.resolve(c.backend)
         self._dyn = _DYN[c.dynamics]
-        self._gp_mode = GP_EXACT if c.gp_mode == "exact" else GP_GRID
+        if c.gp_mode == "exact":
+            self._gp_mode = GP_EXACT
+        else:
+            self._gp_mode = GP_SIMPLEX if c.grid_interpolation == "simplex" else GP_GRID
         self._theta = np.ascontiguousarray(model.theta, dtype=np.float64)
         self._edd5 = np.stack([np.asarray(model.edd5[t], dtype=np.float64) for t in model.terrains])
         self._quant = ChanceQuantiles.for_probability(c.p_x)
@@ -156,7 +165,7 @@ class Planner:
         self._table_dims = np.full(4, 2, dtype=np.int64)
         self._grid_lo = np.zeros(4)
         self._grid_inv = np.ones(4)
-        if self._dyn == DYN_GP and self._gp_mode == GP_GRID:
+        if self._dyn == DYN_GP and self._gp_mode != GP_EXACT:
             g = model.grid()
             self._table_full = np.ascontiguousarray(g.table, dtype=np.float32)
             self._table_dims = np.array(g.table.shape[:4], dtype=np.int64)[TABLE_AXES]
