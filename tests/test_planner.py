@@ -215,3 +215,24 @@ def test_backend_choice() -> None:
         assert Planner(PlannerConfig(backend="auto", samples=8), _model()).backend == "cpu"
         with pytest.raises(ValueError, match="cuda"):
             Planner(PlannerConfig(backend="cuda", samples=8), _model())
+
+
+def test_acceleration_limits_and_smoothing_shape_the_sequence() -> None:
+    sc = circle_lane()
+    p = Planner(_cfg(dynamics="unicycle", accel_limits=(0.5, 1.0)), _model())
+    x = sc.start.copy()
+    last = None
+    for _ in range(3):
+        r = p.plan(x, sc.task, W3)
+        steps = np.abs(np.diff(r.controls, axis=0))
+        assert np.all(steps[:, 0] <= 0.05 + 1e-12) and np.all(steps[:, 1] <= 0.1 + 1e-12)
+        if last is not None:
+            assert abs(r.control[0] - last[0]) <= 0.05 + 1e-12 and abs(r.control[1] - last[1]) <= 0.1 + 1e-12
+        last = r.control
+        x = kinematic_step(x, r.control, 0.1)
+    raw = Planner(_cfg(dynamics="unicycle"), _model()).plan(sc.start, sc.task, W3).controls
+    smooth = Planner(_cfg(dynamics="unicycle", smoothing_window=7, smoothing_order=2), _model()).plan(
+        sc.start, sc.task, W3).controls
+    assert np.abs(np.diff(smooth, axis=0)).sum() < 0.7 * np.abs(np.diff(raw, axis=0)).sum()
+    with pytest.raises(ValueError, match="smoothing_window"):
+        PlannerConfig(smoothing_window=4)

@@ -170,7 +170,11 @@ def register(app: typer.Typer) -> None:
         iters: Annotated[int, typer.Option("--iters", min=1, help="Timed iterations (after 5 warm-up)")] = 50,
     ) -> None:
         """Time planner iterations: p50/p99 ms and Hz (the machine's load adds noise: re-run when quiet)."""
-        res = run_bench(samples, horizon, model.value, gp.value, backend.value, vs.value if vs else None, iters)
+        try:
+            res = run_bench(samples, horizon, model.value, gp.value, backend.value, vs.value if vs else None, iters)
+        except ValueError as e:  # e.g. --backend cuda on a machine without a GPU
+            typer.echo(f"error: {e}", err=True)
+            raise typer.Exit(2) from e
         if as_json:
             typer.echo(json.dumps(res))
             return

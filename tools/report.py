@@ -97,15 +97,18 @@ def write_tables(results: dict, meta: dict, out_dir: Path, models: list[str], te
 
 
 def _lane_axes(ax, task: LaneTask) -> None:
+    """Centre line, and the lane edges as the level set {distance to the centre line = half-width}."""
+    from gpmppi.evaluation.metrics import distance_to_polyline
+
     c = task.centerline
-    closed = np.vstack([c, c[:1]]) if task.closed else c
-    d = np.gradient(closed, axis=0)
-    n = np.stack([-d[:, 1], d[:, 0]], 1)
-    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-    ax.plot(closed[:, 0], closed[:, 1], color="0.6", lw=0.8, ls="--", label="centre line")
-    for s in (1.0, -1.0):
-        edge = closed + s * task.half_width * n
-        ax.plot(edge[:, 0], edge[:, 1], color="0.2", lw=1.0)
+    line = np.vstack([c, c[:1]]) if task.closed else c
+    ax.plot(line[:, 0], line[:, 1], color="0.6", lw=0.8, ls="--", label="centre line")
+    pad = task.half_width * 1.5
+    xs = np.linspace(c[:, 0].min() - pad, c[:, 0].max() + pad, 240)
+    ys = np.linspace(c[:, 1].min() - pad, c[:, 1].max() + pad, 240)
+    gx, gy = np.meshgrid(xs, ys)
+    d = distance_to_polyline(np.stack([gx.ravel(), gy.ravel()], 1), c, task.closed).reshape(gx.shape)
+    ax.contour(gx, gy, d, levels=[task.half_width], colors="0.2", linewidths=1.0)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

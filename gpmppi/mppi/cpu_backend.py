@@ -31,7 +31,14 @@ from gpmppi.costs import (
     speed_cost,
     variance_cost,
 )
-from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, simplex_nodes
+from gpmppi.mppi.dynamics import (
+    DYN_GP,
+    GP_SIMPLEX,
+    advance,
+    gp_residual,
+    simplex_nodes,
+    velocity_coefficients,
+)
 from gpmppi.mppi.flags import FASTMATH
 from gpmppi.mppi.lane import lane_distance_near
 from gpmppi.mppi.rng import normal_pair
@@ -40,7 +47,7 @@ TASK_LANE = 0
 TASK_GOAL = 1
 # samples a thread steps in lockstep: each sample's step waits on its own GP table reads (the next
 # state needs them), so interleaving independent samples lets those memory reads overlap
-GROUP = 16
+GROUP = 32
 
 
 @njit(parallel=True, cache=True, fastmath=FASTMATH)
@@ -63,6 +70,7 @@ def rollout_kernel(
     n_train = ex_alpha.shape[1]
     discount = cost_w[W_EXIT_DISCOUNT]
     n_groups = (samples + GROUP - 1) // GROUP
+    coef = velocity_coefficients(theta)
     for g in prange(n_groups):
         work = np.empty(n_train)
         gp_in = np.empty(4)
@@ -128,7 +136,7 @@ def rollout_kernel(
                 u0 = cmd[j, 0]
                 u1 = cmd[j, 1]
                 px, py, yaw, v, w = advance(
-                    dyn_mode, dt, theta, edd5_p, st[j, 0], st[j, 1], st[j, 2], st[j, 3], st[j, 4], u0, u1,
+                    dyn_mode, dt, coef, edd5_p, st[j, 0], st[j, 1], st[j, 2], st[j, 3], st[j, 4], u0, u1,
                     res[j, 0], res[j, 1],
                 )
                 st[j, 0] = px

@@ -131,10 +131,12 @@ def interp4(
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _cswap(fa: float, sa: int, fb: float, sb: int) -> tuple[float, int, float, int]:
-    """Order two (fraction, stride) pairs by descending fraction."""
-    if fb > fa:
-        return fb, sb, fa, sa
-    return fa, sa, fb, sb
+    """Order two (fraction, stride) pairs by descending fraction.
+
+    Written as selects, not a branch: the fractions are random, a branch would mispredict half the time.
+    """
+    swap = fb > fa
+    return max(fa, fb), sb if swap else sa, min(fa, fb), sa if swap else sb
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -223,13 +225,20 @@ def gp_residual(
     return mv, mw, cv, cw
 
 
+@njit(cache=True)
+def velocity_coefficients(theta: np.ndarray) -> np.ndarray:
+    """[th3/th1, th4/th1, 1/th1, th5/th2, th6/th2, 1/th2]: divisions done once, not at every sample-step."""
+    return np.array([theta[2] / theta[0], theta[3] / theta[0], 1.0 / theta[0],
+                     theta[4] / theta[1], theta[5] / theta[1], 1.0 / theta[1]])
+
+
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def nominal_velocity_step(
-    theta: np.ndarray, v: float, w: float, v_ref: float, w_ref: float, dt: float
+    coef: np.ndarray, v: float, w: float, v_ref: float, w_ref: float, dt: float
 ) -> tuple[float, float]:
-    """Explicit-Euler velocity step of the nominal dynamic unicycle (same as `euler_step`)."""
-    vdot = (theta[2] / theta[0]) * w * w - (theta[3] / theta[0]) * v + v_ref / theta[0]
-    wdot = -(theta[4] / theta[1]) * v * w - (theta[5] / theta[1]) * w + w_ref / theta[1]
+    """Explicit-Euler velocity step of the nominal dynamic unicycle (as `euler_step`); `velocity_coefficients`."""
+    vdot = coef[0] * w * w - coef[1] * v + v_ref * coef[2]
+    wdot = -coef[3] * v * w - coef[4] * w + w_ref * coef[5]
     return v + vdot * dt, w + wdot * dt
 
 
@@ -242,13 +251,16 @@ def _cos_sin(yaw: float) -> tuple[float, float]:
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def advance(
-    dyn_mode: int, dt: float, theta: np.ndarray, edd5_p: np.ndarray, px: float, py: float, yaw: float, v: float,
+    dyn_mode: int, dt: float, coef: np.ndarray, edd5_p: np.ndarray, px: float, py: float, yaw: float, v: float,
     w: float, u0: float, u1: float, mv: float, mw: float,
 ) -> tuple[float, float, float, float, float]:
-    """Next state (5 scalars) of the chosen model; GP model: (mv, mw) is the step's residual mean."""
+    """Next state (5 scalars) of the chosen model; GP model: (mv, mw) is the step's residual mean.
+
+    `coef` = `velocity_coefficients(theta)`.
+    """
     c, s = _cos_sin(yaw)
     if dyn_mode == DYN_GP:
-        v1, w1 = nominal_velocity_step(theta, v, w, u0, u1, dt)
+        v1, w1 = nominal_velocity_step(coef, v, w, u0, u1, dt)
         # dynamic model: the pose advances with the current velocities (explicit Euler)
         return px + v * c * dt, py + v * s * dt, yaw + w * dt, v1 + mv, w1 + mw
     if dyn_mode == DYN_EDD5:
@@ -262,7 +274,7 @@ def advance(
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def step_state(
-    dyn_mode: int, dt: float, theta: np.ndarray, edd5_p: np.ndarray,
+    dyn_mode: int, dt: float, coef: np.ndarray, edd5_p: np.ndarray,
     gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_in: np.ndarray, gp_mean: np.ndarray,
@@ -278,8 +290,25 @@ def step_state(
             gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
             terrain_w, work, gp_in, gp_mean, gp_var, u0, u1, v, w,
         )
-    px, py, yaw, v, w = advance(dyn_mode, dt, theta, edd5_p, px, py, yaw, v, w, u0, u1, mv, mw)
+    px, py, yaw, v, w = advance(dyn_mode, dt, coef, edd5_p, px, py, yaw, v, w, u0, u1, mv, mw)
     return px, py, yaw, v, w, cv, cw
+
+
+@njit(cache=True, inline="always")
+def _sandwich(a: np.ndarray, b: np.ndarray, tmp: np.ndarray, out: np.ndarray) -> None:
+    """out = a b a^T for 5x5 matrices, in plain loops (a BLAS call per step costs more than the flops)."""
+    for i in range(5):
+        for j in range(5):
+            acc = 0.0
+            for q in range(5):
+                acc += a[i, q] * b[q, j]
+            tmp[i, j] = acc
+    for i in range(5):
+        for j in range(5):
+            acc = 0.0
+            for q in range(5):
+                acc += tmp[i, q] * a[j, q]
+            out[i, j] = acc
 
 
 @njit(cache=True)
@@ -304,10 +333,12 @@ def propagate(
     gp_in = np.empty(4)
     gp_mean = np.empty(ex_alpha.shape[0])
     gp_var = np.empty(ex_alpha.shape[0])
+    tmp = np.empty((5, 5))
+    coef = velocity_coefficients(theta)
     for k in range(n):
         x = states[k]
         r = step_state(
-            dyn_mode, dt, theta, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale,
+            dyn_mode, dt, coef, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale,
             ex_alpha, ex_chol, terrain_w, work, gp_in, gp_mean, gp_var, x[0], x[1], x[2], x[3], x[4],
             controls[k, 0], controls[k, 1],
         )
@@ -317,7 +348,7 @@ def propagate(
         step_var[k, 1] = r[6]
         if dyn_mode == DYN_GP:
             jac = jacobian(theta, x, controls[k], dt)
-            covs[k + 1] = jac @ covs[k] @ jac.T
+            _sandwich(jac, covs[k], tmp, covs[k + 1])
             covs[k + 1, 3, 3] += r[5]
             covs[k + 1, 4, 4] += r[6]
     return states, covs, step_var

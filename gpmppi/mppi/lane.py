@@ -9,6 +9,7 @@ Nothing here assumes a particular shape: circles, squares and chicanes are all j
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -123,6 +124,25 @@ def build_lane_lookup(
     h = max(int(np.ceil(size[1] / cell)), 1)
     start, cand, field = _cell_candidates(seg, lo, cell, h, w)
     return LaneLookup(seg, start, cand, field, lo, 1.0 / cell, w, h)
+
+
+_LOOKUPS: OrderedDict[tuple, LaneLookup] = OrderedDict()
+_LOOKUPS_KEPT = 8
+
+
+def cached_lane_lookup(centerline: np.ndarray, closed: bool, margin: float, cell: float = 0.1) -> LaneLookup:
+    """`build_lane_lookup`, remembered for the last few lanes (planners of one process share a lane's lookup)."""
+    c = np.ascontiguousarray(centerline, dtype=np.float64)
+    key = (c.shape, c.tobytes(), bool(closed), float(margin), float(cell))
+    found = _LOOKUPS.get(key)
+    if found is None:
+        found = build_lane_lookup(c, closed, margin, cell)
+        _LOOKUPS[key] = found
+        while len(_LOOKUPS) > _LOOKUPS_KEPT:
+            _LOOKUPS.popitem(last=False)
+    else:
+        _LOOKUPS.move_to_end(key)
+    return found
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")

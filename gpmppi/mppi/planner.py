@@ -34,7 +34,7 @@ from gpmppi.mppi.dynamics import (
     collapse_table,
     propagate,
 )
-from gpmppi.mppi.lane import LaneLookup, build_lane_lookup
+from gpmppi.mppi.lane import LaneLookup, cached_lane_lookup
 from gpmppi.tasks import GoalTask, LaneTask
 
 _DYN = {"unicycle": DYN_UNICYCLE, "edd5": DYN_EDD5, "gp": DYN_GP}
@@ -234,7 +234,7 @@ class Planner:
             c = self.config
             reach = c.horizon * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
             margin = task.half_width + min(reach, 10.0) + 1.0
-            self._lane = build_lane_lookup(task.centerline, task.closed, margin, c.lane_cell)
+            self._lane = cached_lane_lookup(task.centerline, task.closed, margin, c.lane_cell)
             self._lane_key = key
         assert self._lane is not None
         return self._lane
@@ -312,6 +312,8 @@ class Planner:
             new_u = np.tile(np.clip(np.zeros(2), self._u_lo, self._u_hi), (c.horizon, 1))
             control = new_u[0].copy()
             states = np.repeat(x[None, :], c.horizon + 1, axis=0)
+            covs = np.zeros_like(covs)
+            out_bounds, clamped_after = self._bounds(task, states, covs)
         else:
             flags["nonfinite_fallback"] = 0
         key = "half_width_clamped_steps" if is_lane else "inflation_capped"
