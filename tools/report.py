@@ -152,8 +152,9 @@ def write_figures(
                 xy = np.asarray(rec["xy"])
                 cell = _cell(results, task_name, terrain, model)
                 extra = f" ({_fmt(cell['rmse_mm'])} mm)" if cell and isinstance(sc.task, LaneTask) else ""
-                ax.plot(xy[:, 0], xy[:, 1], color=MODEL_COLOURS.get(model), lw=1.2,
-                        label=MODEL_LABELS.get(model, model) + extra)
+                top = model == "gp"  # GP-MPPI on top: it is the closest to the centre line and would be hidden
+                ax.plot(xy[:, 0], xy[:, 1], color=MODEL_COLOURS.get(model), lw=1.6 if top else 1.0,
+                        zorder=3 if top else 2, label=MODEL_LABELS.get(model, model) + extra)
             ax.set_title(f"{task_name} on {terrain}")
             ax.legend(fontsize=8, loc="best")
         fig.tight_layout()

@@ -269,7 +269,7 @@ def cuda_rollouts(args: tuple, eps: np.ndarray, costs: np.ndarray, xy: np.ndarra
     blocks = (eps.shape[0] + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
     # (under the simulator numpy runs the uint64 hash and warns about its intended wrap-around)
     _rollout_kernel[blocks, THREADS_PER_BLOCK](
-        dev(x0), dev(nominal), dev(noise_std), dev(u_lo), dev(u_hi), dt, np.uint64(seed), np.uint64(iteration),
+        dev(x0), dev(nominal), dev(noise_std), dev(u_lo), dev(u_hi), dt, np.int64(seed), np.int64(iteration),
         dyn_mode, dev(theta), dev(edd5_p), gp_mode, dev(table), dev(dims), dev(lo), dev(inv_step), task_kind, dev(seg),
         dev(cell_start), dev(candidates), dev(field), dev(grid_origin), inv_cell, half_width, dev(tightened_hw),
         speed_target, dev(goal), dev(obstacles), dev(radii), dev(cost_w), d_eps, d_costs, d_xy,

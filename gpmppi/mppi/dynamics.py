@@ -4,9 +4,10 @@ Models (`DYN_*`): the kinematic unicycle; EDD5 of one terrain; the nominal dynam
 (explicit Euler) plus the weighted GP ensemble residual on the velocities,
 mean `sum_i w_i m_i`, variance `sum_i w_i^2 C_i` (C = latent variance).
 
-GP evaluation (`GP_*`): `grid` interpolates (simplex or multilinear) a table of [mean_v, mean_w, var_v, var_w] collapsed
-from the model's (G, G, G, G, 4M) table with the current weights (`collapse_table`, run only when
-the weights change); `exact` evaluates the exact GP (`gpmppi.gp.exact.exact_point`).
+GP evaluation (`GP_*`): `grid` interpolates (simplex or multilinear) a table of
+[mean_v, mean_w, var_v, var_w] collapsed from the model's (G, G, G, G, 4M) table with the current
+weights (`collapse_table`, run only when the weights change); `exact` evaluates the exact GP
+(`gpmppi.gp.exact.exact_point`).
 """
 
 from __future__ import annotations
@@ -35,12 +36,12 @@ def collapse_table(table: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
     The output's axes are reordered to (v, omega, v_ref, omega_ref) (`TABLE_AXES`): a rollout's
     velocities change slowly from step to step while its noisy commands jump, so with the velocity
-    axes outermost one sample's lookups stay within a few 9 kB planes (cache hits) instead of
-    hopping over the whole table (measured ~2x faster interpolation in the rollout kernel).
+    axes outermost consecutive lookups of one sample stay within a few planes of the table (a
+    locality argument; its effect on this machine was within the timing noise).
     """
     g0, g1, g2, g3, _ = table.shape
     # allocated by numpy, which asks the kernel for huge pages on large arrays: the rollouts read
-    # this table at random, and with 4 kB pages the TLB misses cost more than the arithmetic
+    # this table at random, and huge pages mean fewer TLB misses
     out = np.empty((g2, g3, g0, g1, 4), dtype=np.float32)
     _collapse_into(table, np.ascontiguousarray(weights, dtype=np.float64), out)
     return out
@@ -90,7 +91,7 @@ def interp4(
     """Multilinear interpolation of a (G0*G1*G2*G3, 4) float32 table with grid `dims` (clamped at the faces).
 
     Flat node indices and single-precision accumulation (no float64 conversion of the 64 loaded
-    values); measured faster than 5-D indexing and than a 1-D table.
+    values); a (nodes, 4) table measured faster here than a 1-D one.
     """
     i0, f0 = _axis(a0, lo[0], inv_step[0], dims[0])
     i1, f1 = _axis(a1, lo[1], inv_step[1], dims[1])
