@@ -63,7 +63,8 @@ def run(settings: Settings) -> int:
                 residual=max(0.0, float(est.residual)) if np.isfinite(est.residual) else 0.0,
             )
             msg_out.header.stamp_ns = new_states[-1].header.stamp_ns
-            if not est.ok:
+            # a short history is the normal warm-up, not a failure worth an error line
+            if not est.ok and len(estimator) >= estimator.min_history:
                 node.error(f"weight solve: {est.message}")
             out.put(msg_out)
             node.cycle()
