@@ -19,6 +19,7 @@ Quantiles come from scipy.stats once per configuration (`ChanceQuantiles`), neve
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,6 +27,7 @@ from numba import njit
 from scipy.stats import chi2, norm
 
 from gpmppi.mppi.flags import FASTMATH
+from gpmppi.mppi.lane import lane_distance_near
 
 # indices into the cost-weight vector handed to the kernels
 W_VARIANCE = 0
@@ -38,6 +40,10 @@ W_GOAL = 6
 W_TERMINAL = 7
 W_EXIT_DISCOUNT = 8
 N_COST_WEIGHTS = 9
+
+# task kinds of the rollout kernels
+TASK_LANE = 0
+TASK_GOAL = 1
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -90,7 +96,32 @@ def goal_cost(x: float, y: float, goal: np.ndarray, weight: float) -> float:
     """Euclidean distance to the goal (stage term; the terminal term uses the same with its weight)."""
     dx = x - goal[0]
     dy = y - goal[1]
-    return weight * np.sqrt(dx * dx + dy * dy)
+    return weight * math.sqrt(dx * dx + dy * dy)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def stage_cost(
+    task_kind: int, cost_w: np.ndarray, seg: np.ndarray, cell_start: np.ndarray, candidates: np.ndarray,
+    field: np.ndarray, grid_origin: np.ndarray, inv_cell: float, half_width: float, tightened_hw: float,
+    speed_target: float, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray, discount_k: float,
+    px: float, py: float, v: float, w: float, u0: float, u1: float, var_v: float, var_w: float,
+) -> float:
+    """Cost of one rollout step: the state after it, its command (u0, u1) and GP variances.
+
+    Lane: `tightened_hw` is this step's tightened half-width (the lane distance is exact near it);
+    goal: `radii` (K,) are this step's inflated obstacle radii.
+    """
+    c = variance_cost(var_v, var_w, cost_w[W_VARIANCE])
+    if task_kind == TASK_LANE:
+        d = lane_distance_near(seg, cell_start, candidates, field, grid_origin, inv_cell, px, py, tightened_hw)
+        c += deviation_cost(d, half_width, cost_w[W_DEVIATION])
+        c += slip_cost(v, w, u0, u1, cost_w[W_SLIP])
+        c += lane_exit_cost(d, tightened_hw, discount_k, cost_w[W_LANE_EXIT])
+        c += speed_cost(v, speed_target, cost_w[W_SPEED])
+    else:
+        c += collision_cost(px, py, obstacles, radii, cost_w[W_COLLISION])
+        c += goal_cost(px, py, goal, cost_w[W_GOAL])
+    return c
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""The exact and grid GP predictors as numba.cuda device functions (same math as the CPU versions).
+"""The exact and grid GP predictors as numba.cuda device functions, compiled from the CPU functions' source.
 
 Planner kernels call `gp_exact_device` / `gp_grid_device` per sample and step, inside one launch.
 `gp_exact_device` needs a per-thread scratch row of length n (the number of training inputs): pass
@@ -8,77 +8,62 @@ points (used by tests under the CUDA simulator, and by benchmarks on a GPU).
 
 from __future__ import annotations
 
-import math
+import types
+from collections.abc import Callable
 
 import numpy as np
 from numba import cuda
+from numba.core.registry import CPUDispatcher
 
+from gpmppi.gp.exact import exact_tasks
+from gpmppi.gp.grid_interp import grid_interp_point
 from gpmppi.gp.model_file import GPModel
 
 
-@cuda.jit(device=True, cache=True)
-def gp_exact_device(x0, x1, x2, x3, scaled_x, inv_lengthscale, outputscale, alpha, chol, work, mean, var, with_var):
-    """Mean and latent variance of every task at (x0..x3); see `exact.exact_point`."""
-    n_tasks = alpha.shape[0]
-    n = alpha.shape[1]
-    for t in range(n_tasks):
-        s = outputscale[t]
-        z0 = x0 * inv_lengthscale[t, 0]
-        z1 = x1 * inv_lengthscale[t, 1]
-        z2 = x2 * inv_lengthscale[t, 2]
-        z3 = x3 * inv_lengthscale[t, 3]
-        m = 0.0
-        for i in range(n):
-            d0 = z0 - scaled_x[t, i, 0]
-            d1 = z1 - scaled_x[t, i, 1]
-            d2 = z2 - scaled_x[t, i, 2]
-            d3 = z3 - scaled_x[t, i, 3]
-            k = s * math.exp(-0.5 * (d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3))
-            work[i] = k
-            m += k * alpha[t, i]
-        mean[t] = m
-        if with_var:
-            q = 0.0
-            for i in range(n):
-                acc = work[i]
-                for j in range(i):
-                    acc -= chol[t, i, j] * work[j]
-                v = acc / chol[t, i, i]
-                work[i] = v
-                q += v * v
-            var[t] = max(s - q, 0.0)
+def device_function(py_func: Callable, **callees: Callable) -> Callable:
+    """`py_func` (the plain Python of a CPU `njit` function) compiled as an inlined CUDA device function.
+
+    The CPU and CUDA code then state each equation once. `callees` rebinds global names the function
+    calls (CPU `njit` dispatchers) to their device versions: numba resolves a function's globals
+    through `__globals__`, so a copy of the function with an updated globals dict calls the device
+    versions when compiled for CUDA, while the CPU original keeps calling the CPU ones.
+    """
+    if callees:
+        missing = sorted(set(callees) - set(py_func.__code__.co_names))
+        if missing:
+            raise ValueError(f"{py_func.__qualname__} calls no global named {missing}")
+        scope = dict(py_func.__globals__)
+        scope.update(callees)
+        py_func = types.FunctionType(py_func.__code__, scope, py_func.__name__, py_func.__defaults__,
+                                     py_func.__closure__)
+    return cuda.jit(device=True, inline=True)(py_func)
 
 
-@cuda.jit(device=True, cache=True)
-def _cell(x, lo, inv_step, g):
-    t = (x - lo) * inv_step
-    if t <= 0.0:
-        return 0, 0.0
-    if t >= g - 1:
-        return g - 2, 1.0
-    i = int(t)
-    return i, t - i
+_DEVICE_VERSIONS: dict[int, Callable] = {}
 
 
-@cuda.jit(device=True, cache=True)
-def gp_grid_device(table, lo, inv_step, x0, x1, x2, x3, out):
-    """Multilinear interpolation of all channels at (x0..x3), clamped; see `grid_interp.grid_interp`."""
-    i0, f0 = _cell(x0, lo[0], inv_step[0], table.shape[0])
-    i1, f1 = _cell(x1, lo[1], inv_step[1], table.shape[1])
-    i2, f2 = _cell(x2, lo[2], inv_step[2], table.shape[2])
-    i3, f3 = _cell(x3, lo[3], inv_step[3], table.shape[3])
-    k_n = table.shape[4]
-    for k in range(k_n):
-        out[k] = 0.0
-    for c in range(16):
-        b0 = c & 1
-        b1 = (c >> 1) & 1
-        b2 = (c >> 2) & 1
-        b3 = (c >> 3) & 1
-        w = (f0 if b0 else 1.0 - f0) * (f1 if b1 else 1.0 - f1)
-        w *= (f2 if b2 else 1.0 - f2) * (f3 if b3 else 1.0 - f3)
-        for k in range(k_n):
-            out[k] += w * table[i0 + b0, i1 + b1, i2 + b2, i3 + b3, k]
+def set_device_version(func: CPUDispatcher, device_func: Callable) -> None:
+    """Make `device_func` the device twin of `func`, for the few primitives numba's CUDA target compiles
+    differently (call before building twins of the functions that use `func`)."""
+    _DEVICE_VERSIONS[id(func)] = device_func
+
+
+def device_version(func: CPUDispatcher) -> Callable:
+    """The CUDA device twin of a CPU `njit` function: its Python compiled by `device_function`, every `njit`
+    function it calls replaced by that function's twin (recursively; one twin per function)."""
+    found = _DEVICE_VERSIONS.get(id(func))
+    if found is None:
+        py_func = func.py_func
+        scope = py_func.__globals__
+        callees = {name: device_version(scope[name]) for name in py_func.__code__.co_names
+                   if isinstance(scope.get(name), CPUDispatcher)}
+        found = device_function(py_func, **callees)
+        _DEVICE_VERSIONS[id(func)] = found
+    return found
+
+
+gp_exact_device = device_version(exact_tasks)
+gp_grid_device = device_version(grid_interp_point)
 
 
 @cuda.jit(cache=True)

@@ -5,11 +5,13 @@ For task t with kernel k(x, x') = s_t exp(-0.5 ||(x - x') / l_t||^2):
     mean(x) = k_*^T alpha_t                       alpha_t = (K_t + noise_t I)^-1 y_t   (O(n))
     var(x)  = s_t - ||L_t^-1 k_*||^2               L_t L_t^T = K_t + noise_t I          (O(n^2))
 
-`var` is the latent (noise-free) variance. `exact_point` is the per-point routine the planner's
-CPU kernels can call; `exact_predict` batches it over points with `prange`.
+`var` is the latent (noise-free) variance. `exact_tasks` is the per-point routine the planner's
+kernels call; `exact_predict` batches it over points with `prange`.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit, prange
@@ -18,8 +20,11 @@ from gpmppi.gp.model_file import GPModel
 
 
 @njit(cache=True, inline="always", fastmath=True)  # fastmath lets the O(n^2) triangular solve use SIMD
-def exact_point(
-    x: np.ndarray,
+def exact_tasks(
+    x0: float,
+    x1: float,
+    x2: float,
+    x3: float,
     scaled_x: np.ndarray,
     inv_lengthscale: np.ndarray,
     outputscale: np.ndarray,
@@ -30,24 +35,25 @@ def exact_point(
     var: np.ndarray,
     with_var: bool,
 ) -> None:
-    """Mean and latent variance of every task at the 4-D point `x`.
+    """Mean and latent variance of every task at the 4-D point (x0, x1, x2, x3).
 
     scaled_x (T, n, 4) = train_x / lengthscale per task; work (n,) scratch; mean, var (T,) outputs.
+    The one statement of the exact GP: the CUDA kernels compile `exact_tasks.py_func` as a device function.
     """
     n_tasks, n = alpha.shape
     for t in range(n_tasks):
         s = outputscale[t]
-        z0 = x[0] * inv_lengthscale[t, 0]
-        z1 = x[1] * inv_lengthscale[t, 1]
-        z2 = x[2] * inv_lengthscale[t, 2]
-        z3 = x[3] * inv_lengthscale[t, 3]
+        z0 = x0 * inv_lengthscale[t, 0]
+        z1 = x1 * inv_lengthscale[t, 1]
+        z2 = x2 * inv_lengthscale[t, 2]
+        z3 = x3 * inv_lengthscale[t, 3]
         m = 0.0
         for i in range(n):
             d0 = z0 - scaled_x[t, i, 0]
             d1 = z1 - scaled_x[t, i, 1]
             d2 = z2 - scaled_x[t, i, 2]
             d3 = z3 - scaled_x[t, i, 3]
-            k = s * np.exp(-0.5 * (d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3))
+            k = s * math.exp(-0.5 * (d0 * d0 + d1 * d1 + d2 * d2 + d3 * d3))
             work[i] = k
             m += k * alpha[t, i]
         mean[t] = m
@@ -61,7 +67,8 @@ def exact_point(
                 v = acc / chol[t, i, i]
                 work[i] = v
                 q += v * v
-            var[t] = max(s - q, 0.0)
+            var_t = s - q
+            var[t] = var_t if var_t > 0.0 else 0.0  # a select: numba's CUDA target cannot compile float max
 
 
 @njit(cache=True, parallel=True, fastmath=True)
@@ -74,14 +81,15 @@ def exact_predict_arrays(
     chol: np.ndarray,
     with_var: bool,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Batched `exact_point` over the rows of x (P, 4): returns mean (P, T), var (P, T)."""
+    """Batched `exact_tasks` over the rows of x (P, 4): returns mean (P, T), var (P, T)."""
     p_n = x.shape[0]
     n_tasks, n = alpha.shape
     mean = np.zeros((p_n, n_tasks))
     var = np.zeros((p_n, n_tasks))
     for p in prange(p_n):
         work = np.empty(n)
-        exact_point(x[p], scaled_x, inv_lengthscale, outputscale, alpha, chol, work, mean[p], var[p], with_var)
+        exact_tasks(x[p, 0], x[p, 1], x[p, 2], x[p, 3], scaled_x, inv_lengthscale, outputscale, alpha, chol, work,
+                    mean[p], var[p], with_var)
     return mean, var
 
 

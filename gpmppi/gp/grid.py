@@ -20,7 +20,7 @@ DEFAULT_NODES = 30  # 24 nodes left ~1.3% RMS mean error on the plant model; 30 
 def predict_dense(model: GPModel, x: np.ndarray, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:
     """Exact mean and latent variance (P, 2M) with BLAS triangular solves (fast for many points).
 
-    Same math as `exact.exact_point`; used to fill grid tables and for large offline batches.
+    Same math as `exact.exact_tasks`; used to fill grid tables and for large offline batches.
     """
     x = np.ascontiguousarray(np.atleast_2d(x), dtype=np.float64)
     n_tasks = model.n_tasks

@@ -13,24 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from gpmppi.costs import (
-    W_COLLISION,
-    W_DEVIATION,
-    W_EXIT_DISCOUNT,
-    W_GOAL,
-    W_LANE_EXIT,
-    W_SLIP,
-    W_SPEED,
-    W_TERMINAL,
-    W_VARIANCE,
-    collision_cost,
-    deviation_cost,
-    goal_cost,
-    lane_exit_cost,
-    slip_cost,
-    speed_cost,
-    variance_cost,
-)
+from gpmppi.costs import TASK_GOAL, TASK_LANE, W_EXIT_DISCOUNT, W_TERMINAL, goal_cost, stage_cost
 from gpmppi.mppi.dynamics import (
     DYN_GP,
     GP_SIMPLEX,
@@ -40,11 +23,10 @@ from gpmppi.mppi.dynamics import (
     velocity_coefficients,
 )
 from gpmppi.mppi.flags import FASTMATH
-from gpmppi.mppi.lane import lane_distance_near
-from gpmppi.mppi.rng import normal_pair
+from gpmppi.mppi.rng import noisy_command
 
-TASK_LANE = 0
-TASK_GOAL = 1
+__all__ = ["GROUP", "TASK_GOAL", "TASK_LANE", "rollout_kernel", "softmax_update"]
+
 # samples a thread steps in lockstep: each sample's step waits on its own GP table reads (the next
 # state needs them), so interleaving independent samples lets those memory reads overlap
 GROUP = 32
@@ -73,7 +55,6 @@ def rollout_kernel(
     coef = velocity_coefficients(theta)
     for g in prange(n_groups):
         work = np.empty(n_train)
-        gp_in = np.empty(4)
         gp_mean = np.empty(n_tasks)
         gp_var = np.empty(n_tasks)
         first = g * GROUP
@@ -95,9 +76,8 @@ def rollout_kernel(
             # phase 1: commands and GP residuals of the whole group (independent memory reads overlap)
             for j in range(n_in):
                 s = first + j
-                z0, z1 = normal_pair(seed, (iteration * samples + s) * horizon + k)
-                u0 = min(max(nominal[k, 0] + noise_std[0] * z0, u_lo[0]), u_hi[0])
-                u1 = min(max(nominal[k, 1] + noise_std[1] * z1, u_lo[1]), u_hi[1])
+                u0, u1 = noisy_command(seed, (iteration * samples + s) * horizon + k, nominal, k, noise_std, u_lo,
+                                       u_hi)
                 eps_out[s, k, 0] = u0 - nominal[k, 0]
                 eps_out[s, k, 1] = u1 - nominal[k, 1]
                 cmd[j, 0] = u0
@@ -110,7 +90,7 @@ def rollout_kernel(
                     else:
                         res[j, 0], res[j, 1], res[j, 2], res[j, 3] = gp_residual(
                             gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha,
-                            ex_chol, terrain_w, work, gp_in, gp_mean, gp_var, u0, u1, st[j, 3], st[j, 4],
+                            ex_chol, terrain_w, work, gp_mean, gp_var, u0, u1, st[j, 3], st[j, 4],
                         )
             if dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX:
                 # gather the table rows of the whole group in a short loop: many reads in flight at once
@@ -147,19 +127,11 @@ def rollout_kernel(
                 if s < n_xy:
                     xy_out[s, k + 1, 0] = px
                     xy_out[s, k + 1, 1] = py
-                c = variance_cost(res[j, 2], res[j, 3], cost_w[W_VARIANCE])
-                if task_kind == TASK_LANE:
-                    d = lane_distance_near(
-                        seg, cell_start, candidates, field, grid_origin, inv_cell, px, py, tightened_hw[k + 1]
-                    )
-                    c += deviation_cost(d, half_width, cost_w[W_DEVIATION])
-                    c += slip_cost(v, w, u0, u1, cost_w[W_SLIP])
-                    c += lane_exit_cost(d, tightened_hw[k + 1], discount_k, cost_w[W_LANE_EXIT])
-                    c += speed_cost(v, speed_target, cost_w[W_SPEED])
-                else:
-                    c += collision_cost(px, py, obstacles, radii[k + 1], cost_w[W_COLLISION])
-                    c += goal_cost(px, py, goal, cost_w[W_GOAL])
-                total[j] += c
+                total[j] += stage_cost(
+                    task_kind, cost_w, seg, cell_start, candidates, field, grid_origin, inv_cell, half_width,
+                    tightened_hw[k + 1], speed_target, goal, obstacles, radii[k + 1], discount_k, px, py, v, w, u0,
+                    u1, res[j, 2], res[j, 3],
+                )
             discount_k *= discount
         for j in range(n_in):
             t = total[j]

@@ -7,18 +7,21 @@ mean `sum_i w_i m_i`, variance `sum_i w_i^2 C_i` (C = latent variance).
 GP evaluation (`GP_*`): `grid` interpolates (simplex or multilinear) a table of
 [mean_v, mean_w, var_v, var_w] collapsed from the model's (G, G, G, G, 4M) table with the current
 weights (`collapse_table`, run only when the weights change); `exact` evaluates the exact GP
-(`gpmppi.gp.exact.exact_point`).
+(`gpmppi.gp.exact.exact_tasks`).
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit, prange
 
-from gpmppi.gp.exact import exact_point
+from gpmppi.gp.exact import exact_tasks
+from gpmppi.gp.grid_interp import grid_cell
 from gpmppi.models.dynamic_unicycle import jacobian
 from gpmppi.models.edd5 import edd5_velocity
-from gpmppi.mppi.flags import FASTMATH
+from gpmppi.mppi.flags import FASTMATH, fmax, fmin
 
 DYN_UNICYCLE = 0
 DYN_EDD5 = 1
@@ -73,17 +76,6 @@ def _collapse_into(table: np.ndarray, weights: np.ndarray, out: np.ndarray) -> N
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def _axis(x: float, lo: float, inv_step: float, g: int) -> tuple[int, float]:
-    t = (x - lo) * inv_step
-    if t <= 0.0:
-        return 0, 0.0
-    if t >= g - 1:
-        return g - 2, 1.0
-    i = int(t)
-    return i, t - i
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
 def interp4(
     table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float,
     a3: float,
@@ -93,10 +85,10 @@ def interp4(
     Flat node indices and single-precision accumulation (no float64 conversion of the 64 loaded
     values); a (nodes, 4) table measured faster here than a 1-D one.
     """
-    i0, f0 = _axis(a0, lo[0], inv_step[0], dims[0])
-    i1, f1 = _axis(a1, lo[1], inv_step[1], dims[1])
-    i2, f2 = _axis(a2, lo[2], inv_step[2], dims[2])
-    i3, f3 = _axis(a3, lo[3], inv_step[3], dims[3])
+    i0, f0 = grid_cell(a0, lo[0], inv_step[0], dims[0])
+    i1, f1 = grid_cell(a1, lo[1], inv_step[1], dims[1])
+    i2, f2 = grid_cell(a2, lo[2], inv_step[2], dims[2])
+    i3, f3 = grid_cell(a3, lo[3], inv_step[3], dims[3])
     s2 = dims[3]
     s1 = dims[2] * s2
     s0 = dims[1] * s1
@@ -137,7 +129,8 @@ def _cswap(fa: float, sa: int, fb: float, sb: int) -> tuple[float, int, float, i
     Written as selects, not a branch: the fractions are random, a branch would mispredict half the time.
     """
     swap = fb > fa
-    return max(fa, fb), sb if swap else sa, min(fa, fb), sa if swap else sb
+    # selects, not max/min: numba's CUDA target cannot compile float max/min
+    return fmax(fa, fb), sb if swap else sa, fmin(fa, fb), sa if swap else sb
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -145,10 +138,10 @@ def simplex_nodes(
     dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float, a3: float
 ) -> tuple[int, int, int, int, int, float, float, float, float, float]:
     """The 5 node indices and barycentric weights of the Kuhn simplex holding the point (see `interp4_simplex`)."""
-    i0, f0 = _axis(a0, lo[0], inv_step[0], dims[0])
-    i1, f1 = _axis(a1, lo[1], inv_step[1], dims[1])
-    i2, f2 = _axis(a2, lo[2], inv_step[2], dims[2])
-    i3, f3 = _axis(a3, lo[3], inv_step[3], dims[3])
+    i0, f0 = grid_cell(a0, lo[0], inv_step[0], dims[0])
+    i1, f1 = grid_cell(a1, lo[1], inv_step[1], dims[1])
+    i2, f2 = grid_cell(a2, lo[2], inv_step[2], dims[2])
+    i3, f3 = grid_cell(a3, lo[3], inv_step[3], dims[3])
     s3 = 1
     s2 = dims[3]
     s1 = dims[2] * s2
@@ -180,16 +173,15 @@ def interp4_simplex(
     table larger than the caches that is the difference (it is memory-bound).
     """
     n0, n1, n2, n3, n4, w0, w1, w2, w3, w4 = simplex_nodes(dims, lo, inv_step, a0, a1, a2, a3)
-    c0 = np.float32(0.0)
-    c1 = np.float32(0.0)
-    c2 = np.float32(0.0)
-    c3 = np.float32(0.0)
-    for n, wd in ((n0, w0), (n1, w1), (n2, w2), (n3, w3), (n4, w4)):
-        w = np.float32(wd)
-        c0 += w * table[n, 0]
-        c1 += w * table[n, 1]
-        c2 += w * table[n, 2]
-        c3 += w * table[n, 3]
+    g0 = np.float32(w0)
+    g1 = np.float32(w1)
+    g2 = np.float32(w2)
+    g3 = np.float32(w3)
+    g4 = np.float32(w4)
+    c0 = g0 * table[n0, 0] + g1 * table[n1, 0] + g2 * table[n2, 0] + g3 * table[n3, 0] + g4 * table[n4, 0]
+    c1 = g0 * table[n0, 1] + g1 * table[n1, 1] + g2 * table[n2, 1] + g3 * table[n3, 1] + g4 * table[n4, 1]
+    c2 = g0 * table[n0, 2] + g1 * table[n1, 2] + g2 * table[n2, 2] + g3 * table[n3, 2] + g4 * table[n4, 2]
+    c3 = g0 * table[n0, 3] + g1 * table[n1, 3] + g2 * table[n2, 3] + g3 * table[n3, 3] + g4 * table[n4, 3]
     return float(c0), float(c1), float(c2), float(c3)
 
 
@@ -197,8 +189,8 @@ def interp4_simplex(
 def gp_residual(
     gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
-    ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_in: np.ndarray, gp_mean: np.ndarray,
-    gp_var: np.ndarray, v_ref: float, w_ref: float, v: float, w: float,
+    ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_mean: np.ndarray, gp_var: np.ndarray,
+    v_ref: float, w_ref: float, v: float, w: float,
 ) -> tuple[float, float, float, float]:
     """Ensemble residual (mean_v, mean_w, var_v, var_w) at GP input [v_ref, w_ref, v, w].
 
@@ -208,11 +200,8 @@ def gp_residual(
         return interp4_simplex(table, dims, lo, inv_step, v, w, v_ref, w_ref)
     if gp_mode == GP_GRID:
         return interp4(table, dims, lo, inv_step, v, w, v_ref, w_ref)
-    gp_in[0] = v_ref
-    gp_in[1] = w_ref
-    gp_in[2] = v
-    gp_in[3] = w
-    exact_point(gp_in, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol, work, gp_mean, gp_var, True)
+    exact_tasks(v_ref, w_ref, v, w, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol, work, gp_mean, gp_var,
+                True)
     mv = 0.0
     mw = 0.0
     cv = 0.0
@@ -247,7 +236,7 @@ def nominal_velocity_step(
 def _cos_sin(yaw: float) -> tuple[float, float]:
     """cos and sin in single precision (3x faster; 1e-7 relative is far below the model's errors)."""
     a = np.float32(yaw)
-    return float(np.cos(a)), float(np.sin(a))
+    return float(math.cos(a)), float(math.sin(a))
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -278,8 +267,8 @@ def step_state(
     dyn_mode: int, dt: float, coef: np.ndarray, edd5_p: np.ndarray,
     gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
-    ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_in: np.ndarray, gp_mean: np.ndarray,
-    gp_var: np.ndarray, px: float, py: float, yaw: float, v: float, w: float, u0: float, u1: float,
+    ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_mean: np.ndarray, gp_var: np.ndarray,
+    px: float, py: float, yaw: float, v: float, w: float, u0: float, u1: float,
 ) -> tuple[float, float, float, float, float, float, float]:
     """Next state (5 scalars) and the step's residual variances (var_v, var_w) of the chosen model."""
     mv = 0.0
@@ -289,27 +278,28 @@ def step_state(
     if dyn_mode == DYN_GP:
         mv, mw, cv, cw = gp_residual(
             gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
-            terrain_w, work, gp_in, gp_mean, gp_var, u0, u1, v, w,
+            terrain_w, work, gp_mean, gp_var, u0, u1, v, w,
         )
     px, py, yaw, v, w = advance(dyn_mode, dt, coef, edd5_p, px, py, yaw, v, w, u0, u1, mv, mw)
     return px, py, yaw, v, w, cv, cw
 
 
 @njit(cache=True, inline="always")
-def _sandwich(a: np.ndarray, b: np.ndarray, tmp: np.ndarray, out: np.ndarray) -> None:
-    """out = a b a^T for 5x5 matrices, in plain loops (a BLAS call per step costs more than the flops)."""
+def _product5(a: np.ndarray, b: np.ndarray, b_transposed: bool, out: np.ndarray) -> None:
+    """out = a b (or a b^T) for 5x5 matrices, in plain loops (a BLAS call per step costs more than the flops)."""
     for i in range(5):
         for j in range(5):
             acc = 0.0
             for q in range(5):
-                acc += a[i, q] * b[q, j]
-            tmp[i, j] = acc
-    for i in range(5):
-        for j in range(5):
-            acc = 0.0
-            for q in range(5):
-                acc += tmp[i, q] * a[j, q]
+                acc += a[i, q] * (b[j, q] if b_transposed else b[q, j])
             out[i, j] = acc
+
+
+@njit(cache=True, inline="always")
+def _sandwich(a: np.ndarray, b: np.ndarray, tmp: np.ndarray, out: np.ndarray) -> None:
+    """out = a b a^T for 5x5 matrices."""
+    _product5(a, b, False, tmp)
+    _product5(tmp, a, True, out)
 
 
 @njit(cache=True)
@@ -331,7 +321,6 @@ def propagate(
     step_var = np.zeros((n, 2))
     states[0] = x0
     work = np.empty(ex_alpha.shape[1])
-    gp_in = np.empty(4)
     gp_mean = np.empty(ex_alpha.shape[0])
     gp_var = np.empty(ex_alpha.shape[0])
     tmp = np.empty((5, 5))
@@ -340,7 +329,7 @@ def propagate(
         x = states[k]
         r = step_state(
             dyn_mode, dt, coef, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale,
-            ex_alpha, ex_chol, terrain_w, work, gp_in, gp_mean, gp_var, x[0], x[1], x[2], x[3], x[4],
+            ex_alpha, ex_chol, terrain_w, work, gp_mean, gp_var, x[0], x[1], x[2], x[3], x[4],
             controls[k, 0], controls[k, 1],
         )
         for i in range(5):

@@ -9,13 +9,14 @@ Nothing here assumes a particular shape: circles, squares and chicanes are all j
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
 
-from gpmppi.mppi.flags import FASTMATH
+from gpmppi.mppi.flags import FASTMATH, fmin
 
 # segment rows: [ax, ay, dx, dy, 1/|d|^2]
 SEG_COLS = 5
@@ -153,15 +154,15 @@ def lane_distance(
     """Distance [m] from (x, y) to the polyline; exact (brute force over all segments outside the grid)."""
     fc = (x - origin[0]) * inv_cell
     fr = (y - origin[1]) * inv_cell
-    best = np.inf
+    best = math.inf
     if fc >= 0.0 and fr >= 0.0 and fc < w and fr < h:
         i = int(fr) * w + int(fc)
         for q in range(cell_start[i], cell_start[i + 1]):
-            best = min(best, segment_distance2(seg, cand[q], x, y))
+            best = fmin(best, segment_distance2(seg, cand[q], x, y))
     else:
         for j in range(seg.shape[0]):
-            best = min(best, segment_distance2(seg, j, x, y))
-    return np.sqrt(best)
+            best = fmin(best, segment_distance2(seg, j, x, y))
+    return math.sqrt(best)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")

@@ -5,8 +5,8 @@ result does not depend on how threads (CPU `prange`) or blocks (CUDA) are schedu
 and CUDA backends draw exactly the same numbers. The hash is SplitMix64's finaliser; one 64-bit
 hash gives two 32-bit uniforms, and Box-Muller turns them into the two control-noise normals.
 
-The functions are plain Python so each backend compiles them for its own target
-(`numba.njit` here, `numba.cuda.jit(device=True)` in the CUDA backend).
+The CUDA backend compiles the same Python source as device functions
+(`gpmppi.gp.cuda_kernels.device_version`).
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ import math
 
 import numpy as np
 from numba import njit
+
+from gpmppi.mppi.flags import fmax, fmin
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -44,13 +46,29 @@ def _normal_pair_py(seed: int, counter: int) -> tuple[float, float]:
     # single precision transcendentals: ~3x faster on CPU, and noise needs no more digits
     r = math.sqrt(-2.0 * math.log(np.float32(u1)))
     c = math.cos(np.float32(_TWO_PI * u2))
-    s = math.sqrt(max(1.0 - c * c, 0.0))  # sin from cos: one transcendental fewer; sin < 0 on (pi, 2 pi)
+    s = math.sqrt(fmax(1.0 - c * c, 0.0))  # sin from cos: one transcendental fewer; sin < 0 on (pi, 2 pi)
     if u2 >= 0.5:
         s = -s
     return r * c, r * s
 
 
 normal_pair = njit(cache=True, inline="always")(_normal_pair_py)
+
+
+@njit(cache=True, inline="always")
+def clip(x: float, lo: float, hi: float) -> float:
+    """min(max(x, lo), hi)."""
+    return fmin(fmax(x, lo), hi)
+
+
+@njit(cache=True, inline="always")
+def noisy_command(
+    seed: int, counter: int, nominal: np.ndarray, k: int, noise_std: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray
+) -> tuple[float, float]:
+    """Step k's command of one sample: nominal + noise_std * N(0, 1) (noise of `counter`), clipped to the limits."""
+    z0, z1 = normal_pair(seed, counter)
+    return clip(nominal[k, 0] + noise_std[0] * z0, u_lo[0], u_hi[0]), clip(nominal[k, 1] + noise_std[1] * z1, u_lo[1],
+                                                                           u_hi[1])
 
 
 def noise_counter(iteration: int, sample: int, step: int, samples: int, horizon: int) -> int:
