@@ -82,16 +82,18 @@ def rollout_kernel(
                 eps_out[s, k, 1] = u1 - nominal[k, 1]
                 cmd[j, 0] = u0
                 cmd[j, 1] = u1
-                if dyn_mode == DYN_GP:
-                    if gp_mode == GP_SIMPLEX:
-                        (nodes[j, 0], nodes[j, 1], nodes[j, 2], nodes[j, 3], nodes[j, 4], node_w[j, 0], node_w[j, 1],
-                         node_w[j, 2], node_w[j, 3], node_w[j, 4]) = simplex_nodes(
-                            dims, lo, inv_step, st[j, 3], st[j, 4], u0, u1)
-                    else:
-                        res[j, 0], res[j, 1], res[j, 2], res[j, 3] = gp_residual(
-                            gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha,
-                            ex_chol, terrain_w, work, gp_mean, gp_var, u0, u1, st[j, 3], st[j, 4],
-                        )
+            if dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX:
+                # a loop of its own, free of the noise's library calls, so that it can be vectorised
+                for j in range(n_in):
+                    (nodes[j, 0], nodes[j, 1], nodes[j, 2], nodes[j, 3], nodes[j, 4], node_w[j, 0], node_w[j, 1],
+                     node_w[j, 2], node_w[j, 3], node_w[j, 4]) = simplex_nodes(
+                        dims, lo, inv_step, st[j, 3], st[j, 4], cmd[j, 0], cmd[j, 1])
+            elif dyn_mode == DYN_GP:
+                for j in range(n_in):
+                    res[j, 0], res[j, 1], res[j, 2], res[j, 3] = gp_residual(
+                        gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
+                        terrain_w, work, gp_mean, gp_var, cmd[j, 0], cmd[j, 1], st[j, 3], st[j, 4],
+                    )
             if dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX:
                 # gather the table rows of the whole group in a short loop: many reads in flight at once
                 for j in range(n_in):

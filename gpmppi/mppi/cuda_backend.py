@@ -5,7 +5,9 @@ compiled from the CPU functions' Python (`gpmppi.gp.cuda_kernels.device_version`
 counter-based noise is drawn, so both backends agree to rounding. The exact GP runs on the CPU
 backend only (`Planner` refuses `backend="cuda"` with `gp_mode="exact"`).
 
-Tested under the CUDA simulator (`NUMBA_ENABLE_CUDASIM=1`) against the CPU backend.
+Tested under the CUDA simulator (`NUMBA_ENABLE_CUDASIM=1`) against the CPU backend, and compiled to
+PTX for a real GPU by `tests/test_cuda_compiles.py` (the simulator runs plain Python, which proves
+nothing about what numba's CUDA target accepts).
 """
 
 from __future__ import annotations
@@ -23,11 +25,11 @@ from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX, velocity_coeffici
 THREADS_PER_BLOCK = 128
 
 
-def _select_max(a, b):
+def _select_max(a: float, b: float) -> float:
     return a if a > b else b
 
 
-def _select_min(a, b):
+def _select_min(a: float, b: float) -> float:
     return a if a < b else b
 
 

@@ -30,7 +30,8 @@ _INV_2_32 = 1.0 / 4294967296.0
 _TWO_PI = 2.0 * math.pi
 
 
-def _normal_pair_py(seed: int, counter: int) -> tuple[float, float]:
+@njit(cache=True, inline="always")
+def normal_pair(seed: int, counter: int) -> tuple[float, float]:
     """Two independent standard normals for the 64-bit `counter` under `seed`."""
     # the seed is mixed on its own first so that (seed, counter) pairs never alias each other
     k = np.uint64(seed) * _GOLDEN + _GOLDEN
@@ -50,9 +51,6 @@ def _normal_pair_py(seed: int, counter: int) -> tuple[float, float]:
     if u2 >= 0.5:
         s = -s
     return r * c, r * s
-
-
-normal_pair = njit(cache=True, inline="always")(_normal_pair_py)
 
 
 @njit(cache=True, inline="always")
