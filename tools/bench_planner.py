@@ -19,12 +19,7 @@ import typer
 
 from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.scenarios import circle_lane
-
-
-class ModelChoice(str, Enum):
-    gp = "gp"
-    edd5 = "edd5"
-    unicycle = "unicycle"
+from tools.choices import ModelName
 
 
 class GpChoice(str, Enum):
@@ -162,7 +157,7 @@ def register(app: typer.Typer) -> None:
     def planner_cmd(
         samples: Annotated[int, typer.Option("--samples", min=1, help="Samples S")] = 1024,
         horizon: Annotated[int, typer.Option("--horizon", min=1, help="Horizon N")] = 40,
-        model: Annotated[ModelChoice, typer.Option("--model", help="Rollout model")] = ModelChoice.gp,
+        model: Annotated[ModelName, typer.Option("--model", help="Rollout model")] = ModelName.gp,
         gp: Annotated[GpChoice, typer.Option("--gp", help="GP evaluation")] = GpChoice.grid,
         backend: Annotated[BackendChoice, typer.Option("--backend", help="Kernel backend")] = BackendChoice.auto,
         vs: Annotated[Peer | None, typer.Option("--vs", help="Also time a peer MPPI on the same problem")] = None,

@@ -37,12 +37,7 @@ from gpmppi.scenarios import (
     paper_obstacle_scene,
     square_lane,
 )
-
-
-class ModelName(str, Enum):
-    gp = "gp"
-    edd5 = "edd5"
-    unicycle = "unicycle"
+from tools.choices import ModelName
 
 
 class PlantName(str, Enum):
