@@ -4,7 +4,15 @@ Over a history of H steps (state, command, next state) the measured one-step vel
 `Y = next velocity - velocity_step_exact(...)` is regressed on the terrains' GP mean residuals
 `F[:, i]` at the same GP inputs:
 
-    min_w ||Y_v - F_v w||^2 + ||Y_w - F_w w||^2 + gamma ||w - w_prev||_1,   0 <= w <= 1,  sum w = 1
+    min_w (1/n) (||Y_v - F_v w||^2 / s_v^2 + ||Y_w - F_w w||^2 / s_w^2) + gamma ||w - w_prev||_1,
+    0 <= w <= 1,  sum w = 1
+
+with n the steps in the history and s_v^2, s_w^2 the model's likelihood noise variances of the v
+and omega tasks (mean over the terrains). The fit is thus the mean squared residual in units of
+the noise the GP was trained with: about 1 per step at the right weights, whatever the robot's
+speed or the history length, so gamma (the price of moving the weights, in those units) means the
+same on every model. Unnormalised, the fit of velocity residuals of a few mm/s per step is ~1e-3
+and any gamma of a useful size pins the weights where they started.
 
 The cvxpy problem is built once with Parameters (it is DPP, so re-solving only refills numbers)
 and re-solved warm each cycle. Histories shorter than H fill the unused rows with zeros, which
@@ -29,7 +37,7 @@ from gpmppi.models.dynamic_unicycle import velocity_step_exact
 class TerrainEstimate:
     weights: np.ndarray  # (M,) on the simplex
     ok: bool  # False: the weights are the previous ones (see message)
-    residual: float  # fit term ||Y - F w||^2 at the returned weights
+    residual: float  # fit term ||Y - F w||^2 at the returned weights (unnormalised, in (m/s)^2 + (rad/s)^2)
     message: str
 
 
@@ -58,6 +66,9 @@ class TerrainEstimator:
         self.min_history = min_history
         self._m = len(model.terrains)
         self._predictor = ExactPredictor(model)
+        noise = np.asarray(model.noise, dtype=np.float64).reshape(-1)
+        # noise std of the v and omega residuals: the unit of the fit (floored so a noiseless model stays finite)
+        self._noise_std = np.sqrt(np.maximum([noise[0::2].mean(), noise[1::2].mean()], 1e-12))
         self._rows: deque[tuple[float, float, np.ndarray, np.ndarray]] = deque(maxlen=history)
         m, h = self._m, history
         self._w = cp.Variable(m, name="w")
@@ -114,7 +125,12 @@ class TerrainEstimator:
         f_w = np.zeros((h, m))
         for i, (yv, yw, fv, fw) in enumerate(self._rows):
             y_v[i], y_w[i], f_v[i], f_w[i] = yv, yw, fv, fw
-        self._y_v.value, self._y_w.value, self._f_v.value, self._f_w.value = y_v, y_w, f_v, f_w
+        # scaling the data (not the expression) keeps the problem DPP: the fit is the mean squared residual
+        # over the n filled rows in units of the model's noise std
+        scale_v = 1.0 / (self._noise_std[0] * np.sqrt(n))
+        scale_w = 1.0 / (self._noise_std[1] * np.sqrt(n))
+        self._y_v.value, self._f_v.value = y_v * scale_v, f_v * scale_v
+        self._y_w.value, self._f_w.value = y_w * scale_w, f_w * scale_w
         self._w_prev.value = self._weights
         try:
             self._problem.solve(solver=cp.CLARABEL)

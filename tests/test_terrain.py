@@ -66,13 +66,41 @@ def test_l1_term_holds_weights_near_the_previous_ones() -> None:
     model = _model()
     rows = _history(model, np.array([0.0, 0.0, 1.0]), 20, seed=4)
     loose = TerrainEstimator(model, history=20, gamma=1e-6)
-    sticky = TerrainEstimator(model, history=20, gamma=10.0)
+    # gamma is in units of the noise-normalised mean squared residual: the synthetic terrains differ by many
+    # noise stds per step, so holding the weights takes a gamma of that order
+    sticky = TerrainEstimator(model, history=20, gamma=100.0)
     for row in rows:
         loose.observe(*row)
         sticky.observe(*row)
     moved_loose = np.abs(loose.estimate().weights - 1 / 3).sum()
     moved_sticky = np.abs(sticky.estimate().weights - 1 / 3).sum()
     assert moved_sticky < 0.05 < moved_loose
+
+
+def test_default_gamma_moves_the_weights_at_the_models_noise_level() -> None:
+    # the fit is normalised by the model's noise, so the default gamma lets data scattered by that noise move the
+    # weights all the way (an unnormalised fit of such residuals is ~1e-3 and a gamma of 0.1 would pin them)
+    model = _model()
+    noise_std = float(np.sqrt(model.noise.mean()))
+    est = TerrainEstimator(model)
+    for row in _history(model, np.array([0.0, 1.0, 0.0]), 20, seed=7, noise=noise_std):
+        est.observe(*row)
+    e = est.estimate()
+    assert e.ok and e.weights[1] > 0.9
+
+
+def test_fit_is_a_mean_per_step_so_gamma_does_not_depend_on_the_history_length() -> None:
+    model = _model()
+    rows = _history(model, np.array([0.1, 0.2, 0.7]), 10, seed=8, noise=0.02)
+    once = TerrainEstimator(model, history=10, gamma=1.0)
+    twice = TerrainEstimator(model, history=20, gamma=1.0)
+    for row in rows:
+        once.observe(*row)
+        twice.observe(*row)
+        twice.observe(*row)
+    w_once, w_twice = once.estimate().weights, twice.estimate().weights
+    assert np.abs(w_once - 1 / 3).sum() > 0.1  # the weights moved, and
+    np.testing.assert_allclose(w_twice, w_once, atol=1e-4)  # the same data counted twice moves them the same
 
 
 def test_short_history_keeps_previous_weights() -> None:

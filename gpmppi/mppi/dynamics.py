@@ -307,13 +307,16 @@ def propagate(
     x0: np.ndarray, controls: np.ndarray, dt: float, dyn_mode: int, theta: np.ndarray, edd5_p: np.ndarray,
     gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
-    ex_chol: np.ndarray, terrain_w: np.ndarray,
+    ex_chol: np.ndarray, terrain_w: np.ndarray, noise_v: float = 0.0, noise_w: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean states (N+1, 5), covariances (N+1, 5, 5) and step variances (N, 2) along `controls`.
 
-    GP model: Sigma+ = J Sigma J^T + diag(0, 0, 0, C_v, C_w) with J the nominal Euler Jacobian at
-    (x_k, u_k); the mean includes the GP mean residual. Other models carry no uncertainty, so their
-    covariances stay zero.
+    GP model: Sigma+ = J Sigma J^T + diag(0, 0, 0, C_v + noise_v, C_w + noise_w) with J the nominal
+    Euler Jacobian at (x_k, u_k) and C the ensemble's latent variance; `noise_v`, `noise_w` are the
+    ensemble's likelihood noise `sum_i w_i^2 noise_i` (with it the added term is the GP's predictive
+    variance of the next velocity, which is what the data scatter by). The mean includes the GP mean
+    residual. Other models carry no uncertainty, so their covariances stay zero. The returned step
+    variances are the predictive ones too.
     """
     n = controls.shape[0]
     states = np.zeros((n + 1, 5))
@@ -334,11 +337,11 @@ def propagate(
         )
         for i in range(5):
             states[k + 1, i] = r[i]
-        step_var[k, 0] = r[5]
-        step_var[k, 1] = r[6]
         if dyn_mode == DYN_GP:
+            step_var[k, 0] = r[5] + noise_v
+            step_var[k, 1] = r[6] + noise_w
             jac = jacobian(theta, x, controls[k], dt)
             _sandwich(jac, covs[k], tmp, covs[k + 1])
-            covs[k + 1, 3, 3] += r[5]
-            covs[k + 1, 4, 4] += r[6]
+            covs[k + 1, 3, 3] += step_var[k, 0]
+            covs[k + 1, 4, 4] += step_var[k, 1]
     return states, covs, step_var

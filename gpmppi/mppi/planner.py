@@ -20,7 +20,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.signal import savgol_filter
 
-from gpmppi.costs import N_COST_WEIGHTS, ChanceQuantiles, inflate_obstacles, tighten_lane
+from gpmppi.costs import N_COST_WEIGHTS, W_VARIANCE, ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.gp.model_file import GPModel
 from gpmppi.mppi import backends
 from gpmppi.mppi.dynamics import (
@@ -76,6 +76,12 @@ class PlannerConfig(BaseModel):
     )
     max_inflation: float = Field(1.0, ge=0, description="Cap on the covariance inflation of obstacle radii [m]")
     robot_radius: float = Field(0.0, ge=0, description="Added to every obstacle radius [m]")
+    step_clearance: bool = Field(
+        True,
+        description="Grow each (inflated) obstacle radius r to sqrt(r^2 + (v_max dt / 2)^2): collisions are checked "
+        "only at the rollout steps, and with this radius the straight path between two steps (at most v_max dt "
+        "long) cannot cut into the circle r either",
+    )
     seed: int = Field(0, ge=0, lt=2**63, description="Seed of the sampling noise (identical seeds, identical plans)")
     edd5_terrain: str | None = Field(
         None, description="Terrain of the EDD5 model; None = the terrain with the largest weight"
@@ -83,12 +89,16 @@ class PlannerConfig(BaseModel):
     initial_control: tuple[float, float] = Field((0.0, 0.0), description="Sequence at start and appended on shift")
     sample_output: int = Field(32, ge=0, description="How many rollouts' XY to return for display")
     lane_cell: float = Field(0.1, gt=0, description="Cell of the lane nearest-segment lookup grid [m]")
-    w_variance: float = Field(10.0, ge=0, description="Weight of the GP variance cost (every step)")
-    w_deviation: float = Field(2.0, ge=0, description="Weight of the normalised lane deviation (d / r)^2")
+    # lane weights: with r the lane half-width (1.75-2.75 m), 300 (d / r)^2 prices a 5 cm deviation like a 0.15 m/s
+    # speed shortfall under w_speed = 2; at (2, 1) tracking error was free next to speed (70-150 mm RMSE)
+    w_variance: float = Field(
+        1.0, ge=0, description="Weight of the GP variance cost (every step); 10 made GP-MPPI ~15% slower to goals"
+    )
+    w_deviation: float = Field(300.0, ge=0, description="Weight of the normalised lane deviation (d / r)^2")
     w_slip: float = Field(0.1, ge=0, description="Weight of the command-vs-velocity gap (slip)")
     w_lane_exit: float = Field(1000.0, ge=0, description="Weight of leaving the tightened lane (times discount^k)")
     lane_exit_discount: float = Field(0.9, gt=0, le=1, description="Discount per step of the lane-exit indicator")
-    w_speed: float = Field(1.0, ge=0, description="Weight of (v - speed_target)^2")
+    w_speed: float = Field(2.0, ge=0, description="Weight of (v - speed_target)^2")
     w_collision: float = Field(1000.0, ge=0, description="Weight of being inside an inflated obstacle")
     w_goal: float = Field(1.0, ge=0, description="Weight of the distance to the goal at every step")
     w_terminal: float = Field(10.0, ge=0, description="Weight of the distance to the goal at the horizon's end")
@@ -154,6 +164,7 @@ class Planner:
         else:
             self._gp_mode = GP_SIMPLEX if c.grid_interpolation == "simplex" else GP_GRID
         self._theta = np.ascontiguousarray(model.theta, dtype=np.float64)
+        self._noise = np.asarray(model.noise, dtype=np.float64).reshape(-1)
         self._edd5 = np.stack([np.asarray(model.edd5[t], dtype=np.float64) for t in model.terrains])
         self._quant = ChanceQuantiles.for_probability(c.p_x)
         self._cost_w = c.cost_weights()
@@ -244,14 +255,34 @@ class Planner:
         t0 = time.perf_counter()
         if self._table_full is not None and (self._table_weights is None or not np.array_equal(w, self._table_weights)):
             self._table = collapse_table(self._table_full, w).reshape(-1, 4)
+            # predictive variance = latent + likelihood noise: the rollouts' variance cost and the propagated
+            # covariance both read it from the table
+            noise_v, noise_w = self._noise_var(w)
+            self._table[:, 2] += np.float32(noise_v)
+            self._table[:, 3] += np.float32(noise_w)
             self._table_weights = w.copy()
         name = self.config.edd5_terrain
         idx = self.model.terrains.index(name) if name is not None else int(np.argmax(w))
         return self._edd5[idx], (time.perf_counter() - t0) * 1e3
 
+    def _noise_var(self, w: np.ndarray) -> tuple[float, float]:
+        """Ensemble likelihood noise (sum_i w_i^2 noise_i for v and omega); zero for the models without a GP.
+
+        The GP's latent variance C says how unsure the mean is; the next velocity itself scatters by
+        C + noise (the predictive variance), and that is what the chance constraints must cover.
+        """
+        if self._dyn != DYN_GP:
+            return 0.0, 0.0
+        w2 = w * w
+        return float(w2 @ self._noise[0::2]), float(w2 @ self._noise[1::2])
+
     def _propagate(self, x: np.ndarray, controls: np.ndarray, edd5_p: np.ndarray, w: np.ndarray) -> tuple:
         return propagate(x, controls, self.config.dt, self._dyn, self._theta, edd5_p, self._gp_mode, self._table,
-                         self._table_dims, self._grid_lo, self._grid_inv, *self._ex, w)
+                         self._table_dims, self._grid_lo, self._grid_inv, *self._ex, w, *self._exact_noise_var(w))
+
+    def _exact_noise_var(self, w: np.ndarray) -> tuple[float, float]:
+        """The noise the kernels do not add themselves: the exact GP gives latent variances (the grid table has it)."""
+        return self._noise_var(w) if self._gp_mode == GP_EXACT else (0.0, 0.0)
 
     def _bounds(self, task: LaneTask | GoalTask, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
         """Tightened half-widths (N+1,) or effective obstacle radii (N+1, K), and the clamp count."""
@@ -260,7 +291,12 @@ class Planner:
             covs = np.zeros_like(covs)
         if isinstance(task, LaneTask):
             return tighten_lane(covs, float(task.half_width), self._quant.chi2_2, c.min_half_width_fraction)
-        return inflate_obstacles(states, covs, task.obstacles, self._quant.normal, c.robot_radius, c.max_inflation)
+        radii, capped = inflate_obstacles(states, covs, task.obstacles, self._quant.normal, c.robot_radius,
+                                          c.max_inflation)
+        if c.step_clearance:
+            half_step = 0.5 * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
+            radii = np.sqrt(radii * radii + half_step * half_step)
+        return radii, capped
 
     # ---------------------------------------------------------------- plan
     def plan(self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None) -> PlanResult:
@@ -290,6 +326,10 @@ class Planner:
             self.backend, x, nominal, self._std, self._u_lo, self._u_hi, c.dt, c.seed, self._iteration,
             model_arrays, task_arrays, self._cost_w, c.samples, n_xy,
         )
+        # exact GP: the kernels' variance cost is latent; the noise adds the same to every rollout (the update
+        # is unchanged), added here so that costs are those of the predictive variance in every mode
+        noise_cost = c.horizon * self._cost_w[W_VARIANCE] * sum(self._exact_noise_var(w))
+        costs = costs + noise_cost
         t2 = time.perf_counter()
 
         new_u, _sample_w = backends.softmax_update(nominal, eps, costs, c.temperature)
@@ -303,6 +343,7 @@ class Planner:
             "cpu", x, new_u, np.zeros(2), self._u_lo, self._u_hi, c.dt, c.seed, self._iteration,
             model_arrays, task_arrays, self._cost_w, 1, 0,
         )
+        nominal_cost = nominal_cost + noise_cost
         t4 = time.perf_counter()
 
         control = new_u[0].copy()

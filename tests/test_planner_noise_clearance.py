@@ -1,0 +1,55 @@
+"""The propagated covariance carries the GP's predictive variance; obstacle radii cover the path between steps."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, TABLE_AXES, collapse_table, propagate
+from gpmppi.mppi.planner import Planner, PlannerConfig
+from gpmppi.mppi.synthetic import synthetic_model
+from gpmppi.scenarios import paper_obstacle_scene
+
+
+def test_propagation_adds_the_likelihood_noise_to_the_latent_variance() -> None:
+    model = synthetic_model()
+    w = np.array([0.5, 0.3, 0.2])
+    g = model.grid()
+    table = collapse_table(np.ascontiguousarray(g.table, dtype=np.float32), w)
+    controls = np.tile([1.0, 0.5], (10, 1))
+    x0 = np.array([0.0, 0.0, 0.0, 0.8, 0.1])
+    m2 = 2 * len(model.terrains)
+    dummy = (np.zeros((m2, 1, 4)), np.ones((m2, 4)), np.zeros(m2), np.zeros((m2, 1)), np.ones((m2, 1, 1)))
+    args = (x0, controls, 0.1, DYN_GP, model.theta, model.edd5["grass"], GP_GRID, table.reshape(-1, 4),
+            np.array(table.shape[:4]), g.lo[TABLE_AXES], g.inv_step[TABLE_AXES], *dummy, w)
+    _, cov_latent, var_latent = propagate(*args)
+    _, cov_pred, var_pred = propagate(*args, 2e-3, 5e-3)
+    np.testing.assert_allclose(var_pred - var_latent, np.tile([2e-3, 5e-3], (10, 1)), rtol=1e-9, atol=1e-15)
+    assert cov_pred[1, 3, 3] == pytest.approx(cov_latent[1, 3, 3] + 2e-3)
+    assert cov_pred[-1, 0, 0] > cov_latent[-1, 0, 0]  # the noise reaches the position
+
+
+def test_planner_covariance_includes_the_weighted_model_noise() -> None:
+    model = synthetic_model()
+    w = np.array([0.2, 0.3, 0.5])
+    cfg = PlannerConfig(samples=64, horizon=5, backend="cpu")
+    sc = paper_obstacle_scene()
+    grid = Planner(cfg, model).plan(sc.start, sc.task, w)
+    exact = Planner(cfg.model_copy(update={"gp_mode": "exact"}), model).plan(sc.start, sc.task, w)
+    noise_v = float(w**2 @ model.noise[0::2])
+    for r in (grid, exact):  # from the start state (zero covariance) the first step adds latent + noise
+        assert r.covariances[1, 3, 3] > noise_v
+
+
+def test_step_clearance_grows_radii_by_half_a_step() -> None:
+    model = synthetic_model()
+    sc = paper_obstacle_scene()
+    base = {"samples": 32, "horizon": 5, "backend": "cpu", "dynamics": "unicycle"}
+    plain = Planner(PlannerConfig(step_clearance=False, **base), model).plan(sc.start, sc.task)
+    grown = Planner(PlannerConfig(**base), model).plan(sc.start, sc.task)
+    half_step = 0.5 * 0.1 * 2.0  # dt * v_max / 2
+    np.testing.assert_allclose(grown.tightened, np.sqrt(plain.tightened**2 + half_step**2), rtol=1e-12)
+    # a straight step of v_max dt between two points outside the grown circle never enters the obstacle
+    r = sc.task.obstacles[0, 2]
+    big = np.sqrt(r**2 + half_step**2)
+    assert np.sqrt(big**2 - half_step**2) == pytest.approx(r)
