@@ -1,8 +1,10 @@
 """`gpmppi bench planner`: time one planner iteration (p50/p99 ms, Hz), optionally against pytorch_mppi.
 
 The planner runs in closed loop on the circle lane (kinematic plant) so the warm start is
-realistic; weights of 3 terrains are fixed (the grid table collapse then happens once, as in
-steady state). With `--vs pytorch-mppi` the same kinematic-unicycle problem (same S, N, dt,
+realistic; weights of 3 terrains are fixed (the grid table collapse then happens once), or with
+`--online-weights` move a little every iteration, as when the terrain estimator re-solves each
+cycle (the collapse of the grid table with the new weights is then part of every iteration).
+With `--vs pytorch-mppi` the same kinematic-unicycle problem (same S, N, dt,
 noise, lambda; a simple quadratic lane-tracking cost) runs through pytorch_mppi in the same
 process, interleaved with our plain (unicycle) and our chosen-model iterations.
 """
@@ -52,15 +54,20 @@ def _load_model():
 class _Ours:
     """One of our planners in closed loop on the circle lane."""
 
-    def __init__(self, config, model, weights: np.ndarray) -> None:
+    def __init__(self, config, model, weights: np.ndarray, online_weights: bool = False) -> None:
         from gpmppi.mppi.planner import Planner
 
         self.scenario = circle_lane()
         self.planner = Planner(config, model)
         self.weights = weights
         self.x = self.scenario.start.copy()
+        self.online_weights = online_weights
+        self.rng = np.random.default_rng(0)
 
     def step(self) -> float:
+        if self.online_weights:  # a small seeded walk on the simplex, as the estimator's re-solves give
+            w = np.clip(self.weights + self.rng.normal(0.0, 0.01, self.weights.shape), 0.01, 1.0)
+            self.weights = w / w.sum()
         t0 = time.perf_counter()
         r = self.planner.plan(self.x, self.scenario.task, self.weights)
         dt_ms = (time.perf_counter() - t0) * 1e3
@@ -116,7 +123,7 @@ def _stats(ts: list[float]) -> dict[str, float]:
 
 
 def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: str, vs: str | None, iters: int,
-              warmup: int = 5) -> dict:
+              warmup: int = 5, online_weights: bool = False) -> dict:
     from gpmppi.mppi.planner import PlannerConfig
 
     model, source = _load_model()
@@ -124,7 +131,9 @@ def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: s
     weights = np.linspace(1.0, 2.0, m)
     weights /= weights.sum()
     common = {"samples": samples, "horizon": horizon, "backend": backend, "gp_mode": gp}
-    runners: dict[str, object] = {"main": _Ours(PlannerConfig(dynamics=model_choice, **common), model, weights)}
+    runners: dict[str, object] = {
+        "main": _Ours(PlannerConfig(dynamics=model_choice, **common), model, weights, online_weights)
+    }
     cfg = runners["main"].planner.config  # type: ignore[attr-defined]
     if vs is not None:
         runners["plain"] = _Ours(PlannerConfig(dynamics="unicycle", **common), model, weights)
@@ -163,10 +172,14 @@ def register(app: typer.Typer) -> None:
         vs: Annotated[Peer | None, typer.Option("--vs", help="Also time a peer MPPI on the same problem")] = None,
         as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object")] = False,
         iters: Annotated[int, typer.Option("--iters", min=1, help="Timed iterations (after 5 warm-up)")] = 50,
+        online_weights: Annotated[
+            bool, typer.Option("--online-weights", help="Move the terrain weights every iteration (table collapse)")
+        ] = False,
     ) -> None:
         """Time planner iterations: p50/p99 ms and Hz (the machine's load adds noise: re-run when quiet)."""
         try:
-            res = run_bench(samples, horizon, model.value, gp.value, backend.value, vs.value if vs else None, iters)
+            res = run_bench(samples, horizon, model.value, gp.value, backend.value, vs.value if vs else None, iters,
+                            online_weights=online_weights)
         except ValueError as e:  # e.g. --backend cuda on a machine without a GPU
             typer.echo(f"error: {e}", err=True)
             raise typer.Exit(2) from e

@@ -34,24 +34,35 @@ GP_SIMPLEX = 2  # grid table, simplex interpolation (5 nodes)
 TABLE_AXES = np.array([2, 3, 0, 1])  # collapsed table axes in terms of the GP input [v_ref, omega_ref, v, omega]
 
 
-def collapse_table(table: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(G,G,G,G,4M) model table -> (G,G,G,G,4) float32 [sum w m_v, sum w m_w, sum w^2 C_v, sum w^2 C_w].
+def rollout_order(table: np.ndarray) -> np.ndarray:
+    """The model's (G,G,G,G,4M) grid table with its axes in `TABLE_AXES` order, float32, contiguous.
 
-    The output's axes are reordered to (v, omega, v_ref, omega_ref) (`TABLE_AXES`): a rollout's
-    velocities change slowly from step to step while its noisy commands jump, so with the velocity
-    axes outermost consecutive lookups of one sample stay within a few planes of the table (a
-    locality argument; its effect on this machine was within the timing noise).
+    A rollout's velocities change slowly from step to step while its noisy commands jump, so with
+    the velocity axes outermost consecutive lookups of one sample stay within a few planes of the
+    table. Done once per planner: collapsing from this order reads and writes in one stream
+    (collapsing with the transposition inside wrote with a large stride and took 2x as long).
     """
-    g0, g1, g2, g3, _ = table.shape
+    return np.ascontiguousarray(np.transpose(table, (2, 3, 0, 1, 4)), dtype=np.float32)
+
+
+def collapse_table(
+    table: np.ndarray, weights: np.ndarray, noise: tuple[float, float] = (0.0, 0.0), ordered: bool = False
+) -> np.ndarray:
+    """(G,G,G,G,4M) table -> (G,G,G,G,4) float32 [sum w m_v, sum w m_w, sum w^2 C_v + n_v, sum w^2 C_w + n_w].
+
+    `table` is the model's grid table, or (`ordered=True`) its `rollout_order` copy; the output's axes
+    are in `TABLE_AXES` order either way. `noise` (n_v, n_w) is added to the two variance channels.
+    """
+    src = table if ordered else rollout_order(table)
     # allocated by numpy, which asks the kernel for huge pages on large arrays: the rollouts read
     # this table at random, and huge pages mean fewer TLB misses
-    out = np.empty((g2, g3, g0, g1, 4), dtype=np.float32)
-    _collapse_into(table, np.ascontiguousarray(weights, dtype=np.float64), out)
+    out = np.empty(src.shape[:4] + (4,), dtype=np.float32)
+    _collapse_into(src, np.ascontiguousarray(weights, dtype=np.float64), float(noise[0]), float(noise[1]), out)
     return out
 
 
 @njit(cache=True, parallel=True)
-def _collapse_into(table: np.ndarray, weights: np.ndarray, out: np.ndarray) -> None:
+def _collapse_into(table: np.ndarray, weights: np.ndarray, noise_v: float, noise_w: float, out: np.ndarray) -> None:
     g0, g1, g2, g3, c = table.shape
     m = c // 4
     for i0 in prange(g0):
@@ -61,18 +72,18 @@ def _collapse_into(table: np.ndarray, weights: np.ndarray, out: np.ndarray) -> N
                     node = table[i0, i1, i2, i3]
                     mv = 0.0
                     mw = 0.0
-                    cv = 0.0
-                    cw = 0.0
+                    cv = noise_v
+                    cw = noise_w
                     for t in range(m):
                         wt = weights[t]
                         mv += wt * node[2 * t]
                         mw += wt * node[2 * t + 1]
                         cv += wt * wt * node[2 * m + 2 * t]
                         cw += wt * wt * node[2 * m + 2 * t + 1]
-                    out[i2, i3, i0, i1, 0] = mv
-                    out[i2, i3, i0, i1, 1] = mw
-                    out[i2, i3, i0, i1, 2] = cv
-                    out[i2, i3, i0, i1, 3] = cw
+                    out[i0, i1, i2, i3, 0] = mv
+                    out[i0, i1, i2, i3, 1] = mw
+                    out[i0, i1, i2, i3, 2] = cv
+                    out[i0, i1, i2, i3, 3] = cw
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")

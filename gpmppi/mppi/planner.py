@@ -33,6 +33,7 @@ from gpmppi.mppi.dynamics import (
     TABLE_AXES,
     collapse_table,
     propagate,
+    rollout_order,
 )
 from gpmppi.mppi.lane import LaneLookup, cached_lane_lookup
 from gpmppi.tasks import GoalTask, LaneTask
@@ -178,7 +179,7 @@ class Planner:
         self._grid_inv = np.ones(4)
         if self._dyn == DYN_GP and self._gp_mode != GP_EXACT:
             g = model.grid()
-            self._table_full = np.ascontiguousarray(g.table, dtype=np.float32)
+            self._table_full = rollout_order(g.table)
             self._table_dims = np.array(g.table.shape[:4], dtype=np.int64)[TABLE_AXES]
             self._grid_lo = np.ascontiguousarray(np.asarray(g.lo, dtype=np.float64)[TABLE_AXES])
             self._grid_inv = np.ascontiguousarray(np.asarray(g.inv_step, dtype=np.float64)[TABLE_AXES])
@@ -254,12 +255,9 @@ class Planner:
         """Collapse the grid table when the weights changed; pick the EDD5 terrain. Returns (edd5_p, ms)."""
         t0 = time.perf_counter()
         if self._table_full is not None and (self._table_weights is None or not np.array_equal(w, self._table_weights)):
-            self._table = collapse_table(self._table_full, w).reshape(-1, 4)
             # predictive variance = latent + likelihood noise: the rollouts' variance cost and the propagated
             # covariance both read it from the table
-            noise_v, noise_w = self._noise_var(w)
-            self._table[:, 2] += np.float32(noise_v)
-            self._table[:, 3] += np.float32(noise_w)
+            self._table = collapse_table(self._table_full, w, self._noise_var(w), ordered=True).reshape(-1, 4)
             self._table_weights = w.copy()
         name = self.config.edd5_terrain
         idx = self.model.terrains.index(name) if name is not None else int(np.argmax(w))
