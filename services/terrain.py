@@ -33,15 +33,16 @@ def run(settings: Settings) -> int:
     with Node(settings) as node:
         out = node.publisher("terrain_weights")
         states = node.subscribe("state", newest_only=False, capacity=64)
-        command_sub = node.subscribe(settings.command_source)
-        command = np.zeros(2)
-        # the newest base command when a state arrives is (mostly) the response to the previous state, i.e.
-        # what was applied between the two: so each pair is observed with the command current at its end
+        command_sub = node.subscribe(settings.command_source, newest_only=False, capacity=64)
+        # commands carry the stamp of the state they were planned from (egress keeps it), so the command applied
+        # over the transition from the state stamped t_k is the one stamped t_k: pairing by stamp, not by arrival
+        # order, stays right when this loop runs late and the next command has already arrived
+        commands: dict[int, np.ndarray] = {}
         previous = None  # (stamp_ns, state array)
         while node.ok():
-            c = command_sub.take()
-            if c is not None:
-                command = np.array([c.v, c.omega] if settings.command_source == "base_cmd" else [c.v_ref, c.omega_ref])
+            for c in command_sub.drain():
+                u = [c.v, c.omega] if settings.command_source == "base_cmd" else [c.v_ref, c.omega_ref]
+                commands[c.header.stamp_ns] = np.array(u)
             new_states = states.drain()
             if not new_states:
                 node.spin_once()
@@ -51,9 +52,13 @@ def run(settings: Settings) -> int:
                 stamp = msg.header.stamp_ns
                 if previous is not None:
                     gap = (stamp - previous[0]) / 1e9
-                    if abs(gap - settings.dt) <= settings.dt_tolerance * settings.dt:
-                        estimator.observe(previous[1], command.copy(), x)
+                    command = commands.get(previous[0])
+                    if command is not None and abs(gap - settings.dt) <= settings.dt_tolerance * settings.dt:
+                        estimator.observe(previous[1], command, x)
                 previous = (stamp, x)
+            # keep only commands that a later transition can still use
+            for old in [t for t in commands if t < previous[0]]:
+                del commands[old]
             est = estimator.estimate()
             weights = np.clip(np.asarray(est.weights, dtype=np.float64), 0.0, 1.0)
             weights = (
