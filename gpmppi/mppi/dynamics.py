@@ -226,7 +226,7 @@ def gp_residual(
     return mv, mw, cv, cw
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def velocity_coefficients(theta: np.ndarray) -> np.ndarray:
     """[th3/th1, th4/th1, 1/th1, th5/th2, th6/th2, 1/th2]: divisions done once, not at every sample-step."""
     return np.array([theta[2] / theta[0], theta[3] / theta[0], 1.0 / theta[0],
