@@ -16,7 +16,7 @@ import pytest
 import yaml
 import zenoh
 from mcap.reader import make_reader
-from test_services import client, free_port, wait_for
+from zenoh_helpers import client, free_port, wait_for
 
 from gpmppi.evaluation.metrics import lane_rmse_mm
 from gpmppi.scenarios import circle_lane

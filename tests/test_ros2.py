@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import zenoh
 from rosbags.typesys import Stores, get_typestore
-from test_services import (
+from zenoh.ext import Int64, z_deserialize
+from zenoh_helpers import (
     Collector,
     ServiceProcess,
     client,
@@ -22,7 +23,6 @@ from test_services import (
     settings,
     wait_for,
 )
-from zenoh.ext import Int64, z_deserialize
 
 from schemas import Command, State, decode, encode
 

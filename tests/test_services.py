@@ -5,135 +5,27 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import signal
-import socket
-import subprocess
-import sys
-import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 import yaml
 import zenoh
+from zenoh_helpers import (
+    Collector,
+    ServiceProcess,
+    client,
+    endpoint,
+    free_port,
+    heartbeats,
+    matched_publisher,
+    router,
+    settings,
+    wait_for,
+)
 
-from schemas import BaseCommand, Command, EStop, Header, Heartbeat, State, decode, encode
+from schemas import BaseCommand, Command, EStop, Header, State, decode, encode
 from services.node import Node, NodeSettings, ZenohSettings
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-# ---- helpers (also used by the other test_services_* / test_ros2_* / test_launch_* files) ----------
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def endpoint(port: int) -> str:
-    return f"tcp/127.0.0.1:{port}"
-
-
-@contextmanager
-def router(port: int) -> Iterator[zenoh.Session]:
-    config = zenoh.Config()
-    config.insert_json5("mode", '"router"')
-    config.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(config)
-    try:
-        yield session
-    finally:
-        session.close()
-
-
-def client(port: int) -> zenoh.Session:
-    return zenoh.open(ZenohSettings(mode="client", connect=[endpoint(port)]).to_config())
-
-
-def matched_publisher(session: zenoh.Session, key: str, **kwargs) -> zenoh.Publisher:
-    """A publisher that already has a matching subscriber (so the first put is not lost to routing)."""
-    pub = session.declare_publisher(key, **kwargs)
-    assert wait_for(lambda: pub.matching_status.matching, 5.0), f"no subscriber for {key}"
-    return pub
-
-
-def wait_for(predicate: Callable[[], bool], timeout: float, step: float = 0.02) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return True
-        time.sleep(step)
-    return predicate()
-
-
-class Collector:
-    """An outside observer: every sample on a key expression, with arrival times."""
-
-    def __init__(self, session: zenoh.Session, key_expr: str = "gpmppi/**") -> None:
-        self.samples: list[tuple[float, str, bytes, bytes | None]] = []
-        self.lock = threading.Lock()
-        self._sub = session.declare_subscriber(key_expr, self._on)
-
-    def _on(self, sample: zenoh.Sample) -> None:
-        att = sample.attachment.to_bytes() if sample.attachment is not None else None
-        with self.lock:
-            self.samples.append((time.monotonic(), str(sample.key_expr), sample.payload.to_bytes(), att))
-
-    def on(self, key: str) -> list[tuple[float, bytes, bytes | None]]:
-        with self.lock:
-            return [(t, p, a) for t, k, p, a in self.samples if k == key]
-
-    def keys(self) -> set[str]:
-        with self.lock:
-            return {k for _, k, _, _ in self.samples}
-
-
-class ServiceProcess:
-    """A service in its own process, as the launcher runs it."""
-
-    def __init__(self, kind: str, config: dict, tmp_path: Path) -> None:
-        path = tmp_path / f"{kind}-{config.get('service', kind)}.yaml"
-        path.write_text(yaml.safe_dump(config))
-        env = {**os.environ, "PYTHONPATH": str(REPO), "PYTHONUNBUFFERED": "1"}
-        self.log_path = tmp_path / f"{kind}.log"
-        self._log = open(self.log_path, "wb")  # noqa: SIM115 - closed in stop()
-        self.process = subprocess.Popen(
-            [sys.executable, "-m", "services.run", kind, "--config", str(path)],
-            stdout=self._log,
-            stderr=subprocess.STDOUT,
-            env=env,
-            cwd=tmp_path,
-        )
-
-    def alive(self) -> bool:
-        return self.process.poll() is None
-
-    def stop(self, timeout: float = 10.0) -> int:
-        if self.process.poll() is None:
-            self.process.send_signal(signal.SIGINT)
-            try:
-                self.process.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
-                raise AssertionError(f"service did not exit within {timeout} s of SIGINT") from None
-        self._log.close()
-        return self.process.returncode
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace")
-
-
-def heartbeats(col: Collector, robot: str, service: str) -> list[Heartbeat]:
-    return [decode(Heartbeat, p) for _, p, _ in col.on(f"gpmppi/{robot}/health/{service}")]
-
-
-def settings(service: str, port: int, robot: str = "r1", **extra) -> dict:
-    return {"service": service, "robot": robot, "zenoh": {"mode": "client", "connect": [endpoint(port)]}, **extra}
 
 
 # ---- node-level tests (in-process sessions) ------------------------------------------------------

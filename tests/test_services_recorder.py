@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 
 import zenoh
-from test_services import (
+from zenoh_helpers import (
     Collector,
     ServiceProcess,
     client,
