@@ -144,31 +144,91 @@ def _cswap(fa: float, sa: int, fb: float, sb: int) -> tuple[float, int, float, i
     return fmax(fa, fb), sb if swap else sa, fmin(fa, fb), sa if swap else sb
 
 
+_F32_ZERO = np.float32(0.0)
+_F32_ONE = np.float32(1.0)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def cell32(
+    x: float, lo: np.float32, inv_step: np.float32, top: np.float32, last: np.int32
+) -> tuple[np.int32, np.float32]:
+    """Cell index and fraction of `x` along one axis (as `grid_cell`), in single precision.
+
+    `top` = nodes - 1, `last` = nodes - 2. float32 and int32 so that a group of samples fills a
+    vector register twice as wide as in double precision; the fraction's rounding (~2e-6 of a cell
+    on a 30-node axis) is far below the interpolation's own error.
+    """
+    t = (np.float32(x) - lo) * inv_step
+    # selects written so that NaN fails both tests and lands on node 0: a NaN state (an overflowed rollout)
+    # then reads inside the table instead of at a garbage index
+    t = t if t > _F32_ZERO else _F32_ZERO
+    t = t if t < top else top
+    i = np.int32(t)
+    i = i if i < last else last
+    return i, t - np.float32(i)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def simplex_corner(
+    lo0: np.float32, lo1: np.float32, lo2: np.float32, lo3: np.float32, inv0: np.float32, inv1: np.float32,
+    inv2: np.float32, inv3: np.float32, top0: np.float32, top1: np.float32, top2: np.float32, top3: np.float32,
+    last0: np.int32, last1: np.int32, last2: np.int32, last3: np.int32, s0: np.int32, s1: np.int32, s2: np.int32,
+    a0: float, a1: float, a2: float, a3: float,
+) -> tuple[np.int32, np.int32, np.int32, np.int32, np.int32, np.float32, np.float32, np.float32, np.float32,
+           np.float32]:
+    """First node, the 4 strides to the next vertices, and the 5 barycentric weights of the point's Kuhn simplex.
+
+    Scalars only (the grid's parameters as single-precision scalars, `simplex_params`), no arrays, no
+    branches: a loop over a group of samples calling it compiles to vector code.
+    """
+    i0, f0 = cell32(a0, lo0, inv0, top0, last0)
+    i1, f1 = cell32(a1, lo1, inv1, top1, last1)
+    i2, f2 = cell32(a2, lo2, inv2, top2, last2)
+    i3, f3 = cell32(a3, lo3, inv3, top3, last3)
+    t0 = s0
+    t1 = s1
+    t2 = s2
+    t3 = np.int32(1)
+    n0 = i0 * s0 + i1 * s1 + i2 * s2 + i3
+    # sorting network for 4 elements (5 compare-exchanges), descending by fraction
+    f0, t0, f1, t1 = _cswap(f0, t0, f1, t1)
+    f2, t2, f3, t3 = _cswap(f2, t2, f3, t3)
+    f0, t0, f2, t2 = _cswap(f0, t0, f2, t2)
+    f1, t1, f3, t3 = _cswap(f1, t1, f3, t3)
+    f1, t1, f2, t2 = _cswap(f1, t1, f2, t2)
+    return n0, t0, t1, t2, t3, _F32_ONE - f0, f0 - f1, f1 - f2, f2 - f3, f3
+
+
+@njit(cache=True, inline="always")
+def simplex_params(
+    dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray
+) -> tuple[np.float32, np.float32, np.float32, np.float32, np.float32, np.float32, np.float32, np.float32,
+           np.float32, np.float32, np.float32, np.float32, np.int32, np.int32, np.int32, np.int32, np.int32,
+           np.int32, np.int32]:
+    """The grid's parameters as `simplex_corner` takes them: lo (4), inv_step (4), top (4), last (4), strides (3)."""
+    s2 = np.int32(dims[3])
+    s1 = np.int32(dims[2]) * s2
+    s0 = np.int32(dims[1]) * s1
+    return (np.float32(lo[0]), np.float32(lo[1]), np.float32(lo[2]), np.float32(lo[3]),
+            np.float32(inv_step[0]), np.float32(inv_step[1]), np.float32(inv_step[2]), np.float32(inv_step[3]),
+            np.float32(dims[0] - 1), np.float32(dims[1] - 1), np.float32(dims[2] - 1), np.float32(dims[3] - 1),
+            np.int32(dims[0] - 2), np.int32(dims[1] - 2), np.int32(dims[2] - 2), np.int32(dims[3] - 2), s0, s1, s2)
+
+
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def simplex_nodes(
     dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float, a3: float
 ) -> tuple[int, int, int, int, int, float, float, float, float, float]:
     """The 5 node indices and barycentric weights of the Kuhn simplex holding the point (see `interp4_simplex`)."""
-    i0, f0 = grid_cell(a0, lo[0], inv_step[0], dims[0])
-    i1, f1 = grid_cell(a1, lo[1], inv_step[1], dims[1])
-    i2, f2 = grid_cell(a2, lo[2], inv_step[2], dims[2])
-    i3, f3 = grid_cell(a3, lo[3], inv_step[3], dims[3])
-    s3 = 1
-    s2 = dims[3]
-    s1 = dims[2] * s2
-    s0 = dims[1] * s1
-    n0 = i0 * s0 + i1 * s1 + i2 * s2 + i3
-    # sorting network for 4 elements (5 compare-exchanges), descending by fraction
-    f0, s0, f1, s1 = _cswap(f0, s0, f1, s1)
-    f2, s2, f3, s3 = _cswap(f2, s2, f3, s3)
-    f0, s0, f2, s2 = _cswap(f0, s0, f2, s2)
-    f1, s1, f3, s3 = _cswap(f1, s1, f3, s3)
-    f1, s1, f2, s2 = _cswap(f1, s1, f2, s2)
-    n1 = n0 + s0
-    n2 = n1 + s1
-    n3 = n2 + s2
-    n4 = n3 + s3
-    return n0, n1, n2, n3, n4, 1.0 - f0, f0 - f1, f1 - f2, f2 - f3, f3
+    (lo0, lo1, lo2, lo3, inv0, inv1, inv2, inv3, top0, top1, top2, top3, last0, last1, last2, last3, s0, s1,
+     s2) = simplex_params(dims, lo, inv_step)
+    n0, t0, t1, t2, t3, w0, w1, w2, w3, w4 = simplex_corner(
+        lo0, lo1, lo2, lo3, inv0, inv1, inv2, inv3, top0, top1, top2, top3, last0, last1, last2, last3, s0, s1, s2,
+        a0, a1, a2, a3)
+    n1 = n0 + t0
+    n2 = n1 + t1
+    n3 = n2 + t2
+    return n0, n1, n2, n3, n3 + t3, w0, w1, w2, w3, w4
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+from llvmlite import ir
 from numba import njit
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 # fastmath without 'nnan'/'ninf': the kernels rely on inf/NaN checks (infinite costs, safe controls)
 FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
@@ -10,13 +13,45 @@ FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 @njit(cache=True, inline="always")
 def fmax(a: float, b: float) -> float:
-    """max of two floats: a branch-free maxsd on the CPU (the kernels' data-dependent choices would
-    mispredict as branches). numba's CUDA target cannot compile float `max`: its device twin is a
-    select (`gpmppi.mppi.cuda_backend`)."""
-    return max(a, b)
+    """max of two floats (Python's semantics: `a` unless `b > a`), written as a select.
+
+    Not the builtin `max`: numba compiles its implementation once per process and type, as a function
+    of its own that every later caller links, so its code depended on which function compiled it first
+    and on what the numba cache held (seeded plans changed with the cache's history). A select is
+    inlined into each caller and compiles to a branch-free maxsd there. numba's CUDA target compiles
+    it too (it cannot compile float `max`)."""
+    return b if b > a else a
 
 
 @njit(cache=True, inline="always")
 def fmin(a: float, b: float) -> float:
-    """min of two floats (see `fmax`)."""
-    return min(a, b)
+    """min of two floats (Python's semantics: `a` unless `b < a`; see `fmax`)."""
+    return b if b < a else a
+
+
+@intrinsic
+def prefetch_row(typingctx, table, row):  # noqa: ANN001, ANN201 - numba intrinsic: typing context and numba types
+    """Hint the CPU to fetch row `row` of the 2-D C-contiguous array `table` into the caches; returns nothing.
+
+    `llvm.prefetch` (read, keep in all levels): unlike a load it does not hold up the instructions
+    after it, so a group's table rows are requested before the work that does not need them and
+    arrive while it runs. No bounds check: the caller passes a valid row (a prefetch never faults,
+    but the caller's own read of the row follows).
+    """
+    if not (isinstance(table, types.Array) and table.ndim == 2 and isinstance(row, types.Integer)):
+        return None
+    sig = types.void(table, row)
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        zero = context.get_constant(types.intp, 0)
+        idx = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx, zero], wraparound=False)
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [cgutils.voidptr_t, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        builder.call(fn, [builder.bitcast(ptr, cgutils.voidptr_t), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
