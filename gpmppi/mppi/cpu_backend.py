@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from gpmppi.costs import TASK_GOAL, TASK_LANE, W_EXIT_DISCOUNT, W_TERMINAL, goal_cost, stage_cost
+from gpmppi.costs import TASK_GOAL, TASK_LANE, W_EXIT_DISCOUNT, W_TERMINAL, goal_term, stage_cost
 from gpmppi.mppi.dynamics import (
     DYN_GP,
     GP_SIMPLEX,
@@ -131,14 +131,14 @@ def rollout_kernel(
                     xy_out[s, k + 1, 1] = py
                 total[j] += stage_cost(
                     task_kind, cost_w, seg, cell_start, candidates, field, grid_origin, inv_cell, half_width,
-                    tightened_hw[k + 1], speed_target, goal, obstacles, radii[k + 1], discount_k, px, py, v, w, u0,
+                    tightened_hw[k + 1], speed_target, goal, obstacles, radii[k + 1], discount_k, px, py, yaw, v, w, u0,
                     u1, res[j, 2], res[j, 3],
                 )
             discount_k *= discount
         for j in range(n_in):
             t = total[j]
             if task_kind == TASK_GOAL:
-                t += goal_cost(st[j, 0], st[j, 1], goal, cost_w[W_TERMINAL])
+                t += goal_term(cost_w, field, grid_origin, inv_cell, goal, st[j, 0], st[j, 1], cost_w[W_TERMINAL])
             if not np.isfinite(t):
                 t = np.inf
             cost_out[first + j] = t

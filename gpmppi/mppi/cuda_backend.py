@@ -42,7 +42,7 @@ _interp4 = device_version(dynamics.interp4)
 _interp4_simplex = device_version(dynamics.interp4_simplex)
 _advance = device_version(dynamics.advance)
 _stage_cost = device_version(critic.stage_cost)
-_goal_cost = device_version(critic.goal_cost)
+_goal_term = device_version(critic.goal_term)
 
 
 @cuda.jit(cache=True)
@@ -87,11 +87,11 @@ def _rollout_kernel(
             xy_out[s, k + 1, 0] = px
             xy_out[s, k + 1, 1] = py
         total += _stage_cost(task_kind, cost_w, seg, cell_start, candidates, field, grid_origin, inv_cell, half_width,
-                             tightened_hw[k + 1], speed_target, goal, obstacles, radii[k + 1], discount_k, px, py, v,
-                             w, u0, u1, cv, cw)
+                             tightened_hw[k + 1], speed_target, goal, obstacles, radii[k + 1], discount_k, px, py,
+                             yaw, v, w, u0, u1, cv, cw)
         discount_k *= discount
     if task_kind == critic.TASK_GOAL:
-        total += _goal_cost(px, py, goal, cost_w[critic.W_TERMINAL])
+        total += _goal_term(cost_w, field, grid_origin, inv_cell, goal, px, py, cost_w[critic.W_TERMINAL])
     if math.isnan(total) or math.isinf(total):
         total = math.inf
     cost_out[s] = total

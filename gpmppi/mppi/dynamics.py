@@ -319,8 +319,11 @@ def propagate(
     gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray, noise_v: float = 0.0, noise_w: float = 0.0,
+    cov0: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Mean states (N+1, 5), covariances (N+1, 5, 5) and step variances (N, 2) along `controls`.
+
+    `cov0` (5, 5) is the covariance of the start state (the state estimate's), zero when None.
 
     GP model: Sigma+ = J Sigma J^T + diag(0, 0, 0, C_v + noise_v, C_w + noise_w) with J the nominal
     Euler Jacobian at (x_k, u_k) and C the ensemble's latent variance; `noise_v`, `noise_w` are the
@@ -334,6 +337,8 @@ def propagate(
     covs = np.zeros((n + 1, 5, 5))
     step_var = np.zeros((n, 2))
     states[0] = x0
+    if cov0 is not None and dyn_mode == DYN_GP:
+        covs[0] = cov0
     work = np.empty(ex_alpha.shape[1])
     gp_mean = np.empty(ex_alpha.shape[0])
     gp_var = np.empty(ex_alpha.shape[0])

@@ -5,6 +5,9 @@ precomputes, once per lane, a grid over the lane's surroundings whose cells list
 that can be nearest to any point of the cell (see `_cell_candidates`). A query measures the exact
 distance to those only, so it is exact, and costs a handful of segment distances near the lane.
 Nothing here assumes a particular shape: circles, squares and chicanes are all just polylines.
+
+The polyline's point order is the driving direction: the grid also stores the unit tangent of the
+nearest segment at every cell centre, so a cost can measure speed along the lane (`lane_query`).
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from gpmppi.mppi.flags import FASTMATH, fmin
+from gpmppi.mppi.flags import FASTMATH, fmax, fmin
 
 # segment rows: [ax, ay, dx, dy, 1/|d|^2]
 SEG_COLS = 5
@@ -29,7 +32,7 @@ class LaneLookup:
     segments: np.ndarray
     cell_start: np.ndarray  # (W*H + 1,) int64: cell i = r*W + c lists candidates[start[i]:start[i+1]]
     candidates: np.ndarray  # int32 segment indices
-    field: np.ndarray  # (H, W) exact distance at the cell centres [m]
+    field: np.ndarray  # (H, W, 3) at the cell centres: exact distance [m], unit tangent (tx, ty) of the nearest segment
     origin: np.ndarray  # (2,) world position of cell (0, 0)'s corner [m]
     inv_cell: float  # 1 / cell size [1/m]
     width: int  # W cells along x
@@ -71,7 +74,8 @@ def segment_distance2(seg: np.ndarray, j: int, x: float, y: float) -> float:
 def _cell_candidates(
     seg: np.ndarray, origin: np.ndarray, cell: float, h: int, w: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """CSR lists (cell i's candidates are cand[start[i]:start[i + 1]]) and the distance at cell centres (h, w).
+    """CSR lists (cell i's candidates are cand[start[i]:start[i + 1]]) and the (h, w, 3) field at the cell
+    centres: distance, and the unit direction of the nearest segment.
 
     For a point p in a cell with centre c (|p - c| <= cell / sqrt 2) the nearest segment j* obeys
     d(c, j*) <= d(p, j*) + |p - c| <= d(p, j_c) + |p - c| <= d_min(c) + sqrt(2) cell, so every
@@ -82,13 +86,22 @@ def _cell_candidates(
     slack = np.sqrt(2.0) * cell * 1.0001
     counts = np.zeros(n_cells + 1, dtype=np.int64)
     dmin = np.empty(n_cells)
+    field = np.empty((n_cells, 3))
     for i in prange(n_cells):
         y = origin[1] + (i // w + 0.5) * cell
         x = origin[0] + (i % w + 0.5) * cell
         best = np.inf
+        nearest = 0
         for j in range(n_seg):
-            best = min(best, segment_distance2(seg, j, x, y))
+            d2 = segment_distance2(seg, j, x, y)
+            if d2 < best:
+                best = d2
+                nearest = j
         dmin[i] = np.sqrt(best)
+        inv_len = np.sqrt(seg[nearest, 4])
+        field[i, 0] = dmin[i]
+        field[i, 1] = seg[nearest, 2] * inv_len
+        field[i, 2] = seg[nearest, 3] * inv_len
         limit = (dmin[i] + slack) ** 2
         c = 0
         for j in range(n_seg):
@@ -106,7 +119,7 @@ def _cell_candidates(
             if segment_distance2(seg, j, x, y) <= limit:
                 cand[pos] = j
                 pos += 1
-    return start, cand, dmin.reshape(h, w)
+    return start, cand, field.reshape(h, w, 3)
 
 
 def build_lane_lookup(
@@ -166,32 +179,46 @@ def lane_distance(
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def lane_distance_near(
+def lane_query(
     seg: np.ndarray, cell_start: np.ndarray, cand: np.ndarray, field: np.ndarray, origin: np.ndarray, inv_cell: float,
     x: float, y: float, threshold: float,
-) -> float:
-    """Distance to the polyline, exact whenever it matters for `d > threshold`.
+) -> tuple[float, float, float]:
+    """Distance to the polyline, exact whenever it matters for `d > threshold`, and the lane direction (tx, ty).
 
     The bilinear interpolation of the cell-centre distances is within sqrt(2) * cell of the true
     distance (the distance is 1-Lipschitz and the four centres are within sqrt(2) * cell of the
     point); when the interpolated value is that close to `threshold` the exact distance is used, so
     the comparison with the threshold is always exact and elsewhere the value is an approximation
     (error ~1e-4 m on smooth stretches, up to sqrt(2) * cell on the centre line's medial axis).
+
+    The direction is the bilinear blend of the nearest segments' unit tangents at the four cell
+    centres (clamped to the grid's edge outside it): a unit vector along straight stretches, turning
+    smoothly over one cell where the nearest segment changes (a corner's bisector).
     """
-    h, w = field.shape
+    h, w = field.shape[0], field.shape[1]
     fc = (x - origin[0]) * inv_cell - 0.5
     fr = (y - origin[1]) * inv_cell - 0.5
-    if fc >= 0.0 and fr >= 0.0 and fc < w - 1 and fr < h - 1:
-        c = int(fc)
-        r = int(fr)
-        tx = fc - c
-        ty = fr - r
-        d = (1.0 - ty) * ((1.0 - tx) * field[r, c] + tx * field[r, c + 1]) + ty * (
-            (1.0 - tx) * field[r + 1, c] + tx * field[r + 1, c + 1]
-        )
+    inside = fc >= 0.0 and fr >= 0.0 and fc < w - 1 and fr < h - 1
+    fc = fmin(fmax(fc, 0.0), w - 1.000001)
+    fr = fmin(fmax(fr, 0.0), h - 1.000001)
+    c = int(fc)
+    r = int(fr)
+    # neighbours, kept on the grid (selects: the CUDA target compiles these kernels too)
+    c1 = c + 1 if c + 1 < w else c
+    r1 = r + 1 if r + 1 < h else r
+    tx = fc - c
+    ty = fr - r
+    w00 = (1.0 - ty) * (1.0 - tx)
+    w01 = (1.0 - ty) * tx
+    w10 = ty * (1.0 - tx)
+    w11 = ty * tx
+    dir_x = w00 * field[r, c, 1] + w01 * field[r, c1, 1] + w10 * field[r1, c, 1] + w11 * field[r1, c1, 1]
+    dir_y = w00 * field[r, c, 2] + w01 * field[r, c1, 2] + w10 * field[r1, c, 2] + w11 * field[r1, c1, 2]
+    if inside:
+        d = w00 * field[r, c, 0] + w01 * field[r, c1, 0] + w10 * field[r1, c, 0] + w11 * field[r1, c1, 0]
         if abs(d - threshold) > 1.4143 / inv_cell:
-            return d
-    return lane_distance(seg, cell_start, cand, origin, inv_cell, w, h, x, y)
+            return d, dir_x, dir_y
+    return lane_distance(seg, cell_start, cand, origin, inv_cell, w, h, x, y), dir_x, dir_y
 
 
 @njit(cache=True)
