@@ -108,3 +108,16 @@ def test_bad_state_covariance_is_rejected(bad: np.ndarray) -> None:
     planner = Planner(PlannerConfig(samples=16, horizon=3, backend="cpu"), synthetic_model())
     with pytest.raises(ValueError, match="state_cov"):
         planner.plan(sc.start, sc.task, state_cov=bad)
+
+
+def test_lane_query_distance_is_exact_at_the_threshold_and_close_elsewhere() -> None:
+    from gpmppi.mppi.lane import brute_force_distance
+
+    lane = build_lane_lookup(square_lane().task.centerline, True, margin=3.0, cell=0.1)
+    rng = np.random.default_rng(5)
+    for x, y, thr in zip(rng.uniform(-5, 25, 3000), rng.uniform(-5, 25, 3000), rng.uniform(0.1, 2.75, 3000),
+                         strict=True):
+        d = _query(lane, x, y, thr)[0]
+        ref = brute_force_distance(lane.segments, x, y)
+        assert (d > thr) == (ref > thr)
+        assert abs(d - ref) <= np.sqrt(2) * 0.1 + 1e-9

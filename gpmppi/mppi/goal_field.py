@@ -20,7 +20,6 @@ Queries interpolate bilinearly; outside the grid they add the distance to the gr
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,7 +28,9 @@ from scipy.ndimage import distance_transform_edt
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from gpmppi.mppi.flags import FASTMATH, fmax, fmin
+from gpmppi.mppi.flags import FASTMATH
+from gpmppi.mppi.lane import grid_cell_at
+from gpmppi.mppi.recent import Recent
 
 # 16-neighbour stencil (one octant of it mirrored): unit steps, diagonals and knight moves
 _STENCIL = np.array(
@@ -151,8 +152,7 @@ def _straddled_free(free: np.ndarray, di: int, dj: int, r0: slice, c0: slice) ->
     return ok
 
 
-_FIELDS: OrderedDict[tuple, GoalField] = OrderedDict()
-_FIELDS_KEPT = 8
+_FIELDS: Recent[GoalField] = Recent()
 
 
 def cached_goal_field(
@@ -163,34 +163,14 @@ def cached_goal_field(
     g = np.ascontiguousarray(goal, dtype=np.float64)
     c = np.ascontiguousarray(circles, dtype=np.float64).reshape(-1, 3)
     key = (g.tobytes(), c.shape, c.tobytes(), float(margin), float(cell))
-    found = _FIELDS.get(key)
-    if found is None:
-        found = build_goal_field(g, c, extent_points, margin, cell)
-        _FIELDS[key] = found
-        while len(_FIELDS) > _FIELDS_KEPT:
-            _FIELDS.popitem(last=False)
-    else:
-        _FIELDS.move_to_end(key)
-    return found
+    return _FIELDS.get(key, lambda: build_goal_field(g, c, extent_points, margin, cell))
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def goal_distance(field: np.ndarray, origin: np.ndarray, inv_cell: float, x: float, y: float) -> float:
     """Bilinear interpolation of the field's distance; outside the grid, the edge value plus the way to it."""
-    h, w = field.shape[0], field.shape[1]
-    fc = (x - origin[0]) * inv_cell - 0.5
-    fr = (y - origin[1]) * inv_cell - 0.5
-    cc = fmin(fmax(fc, 0.0), w - 1.000001)
-    cr = fmin(fmax(fr, 0.0), h - 1.000001)
-    c = int(cc)
-    r = int(cr)
-    c1 = c + 1 if c + 1 < w else c
-    r1 = r + 1 if r + 1 < h else r
-    tx = cc - c
-    ty = cr - r
+    r, c, r1, c1, tx, ty, out_c, out_r = grid_cell_at(field, origin, inv_cell, x, y)
     d = (1.0 - ty) * ((1.0 - tx) * field[r, c, 0] + tx * field[r, c1, 0]) + ty * (
         (1.0 - tx) * field[r1, c, 0] + tx * field[r1, c1, 0]
     )
-    ox = (fc - cc) / inv_cell
-    oy = (fr - cr) / inv_cell
-    return d + math.sqrt(ox * ox + oy * oy)
+    return d + math.sqrt(out_c * out_c + out_r * out_r) / inv_cell

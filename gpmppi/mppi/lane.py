@@ -13,13 +13,13 @@ nearest segment at every cell centre, so a cost can measure speed along the lane
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
 
 from gpmppi.mppi.flags import FASTMATH, fmax, fmin
+from gpmppi.mppi.recent import Recent
 
 # segment rows: [ax, ay, dx, dy, 1/|d|^2]
 SEG_COLS = 5
@@ -140,23 +140,14 @@ def build_lane_lookup(
     return LaneLookup(seg, start, cand, field, lo, 1.0 / cell, w, h)
 
 
-_LOOKUPS: OrderedDict[tuple, LaneLookup] = OrderedDict()
-_LOOKUPS_KEPT = 8
+_LOOKUPS: Recent[LaneLookup] = Recent()
 
 
 def cached_lane_lookup(centerline: np.ndarray, closed: bool, margin: float, cell: float = 0.1) -> LaneLookup:
     """`build_lane_lookup`, remembered for the last few lanes (planners of one process share a lane's lookup)."""
     c = np.ascontiguousarray(centerline, dtype=np.float64)
     key = (c.shape, c.tobytes(), bool(closed), float(margin), float(cell))
-    found = _LOOKUPS.get(key)
-    if found is None:
-        found = build_lane_lookup(c, closed, margin, cell)
-        _LOOKUPS[key] = found
-        while len(_LOOKUPS) > _LOOKUPS_KEPT:
-            _LOOKUPS.popitem(last=False)
-    else:
-        _LOOKUPS.move_to_end(key)
-    return found
+    return _LOOKUPS.get(key, lambda: build_lane_lookup(c, closed, margin, cell))
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -179,6 +170,25 @@ def lane_distance(
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def grid_cell_at(
+    field: np.ndarray, origin: np.ndarray, inv_cell: float, x: float, y: float
+) -> tuple[int, int, int, int, float, float, float, float]:
+    """Bilinear cell of (x, y) in a cell-centred (H, W, ...) grid: rows r, r1, columns c, c1, fractions
+    (tx, ty), and how far [cells] the point lies outside the grid along x and y (0 inside)."""
+    h, w = field.shape[0], field.shape[1]
+    fc = (x - origin[0]) * inv_cell - 0.5
+    fr = (y - origin[1]) * inv_cell - 0.5
+    cc = fmin(fmax(fc, 0.0), w - 1.000001)
+    cr = fmin(fmax(fr, 0.0), h - 1.000001)
+    c = int(cc)
+    r = int(cr)
+    # neighbours, kept on the grid (selects: the CUDA target compiles these kernels too)
+    c1 = c + 1 if c + 1 < w else c
+    r1 = r + 1 if r + 1 < h else r
+    return r, c, r1, c1, cc - c, cr - r, fc - cc, fr - cr
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def lane_query(
     seg: np.ndarray, cell_start: np.ndarray, cand: np.ndarray, field: np.ndarray, origin: np.ndarray, inv_cell: float,
     x: float, y: float, threshold: float,
@@ -195,19 +205,8 @@ def lane_query(
     centres (clamped to the grid's edge outside it): a unit vector along straight stretches, turning
     smoothly over one cell where the nearest segment changes (a corner's bisector).
     """
-    h, w = field.shape[0], field.shape[1]
-    fc = (x - origin[0]) * inv_cell - 0.5
-    fr = (y - origin[1]) * inv_cell - 0.5
-    inside = fc >= 0.0 and fr >= 0.0 and fc < w - 1 and fr < h - 1
-    fc = fmin(fmax(fc, 0.0), w - 1.000001)
-    fr = fmin(fmax(fr, 0.0), h - 1.000001)
-    c = int(fc)
-    r = int(fr)
-    # neighbours, kept on the grid (selects: the CUDA target compiles these kernels too)
-    c1 = c + 1 if c + 1 < w else c
-    r1 = r + 1 if r + 1 < h else r
-    tx = fc - c
-    ty = fr - r
+    r, c, r1, c1, tx, ty, out_c, out_r = grid_cell_at(field, origin, inv_cell, x, y)
+    inside = out_c == 0.0 and out_r == 0.0
     w00 = (1.0 - ty) * (1.0 - tx)
     w01 = (1.0 - ty) * tx
     w10 = ty * (1.0 - tx)
@@ -218,7 +217,7 @@ def lane_query(
         d = w00 * field[r, c, 0] + w01 * field[r, c1, 0] + w10 * field[r1, c, 0] + w11 * field[r1, c1, 0]
         if abs(d - threshold) > 1.4143 / inv_cell:
             return d, dir_x, dir_y
-    return lane_distance(seg, cell_start, cand, origin, inv_cell, w, h, x, y), dir_x, dir_y
+    return lane_distance(seg, cell_start, cand, origin, inv_cell, field.shape[1], field.shape[0], x, y), dir_x, dir_y
 
 
 @njit(cache=True)
