@@ -10,7 +10,6 @@ import time
 from typing import Literal
 
 import numpy as np
-import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import State
@@ -101,8 +100,7 @@ def run(settings: Settings) -> int:
             raw = None
         else:
             odom = None
-            assert node.session is not None
-            raw = node.session.declare_subscriber(settings.ros2.key_expr(), zenoh.handlers.RingChannel(1))
+            raw = node.inbox(settings.ros2.key_expr())  # newest only
             node.log.info("ROS 2 odometry from %s", settings.ros2.key_expr())
         while node.ok():
             state: State | None = None
@@ -111,7 +109,7 @@ def run(settings: Settings) -> int:
                 if msg is not None:
                     cov = None if msg.covariance is None else np.asarray(msg.covariance).reshape(5, 5)
                     state = ingress.accept(msg.header.stamp_ns, msg.header.frame_id, state_to_array(msg), cov)
-            elif raw is not None and (sample := raw.try_recv()) is not None:
+            elif raw is not None and (sample := raw.take()) is not None:
                 node.counters.received += 1
                 try:
                     reading = ros2.odometry_from_cdr(sample.payload.to_bytes(), settings.ros2.distro)

@@ -238,11 +238,12 @@ def build(
     entries = [e for e in launch.services if e.enabled]
     names = [e.name for e in entries]
     if record:
-        # recorder and viewer start first so they see the others' first messages
-        entries.insert(0, ServiceEntry(name="recorder", required=False, config={"path": record}))
+        # recorder and viewer start first so they see the others' first messages; both at a lower CPU priority
+        # (nice) than the control path, which they must never delay
+        entries.insert(0, ServiceEntry(name="recorder", required=False, config={"path": record, "nice": 10}))
     if rerun and rerun[0] != "off":
         mode = rerun[0]
-        config: dict[str, Any] = {"mode": mode}
+        config: dict[str, Any] = {"mode": mode, "nice": 10}
         if mode == "save":
             config["path"] = rerun[1] if len(rerun) > 1 else "runs/view.rrd"
         elif mode == "connect" and len(rerun) > 1:

@@ -5,11 +5,14 @@ A service is a short event loop over a `Node`:
     node = Node(settings)            # nothing networked yet
     with node:                       # opens the Zenoh session (after the process started, never across a fork)
         pub = node.publisher("cmd")
-        sub = node.subscribe("state")            # newest-only (RingChannel(1)) by default
+        sub = node.subscribe("state")            # newest-only by default (FIFO on request)
         while node.ok():                         # False after SIGINT/SIGTERM
             msg = sub.take()                     # decoded + validated, or None; bad input counted, never raised
             ...
-            node.spin_once()                     # heartbeat at `heartbeat_hz`, short sleep
+            node.spin_once()                     # heartbeat at `heartbeat_hz`; waits until input arrives (or poll_s)
+
+Input wakes the loop at once (a Zenoh callback fills the subscription's inbox and sets an event the loop waits
+on), so a message on the control path waits for no polling interval.
 
 Sessions are Zenoh clients of a router (the launcher starts one; `zenohd` works too) or listening peers.
 """
@@ -28,12 +31,13 @@ from types import FrameType, TracebackType
 from typing import Any, Generic, Literal, TypeVar
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
 from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_for
 from schemas.codec import ENCODING, MAX_PAYLOAD_BYTES
 from schemas.keys import DEFAULT_ROBOT
+from services.scheduling import Inbox
 
 M = TypeVar("M", bound=Message)
 S = TypeVar("S", bound="NodeSettings")
@@ -71,10 +75,27 @@ class NodeSettings(BaseSettings):
     robot: str = Field(DEFAULT_ROBOT, description="robot name, the second level of every key")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")
     heartbeat_hz: float = Field(1.0, gt=0, description="heartbeat rate on gpmppi/{robot}/health/{service}")
-    poll_s: float = Field(0.002, gt=0, description="sleep between loop iterations when idle [s]")
+    poll_s: float = Field(
+        0.05, gt=0, description="longest idle wait of the loop [s] (input wakes it at once; this bounds timers)"
+    )
+    nice: int = Field(
+        0, ge=0, le=19, description="added to the process's niceness at start: a non-critical service (terrain, "
+        "recorder, viewer) yields the cores to the control path (sim/ingress/planner/egress) on a small machine"
+    )
+    numba_threads: int | None = Field(
+        None, description="threads of numba's parallel kernels in this process: n, or -k for all cores but k "
+        "(at least 1); None: one per core"
+    )
     max_payload_bytes: int = Field(MAX_PAYLOAD_BYTES, gt=0, description="larger payloads are rejected")
     log_level: str = Field("INFO", description="logging level")
     log_json: bool = Field(True, description="JSON-lines logs (False: plain text)")
+
+    @field_validator("numba_threads")
+    @classmethod
+    def _nonzero_threads(cls, v: int | None) -> int | None:
+        if v == 0:
+            raise ValueError("numba_threads must be a thread count (>= 1), -k for all cores but k, or null")
+        return v
 
     @classmethod
     def settings_customise_sources(
@@ -175,10 +196,7 @@ class TypedSubscription(Generic[M]):
         self.node = node
         self.key = key
         self.model = model
-        handler = zenoh.handlers.RingChannel(1) if newest_only else zenoh.handlers.FifoChannel(capacity)
-        assert node.session is not None
-        origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
-        self._sub = node.session.declare_subscriber(key, handler, allowed_origin=origin)
+        self._inbox = node.inbox(key, newest_only, capacity, remote_only)
         self.last: M | None = None
 
     def _decode(self, sample: zenoh.Sample) -> M | None:
@@ -196,7 +214,7 @@ class TypedSubscription(Generic[M]):
     def take(self) -> M | None:
         """The newest valid message since the last call, or None (newest-only: at most one is queued)."""
         newest = None
-        while (sample := self._sub.try_recv()) is not None:
+        while (sample := self._inbox.take()) is not None:
             msg = self._decode(sample)
             newest = msg if msg is not None else newest
         return newest
@@ -204,7 +222,7 @@ class TypedSubscription(Generic[M]):
     def drain(self, limit: int = 10_000) -> list[M]:
         """Every valid queued message, oldest first."""
         out: list[M] = []
-        while len(out) < limit and (sample := self._sub.try_recv()) is not None:
+        while len(out) < limit and (sample := self._inbox.take()) is not None:
             msg = self._decode(sample)
             if msg is not None:
                 out.append(msg)
@@ -222,6 +240,9 @@ class Node:
         self.counters = Counters()
         self.session: zenoh.Session | None = None
         self._stop = threading.Event()
+        self._wake = threading.Event()  # set by arriving input and by stop: ends the loop's idle wait
+        self.closing = False
+        self._subscribers: list[zenoh.Subscriber] = []
         self._token: zenoh.LivelinessToken | None = None
         self._health: TypedPublisher[Heartbeat] | None = None
         self._next_heartbeat = 0.0
@@ -235,10 +256,15 @@ class Node:
     # lifecycle
     def _on_signal(self, signum: int, frame: FrameType | None) -> None:
         self.log.info("signal %s: stopping", signal.Signals(signum).name)
-        self._stop.set()
+        self.stop()
 
     def stop(self) -> None:
         self._stop.set()
+        self._wake.set()
+
+    def wake(self) -> None:
+        """End the loop's current idle wait (input arrived)."""
+        self._wake.set()
 
     def ok(self) -> bool:
         return not self._stop.is_set()
@@ -258,6 +284,7 @@ class Node:
     def close(self) -> None:
         if self.session is None:
             return
+        self.closing = True
         try:
             self.heartbeat()
             if self._token is not None:
@@ -265,6 +292,7 @@ class Node:
             self.session.close()
         finally:
             self.session = None
+            self._subscribers.clear()
             self.log.info("session closed")
 
     def __enter__(self) -> Node:
@@ -299,12 +327,23 @@ class Node:
         model: type[M] | None = None,
         remote_only: bool = False,
     ) -> TypedSubscription[M]:
-        """A typed subscription; newest-only (RingChannel(1)) or FIFO; `remote_only` ignores this node's own."""
+        """A typed subscription; newest-only or FIFO (see `Inbox`); `remote_only` ignores this node's own."""
         if self.session is None:
             raise RuntimeError("open the node (with node: ...) before declaring subscriptions")
         key = key or self.key(name)
         model = model or KEYS[name][1]  # type: ignore[assignment]
         return TypedSubscription(self, key, model, newest_only, capacity, remote_only)  # type: ignore[arg-type]
+
+    def inbox(self, key: str, newest_only: bool = True, capacity: int = 1024, remote_only: bool = False) -> Inbox:
+        """Raw samples on `key` (any key expression), waking the loop on arrival; see `Inbox`."""
+        if self.session is None:
+            raise RuntimeError("open the node (with node: ...) before declaring subscriptions")
+        inbox = Inbox(self.wake, lambda: self.closing, newest_only, capacity)
+        origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
+        self._subscribers.append(
+            self.session.declare_subscriber(key, zenoh.handlers.Callback(inbox.push), allowed_origin=origin)
+        )
+        return inbox
 
     # health
     def reject(self, reason: str) -> None:
@@ -351,9 +390,17 @@ class Node:
         self._health.put(hb)
 
     def spin_once(self, sleep_s: float | None = None) -> None:
-        """Heartbeat when due, then sleep a little (or `sleep_s`); returns early on stop."""
+        """Heartbeat when due, then wait up to `poll_s` (or `sleep_s`); returns at once when input arrives
+        or on stop. The caller's loop body must follow (it takes what woke the wait)."""
         now = time.monotonic()
         if now >= self._next_heartbeat:
             self._next_heartbeat = now + 1.0 / self.settings.heartbeat_hz
             self.heartbeat()
-        self._stop.wait(self.settings.poll_s if sleep_s is None else max(0.0, sleep_s))
+        wait_s = self.settings.poll_s if sleep_s is None else max(0.0, sleep_s)
+        wait_s = min(wait_s, max(0.0, self._next_heartbeat - now))
+        if wait_s > 0.0:
+            self._wake.wait(wait_s)
+        # cleared after the wait and before the loop looks at its inboxes: an arrival from here on sets it again
+        self._wake.clear()
+        if self._stop.is_set():
+            self._wake.set()

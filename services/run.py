@@ -15,6 +15,7 @@ from types import ModuleType
 from pydantic import ValidationError
 
 from services.node import setup_logging
+from services.scheduling import apply_process_settings
 
 SERVICES: dict[str, str] = {
     "router": "services.router",
@@ -48,6 +49,7 @@ def run_service(kind: str, config: str | Path | None = None) -> int:
         return 2
     setup_logging(settings.service, settings.log_level, settings.log_json)
     try:
+        apply_process_settings(settings)
         return int(module.run(settings) or 0)
     except KeyboardInterrupt:
         # SIGINT before the service's node took over the signal (e.g. while the planner compiles)

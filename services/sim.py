@@ -60,6 +60,10 @@ def run(settings: Settings) -> int:
             if msg is not None:
                 command = np.array([msg.v, msg.omega])
                 command_time = time.monotonic()
+            delay = next_tick - time.monotonic()
+            if delay > 0.0:  # wait for the tick (a command arriving meanwhile wakes us; it applies from the tick)
+                node.spin_once(delay)
+                continue
             if time.monotonic() - command_time > settings.command_timeout_s:
                 command = np.zeros(2)  # the base's own safety: no fresh command, no motion
             if tick % publish_every == 0:
@@ -76,8 +80,7 @@ def run(settings: Settings) -> int:
             plant.step(command, step_dt)
             tick += 1
             next_tick += step_dt
-            delay = next_tick - time.monotonic()
-            if delay < -1.0:  # fell far behind (machine stalled): resynchronise instead of racing
+            if next_tick - time.monotonic() < -1.0:  # fell far behind (machine stalled): resynchronise, not race
                 next_tick = time.monotonic()
-            node.spin_once(max(0.0, delay))
+            node.spin_once(0.0)
     return 0

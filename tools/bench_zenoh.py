@@ -1,11 +1,13 @@
 """`gpmppi bench zenoh`: the whole stack over Zenoh on loopback (router + sim + ingress + terrain + planner +
 egress, each its own process): planner rate, state-stamp -> command latency p50/p99 (as an outside client
-receives the command), planner compute p99, and each service's time to its first heartbeat."""
+receives the command), planner compute p99, each service's time to its first heartbeat and first output, and the
+machine's load average around the run."""
 
 from __future__ import annotations
 
 import io
 import json
+import os
 
 import typer
 
@@ -22,8 +24,12 @@ def register(bench_app: typer.Typer) -> None:
         from services.launcher import run_launch
 
         logs = io.StringIO()
+        load_before = os.getloadavg()[0]
         code, s = run_launch(duration=duration, port=port, out=None if show_logs else logs)
         result = {
+            # the machine's 1-minute load average before and after (the stack itself adds about 1): timings on
+            # a loaded machine are not those of an idle one
+            "load_avg_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)],
             "duration_s": round(s.duration_s, 1),
             "planner_rate_hz": s.planner_rate_hz,
             "cmd_latency_p50_ms": s.latency_p50_ms,

@@ -1,0 +1,73 @@
+"""How a service shares the machine: subscription inboxes that wake the service loop on arrival (no polling
+delay on the control path), and the process's CPU priority and numba thread count."""
+
+from __future__ import annotations
+
+import os
+import queue
+import sys
+from collections import deque
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import zenoh
+
+if TYPE_CHECKING:
+    from services.node import NodeSettings
+
+
+class Inbox:
+    """Samples a Zenoh callback delivered, waiting for the service loop; every arrival calls `wake` (the node's
+    loop waits on an event, not a fixed sleep, so input is handled at once).
+
+    Newest-only keeps one sample (a newer one replaces it). FIFO keeps up to `capacity` and then makes the
+    sender wait, as Zenoh's FifoChannel does: nothing is dropped while the node runs."""
+
+    def __init__(self, wake: Callable[[], None], closing: Callable[[], bool], newest_only: bool, capacity: int) -> None:
+        self._wake = wake
+        self._closing = closing
+        self._newest: deque[zenoh.Sample] | None = deque(maxlen=1) if newest_only else None
+        self._fifo: queue.Queue[zenoh.Sample] | None = None if newest_only else queue.Queue(maxsize=capacity)
+
+    def push(self, sample: zenoh.Sample) -> None:
+        """Called on Zenoh's callback thread."""
+        if self._newest is not None:
+            self._newest.append(sample)
+        else:
+            assert self._fifo is not None
+            while True:
+                try:
+                    self._fifo.put(sample, timeout=0.1)
+                    break
+                except queue.Full:
+                    if self._closing():  # nobody will drain it any more
+                        return
+        self._wake()
+
+    def take(self) -> zenoh.Sample | None:
+        """The oldest waiting sample (newest-only: the one waiting), or None."""
+        if self._newest is not None:
+            try:
+                return self._newest.popleft()
+            except IndexError:
+                return None
+        assert self._fifo is not None
+        try:
+            return self._fifo.get_nowait()
+        except queue.Empty:
+            return None
+
+
+def apply_process_settings(settings: NodeSettings) -> None:
+    """CPU priority (`nice`, only ever lowered) and numba's thread count, before the service starts its work."""
+    if settings.nice:
+        os.nice(settings.nice)
+    if settings.numba_threads is not None:
+        n = settings.numba_threads
+        n = n if n > 0 else max(1, (os.cpu_count() or 1) + n)
+        if "numba" in sys.modules:
+            import numba
+
+            numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))  # this thread's kernels (the loop's)
+        else:  # read when numba is imported
+            os.environ["NUMBA_NUM_THREADS"] = str(n)
