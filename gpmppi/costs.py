@@ -3,8 +3,15 @@
 Costs are critic-style (as Nav2 MPPI): each term is a small numba function with its own weight,
 evaluated on the state after every rollout step k = 0..N-1 (the terminal term once on x_N).
 
-* tracking (lane):   variance + deviation (d / r)^2 + slip + discount^k [d > r_bar_k] + (v - v_target)^2
-* avoidance (goal):  variance + [inside an inflated circle] + |p - goal| per step + terminal |p_N - goal|
+* tracking (lane):   variance + deviation (d / r)^2 + slip + discount^k [d > r_bar_k] + (v_lane - v_target)^2
+  where v_lane = v cos(yaw - lane direction) is the speed along the lane (the polyline's order is
+  the driving direction); with `speed_along_lane` off it is the speed v itself, as the paper
+  writes it, which rewards speed in any direction: at a square track's corners the robot then
+  kept its speed through loops instead of slowing into the turn.
+* avoidance (goal):  variance + [inside an inflated circle] + D(p) per step + terminal D(p_N), where D is
+  the length of the shortest path to the goal around the circles (`gpmppi.mppi.goal_field`), or the
+  straight-line distance |p - goal| as in the paper when `goal_distance="euclidean"` (that one has
+  local minima in pockets between circles)
 
 The variance term (GP ensemble variance of the step's velocity residual) is counted at every step.
 
@@ -27,7 +34,8 @@ from numba import njit
 from scipy.stats import chi2, norm
 
 from gpmppi.mppi.flags import FASTMATH
-from gpmppi.mppi.lane import lane_distance_near
+from gpmppi.mppi.goal_field import goal_distance
+from gpmppi.mppi.lane import lane_query
 
 # indices into the cost-weight vector handed to the kernels
 W_VARIANCE = 0
@@ -39,7 +47,9 @@ W_COLLISION = 5
 W_GOAL = 6
 W_TERMINAL = 7
 W_EXIT_DISCOUNT = 8
-N_COST_WEIGHTS = 9
+W_SPEED_ALONG = 9  # 1: the speed term uses the speed along the lane, 0: the speed magnitude
+W_GOAL_GEODESIC = 10  # 1: goal terms use the distance around the obstacles (the task's field), 0: straight line
+N_COST_WEIGHTS = 11
 
 # task kinds of the rollout kernels
 TASK_LANE = 0
@@ -75,6 +85,7 @@ def lane_exit_cost(dist: float, tightened_half_width: float, discount_k: float, 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def speed_cost(v: float, target: float, weight: float) -> float:
+    """Shortfall or excess of the speed (along the lane, see the module notes) against the target."""
     e = v - target
     return weight * e * e
 
@@ -100,27 +111,39 @@ def goal_cost(x: float, y: float, goal: np.ndarray, weight: float) -> float:
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def goal_term(
+    cost_w: np.ndarray, field: np.ndarray, grid_origin: np.ndarray, inv_cell: float, goal: np.ndarray, x: float,
+    y: float, weight: float,
+) -> float:
+    """Distance-to-goal term: around the obstacles (`field`) or in a straight line, times `weight`."""
+    if cost_w[W_GOAL_GEODESIC] > 0.0:
+        return weight * goal_distance(field, grid_origin, inv_cell, x, y)
+    return goal_cost(x, y, goal, weight)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def stage_cost(
     task_kind: int, cost_w: np.ndarray, seg: np.ndarray, cell_start: np.ndarray, candidates: np.ndarray,
     field: np.ndarray, grid_origin: np.ndarray, inv_cell: float, half_width: float, tightened_hw: float,
     speed_target: float, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray, discount_k: float,
-    px: float, py: float, v: float, w: float, u0: float, u1: float, var_v: float, var_w: float,
+    px: float, py: float, yaw: float, v: float, w: float, u0: float, u1: float, var_v: float, var_w: float,
 ) -> float:
     """Cost of one rollout step: the state after it, its command (u0, u1) and GP variances.
 
-    Lane: `tightened_hw` is this step's tightened half-width (the lane distance is exact near it);
-    goal: `radii` (K,) are this step's inflated obstacle radii.
+    Lane: `field` is the lane lookup's, `tightened_hw` this step's tightened half-width (the lane
+    distance is exact near it); goal: `field` is the goal field, `radii` (K,) this step's inflated radii.
     """
     c = variance_cost(var_v, var_w, cost_w[W_VARIANCE])
     if task_kind == TASK_LANE:
-        d = lane_distance_near(seg, cell_start, candidates, field, grid_origin, inv_cell, px, py, tightened_hw)
+        d, tx, ty = lane_query(seg, cell_start, candidates, field, grid_origin, inv_cell, px, py, tightened_hw)
         c += deviation_cost(d, half_width, cost_w[W_DEVIATION])
         c += slip_cost(v, w, u0, u1, cost_w[W_SLIP])
         c += lane_exit_cost(d, tightened_hw, discount_k, cost_w[W_LANE_EXIT])
-        c += speed_cost(v, speed_target, cost_w[W_SPEED])
+        v_lane = v * (math.cos(yaw) * tx + math.sin(yaw) * ty) if cost_w[W_SPEED_ALONG] > 0.0 else v
+        c += speed_cost(v_lane, speed_target, cost_w[W_SPEED])
     else:
         c += collision_cost(px, py, obstacles, radii, cost_w[W_COLLISION])
-        c += goal_cost(px, py, goal, cost_w[W_GOAL])
+        c += goal_term(cost_w, field, grid_origin, inv_cell, goal, px, py, cost_w[W_GOAL])
     return c
 
 

@@ -18,6 +18,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -92,6 +93,9 @@ class Launcher:
         self.children: list[Child] = []
         self.stop_event = threading.Event()
         self._print_lock = threading.Lock()
+        # held while a child's process is replaced (supervise, restart, stop_all): supervise must not take a
+        # deliberate stop for a crash
+        self._process_lock = threading.RLock()
         self.run_dir = Path(tempfile.mkdtemp(prefix="gpmppi-launch-"))
         self.t0 = time.monotonic()
 
@@ -145,7 +149,10 @@ class Launcher:
 
     def supervise(self) -> None:
         """Restart crashed services with backoff; mark them failed after max_restarts."""
-        now = time.monotonic()
+        with self._process_lock:
+            self._supervise(time.monotonic())
+
+    def _supervise(self, now: float) -> None:
         for child in self.children:
             if child.failed or child.process is None:
                 continue
@@ -171,22 +178,39 @@ class Launcher:
 
     def stop_all(self) -> None:
         """Reverse start order: SIGINT, wait, SIGTERM, wait, SIGKILL."""
+        with self._process_lock:
+            for child in reversed(self.children):
+                self._stop(child)
+
+    def _stop(self, child: Child) -> None:
         timeout = self.launch.stop_timeout_s
-        for child in reversed(self.children):
-            p = child.process
-            if p is None or p.poll() is not None:
-                continue
-            for sig, wait_s in ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, timeout)):
-                try:
-                    p.send_signal(sig)
-                except ProcessLookupError:
-                    break
-                try:
-                    p.wait(wait_s)
-                    break
-                except subprocess.TimeoutExpired:
-                    self.say("launch", f"{child.name} ignored {sig.name} for {wait_s:.0f} s")
-            self.say("launch", f"stopped {child.name} (exit {p.returncode})")
+        p = child.process
+        if p is None or p.poll() is not None:
+            return
+        for sig, wait_s in ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, timeout)):
+            try:
+                p.send_signal(sig)
+            except ProcessLookupError:
+                break
+            try:
+                p.wait(wait_s)
+                break
+            except subprocess.TimeoutExpired:
+                self.say("launch", f"{child.name} ignored {sig.name} for {wait_s:.0f} s")
+        self.say("launch", f"stopped {child.name} (exit {p.returncode})")
+
+    def restart(self, name: str) -> Child:
+        """Stop a running service as stop_all does and start it again at once (a deliberate restart, e.g. to
+        measure its start-up; not counted in `restarts`). The child's `started_at` is the new process's start."""
+        with self._process_lock:
+            child = next((c for c in self.children if c.name == name), None)
+            if child is None:
+                raise KeyError(f"no service named {name!r}; running: {', '.join(c.name for c in self.children)}")
+            if child.failed or child.restart_at is not None:
+                raise RuntimeError(f"{name} is not running (failed or waiting for a crash restart)")
+            self._stop(child)
+            self._spawn(child)
+            return child
 
     def failed_required(self) -> list[str]:
         return [c.name for c in self.children if c.failed and c.required]
@@ -262,9 +286,13 @@ def run_launch(
     port: int | None = None,
     out: IO[str] | None = None,
     ready_timeout_s: float = 600.0,
+    then: Callable[[Launcher, Monitor], None] | None = None,
 ) -> tuple[int, Summary]:
     """Run a launch file (default: the simulated Jackal) for `duration` seconds after every service is up
-    (first heartbeat; a cold numba cache can take minutes), or until Ctrl-C; (exit code, summary)."""
+    (first heartbeat; a cold numba cache can take minutes), or until Ctrl-C; (exit code, summary).
+
+    `then`, if given, runs in a thread once every service is up, instead of the `duration`; the run ends when
+    it returns (it should return soon after `launcher.stop_event` is set). Its exception is raised here."""
     launch = LaunchFile.load(launch_path or DEFAULT_LAUNCH)
     launcher, service_names = build(launch, record, rerun, port)
     launcher.out = out or sys.stdout
@@ -276,6 +304,16 @@ def run_launch(
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     monitor: Monitor | None = None
+    hook: threading.Thread | None = None
+    hook_errors: list[BaseException] = []
+
+    def run_hook(launcher: Launcher, monitor: Monitor) -> None:
+        assert then is not None
+        try:
+            then(launcher, monitor)
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+            hook_errors.append(exc)
+
     t_start = time.monotonic()
     try:
         launcher.start_all()
@@ -286,18 +324,29 @@ def run_launch(
         while not launcher.stop_event.is_set():
             launcher.supervise()
             now = time.monotonic()
-            if deadline is None and duration is not None:
+            if deadline is None and hook is None and (duration is not None or then is not None):
                 with monitor.lock:
                     seen = set(monitor.heartbeats)
                 up = expected - {c.name for c in launcher.children if c.failed} <= seen
                 if up or now >= ready_by:
                     state = "all services up" if up else f"not all services up after {ready_timeout_s:.0f} s"
-                    launcher.say("launch", f"{state} ({now - t_start:.1f} s); running {duration:.0f} s")
-                    deadline = now + duration
+                    if then is not None:
+                        launcher.say("launch", f"{state} ({now - t_start:.1f} s); running {then.__name__}")
+                        hook = threading.Thread(target=run_hook, args=(launcher, monitor), daemon=True)
+                        hook.start()
+                    else:
+                        assert duration is not None
+                        launcher.say("launch", f"{state} ({now - t_start:.1f} s); running {duration:.0f} s")
+                        deadline = now + duration
             if deadline is not None and now >= deadline:
+                break
+            if hook is not None and not hook.is_alive():
                 break
             launcher.stop_event.wait(0.1)
     finally:
+        launcher.stop_event.set()
+        if hook is not None:
+            hook.join(launcher.launch.stop_timeout_s * 3 + 5.0)
         launcher.stop_all()
         if monitor is not None:
             monitor.close()
@@ -306,6 +355,8 @@ def run_launch(
     summary = summarize(monitor, launcher, service_names, record)
     for line in summary.lines():
         launcher.say("summary", line)
+    if hook_errors:
+        raise hook_errors[0]
     failed = launcher.failed_required()
     return (1 if failed else 0), summary
 

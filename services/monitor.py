@@ -13,7 +13,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 import zenoh
 
-from schemas import Command, DecodeError, Heartbeat, Plan, State, Task, decode, model_for_key
+from schemas import (
+    BaseCommand,
+    Command,
+    DecodeError,
+    Heartbeat,
+    Plan,
+    State,
+    Task,
+    TerrainWeights,
+    decode,
+    model_for_key,
+)
 from services.node import ZenohSettings
 
 if TYPE_CHECKING:
@@ -45,18 +56,23 @@ class Monitor:
         self.plan_total_ms: list[float] = []
         self.task: Task | None = None
         self.undecodable = 0
+        # every message on a service's primary output key: (monotonic arrival time, header seq); the seq starts
+        # at 0 in each new process, which tells a restarted service's first output from its predecessor's last
+        self.output_keys = {f"gpmppi/{robot}/{key}" for key in PRIMARY_OUTPUT.values()}
+        self.output_arrivals: dict[str, list[tuple[float, int]]] = {key: [] for key in self.output_keys}
         self.session = zenoh.open(zenoh_settings.to_config())
         self._sub = self.session.declare_subscriber("gpmppi/**", self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         received_ns = time.time_ns()
+        received = time.monotonic()
         key = str(sample.key_expr)
         with self.lock:
             self.counts[key] += 1
-            self.first_seen_s.setdefault(key, time.monotonic() - self.t_start)
+            self.first_seen_s.setdefault(key, received - self.t_start)
         try:
             model = model_for_key(key)
-            if model not in (State, Command, Plan, Heartbeat, Task):
+            if model not in (State, Command, Plan, Heartbeat, Task, TerrainWeights, BaseCommand):
                 return
             msg = decode(model, sample.payload.to_bytes())
         except (KeyError, DecodeError):
@@ -64,6 +80,8 @@ class Monitor:
                 self.undecodable += 1
             return
         with self.lock:
+            if key in self.output_keys:
+                self.output_arrivals[key].append((received, msg.header.seq))
             if isinstance(msg, Heartbeat):
                 self.heartbeats[msg.service] = msg
             elif isinstance(msg, State) and key.endswith("/state"):

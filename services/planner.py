@@ -144,8 +144,13 @@ def run(settings: Settings) -> int:
             if age_s > settings.max_state_age_s:
                 node.reject(f"state is {age_s:.3f} s old (limit {settings.max_state_age_s} s): not planning")
                 continue
+            cov = None if latest.covariance is None else np.reshape(latest.covariance, (5, 5))
+            if cov is not None and (np.any(np.diag(cov) < 0) or not np.allclose(cov, cov.T)):
+                node.reject("state covariance is not a covariance (negative variance or asymmetric): planned with "
+                            "the configured state_std instead")
+                cov = None
             try:
-                result = planner.plan(state_to_array(latest), task, weights)
+                result = planner.plan(state_to_array(latest), task, weights, state_cov=cov)
             except (ValueError, FloatingPointError) as exc:
                 # no command this cycle: egress's watchdog stops the robot if this persists
                 node.error(f"planning failed: {exc}")

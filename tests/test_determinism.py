@@ -36,12 +36,12 @@ import sys
 import numpy as np
 
 if sys.argv[1] in ("helpers", "other_first"):
-    from gpmppi.costs import lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
+    from gpmppi.costs import N_COST_WEIGHTS, lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
     from gpmppi.gp.grid_interp import grid_interp
     from gpmppi.models.dynamic_unicycle import euler_step, jacobian
-    from gpmppi.mppi.dynamics import (advance, interp4, interp4_simplex, nominal_velocity_step, simplex_nodes,
-                                      velocity_coefficients)
-    from gpmppi.mppi.lane import build_lane_lookup, lane_distance_near
+    from gpmppi.mppi.dynamics import advance, nominal_velocity_step, velocity_coefficients
+    from gpmppi.mppi.gp_table import interp4, interp4_simplex, simplex_nodes
+    from gpmppi.mppi.lane import build_lane_lookup, lane_query
     from gpmppi.mppi.rng import noisy_command, normal_pair
 
     theta = np.array([0.3, 0.25, 0.1, 1.0, 0.05, 1.1])
@@ -65,11 +65,11 @@ if sys.argv[1] in ("helpers", "other_first"):
     lane_exit_cost(1.0, 1.5, 0.9, 1.0)
     tighten_lane(np.zeros((3, 5, 5)), 1.0, 5.99, 0.2)
     lane = build_lane_lookup(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]), False, 1.0)
-    lane_distance_near(lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell,
-                       0.5, 0.1, 0.5)
-    stage_cost(0, np.ones(9), lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin,
-               lane.inv_cell, 1.0, 0.8, 1.0, np.zeros(2), np.zeros((0, 3)), np.zeros(0), 1.0, 0.5, 0.1, 0.5, 0.1,
-               1.0, 0.2, 0.01, 0.02)
+    lane_query(lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell, 0.5, 0.1,
+               0.5)
+    stage_cost(0, np.ones(N_COST_WEIGHTS), lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin,
+               lane.inv_cell, 1.0, 0.8, 1.0, np.zeros(2), np.zeros((0, 3)), np.zeros(0), 1.0, 0.5, 0.1, 0.3, 0.5,
+               0.1, 1.0, 0.2, 0.01, 0.02)
     if sys.argv[1] == "helpers":
         sys.exit(0)
 

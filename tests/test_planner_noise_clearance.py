@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, TABLE_AXES, collapse_table, propagate
+from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, propagate
+from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import paper_obstacle_scene

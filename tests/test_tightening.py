@@ -8,7 +8,8 @@ from scipy.stats import chi2, norm
 
 from gpmppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.models.dynamic_unicycle import euler_step, jacobian
-from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, TABLE_AXES, collapse_table, propagate
+from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, propagate
+from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table
 from gpmppi.mppi.synthetic import synthetic_model
 
 
@@ -102,7 +103,7 @@ def test_propagation_matches_finite_difference_jacobians() -> None:
 
 def test_collapsed_table_interpolates_like_the_weighted_model_grid() -> None:
     from gpmppi.gp.grid_interp import grid_interp
-    from gpmppi.mppi.dynamics import interp4
+    from gpmppi.mppi.gp_table import interp4
 
     model = synthetic_model()
     g = model.grid()
@@ -122,7 +123,7 @@ def test_collapsed_table_interpolates_like_the_weighted_model_grid() -> None:
 
 def test_simplex_interpolation_is_exact_on_linear_data_and_as_accurate_as_multilinear() -> None:
     from gpmppi.gp.grid import predict_dense
-    from gpmppi.mppi.dynamics import interp4, interp4_simplex
+    from gpmppi.mppi.gp_table import interp4, interp4_simplex
 
     g_n = 7
     dims = np.array([g_n] * 4)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from gpmppi.mppi.cpu_backend import TASK_GOAL, TASK_LANE, rollout_kernel, softmax_update
+from gpmppi.mppi.goal_field import GoalField
 from gpmppi.mppi.lane import LaneLookup
 
 __all__ = ["ModelArrays", "TaskArrays", "resolve", "rollouts", "softmax_update"]
@@ -55,7 +56,7 @@ _NO_SEG = np.zeros((1, 5))
 _NO_SEG[0, 4] = 1.0
 _NO_START = np.zeros(2, dtype=np.int64)
 _NO_CAND = np.zeros(0, dtype=np.int32)
-_NO_FIELD = np.zeros((1, 1))
+_NO_FIELD = np.zeros((1, 1, 3))
 
 
 @dataclass
@@ -82,8 +83,15 @@ class TaskArrays:
                    np.zeros((tightened.shape[0], 0)))
 
     @classmethod
-    def for_goal(cls, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray) -> TaskArrays:
-        return cls(TASK_GOAL, _NO_SEG, _NO_START, _NO_CAND, _NO_FIELD, np.zeros(2), 1.0, 1.0,
+    def for_goal(
+        cls, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray, goal_field: GoalField | None
+    ) -> TaskArrays:
+        """`goal_field` None: no geodesic field (the cost weights must then select the straight-line distance)."""
+        field, origin, inv_cell = (
+            (_NO_FIELD, np.zeros(2), 1.0) if goal_field is None
+            else (goal_field.field, goal_field.origin, goal_field.inv_cell)
+        )
+        return cls(TASK_GOAL, _NO_SEG, _NO_START, _NO_CAND, field, origin, inv_cell, 1.0,
                    np.ones(radii.shape[0]), 0.0,
                    np.ascontiguousarray(goal, dtype=np.float64), np.ascontiguousarray(obstacles, dtype=np.float64),
                    np.ascontiguousarray(radii))

@@ -13,17 +13,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from gpmppi.costs import TASK_GOAL, TASK_LANE, W_EXIT_DISCOUNT, W_TERMINAL, goal_cost, stage_cost
+from gpmppi.costs import TASK_GOAL, TASK_LANE, W_EXIT_DISCOUNT, W_TERMINAL, goal_term, stage_cost
 from gpmppi.mppi.dynamics import (
     DYN_GP,
     GP_SIMPLEX,
     advance,
     gp_residual,
-    simplex_corner,
-    simplex_params,
     velocity_coefficients,
 )
 from gpmppi.mppi.flags import FASTMATH, prefetch_row
+from gpmppi.mppi.gp_table import simplex_corner, simplex_params
 from gpmppi.mppi.rng import noisy_command
 
 __all__ = ["GROUP", "TASK_GOAL", "TASK_LANE", "rollout_kernel", "softmax_update"]
@@ -59,8 +58,8 @@ def _add_costs(
     for j in range(n_in):
         total[j] += stage_cost(
             task_kind, cost_w, seg, cell_start, candidates, field, grid_origin, inv_cell, half_width, tightened_hw,
-            speed_target, goal, obstacles, radii, discount_k, st[j, 0], st[j, 1], st[j, 3], st[j, 4], cmd[j, 0],
-            cmd[j, 1], res[j, 2], res[j, 3],
+            speed_target, goal, obstacles, radii, discount_k, st[j, 0], st[j, 1], st[j, 2], st[j, 3], st[j, 4],
+            cmd[j, 0], cmd[j, 1], res[j, 2], res[j, 3],
         )
 
 
@@ -191,7 +190,7 @@ def rollout_kernel(
         for j in range(n_in):
             t = total[j]
             if task_kind == TASK_GOAL:
-                t += goal_cost(st[j, 0], st[j, 1], goal, cost_w[W_TERMINAL])
+                t += goal_term(cost_w, field, grid_origin, inv_cell, goal, st[j, 0], st[j, 1], cost_w[W_TERMINAL])
             if not np.isfinite(t):
                 t = np.inf
             cost_out[first + j] = t

@@ -19,7 +19,7 @@ from numba import cuda
 
 from gpmppi import costs as critic
 from gpmppi.gp.cuda_kernels import device_function, device_version, set_device_version
-from gpmppi.mppi import dynamics, flags, rng
+from gpmppi.mppi import dynamics, flags, gp_table, rng
 from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX, velocity_coefficients
 
 THREADS_PER_BLOCK = 128
@@ -38,11 +38,11 @@ set_device_version(flags.fmax, device_function(_select_max))
 set_device_version(flags.fmin, device_function(_select_min))
 
 _noisy_command = device_version(rng.noisy_command)
-_interp4 = device_version(dynamics.interp4)
-_interp4_simplex = device_version(dynamics.interp4_simplex)
+_interp4 = device_version(gp_table.interp4)
+_interp4_simplex = device_version(gp_table.interp4_simplex)
 _advance = device_version(dynamics.advance)
 _stage_cost = device_version(critic.stage_cost)
-_goal_cost = device_version(critic.goal_cost)
+_goal_term = device_version(critic.goal_term)
 
 
 @cuda.jit(cache=True)
@@ -87,11 +87,11 @@ def _rollout_kernel(
             xy_out[s, k + 1, 0] = px
             xy_out[s, k + 1, 1] = py
         total += _stage_cost(task_kind, cost_w, seg, cell_start, candidates, field, grid_origin, inv_cell, half_width,
-                             tightened_hw[k + 1], speed_target, goal, obstacles, radii[k + 1], discount_k, px, py, v,
-                             w, u0, u1, cv, cw)
+                             tightened_hw[k + 1], speed_target, goal, obstacles, radii[k + 1], discount_k, px, py,
+                             yaw, v, w, u0, u1, cv, cw)
         discount_k *= discount
     if task_kind == critic.TASK_GOAL:
-        total += _goal_cost(px, py, goal, cost_w[critic.W_TERMINAL])
+        total += _goal_term(cost_w, field, grid_origin, inv_cell, goal, px, py, cost_w[critic.W_TERMINAL])
     if math.isnan(total) or math.isinf(total):
         total = math.inf
     cost_out[s] = total

@@ -5,18 +5,21 @@ precomputes, once per lane, a grid over the lane's surroundings whose cells list
 that can be nearest to any point of the cell (see `_cell_candidates`). A query measures the exact
 distance to those only, so it is exact, and costs a handful of segment distances near the lane.
 Nothing here assumes a particular shape: circles, squares and chicanes are all just polylines.
+
+The polyline's point order is the driving direction: the grid also stores the unit tangent of the
+nearest segment at every cell centre, so a cost can measure speed along the lane (`lane_query`).
 """
 
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
 
-from gpmppi.mppi.flags import FASTMATH, fmin
+from gpmppi.mppi.flags import FASTMATH, fmax, fmin
+from gpmppi.mppi.recent import Recent
 
 # segment rows: [ax, ay, dx, dy, 1/|d|^2]
 SEG_COLS = 5
@@ -29,7 +32,7 @@ class LaneLookup:
     segments: np.ndarray
     cell_start: np.ndarray  # (W*H + 1,) int64: cell i = r*W + c lists candidates[start[i]:start[i+1]]
     candidates: np.ndarray  # int32 segment indices
-    field: np.ndarray  # (H, W) exact distance at the cell centres [m]
+    field: np.ndarray  # (H, W, 3) at the cell centres: exact distance [m], unit tangent (tx, ty) of the nearest segment
     origin: np.ndarray  # (2,) world position of cell (0, 0)'s corner [m]
     inv_cell: float  # 1 / cell size [1/m]
     width: int  # W cells along x
@@ -71,7 +74,8 @@ def segment_distance2(seg: np.ndarray, j: int, x: float, y: float) -> float:
 def _cell_candidates(
     seg: np.ndarray, origin: np.ndarray, cell: float, h: int, w: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """CSR lists (cell i's candidates are cand[start[i]:start[i + 1]]) and the distance at cell centres (h, w).
+    """CSR lists (cell i's candidates are cand[start[i]:start[i + 1]]) and the (h, w, 3) field at the cell
+    centres: distance, and the unit direction of the nearest segment.
 
     For a point p in a cell with centre c (|p - c| <= cell / sqrt 2) the nearest segment j* obeys
     d(c, j*) <= d(p, j*) + |p - c| <= d(p, j_c) + |p - c| <= d_min(c) + sqrt(2) cell, so every
@@ -82,13 +86,22 @@ def _cell_candidates(
     slack = np.sqrt(2.0) * cell * 1.0001
     counts = np.zeros(n_cells + 1, dtype=np.int64)
     dmin = np.empty(n_cells)
+    field = np.empty((n_cells, 3))
     for i in prange(n_cells):
         y = origin[1] + (i // w + 0.5) * cell
         x = origin[0] + (i % w + 0.5) * cell
         best = np.inf
+        nearest = 0
         for j in range(n_seg):
-            best = min(best, segment_distance2(seg, j, x, y))
+            d2 = segment_distance2(seg, j, x, y)
+            if d2 < best:
+                best = d2
+                nearest = j
         dmin[i] = np.sqrt(best)
+        inv_len = np.sqrt(seg[nearest, 4])
+        field[i, 0] = dmin[i]
+        field[i, 1] = seg[nearest, 2] * inv_len
+        field[i, 2] = seg[nearest, 3] * inv_len
         limit = (dmin[i] + slack) ** 2
         c = 0
         for j in range(n_seg):
@@ -106,7 +119,7 @@ def _cell_candidates(
             if segment_distance2(seg, j, x, y) <= limit:
                 cand[pos] = j
                 pos += 1
-    return start, cand, dmin.reshape(h, w)
+    return start, cand, field.reshape(h, w, 3)
 
 
 def build_lane_lookup(
@@ -127,23 +140,14 @@ def build_lane_lookup(
     return LaneLookup(seg, start, cand, field, lo, 1.0 / cell, w, h)
 
 
-_LOOKUPS: OrderedDict[tuple, LaneLookup] = OrderedDict()
-_LOOKUPS_KEPT = 8
+_LOOKUPS: Recent[LaneLookup] = Recent()
 
 
 def cached_lane_lookup(centerline: np.ndarray, closed: bool, margin: float, cell: float = 0.1) -> LaneLookup:
     """`build_lane_lookup`, remembered for the last few lanes (planners of one process share a lane's lookup)."""
     c = np.ascontiguousarray(centerline, dtype=np.float64)
     key = (c.shape, c.tobytes(), bool(closed), float(margin), float(cell))
-    found = _LOOKUPS.get(key)
-    if found is None:
-        found = build_lane_lookup(c, closed, margin, cell)
-        _LOOKUPS[key] = found
-        while len(_LOOKUPS) > _LOOKUPS_KEPT:
-            _LOOKUPS.popitem(last=False)
-    else:
-        _LOOKUPS.move_to_end(key)
-    return found
+    return _LOOKUPS.get(key, lambda: build_lane_lookup(c, closed, margin, cell))
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -166,32 +170,54 @@ def lane_distance(
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
-def lane_distance_near(
+def grid_cell_at(
+    field: np.ndarray, origin: np.ndarray, inv_cell: float, x: float, y: float
+) -> tuple[int, int, int, int, float, float, float, float]:
+    """Bilinear cell of (x, y) in a cell-centred (H, W, ...) grid: rows r, r1, columns c, c1, fractions
+    (tx, ty), and how far [cells] the point lies outside the grid along x and y (0 inside)."""
+    h, w = field.shape[0], field.shape[1]
+    fc = (x - origin[0]) * inv_cell - 0.5
+    fr = (y - origin[1]) * inv_cell - 0.5
+    cc = fmin(fmax(fc, 0.0), w - 1.000001)
+    cr = fmin(fmax(fr, 0.0), h - 1.000001)
+    c = int(cc)
+    r = int(cr)
+    # neighbours, kept on the grid (selects: the CUDA target compiles these kernels too)
+    c1 = c + 1 if c + 1 < w else c
+    r1 = r + 1 if r + 1 < h else r
+    return r, c, r1, c1, cc - c, cr - r, fc - cc, fr - cr
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def lane_query(
     seg: np.ndarray, cell_start: np.ndarray, cand: np.ndarray, field: np.ndarray, origin: np.ndarray, inv_cell: float,
     x: float, y: float, threshold: float,
-) -> float:
-    """Distance to the polyline, exact whenever it matters for `d > threshold`.
+) -> tuple[float, float, float]:
+    """Distance to the polyline, exact whenever it matters for `d > threshold`, and the lane direction (tx, ty).
 
     The bilinear interpolation of the cell-centre distances is within sqrt(2) * cell of the true
     distance (the distance is 1-Lipschitz and the four centres are within sqrt(2) * cell of the
     point); when the interpolated value is that close to `threshold` the exact distance is used, so
     the comparison with the threshold is always exact and elsewhere the value is an approximation
     (error ~1e-4 m on smooth stretches, up to sqrt(2) * cell on the centre line's medial axis).
+
+    The direction is the bilinear blend of the nearest segments' unit tangents at the four cell
+    centres (clamped to the grid's edge outside it): a unit vector along straight stretches, turning
+    smoothly over one cell where the nearest segment changes (a corner's bisector).
     """
-    h, w = field.shape
-    fc = (x - origin[0]) * inv_cell - 0.5
-    fr = (y - origin[1]) * inv_cell - 0.5
-    if fc >= 0.0 and fr >= 0.0 and fc < w - 1 and fr < h - 1:
-        c = int(fc)
-        r = int(fr)
-        tx = fc - c
-        ty = fr - r
-        d = (1.0 - ty) * ((1.0 - tx) * field[r, c] + tx * field[r, c + 1]) + ty * (
-            (1.0 - tx) * field[r + 1, c] + tx * field[r + 1, c + 1]
-        )
+    r, c, r1, c1, tx, ty, out_c, out_r = grid_cell_at(field, origin, inv_cell, x, y)
+    inside = out_c == 0.0 and out_r == 0.0
+    w00 = (1.0 - ty) * (1.0 - tx)
+    w01 = (1.0 - ty) * tx
+    w10 = ty * (1.0 - tx)
+    w11 = ty * tx
+    dir_x = w00 * field[r, c, 1] + w01 * field[r, c1, 1] + w10 * field[r1, c, 1] + w11 * field[r1, c1, 1]
+    dir_y = w00 * field[r, c, 2] + w01 * field[r, c1, 2] + w10 * field[r1, c, 2] + w11 * field[r1, c1, 2]
+    if inside:
+        d = w00 * field[r, c, 0] + w01 * field[r, c1, 0] + w10 * field[r1, c, 0] + w11 * field[r1, c1, 0]
         if abs(d - threshold) > 1.4143 / inv_cell:
-            return d
-    return lane_distance(seg, cell_start, cand, origin, inv_cell, w, h, x, y)
+            return d, dir_x, dir_y
+    return lane_distance(seg, cell_start, cand, origin, inv_cell, field.shape[1], field.shape[0], x, y), dir_x, dir_y
 
 
 @njit(cache=True)

@@ -13,16 +13,14 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from math import pi
-from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.signal import savgol_filter
 
-from gpmppi.costs import N_COST_WEIGHTS, W_VARIANCE, ChanceQuantiles, inflate_obstacles, tighten_lane
+from gpmppi.costs import W_VARIANCE, ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.gp.model_file import GPModel
 from gpmppi.mppi import backends
+from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.dynamics import (
     DYN_EDD5,
     DYN_GP,
@@ -30,104 +28,16 @@ from gpmppi.mppi.dynamics import (
     GP_EXACT,
     GP_GRID,
     GP_SIMPLEX,
-    TABLE_AXES,
-    collapse_table,
     propagate,
-    rollout_order,
 )
+from gpmppi.mppi.goal_field import GoalField, cached_goal_field
+from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table, rollout_order
 from gpmppi.mppi.lane import LaneLookup, cached_lane_lookup
 from gpmppi.tasks import GoalTask, LaneTask
 
+__all__ = ["PlanResult", "Planner", "PlannerConfig"]
+
 _DYN = {"unicycle": DYN_UNICYCLE, "edd5": DYN_EDD5, "gp": DYN_GP}
-
-
-class PlannerConfig(BaseModel):
-    """Every setting of the planner; the same costs and settings apply to every dynamics choice."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    dynamics: Literal["gp", "edd5", "unicycle"] = Field(
-        "gp", description="Rollout model: nominal dynamic unicycle + GP ensemble residual, EDD5, or kinematic unicycle"
-    )
-    gp_mode: Literal["grid", "exact"] = Field("grid", description="GP evaluation: interpolated grid table or exact GP")
-    grid_interpolation: Literal["simplex", "multilinear"] = Field(
-        "simplex",
-        description="Grid GP interpolation: simplex (5 nodes, ~3x faster on tables larger than the caches) or "
-        "multilinear (16 nodes, as gpmppi.gp.grid_interp); both exact at the nodes and second-order accurate",
-    )
-    backend: Literal["auto", "cpu", "cuda"] = Field(
-        "auto", description="Kernels: numba CPU, numba CUDA (grid GP only), or auto (CUDA when numba finds a GPU)"
-    )
-    samples: int = Field(1024, ge=1, description="Number of sampled control sequences S")
-    horizon: int = Field(40, ge=1, description="Horizon N [steps]")
-    dt: float = Field(0.1, gt=0, description="Step of the rollouts [s]")
-    temperature: float = Field(1.0, gt=0, description="MPPI temperature lambda of the softmax over costs")
-    noise_std: tuple[float, float] = Field((1.0, 1.0), description="Control noise std [m/s, rad/s]")
-    v_limits: tuple[float, float] = Field((0.0, 2.0), description="Commanded linear speed limits [m/s]")
-    omega_limits: tuple[float, float] = Field((-pi, pi), description="Commanded yaw-rate limits [rad/s]")
-    accel_limits: tuple[float, float] | None = Field(
-        None, description="Optional |dv_ref/dt|, |domega_ref/dt| limits along the sequence [m/s^2, rad/s^2]"
-    )
-    smoothing_window: int = Field(0, ge=0, description="Savitzky-Golay window over the sequence (0 = off; odd)")
-    smoothing_order: int = Field(2, ge=0, description="Savitzky-Golay polynomial order")
-    p_x: float = Field(0.95, gt=0, lt=1, description="Probability of the chance constraints")
-    tightening: bool = Field(True, description="Tighten the lane / inflate obstacles with the propagated covariance")
-    min_half_width_fraction: float = Field(
-        0.1, gt=0, le=1, description="Tightened lane half-width never goes below this fraction of the half-width"
-    )
-    max_inflation: float = Field(1.0, ge=0, description="Cap on the covariance inflation of obstacle radii [m]")
-    robot_radius: float = Field(0.0, ge=0, description="Added to every obstacle radius [m]")
-    step_clearance: bool = Field(
-        True,
-        description="Grow each (inflated) obstacle radius r to sqrt(r^2 + (v_max dt / 2)^2): collisions are checked "
-        "only at the rollout steps, and with this radius the straight path between two steps (at most v_max dt "
-        "long) cannot cut into the circle r either",
-    )
-    seed: int = Field(0, ge=0, lt=2**63, description="Seed of the sampling noise (identical seeds, identical plans)")
-    edd5_terrain: str | None = Field(
-        None, description="Terrain of the EDD5 model; None = the terrain with the largest weight"
-    )
-    initial_control: tuple[float, float] = Field((0.0, 0.0), description="Sequence at start and appended on shift")
-    sample_output: int = Field(32, ge=0, description="How many rollouts' XY to return for display")
-    lane_cell: float = Field(0.1, gt=0, description="Cell of the lane nearest-segment lookup grid [m]")
-    # lane weights: with r the lane half-width (1.75-2.75 m), 300 (d / r)^2 prices a 5 cm deviation like a 0.15 m/s
-    # speed shortfall under w_speed = 2; at (2, 1) tracking error was free next to speed (70-150 mm RMSE)
-    w_variance: float = Field(
-        1.0, ge=0, description="Weight of the GP variance cost (every step); 10 made GP-MPPI ~15% slower to goals"
-    )
-    w_deviation: float = Field(300.0, ge=0, description="Weight of the normalised lane deviation (d / r)^2")
-    w_slip: float = Field(0.1, ge=0, description="Weight of the command-vs-velocity gap (slip)")
-    w_lane_exit: float = Field(1000.0, ge=0, description="Weight of leaving the tightened lane (times discount^k)")
-    lane_exit_discount: float = Field(0.9, gt=0, le=1, description="Discount per step of the lane-exit indicator")
-    w_speed: float = Field(2.0, ge=0, description="Weight of (v - speed_target)^2")
-    w_collision: float = Field(1000.0, ge=0, description="Weight of being inside an inflated obstacle")
-    w_goal: float = Field(1.0, ge=0, description="Weight of the distance to the goal at every step")
-    w_terminal: float = Field(10.0, ge=0, description="Weight of the distance to the goal at the horizon's end")
-
-    @model_validator(mode="after")
-    def _check(self) -> PlannerConfig:
-        for name in ("v_limits", "omega_limits"):
-            lo, hi = getattr(self, name)
-            if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
-                raise ValueError(f"{name} must be finite with low < high, got {(lo, hi)}")
-        if any(not np.isfinite(s) or s < 0 for s in self.noise_std):
-            raise ValueError(f"noise_std must be finite and >= 0, got {self.noise_std}")
-        if self.accel_limits is not None and any(not np.isfinite(a) or a <= 0 for a in self.accel_limits):
-            raise ValueError(f"accel_limits must be positive, got {self.accel_limits}")
-        if self.smoothing_window:
-            if self.smoothing_window % 2 == 0 or self.smoothing_window <= self.smoothing_order:
-                raise ValueError("smoothing_window must be odd and larger than smoothing_order")
-            if self.smoothing_window > self.horizon:
-                raise ValueError("smoothing_window must not exceed the horizon")
-        return self
-
-    def cost_weights(self) -> np.ndarray:
-        w = np.array([
-            self.w_variance, self.w_deviation, self.w_slip, self.w_lane_exit, self.w_speed,
-            self.w_collision, self.w_goal, self.w_terminal, self.lane_exit_discount,
-        ])
-        assert w.shape == (N_COST_WEIGHTS,)
-        return w
 
 
 @dataclass
@@ -172,6 +82,7 @@ class Planner:
         self._u_lo = np.array([c.v_limits[0], c.omega_limits[0]])
         self._u_hi = np.array([c.v_limits[1], c.omega_limits[1]])
         self._std = np.array(c.noise_std, dtype=np.float64)
+        self._lane_std = np.array(c.noise_std if c.lane_noise_std is None else c.lane_noise_std, dtype=np.float64)
         self._table_full: np.ndarray | None = None
         self._table = np.zeros((16, 4), dtype=np.float32)
         self._table_dims = np.full(4, 2, dtype=np.int64)
@@ -251,6 +162,20 @@ class Planner:
         assert self._lane is not None
         return self._lane
 
+    def _goal_field(self, task: GoalTask, x: np.ndarray) -> GoalField | None:
+        """The geodesic goal field of the task's scene (built once per scene; None for straight-line distance).
+
+        Circles are the obstacles grown by the robot radius; the grid covers the scene and the robot's
+        position when the scene was first seen, plus the distance a horizon can drive.
+        """
+        c = self.config
+        if c.goal_distance != "geodesic":
+            return None
+        circles = task.obstacles.copy()
+        circles[:, 2] += c.robot_radius
+        reach = c.horizon * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
+        return cached_goal_field(task.goal, circles, x[None, :2], margin=min(reach, 10.0), cell=c.goal_cell)
+
     def _terrain_setup(self, w: np.ndarray) -> tuple[np.ndarray, float]:
         """Collapse the grid table when the weights changed; pick the EDD5 terrain. Returns (edd5_p, ms)."""
         t0 = time.perf_counter()
@@ -274,9 +199,25 @@ class Planner:
         w2 = w * w
         return float(w2 @ self._noise[0::2]), float(w2 @ self._noise[1::2])
 
-    def _propagate(self, x: np.ndarray, controls: np.ndarray, edd5_p: np.ndarray, w: np.ndarray) -> tuple:
+    def _propagate(
+        self, x: np.ndarray, controls: np.ndarray, edd5_p: np.ndarray, w: np.ndarray, cov0: np.ndarray
+    ) -> tuple:
         return propagate(x, controls, self.config.dt, self._dyn, self._theta, edd5_p, self._gp_mode, self._table,
-                         self._table_dims, self._grid_lo, self._grid_inv, *self._ex, w, *self._exact_noise_var(w))
+                         self._table_dims, self._grid_lo, self._grid_inv, *self._ex, w, *self._exact_noise_var(w),
+                         cov0)
+
+    def _state_covariance(self, state_cov: np.ndarray | None) -> np.ndarray:
+        if state_cov is None:
+            return np.diag(np.square(np.asarray(self.config.state_std, dtype=np.float64)))
+        cov = np.asarray(state_cov, dtype=np.float64)
+        if cov.shape != (5, 5) or not np.all(np.isfinite(cov)):
+            raise ValueError(
+                f"state_cov must be a finite 5x5 covariance of [x, y, yaw, v, omega], got shape {cov.shape}"
+            )
+        cov = 0.5 * (cov + cov.T)
+        if np.any(np.diag(cov) < 0):
+            raise ValueError("state_cov has a negative variance on its diagonal")
+        return cov
 
     def _exact_noise_var(self, w: np.ndarray) -> tuple[float, float]:
         """The noise the kernels do not add themselves: the exact GP gives latent variances (the grid table has it)."""
@@ -297,15 +238,22 @@ class Planner:
         return radii, capped
 
     # ---------------------------------------------------------------- plan
-    def plan(self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None) -> PlanResult:
-        """One MPPI iteration from `state` for `task` with terrain `weights` (None = uniform)."""
+    def plan(
+        self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None,
+        state_cov: np.ndarray | None = None,
+    ) -> PlanResult:
+        """One MPPI iteration from `state` for `task` with terrain `weights` (None = uniform).
+
+        `state_cov` (5, 5) is the state estimate's covariance (None = diag(`state_std`)^2).
+        """
         c = self.config
         t_start = time.perf_counter()
         x, w = self._check_inputs(state, task, weights)
+        cov0 = self._state_covariance(state_cov)
         edd5_p, collapse_ms = self._terrain_setup(w)
         t0 = time.perf_counter()
         nominal = self._nominal
-        prev_states, prev_covs, _ = self._propagate(x, nominal, edd5_p, w)
+        prev_states, prev_covs, _ = self._propagate(x, nominal, edd5_p, w, cov0)
         bounds, clamped_before = self._bounds(task, prev_states, prev_covs)
         t1 = time.perf_counter()
 
@@ -314,14 +262,15 @@ class Planner:
             lane = self._lane_lookup(task)
             task_arrays = backends.TaskArrays.for_lane(lane, float(task.half_width), bounds, float(task.speed_target))
         else:
-            task_arrays = backends.TaskArrays.for_goal(task.goal, task.obstacles, bounds)
+            task_arrays = backends.TaskArrays.for_goal(task.goal, task.obstacles, bounds, self._goal_field(task, x))
         model_arrays = backends.ModelArrays(
             self._dyn, self._theta, edd5_p, self._gp_mode, self._table, self._table_dims, self._grid_lo, self._grid_inv,
             self._ex, w,
         )
         n_xy = min(c.sample_output, c.samples)
+        noise_std = self._lane_std if is_lane else self._std
         eps, costs, xy = backends.rollouts(
-            self.backend, x, nominal, self._std, self._u_lo, self._u_hi, c.dt, c.seed, self._iteration,
+            self.backend, x, nominal, noise_std, self._u_lo, self._u_hi, c.dt, c.seed, self._iteration,
             model_arrays, task_arrays, self._cost_w, c.samples, n_xy,
         )
         # exact GP: the kernels' variance cost is latent; the noise adds the same to every rollout (the update
@@ -335,7 +284,7 @@ class Planner:
         new_u = self._shape_sequence(new_u)
         t3 = time.perf_counter()
 
-        states, covs, _ = self._propagate(x, new_u, edd5_p, w)
+        states, covs, _ = self._propagate(x, new_u, edd5_p, w, cov0)
         out_bounds, clamped_after = self._bounds(task, states, covs)
         _, nominal_cost, _ = backends.rollouts(
             "cpu", x, new_u, np.zeros(2), self._u_lo, self._u_hi, c.dt, c.seed, self._iteration,
