@@ -8,16 +8,18 @@ configured scenario's, re-published once a second on `task`; a Task from another
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from pydantic import Field
 
-from gpmppi.mppi.planner import PlannerConfig
+from gpmppi.mppi.config import PlannerConfig  # not the planner module: run() imports it alongside the model load
 from schemas import Command, Plan, State, TerrainWeights
 from services.convert import state_to_array, task_from_message, task_to_message
 from services.node import Node, NodeSettings
+from services.scheduling import process_age_s
 
 if TYPE_CHECKING:
     from gpmppi.gp.model_file import GPModel
@@ -95,22 +97,39 @@ def plan_message(result: PlanResult, stamp_ns: int, task: LaneTask | GoalTask, n
 
 
 def run(settings: Settings) -> int:
-    from gpmppi.mppi.planner import Planner
+    import gpmppi.gp.model_file  # noqa: F401 - imported here, not concurrently by both threads below
 
-    model = load_model(settings.model_file)
-    scenario = load_scenario(settings.scenario)
+    # a (re)started planner keeps the robot waiting (egress sends zeros) until its first command: where the start
+    # spends its time is logged with that command
+    startup = {"imports_s": process_age_s()}
+    t = time.monotonic()
+    # the model file (0.2-0.6 s to read and decode; zlib and numpy release the GIL) loads on a second thread while
+    # this one imports the rest of the planner (scipy.signal, the kernels' modules) and builds the scenario
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="model-load") as pool:
+        loading = pool.submit(load_model, settings.model_file)
+        from gpmppi.mppi.planner import Planner
+
+        scenario = load_scenario(settings.scenario)
+        model = loading.result()
     task = scenario.task
-    planner = Planner(settings.planner, model)
-    planner.plan(np.asarray(scenario.start, dtype=np.float64), task)  # compile / load the numba cache before going live
-    planner.reset()
+    startup["planner_import_and_model_s"] = time.monotonic() - t
     weights: np.ndarray | None = None
     with Node(settings) as node:
-        cmd_pub = node.publisher("cmd")
-        plan_pub = node.publisher("plan")
-        task_pub = node.publisher("task")
+        # subscribed before the warm-up: the newest state is waiting when it is done (no wait for the next one);
+        # the heartbeat, which tells the launcher the planner is up, starts with the loop
         state_sub = node.subscribe("state")
         weights_sub = node.subscribe("terrain_weights")
         task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
+        cmd_pub = node.publisher("cmd")
+        plan_pub = node.publisher("plan")
+        task_pub = node.publisher("task")
+        t = time.monotonic()
+        planner = Planner(settings.planner, model)
+        # compile / load the numba cache before going live
+        planner.plan(np.asarray(scenario.start, dtype=np.float64), task)
+        planner.reset()
+        startup["warmup_s"] = time.monotonic() - t
+        t = time.monotonic()
         next_task = 0.0
         next_rate_tick = time.monotonic()
         latest: State | None = None
@@ -159,6 +178,11 @@ def run(settings: Settings) -> int:
             cmd.header.stamp_ns = latest.header.stamp_ns
             cmd.header.frame_id = "base_link"
             cmd_pub.put(cmd)
+            if cycle == 0:
+                startup["to_first_command_s"] = time.monotonic() - t
+                startup["process_age_s"] = process_age_s()
+                fields = {k: None if v is None else round(v, 3) for k, v in startup.items()}
+                node.log.info("first command", extra={"fields": fields})
             if cycle % settings.plan_every == 0:
                 plan_pub.put(plan_message(result, latest.header.stamp_ns, task, settings.plan_samples))
             cycle += 1

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import queue
 import sys
+import time
 from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING
@@ -71,3 +72,15 @@ def apply_process_settings(settings: NodeSettings) -> None:
             numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))  # this thread's kernels (the loop's)
         else:  # read when numba is imported
             os.environ["NUMBA_NUM_THREADS"] = str(n)
+
+
+def process_age_s() -> float | None:
+    """Seconds since this process was created (Linux: /proc/self/stat, 10 ms steps), or None elsewhere: start-up
+    logs count from the process's creation, so interpreter start and imports are in the figure."""
+    try:
+        with open("/proc/self/stat") as f:
+            # field 22 (starttime, clock ticks after boot); the command name (field 2) may hold spaces: split after it
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])
+        return time.clock_gettime(time.CLOCK_BOOTTIME) - start_ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None

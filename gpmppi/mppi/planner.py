@@ -15,7 +15,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import savgol_filter
 
 from gpmppi.costs import W_VARIANCE, ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.gp.model_file import GPModel
@@ -334,6 +333,8 @@ class Planner:
         """Optional smoothing, then acceleration limits from the last applied control, then control limits."""
         c = self.config
         if c.smoothing_window:
+            from scipy.signal import savgol_filter  # here: scipy.signal's import is slow and smoothing is optional
+
             u = savgol_filter(u, c.smoothing_window, c.smoothing_order, axis=0, mode="nearest")
         if c.accel_limits is not None:
             step = np.array(c.accel_limits) * c.dt
