@@ -1,4 +1,4 @@
-"""Lane direction and the along-lane speed term; the state estimate's covariance."""
+"""Lane direction and the along-lane speed term; per-task control noise; the state estimate's covariance."""
 
 from __future__ import annotations
 
@@ -66,6 +66,19 @@ def test_speed_term_counts_speed_along_the_lane_only() -> None:
     assert _lane_step_cost(lane, np.pi / 2, True) == pytest.approx(2.25)
     # the paper's form: the speed magnitude, whatever the heading
     assert _lane_step_cost(lane, np.pi, False) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_lane_tasks_sample_with_the_lane_noise_and_goals_with_noise_std() -> None:
+    model = synthetic_model()
+    cfg = PlannerConfig(samples=32, horizon=6, backend="cpu", dynamics="unicycle", lane_noise_std=(0.0, 0.0),
+                        noise_std=(0.5, 0.5), initial_control=(1.0, 0.0))
+    lane_sc, goal_sc = circle_lane(), paper_obstacle_scene()
+    lane = Planner(cfg, model).plan(lane_sc.start, lane_sc.task)
+    goal = Planner(cfg, model).plan(goal_sc.start, goal_sc.task)
+    assert np.ptp(lane.sample_states, axis=0).max() == 0.0  # no noise: every rollout is the nominal one
+    assert np.ptp(goal.sample_states, axis=0).max() > 0.01
+    both = Planner(cfg.model_copy(update={"lane_noise_std": None}), model).plan(lane_sc.start, lane_sc.task)
+    assert np.ptp(both.sample_states, axis=0).max() > 0.01  # None: lanes use noise_std too
 
 
 def test_state_covariance_starts_the_propagation_and_inflates_the_first_steps() -> None:

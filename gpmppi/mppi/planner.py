@@ -81,6 +81,7 @@ class Planner:
         self._u_lo = np.array([c.v_limits[0], c.omega_limits[0]])
         self._u_hi = np.array([c.v_limits[1], c.omega_limits[1]])
         self._std = np.array(c.noise_std, dtype=np.float64)
+        self._lane_std = np.array(c.noise_std if c.lane_noise_std is None else c.lane_noise_std, dtype=np.float64)
         self._table_full: np.ndarray | None = None
         self._table = np.zeros((16, 4), dtype=np.float32)
         self._table_dims = np.full(4, 2, dtype=np.int64)
@@ -266,8 +267,9 @@ class Planner:
             self._ex, w,
         )
         n_xy = min(c.sample_output, c.samples)
+        noise_std = self._lane_std if is_lane else self._std
         eps, costs, xy = backends.rollouts(
-            self.backend, x, nominal, self._std, self._u_lo, self._u_hi, c.dt, c.seed, self._iteration,
+            self.backend, x, nominal, noise_std, self._u_lo, self._u_hi, c.dt, c.seed, self._iteration,
             model_arrays, task_arrays, self._cost_w, c.samples, n_xy,
         )
         # exact GP: the kernels' variance cost is latent; the noise adds the same to every rollout (the update
