@@ -30,7 +30,9 @@ SERVICES = ["sim", "ingress", "terrain", "planner", "egress", "recorder", "viewe
 
 
 def _in_process_rmse(duration_s: float, latency_s: float) -> float:
-    """The same scenario (circle lane, asphalt, seed 0, the services' model) in one process, no middleware.
+    """The same scenario (circle lane, asphalt, the services' model) in one process, no middleware: the
+    mean over seeds 0-2, as the evaluation table reports lanes (one short run's RMSE moves by several mm
+    with the seed, and at ~20-30 mm that alone decided a 1.5x comparison).
 
     Scored like the recording: on the measured (noisy) positions the stack publishes as `state`, with
     the stack's median state -> command latency, so the comparison isolates what Zenoh and the
@@ -47,17 +49,19 @@ def _in_process_rmse(duration_s: float, latency_s: float) -> float:
     path = os.environ.get("GPMPPI_MODEL_FILE")
     model = GPModel.load(path) if path else load_default_model()
     scenario = circle_lane()
-    plant = PhysicsPlant(load_terrains(None), "asphalt", seed=0)
-    traj = run_closed_loop(
-        Planner(PlannerConfig(), model),
-        plant,
-        scenario.task,
-        scenario.start,
-        len(model.terrains),
-        ClosedLoopConfig(time_limit_s=duration_s, latency_s=latency_s),
-        estimator=TerrainEstimator(model),
-    )
-    return lane_rmse_mm(traj.measured_states[:, :2], scenario.task.centerline, closed=True)
+    rmse = []
+    for seed in range(3):
+        traj = run_closed_loop(
+            Planner(PlannerConfig(seed=seed), model),
+            PhysicsPlant(load_terrains(None), "asphalt", seed=seed),
+            scenario.task,
+            scenario.start,
+            len(model.terrains),
+            ClosedLoopConfig(time_limit_s=duration_s, latency_s=latency_s),
+            estimator=TerrainEstimator(model),
+        )
+        rmse.append(lane_rmse_mm(traj.measured_states[:, :2], scenario.task.centerline, closed=True))
+    return float(np.mean(rmse))
 
 
 def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
