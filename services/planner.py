@@ -104,7 +104,7 @@ def run(settings: Settings) -> int:
     startup = {"imports_s": process_age_s()}
     t = time.monotonic()
     # the model file (0.2-0.6 s to read and decode; zlib and numpy release the GIL) loads on a second thread while
-    # this one imports the rest of the planner (scipy.signal, the kernels' modules) and builds the scenario
+    # this one imports the rest of the planner (the kernels' modules) and builds the scenario
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="model-load") as pool:
         loading = pool.submit(load_model, settings.model_file)
         from gpmppi.mppi.planner import Planner

@@ -38,7 +38,7 @@ class Settings(NodeSettings):
 
 
 def run(settings: Settings) -> int:
-    # not services.planner's loader: that module imports the planner (scipy.signal, its kernels) for nothing here
+    # not services.planner's loader: that module imports the planner (its kernels) for nothing here
     from gpmppi.gp.model_file import GPModel, load_default_model
 
     model = load_default_model() if settings.model_file is None else GPModel.load(settings.model_file)

@@ -18,24 +18,12 @@ import numpy as np
 from numba import cuda
 
 from gpmppi import costs as critic
-from gpmppi.gp.cuda_kernels import device_function, device_version, set_device_version
-from gpmppi.mppi import dynamics, flags, gp_table, rng
+from gpmppi.gp.cuda_kernels import device_version
+from gpmppi.mppi import dynamics, gp_table, rng
 from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX, velocity_coefficients
 
 THREADS_PER_BLOCK = 128
 
-
-def _select_max(a: float, b: float) -> float:
-    return a if a > b else b
-
-
-def _select_min(a: float, b: float) -> float:
-    return a if a < b else b
-
-
-# float max/min as selects on the GPU (divergent lanes are predicated there, no mispredictions)
-set_device_version(flags.fmax, device_function(_select_max))
-set_device_version(flags.fmin, device_function(_select_min))
 
 _noisy_command = device_version(rng.noisy_command)
 _interp4 = device_version(gp_table.interp4)

@@ -81,6 +81,7 @@ class Planner:
         self._u_lo = np.array([c.v_limits[0], c.omega_limits[0]])
         self._u_hi = np.array([c.v_limits[1], c.omega_limits[1]])
         self._std = np.array(c.noise_std, dtype=np.float64)
+        self._default_state_cov = np.diag(np.square(np.asarray(c.state_std, dtype=np.float64)))
         self._lane_std = np.array(c.noise_std if c.lane_noise_std is None else c.lane_noise_std, dtype=np.float64)
         self._table_full: np.ndarray | None = None
         self._table = np.zeros((16, 4), dtype=np.float32)
@@ -207,7 +208,7 @@ class Planner:
 
     def _state_covariance(self, state_cov: np.ndarray | None) -> np.ndarray:
         if state_cov is None:
-            return np.diag(np.square(np.asarray(self.config.state_std, dtype=np.float64)))
+            return self._default_state_cov
         cov = np.asarray(state_cov, dtype=np.float64)
         if cov.shape != (5, 5) or not np.all(np.isfinite(cov)):
             raise ValueError(
