@@ -38,6 +38,13 @@ class Settings(NodeSettings):
     trigger: Literal["state", "rate"] = Field("state", description="plan on each new state, or at rate_hz")
     rate_hz: float = Field(10.0, gt=0, description="planning rate when trigger == 'rate' [Hz]")
     max_state_age_s: float = Field(0.5, gt=0, description="do not plan from a state older than this [s]")
+    compensate_delay: bool = Field(
+        True, description="plan from the state predicted to when the command takes effect (state age + compute + "
+        "actuation_delay_s), not from the measured one"
+    )
+    actuation_delay_s: float = Field(
+        0.005, ge=0, le=0.5, description="from publishing `cmd` to the base applying it (egress hop, base tick) [s]"
+    )
     plan_samples: int = Field(16, ge=0, description="rollouts (XY) included in each Plan message")
     plan_every: int = Field(1, ge=1, description="publish a Plan every n-th cycle (cmd every cycle)")
     task_period_s: float = Field(1.0, gt=0, description="re-publish the task this often [s]")
@@ -135,6 +142,7 @@ def run(settings: Settings) -> int:
         latest: State | None = None
         fresh = False
         cycle = 0
+        last_plan_s = 0.0
         while node.ok():
             now = time.monotonic()
             if now >= next_task:
@@ -168,8 +176,12 @@ def run(settings: Settings) -> int:
                 node.reject("state covariance is not a covariance (negative variance or asymmetric): planned with "
                             "the configured state_std instead")
                 cov = None
+            # the command acts once this plan is computed (about as long as the last one) and has reached the base
+            delay_s = max(0.0, age_s) + last_plan_s + settings.actuation_delay_s if settings.compensate_delay else 0.0
             try:
-                result = planner.plan(state_to_array(latest), task, weights, state_cov=cov)
+                t_plan = time.monotonic()
+                result = planner.plan(state_to_array(latest), task, weights, state_cov=cov, delay_s=delay_s)
+                last_plan_s = time.monotonic() - t_plan
             except (ValueError, FloatingPointError) as exc:
                 # no command this cycle: egress's watchdog stops the robot if this persists
                 node.error(f"planning failed: {exc}")

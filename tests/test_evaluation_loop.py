@@ -58,12 +58,14 @@ class CountingPlanner:
     def __init__(self) -> None:
         self.k = 0
         self.weights_seen: list[np.ndarray] = []
+        self.delays: list[float] = []
 
     def reset(self) -> None:
         self.k = 0
 
-    def plan(self, state, task, weights=None) -> Result:
+    def plan(self, state, task, weights=None, *, delay_s: float = 0.0) -> Result:
         self.weights_seen.append(np.asarray(weights).copy())
+        self.delays.append(delay_s)
         u = np.array([1.0 + 0.1 * self.k, 0.0])
         self.k += 1
         return Result(u, np.full(3, 1.0), np.zeros((3, 5)))
@@ -112,7 +114,13 @@ def test_latency_of_one_cycle_delays_commands() -> None:
 def test_fractional_latency_switches_inside_a_cycle() -> None:
     plant = KinematicPlant(dt=0.01)
     cfg = ClosedLoopConfig(time_limit_s=0.3, latency_s=0.05)
-    run_closed_loop(CountingPlanner(), plant, LANE, np.zeros(5), 2, cfg)
+    planner = CountingPlanner()
+    run_closed_loop(planner, plant, LANE, np.zeros(5), 2, cfg)
+    assert planner.delays == [0.05] * 3  # the planner is told the latency its commands will meet
+    uncompensated = CountingPlanner()
+    run_closed_loop(uncompensated, KinematicPlant(dt=0.01), LANE, np.zeros(5), 2,
+                    ClosedLoopConfig(time_limit_s=0.3, latency_s=0.05, compensate_latency=False))
+    assert uncompensated.delays == [0.0] * 3
     v_at = {round(t, 3): v for t, v in plant.log}
     assert v_at[0.04] == 0.0 and v_at[0.05] == 1.0 and v_at[0.14] == 1.0 and v_at[0.15] == pytest.approx(1.1)
 

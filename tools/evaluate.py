@@ -67,6 +67,9 @@ SamplesOpt = Annotated[int, typer.Option("--samples", min=16, help="MPPI samples
 DistanceOpt = Annotated[float | None, typer.Option("--distance", min=1.0, help="Lane distance in m (100).")]
 LatencyOpt = Annotated[float, typer.Option("--latency", min=0.0, help="Command latency in seconds.")]
 LatencyCyclesOpt = Annotated[int, typer.Option("--latency-cycles", min=0, help="Latency in planner cycles.")]
+CompensateOpt = Annotated[
+    bool, typer.Option("--compensate/--no-compensate", help="Planners plan for the state their command meets.")
+]
 NoiseOpt = Annotated[bool, typer.Option("--noise/--no-noise", help="Physics plant sensor noise.")]
 RandomOpt = Annotated[bool, typer.Option("--random-scenes", help="Avoidance: a random scene per trial.")]
 SetOpt = Annotated[
@@ -143,7 +146,8 @@ def _parse_overrides(items: list[str] | None) -> tuple[tuple[str, object], ...]:
 
 def _settings(
     plant: PlantName, plant_file: Path | None, terrain_file: Path | None, gp_model: Path | None, samples: int,
-    distance: float | None, quick: bool, latency: float, latency_cycles: int, noise: bool, overrides: list[str] | None,
+    distance: float | None, quick: bool, latency: float, latency_cycles: int, compensate: bool, noise: bool,
+    overrides: list[str] | None,
 ) -> EvalSettings:
     if plant is PlantName.residual_net and plant_file is None:
         _fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
@@ -168,6 +172,7 @@ def _settings(
         samples=samples,
         lane_distance_m=lane_m,
         latency_s=latency + latency_cycles * 0.1,
+        compensate_latency=compensate,
         sensor_noise=noise,
         planner_overrides=planner_overrides,
     )
@@ -304,11 +309,11 @@ def _run(
     kind: str, terrain: list[str] | None, model: list[ModelName] | None, trials: int | None, seed: int,
     plant: PlantName, plant_file: Path | None, terrain_file: Path | None, scene_file: list[Path] | None,
     lane_file: list[Path] | None, gp_model: Path | None, quick: bool, as_json: bool, out: Path | None,
-    workers: int, samples: int, distance: float | None, latency: float, latency_cycles: int, noise: bool,
-    random_scenes: bool, switch: list[str] | None, overrides: list[str] | None,
+    workers: int, samples: int, distance: float | None, latency: float, latency_cycles: int, compensate: bool,
+    noise: bool, random_scenes: bool, switch: list[str] | None, overrides: list[str] | None,
 ) -> None:
     settings = _settings(plant, plant_file, terrain_file, gp_model, samples, distance, quick, latency,
-                         latency_cycles, noise, overrides)
+                         latency_cycles, compensate, noise, overrides)
     terrains = terrain or _default_terrains(settings)
     if quick and not terrain:
         terrains = terrains[:1]
@@ -337,14 +342,14 @@ def register(app: typer.Typer) -> None:
             scene_file: SceneFileOpt = None, lane_file: LaneFileOpt = None, gp_model: GpModelOpt = None,
             quick: QuickOpt = False, as_json: JsonOpt = False, out: OutOpt = None, workers: WorkersOpt = 2,
             samples: SamplesOpt = 1024, distance: DistanceOpt = None, latency: LatencyOpt = 0.0,
-            latency_cycles: LatencyCyclesOpt = 0, noise: NoiseOpt = True, random_scenes: RandomOpt = False,
-            switch: SwitchOpt = None, set_: SetOpt = None,
+            latency_cycles: LatencyCyclesOpt = 0, compensate: CompensateOpt = True, noise: NoiseOpt = True,
+            random_scenes: RandomOpt = False, switch: SwitchOpt = None, set_: SetOpt = None,
         ) -> None:
             if kind == "table" and out is None:
                 out = Path("evaluation")
             _run(kind, terrain, model, trials, seed, plant, plant_file, terrain_file, scene_file, lane_file,
-                 gp_model, quick, as_json, out, workers, samples, distance, latency, latency_cycles, noise,
-                 random_scenes, switch, set_)
+                 gp_model, quick, as_json, out, workers, samples, distance, latency, latency_cycles, compensate,
+                 noise, random_scenes, switch, set_)
 
         command.__doc__ = doc
         return command

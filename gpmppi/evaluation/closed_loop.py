@@ -3,7 +3,8 @@
 The plant advances at its own internal step (its `dt`, inside `Plant.step`), the planner runs every
 `planner_dt` on the measured state, the terrain estimator sees each measured transition and its
 weights feed the next plan, and a command can reach the plant late (latency in seconds; use
-`latency_from_cycles` for planner cycles). Nothing depends on wall-clock time, so a run is a pure
+`latency_from_cycles` for planner cycles; the planner is told it and plans for the state the command will
+meet, as the planner service does with each state's age). Nothing depends on wall-clock time, so a run is a pure
 function of its seeds (planner seed, plant seed).
 """
 
@@ -32,7 +33,9 @@ class PlantLike(Protocol):
 
 
 class PlannerLike(Protocol):
-    def plan(self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None): ...
+    def plan(
+        self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None, *, delay_s: float = 0.0
+    ): ...
     def reset(self) -> None: ...
 
 
@@ -52,6 +55,7 @@ class ClosedLoopConfig:
     stop_on_collision: bool = True  # goal tasks: stop at the first overlap with an obstacle
     robot_radius: float = 0.0  # [m] robot disc for collisions (0 = point robot, as the paper scores it)
     latency_s: float = 0.0  # [s] delay between a plan and its command reaching the plant
+    compensate_latency: bool = True  # the planner plans from the state predicted `latency_s` ahead (as the service)
     adapt_weights: bool = True  # run the terrain estimator each cycle and feed its weights to the planner
     terrain_switches: tuple[tuple[float, str], ...] = ()  # (time [s], terrain) changes of the plant's ground
 
@@ -141,7 +145,8 @@ def run_closed_loop(
                 weights = np.asarray(est.weights, dtype=np.float64).copy()
         t0 = time.perf_counter()
         try:
-            result = planner.plan(measured, task, weights)
+            delay = cfg.latency_s if cfg.compensate_latency else 0.0
+            result = planner.plan(measured, task, weights, delay_s=delay)
         except (ValueError, FloatingPointError) as e:
             status, message = "planner_error", f"planner failed at t={t:.1f} s: {e}"
             break

@@ -40,6 +40,7 @@ class EvalSettings:
     goal_time_limit_s: float = 30.0  # avoidance: time limit for success
     sensor_noise: bool = True  # physics plant measurement noise
     latency_s: float = 0.0  # command latency
+    compensate_latency: bool = True  # planners plan for the state their command meets (`ClosedLoopConfig`)
     robot_radius: float = 0.0  # collision radius of the robot (0 = point, as the paper scores)
     planner_overrides: tuple[tuple[str, object], ...] = ()  # extra PlannerConfig fields, same for every model
 
@@ -140,6 +141,7 @@ def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
             distance_limit_m=settings.lane_distance_m,
             stop_on_collision=False,
             latency_s=settings.latency_s,
+            compensate_latency=settings.compensate_latency,
             robot_radius=settings.robot_radius,
             adapt_weights=adapt,
             terrain_switches=job.terrain_switches,
@@ -147,6 +149,7 @@ def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
     return ClosedLoopConfig(
         time_limit_s=settings.goal_time_limit_s,
         latency_s=settings.latency_s,
+        compensate_latency=settings.compensate_latency,
         robot_radius=settings.robot_radius,
         adapt_weights=adapt,
         terrain_switches=job.terrain_switches,

@@ -195,3 +195,47 @@ def propagate(
             covs[k + 1, 3, 3] += step_var[k, 0]
             covs[k + 1, 4, 4] += step_var[k, 1]
     return states, covs, step_var
+
+
+@njit(cache=True)
+def predict_ahead(
+    x0: np.ndarray, cov0: np.ndarray, control: np.ndarray, delay: float, dt: float, dyn_mode: int, theta: np.ndarray,
+    edd5_p: np.ndarray, gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
+    ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
+    ex_chol: np.ndarray, terrain_w: np.ndarray, noise_v: float = 0.0, noise_w: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean state and covariance `delay` seconds after `x0` under the constant `control`, by the chosen model.
+
+    Substeps of at most 10 ms. The GP residual is a change over one planner step `dt`, so a substep of h adds
+    h/dt of its mean and of its variance (the residual spread evenly over the step); `noise_v`, `noise_w` as in
+    `propagate`. Models without a GP leave the covariance as it is.
+    """
+    n = max(1, int(math.ceil(delay / 0.01)))
+    h = delay / n
+    frac = h / dt
+    x = x0.copy()
+    cov = cov0.copy()
+    work = np.empty(ex_alpha.shape[1])
+    gp_mean = np.empty(ex_alpha.shape[0])
+    gp_var = np.empty(ex_alpha.shape[0])
+    tmp = np.empty((5, 5))
+    nxt = np.empty((5, 5))
+    coef = velocity_coefficients(theta)
+    for _ in range(n):
+        mv = 0.0
+        mw = 0.0
+        if dyn_mode == DYN_GP:
+            mv, mw, cv, cw = gp_residual(
+                gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
+                terrain_w, work, gp_mean, gp_var, control[0], control[1], x[3], x[4],
+            )
+            jac = jacobian(theta, x, control, h)
+            _sandwich(jac, cov, tmp, nxt)
+            cov[:, :] = nxt
+            cov[3, 3] += frac * (cv + noise_v)
+            cov[4, 4] += frac * (cw + noise_w)
+        r = advance(dyn_mode, h, coef, edd5_p, x[0], x[1], x[2], x[3], x[4], control[0], control[1], frac * mv,
+                    frac * mw)
+        for i in range(5):
+            x[i] = r[i]
+    return x, cov
