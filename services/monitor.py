@@ -52,7 +52,8 @@ class Monitor:
         self.first_seen_s: dict[str, float] = {}
         self.heartbeats: dict[str, Heartbeat] = {}
         self.states: list[tuple[int, float, float]] = []
-        self.latencies_ms: list[float] = []
+        self.latencies_ms: list[float] = []  # state stamp -> command published (the planner's own measure)
+        self.delivery_ms: list[float] = []  # state stamp -> command received here
         self.plan_total_ms: list[float] = []
         self.task: Task | None = None
         self.undecodable = 0
@@ -87,10 +88,12 @@ class Monitor:
             elif isinstance(msg, State) and key.endswith("/state"):
                 self.states.append((msg.header.stamp_ns, msg.x, msg.y))
             elif isinstance(msg, Command) and key.endswith("/cmd"):
-                self.latencies_ms.append((received_ns - msg.header.stamp_ns) / 1e6)
+                self.delivery_ms.append((received_ns - msg.header.stamp_ns) / 1e6)
             elif isinstance(msg, Plan):
                 if "total" in msg.timings_ms:
                     self.plan_total_ms.append(msg.timings_ms["total"])
+                if "state_to_cmd" in msg.timings_ms:
+                    self.latencies_ms.append(msg.timings_ms["state_to_cmd"])
             elif isinstance(msg, Task):
                 self.task = msg
 
@@ -114,6 +117,8 @@ class Summary:
     planner_rate_hz: float | None = None
     latency_p50_ms: float | None = None
     latency_p99_ms: float | None = None
+    delivery_p50_ms: float | None = None  # state stamp -> command received by the launcher's own session
+    delivery_p99_ms: float | None = None
     plan_p99_ms: float | None = None
     messages: dict[str, int] = field(default_factory=dict)
     heartbeats_from: list[str] = field(default_factory=list)
@@ -132,8 +137,10 @@ class Summary:
         else:
             out.append("task: no task or no states seen")
         out.append(
-            f"planner: {_fmt(self.planner_rate_hz, 'Hz')}; state stamp -> command p50 {_fmt(self.latency_p50_ms, 'ms')}"
-            f" p99 {_fmt(self.latency_p99_ms, 'ms')}; plan compute p99 {_fmt(self.plan_p99_ms, 'ms')}"
+            f"planner: {_fmt(self.planner_rate_hz, 'Hz')}; state stamp -> command published p50 "
+            f"{_fmt(self.latency_p50_ms, 'ms')} p99 {_fmt(self.latency_p99_ms, 'ms')}; plan compute p99 "
+            f"{_fmt(self.plan_p99_ms, 'ms')}; command received here p50 {_fmt(self.delivery_p50_ms, 'ms')} "
+            f"p99 {_fmt(self.delivery_p99_ms, 'ms')}"
         )
         out.append("messages per key:")
         out += [f"  {k}: {n}" for k, n in sorted(self.messages.items())]
@@ -163,6 +170,7 @@ def summarize(monitor: Monitor | None, launcher: Launcher, service_names: list[s
         states = np.array([[x, y] for _, x, y in sorted(monitor.states)]).reshape(-1, 2)
         task = monitor.task
         latencies = np.array(monitor.latencies_ms)
+        delivery = np.array(monitor.delivery_ms)
         plan_ms = np.array(monitor.plan_total_ms)
         planner_hb = monitor.heartbeats.get("planner")
     started = {c.name: c.first_started_at - monitor.t_start for c in launcher.children}
@@ -179,6 +187,9 @@ def summarize(monitor: Monitor | None, launcher: Launcher, service_names: list[s
     if latencies.size:
         s.latency_p50_ms = float(np.percentile(latencies, 50))
         s.latency_p99_ms = float(np.percentile(latencies, 99))
+    if delivery.size:
+        s.delivery_p50_ms = float(np.percentile(delivery, 50))
+        s.delivery_p99_ms = float(np.percentile(delivery, 99))
     if plan_ms.size:
         s.plan_p99_ms = float(np.percentile(plan_ms, 99))
     if planner_hb is not None:

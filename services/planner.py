@@ -72,7 +72,10 @@ def load_model(model_file: str | None) -> GPModel:
     return load_default_model() if model_file is None else GPModel.load(model_file)
 
 
-def plan_message(result: PlanResult, stamp_ns: int, task: LaneTask | GoalTask, n_samples: int) -> Plan:
+def plan_message(
+    result: PlanResult, stamp_ns: int, task: LaneTask | GoalTask, n_samples: int,
+    extra_timings_ms: dict[str, float] | None = None,
+) -> Plan:
     from gpmppi.tasks import GoalTask
 
     covs = np.asarray(result.covariances)
@@ -97,7 +100,7 @@ def plan_message(result: PlanResult, stamp_ns: int, task: LaneTask | GoalTask, n
         samples=samples.tolist(),
         sample_costs=np.asarray(result.sample_costs, dtype=np.float64)[:n_samples].tolist(),
         terrain_weights=np.asarray(result.weights, dtype=np.float64).tolist(),
-        timings_ms={k: float(v) for k, v in result.timings_ms.items()},
+        timings_ms={k: float(v) for k, v in {**result.timings_ms, **(extra_timings_ms or {})}.items()},
     )
     plan.header.stamp_ns = stamp_ns
     return plan
@@ -133,7 +136,7 @@ def run(settings: Settings) -> int:
         t = time.monotonic()
         planner = Planner(settings.planner, model)
         # compile / load the numba cache before going live
-        planner.plan(np.asarray(scenario.start, dtype=np.float64), task)
+        planner.plan(np.asarray(scenario.start, dtype=np.float64), task, delay_s=0.01)  # delay: its predictor too
         planner.reset()
         startup["warmup_s"] = time.monotonic() - t
         t = time.monotonic()
@@ -145,9 +148,6 @@ def run(settings: Settings) -> int:
         last_plan_s = 0.0
         while node.ok():
             now = time.monotonic()
-            if now >= next_task:
-                next_task = now + settings.task_period_s
-                task_pub.put(task_to_message(task, time.time_ns()))
             if (new_task := task_sub.take()) is not None:
                 try:
                     task = task_from_message(new_task)
@@ -156,11 +156,23 @@ def run(settings: Settings) -> int:
                 except ValueError as exc:
                     node.reject(f"task: {exc}")
             if (w := weights_sub.take()) is not None:
-                weights = _weights_in_model_order(node, w, model.terrains, weights)
+                new_weights = _weights_in_model_order(node, w, model.terrains, weights)
+                try:
+                    # new weights arrive between states (terrain solves after each command): the table collapse
+                    # for them is done now, not on the next state's path to its command
+                    planner.prepare(new_weights)
+                    weights = new_weights
+                except ValueError as exc:
+                    node.reject(f"terrain weights: {exc}; kept the previous weights")
             if (s := state_sub.take()) is not None:
                 latest, fresh = s, True
             due = fresh if settings.trigger == "state" else now >= next_rate_tick
             if not due or latest is None:
+                if now >= next_task:
+                    # only here, between cycles: never on a state's path to its command (encoding the lane's
+                    # polyline took up to 7 ms of a command's latency)
+                    next_task = now + settings.task_period_s
+                    task_pub.put(task_to_message(task, time.time_ns()))
                 # trigger 'state': input wakes the wait; 'rate': do not sleep past the next tick
                 node.spin_once(None if settings.trigger == "state" else min(settings.poll_s, next_rate_tick - now))
                 continue
@@ -190,13 +202,16 @@ def run(settings: Settings) -> int:
             cmd.header.stamp_ns = latest.header.stamp_ns
             cmd.header.frame_id = "base_link"
             cmd_pub.put(cmd)
+            # the control latency as this process sees it: the state's stamp to the command handed to Zenoh
+            state_to_cmd_ms = (time.time_ns() - latest.header.stamp_ns) / 1e6
             if cycle == 0:
                 startup["to_first_command_s"] = time.monotonic() - t
                 startup["process_age_s"] = process_age_s()
                 fields = {k: None if v is None else round(v, 3) for k, v in startup.items()}
                 node.log.info("first command", extra={"fields": fields})
             if cycle % settings.plan_every == 0:
-                plan_pub.put(plan_message(result, latest.header.stamp_ns, task, settings.plan_samples))
+                plan_pub.put(plan_message(result, latest.header.stamp_ns, task, settings.plan_samples,
+                                          {"state_to_cmd": state_to_cmd_ms}))
             cycle += 1
             node.cycle()
             node.spin_once(0.0)

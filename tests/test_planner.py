@@ -250,3 +250,25 @@ def test_acceleration_limits_and_smoothing_shape_the_sequence() -> None:
     assert np.abs(np.diff(smooth, axis=0)).sum() < 0.7 * np.abs(np.diff(raw, axis=0)).sum()
     with pytest.raises(ValueError, match="smoothing_window"):
         PlannerConfig(smoothing_window=4)
+
+
+def test_prepare_collapses_ahead_and_plans_are_unchanged() -> None:
+    """`prepare` (what the service calls when weights arrive) does the table collapse before the state comes;
+    the plan that follows is bit-identical to one that collapsed for itself."""
+    from gpmppi.gp.model_file import load_default_model
+
+    model = load_default_model()
+    task = circle_lane().task
+    x = np.array([8.25, 0.0, np.pi / 2, 0.5, 0.0])
+    w = np.array([0.2, 0.7, 0.1])
+    ahead = Planner(PlannerConfig(samples=256, seed=5), model)
+    ahead.prepare(w)
+    np.testing.assert_allclose(ahead._table_weights, w, rtol=0, atol=1e-15)  # collapsed for w already
+    plain = Planner(PlannerConfig(samples=256, seed=5), model)
+    a, b = ahead.plan(x, task, w), plain.plan(x, task, w)
+    np.testing.assert_array_equal(a.controls, b.controls)
+    np.testing.assert_array_equal(a.states, b.states)
+    with pytest.raises(ValueError, match="simplex"):
+        ahead.prepare(np.array([1.0, 1.0, 1.0]))
+    with pytest.raises(ValueError, match="one entry per terrain"):
+        ahead.prepare(np.array([0.5, 0.5]))

@@ -129,17 +129,7 @@ class Planner:
             raise ValueError(f"state must be finite, got {x.tolist()}; drop this state and wait for the next one")
         if not isinstance(task, (LaneTask, GoalTask)):
             raise ValueError(f"task must be a LaneTask or GoalTask, got {type(task).__name__}")
-        m = len(self.model.terrains)
-        if weights is None:
-            w = np.full(m, 1.0 / m)
-        else:
-            w = np.asarray(weights, dtype=np.float64).reshape(-1)
-            if w.shape != (m,):
-                raise ValueError(f"weights must have one entry per terrain {self.model.terrains}, got shape {w.shape}")
-            if not np.all(np.isfinite(w)) or np.any(w < -1e-6) or abs(w.sum() - 1.0) > 1e-4:
-                raise ValueError(f"weights must lie on the simplex (>= 0, sum 1), got {w.tolist()}")
-            w = np.clip(w, 0.0, None)
-            w = w / w.sum()
+        w = self._check_weights(weights)
         if isinstance(task, GoalTask):
             o = task.obstacles
             if o.shape[0]:
@@ -151,6 +141,26 @@ class Planner:
                         f"{o[inside[0]].tolist()}; move the goal out of the obstacles"
                     )
         return np.ascontiguousarray(x), w
+
+    def _check_weights(self, weights: np.ndarray | None) -> np.ndarray:
+        m = len(self.model.terrains)
+        if weights is None:
+            return np.full(m, 1.0 / m)
+        w = np.asarray(weights, dtype=np.float64).reshape(-1)
+        if w.shape != (m,):
+            raise ValueError(f"weights must have one entry per terrain {self.model.terrains}, got shape {w.shape}")
+        if not np.all(np.isfinite(w)) or np.any(w < -1e-6) or abs(w.sum() - 1.0) > 1e-4:
+            raise ValueError(f"weights must lie on the simplex (>= 0, sum 1), got {w.tolist()}")
+        w = np.clip(w, 0.0, None)
+        return w / w.sum()
+
+    def prepare(self, weights: np.ndarray | None) -> None:
+        """Get ready to plan with these terrain weights: collapse the GP table now rather than in the next `plan`.
+
+        The collapse reads the whole per-terrain table (39 MB for the shipped model, ~3 ms here); a service
+        calls this when new weights arrive, between states, which takes it off the state -> command path.
+        """
+        self._terrain_setup(self._check_weights(weights))
 
     def _lane_lookup(self, task: LaneTask) -> LaneLookup:
         key = (task.centerline.shape, hash(task.centerline.tobytes()), task.closed)
