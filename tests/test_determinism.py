@@ -38,7 +38,7 @@ import numpy as np
 if sys.argv[1] in ("helpers", "other_first"):
     from gpmppi.costs import N_COST_WEIGHTS, lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
     from gpmppi.gp.grid_interp import grid_interp
-    from gpmppi.models.dynamic_unicycle import euler_step, jacobian
+    from gpmppi.models.dynamic_unicycle import nominal_step, jacobian
     from gpmppi.mppi.dynamics import advance, nominal_velocity_step, velocity_coefficients
     from gpmppi.mppi.gp_table import interp4, interp4_simplex, simplex_nodes
     from gpmppi.mppi.lane import build_lane_lookup, lane_query
@@ -50,7 +50,7 @@ if sys.argv[1] in ("helpers", "other_first"):
     coef = velocity_coefficients(theta)
     nominal_velocity_step(coef, 0.5, 0.1, 1.0, 0.2, 0.1)
     advance(2, 0.1, coef, np.ones(5), 0.0, 0.0, 0.1, 0.5, 0.1, 1.0, 0.2, 0.01, 0.02)
-    euler_step(theta, x, u, 0.1)
+    nominal_step(theta, x, u, 0.1)
     jacobian(theta, x, u, 0.1)
     table = np.ones((81, 4), dtype=np.float32)
     dims = np.array([3, 3, 3, 3])

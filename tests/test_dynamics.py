@@ -7,7 +7,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from gpmppi.gp.grid_interp import grid_interp
-from gpmppi.models.dynamic_unicycle import euler_step, jacobian, velocity_step_exact, wrap_angle
+from gpmppi.models.dynamic_unicycle import jacobian, nominal_step, velocity_step_exact, wrap_angle
 from gpmppi.models.edd5 import edd5_step, edd5_velocity
 from gpmppi.models.kinematic_unicycle import kinematic_step
 
@@ -37,21 +37,44 @@ def test_jacobian_matches_central_differences() -> None:
     for _ in range(25):
         x = rng.uniform([-5, -5, -np.pi, 0, -3], [5, 5, np.pi, 2, 3])
         u = rng.uniform([0, -3], [2, 3])
-        J = jacobian(THETA, x, u, 0.1)
+        mv, mw = rng.uniform(-0.2, 0.2, 2)  # the step's GP residual, held
+        J = jacobian(THETA, x, u, 0.1, mv, mw)
         eps = 1e-6
         num = np.empty((5, 5))
         for j in range(5):
             e = np.zeros(5)
             e[j] = eps
-            num[:, j] = (euler_step(THETA, x + e, u, 0.1) - euler_step(THETA, x - e, u, 0.1)) / (2 * eps)
+            num[:, j] = (nominal_step(THETA, x + e, u, 0.1, mv, mw) - nominal_step(THETA, x - e, u, 0.1, mv, mw)) / (
+                2 * eps
+            )
         np.testing.assert_allclose(J, num, atol=1e-8)
 
 
-def test_euler_step_moves_along_heading() -> None:
+def test_nominal_step_pose_is_second_order() -> None:
+    """Against the full-state ODE integrated by scipy: the step's pose error is a small fraction of an
+    explicit-Euler pose step's (which drives with the start velocities) when the velocities change."""
+
+    def f(_t: float, s: np.ndarray, u: np.ndarray) -> list[float]:
+        vdot = (THETA[2] / THETA[0]) * s[4] ** 2 - (THETA[3] / THETA[0]) * s[3] + u[0] / THETA[0]
+        wdot = -(THETA[4] / THETA[1]) * s[3] * s[4] - (THETA[5] / THETA[1]) * s[4] + u[1] / THETA[1]
+        return [s[3] * np.cos(s[2]), s[3] * np.sin(s[2]), s[4], vdot, wdot]
+
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        x = rng.uniform([-5, -5, -np.pi, 0.2, -2], [5, 5, np.pi, 2, 2])
+        u = rng.uniform([0, -3], [2, 3])
+        ref = solve_ivp(f, (0, 0.1), x, args=(u,), rtol=1e-11, atol=1e-12).y[:, -1]
+        ours = nominal_step(THETA, x, u, 0.1)
+        euler = x[:3] + 0.1 * np.array([x[3] * np.cos(x[2]), x[3] * np.sin(x[2]), x[4]])
+        err, err_euler = np.linalg.norm(ours[:3] - ref[:3]), np.linalg.norm(euler - ref[:3])
+        assert err < 0.2 * err_euler + 1e-9, (err, err_euler)
+
+
+def test_nominal_step_moves_along_heading() -> None:
     x = np.array([1.0, 2.0, np.pi / 2, 1.0, 0.0])
-    out = euler_step(THETA, x, np.array([1.0, 0.0]), 0.1)
+    out = nominal_step(THETA, x, np.array([1.0, 0.0]), 0.1)
     assert out[0] == pytest.approx(1.0, abs=1e-12)
-    assert out[1] == pytest.approx(2.1)
+    assert out[1] == pytest.approx(2.0 + 0.1 * 0.5 * (1.0 + out[3]))  # at the mean of start and end speeds
     # steady state of vdot = 0 with w = 0: v = v_ref / th4
     assert out[3] == pytest.approx(1.0 + 0.1 * (-THETA[3] + 1.0) / THETA[0])
 

@@ -7,7 +7,7 @@ import pytest
 from scipy.stats import chi2, norm
 
 from gpmppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
-from gpmppi.models.dynamic_unicycle import euler_step, jacobian
+from gpmppi.models.dynamic_unicycle import jacobian, nominal_step
 from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, propagate
 from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table
 from gpmppi.mppi.synthetic import synthetic_model
@@ -68,13 +68,13 @@ def test_obstacle_inflation_equals_closed_form() -> None:
     assert n_capped == 12
 
 
-def _fd_jacobian(theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
+def _fd_jacobian(theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float, mv: float, mw: float) -> np.ndarray:
     jac = np.zeros((5, 5))
     for i in range(5):
         h = 1e-6
         e = np.zeros(5)
         e[i] = h
-        jac[:, i] = (euler_step(theta, x + e, u, dt) - euler_step(theta, x - e, u, dt)) / (2 * h)
+        jac[:, i] = (nominal_step(theta, x + e, u, dt, mv, mw) - nominal_step(theta, x - e, u, dt, mv, mw)) / (2 * h)
     return jac
 
 
@@ -93,8 +93,13 @@ def test_propagation_matches_finite_difference_jacobians() -> None:
                                        g.inv_step[TABLE_AXES], *dummy, w)
     sigma = np.zeros((5, 5))
     for k in range(15):
-        jac_fd = _fd_jacobian(model.theta, states[k], controls[k], 0.1)
-        np.testing.assert_allclose(jacobian(model.theta, states[k], controls[k], 0.1), jac_fd, atol=1e-7)
+        # the step's GP residual mean: what the mean step added to the nominal velocities
+        nominal = nominal_step(model.theta, states[k], controls[k], 0.1)
+        mv, mw = states[k + 1, 3] - nominal[3], states[k + 1, 4] - nominal[4]
+        np.testing.assert_allclose(states[k + 1], nominal_step(model.theta, states[k], controls[k], 0.1, mv, mw),
+                                   atol=1e-6)  # the kernels' cos/sin are single precision
+        jac_fd = _fd_jacobian(model.theta, states[k], controls[k], 0.1, mv, mw)
+        np.testing.assert_allclose(jacobian(model.theta, states[k], controls[k], 0.1, mv, mw), jac_fd, atol=1e-7)
         sigma = jac_fd @ sigma @ jac_fd.T + np.diag([0, 0, 0, step_var[k, 0], step_var[k, 1]])
         np.testing.assert_allclose(covs[k + 1], sigma, rtol=1e-6, atol=1e-12)
     assert np.all(step_var > 0)

@@ -5,7 +5,7 @@ State `[X, Y, theta, v, omega]`, control `[v_ref, omega_ref]`, parameters theta1
     vdot = (th3/th1) w^2 - (th4/th1) v + v_ref/th1
     wdot = -(th5/th2) v w - (th6/th2) w + w_ref/th2
 
-`euler_step` is the step used inside MPPI rollouts; `velocity_step_exact` integrates the
+`nominal_step` is the step used inside MPPI rollouts (`jacobian` its derivative); `velocity_step_exact` integrates the
 velocity ODE over dt (RK4 with fine substeps, exact to ~1e-10 for dt = 0.1 s), which is how
 the paper's residual targets are defined. All functions are numba-compiled so the planner
 kernels can call them.
@@ -38,32 +38,61 @@ def wrap_angle(a: float) -> float:
 
 
 @njit(cache=True)
-def euler_step(theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-    """One explicit-Euler step of the full state (as the rollouts do). Yaw is not wrapped."""
+def nominal_step(
+    theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float, mv: float = 0.0, mw: float = 0.0
+) -> np.ndarray:
+    """One step of the full state as the rollouts take it. Yaw is not wrapped.
+
+    Velocities: explicit Euler of the nominal model plus the step's residual (mv, mw). Pose: the mean of
+    the start and end velocities along the heading at mid-step (second order in dt; the pose of an
+    explicit-Euler step lags by half a step's change in yaw rate, 0.05 rad for 1 rad/s).
+    """
     vdot, wdot = accel(theta, x[3], x[4], u[0], u[1])
+    v1 = x[3] + vdot * dt + mv
+    w1 = x[4] + wdot * dt + mw
+    vm = 0.5 * (x[3] + v1)
+    wm = 0.5 * (x[4] + w1)
+    heading = x[2] + 0.5 * wm * dt
     out = np.empty(N_STATE)
-    out[0] = x[0] + x[3] * np.cos(x[2]) * dt
-    out[1] = x[1] + x[3] * np.sin(x[2]) * dt
-    out[2] = x[2] + x[4] * dt
-    out[3] = x[3] + vdot * dt
-    out[4] = x[4] + wdot * dt
+    out[0] = x[0] + vm * np.cos(heading) * dt
+    out[1] = x[1] + vm * np.sin(heading) * dt
+    out[2] = x[2] + wm * dt
+    out[3] = v1
+    out[4] = w1
     return out
 
 
 @njit(cache=True)
-def jacobian(theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
-    """d euler_step / d x at (x, u): the 5x5 Jacobian used to propagate covariance."""
-    v, w, th = x[3], x[4], x[2]
+def jacobian(
+    theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float, mv: float = 0.0, mw: float = 0.0
+) -> np.ndarray:
+    """d nominal_step / d x at (x, u) with the residual (mv, mw) held: the 5x5 Jacobian that propagates covariance."""
+    v, w = x[3], x[4]
+    vdot, wdot = accel(theta, v, w, u[0], u[1])
+    dv_dv = 1.0 - (theta[3] / theta[0]) * dt
+    dv_dw = 2.0 * (theta[2] / theta[0]) * w * dt
+    dw_dv = -(theta[4] / theta[1]) * w * dt
+    dw_dw = 1.0 - ((theta[4] / theta[1]) * v + theta[5] / theta[1]) * dt
+    vm = v + 0.5 * (vdot * dt + mv)
+    wm = w + 0.5 * (wdot * dt + mw)
+    # d(vm, wm) / d(v, w)
+    vm_v, vm_w = 0.5 * (1.0 + dv_dv), 0.5 * dv_dw
+    wm_v, wm_w = 0.5 * dw_dv, 0.5 * (1.0 + dw_dw)
+    heading = x[2] + 0.5 * wm * dt
+    c, s = np.cos(heading), np.sin(heading)
     J = np.eye(N_STATE)
-    J[0, 2] = -v * np.sin(th) * dt
-    J[0, 3] = np.cos(th) * dt
-    J[1, 2] = v * np.cos(th) * dt
-    J[1, 3] = np.sin(th) * dt
-    J[2, 4] = dt
-    J[3, 3] = 1.0 - (theta[3] / theta[0]) * dt
-    J[3, 4] = 2.0 * (theta[2] / theta[0]) * w * dt
-    J[4, 3] = -(theta[4] / theta[1]) * w * dt
-    J[4, 4] = 1.0 - ((theta[4] / theta[1]) * v + theta[5] / theta[1]) * dt
+    J[0, 2] = -vm * s * dt
+    J[0, 3] = (vm_v * c - vm * s * 0.5 * dt * wm_v) * dt
+    J[0, 4] = (vm_w * c - vm * s * 0.5 * dt * wm_w) * dt
+    J[1, 2] = vm * c * dt
+    J[1, 3] = (vm_v * s + vm * c * 0.5 * dt * wm_v) * dt
+    J[1, 4] = (vm_w * s + vm * c * 0.5 * dt * wm_w) * dt
+    J[2, 3] = wm_v * dt
+    J[2, 4] = wm_w * dt
+    J[3, 3] = dv_dv
+    J[3, 4] = dv_dw
+    J[4, 3] = dw_dv
+    J[4, 4] = dw_dw
     return J
 
 

@@ -1,7 +1,8 @@
 """One rollout step of each planner model with the weighted-ensemble GP residual, and covariance propagation.
 
 Models (`DYN_*`): the kinematic unicycle; EDD5 of one terrain; the nominal dynamic unicycle
-(explicit Euler) plus the weighted GP ensemble residual on the velocities,
+(explicit Euler on the velocities, second order on the pose: `nominal_step`) plus the weighted GP ensemble
+residual on the velocities,
 mean `sum_i w_i m_i`, variance `sum_i w_i^2 C_i` (C = latent variance).
 
 GP evaluation (`GP_*`): `grid` interpolates (simplex or multilinear) the collapsed table of
@@ -71,7 +72,7 @@ def velocity_coefficients(theta: np.ndarray) -> np.ndarray:
 def nominal_velocity_step(
     coef: np.ndarray, v: float, w: float, v_ref: float, w_ref: float, dt: float
 ) -> tuple[float, float]:
-    """Explicit-Euler velocity step of the nominal dynamic unicycle (as `euler_step`); `velocity_coefficients`."""
+    """Explicit-Euler velocity step of the nominal dynamic unicycle (as `nominal_step`); `velocity_coefficients`."""
     vdot = coef[0] * w * w - coef[1] * v + v_ref * coef[2]
     wdot = -coef[3] * v * w - coef[4] * w + w_ref * coef[5]
     return v + vdot * dt, w + wdot * dt
@@ -93,11 +94,18 @@ def advance(
 
     `coef` = `velocity_coefficients(theta)`.
     """
-    c, s = _cos_sin(yaw)
     if dyn_mode == DYN_GP:
         v1, w1 = nominal_velocity_step(coef, v, w, u0, u1, dt)
-        # dynamic model: the pose advances with the current velocities (explicit Euler)
-        return px + v * c * dt, py + v * s * dt, yaw + w * dt, v1 + mv, w1 + mw
+        v1 += mv
+        w1 += mw
+        # dynamic model: the pose advances with the mean of the step's start and end velocities, along the
+        # heading at mid-step (second order; with the start velocities alone a yaw rate changing by 1 rad/s in
+        # a step puts the pose 0.05 rad behind)
+        vm = 0.5 * (v + v1)
+        wm = 0.5 * (w + w1)
+        c, s = _cos_sin(yaw + 0.5 * wm * dt)
+        return px + vm * c * dt, py + vm * s * dt, yaw + wm * dt, v1, w1
+    c, s = _cos_sin(yaw)
     if dyn_mode == DYN_EDD5:
         v1, w1 = edd5_velocity(edd5_p, u0, u1)
     else:
@@ -159,10 +167,10 @@ def propagate(
 
     `cov0` (5, 5) is the covariance of the start state (the state estimate's), zero when None.
 
-    GP model: Sigma+ = J Sigma J^T + diag(0, 0, 0, C_v + noise_v, C_w + noise_w) with J the nominal
-    Euler Jacobian at (x_k, u_k) and C the ensemble's latent variance; `noise_v`, `noise_w` are the
-    ensemble's likelihood noise `sum_i w_i^2 noise_i` (with it the added term is the GP's predictive
-    variance of the next velocity, which is what the data scatter by). The mean includes the GP mean
+    GP model: Sigma+ = J Sigma J^T + diag(0, 0, 0, C_v + noise_v, C_w + noise_w) with J the Jacobian of
+    `nominal_step` at (x_k, u_k) and the step's mean residual, C the ensemble's latent variance; `noise_v`,
+    `noise_w` are the ensemble's likelihood noise `sum_i w_i^2 noise_i` (with it the added term is the GP's
+    predictive variance of the next velocity, which is what the data scatter by). The mean includes the GP mean
     residual. Other models carry no uncertainty, so their covariances stay zero. The returned step
     variances are the predictive ones too.
     """
@@ -190,7 +198,8 @@ def propagate(
         if dyn_mode == DYN_GP:
             step_var[k, 0] = r[5] + noise_v
             step_var[k, 1] = r[6] + noise_w
-            jac = jacobian(theta, x, controls[k], dt)
+            v_nom, w_nom = nominal_velocity_step(coef, x[3], x[4], controls[k, 0], controls[k, 1], dt)
+            jac = jacobian(theta, x, controls[k], dt, r[3] - v_nom, r[4] - w_nom)
             _sandwich(jac, covs[k], tmp, covs[k + 1])
             covs[k + 1, 3, 3] += step_var[k, 0]
             covs[k + 1, 4, 4] += step_var[k, 1]
@@ -229,7 +238,7 @@ def predict_ahead(
                 gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
                 terrain_w, work, gp_mean, gp_var, control[0], control[1], x[3], x[4],
             )
-            jac = jacobian(theta, x, control, h)
+            jac = jacobian(theta, x, control, h, frac * mv, frac * mw)
             _sandwich(jac, cov, tmp, nxt)
             cov[:, :] = nxt
             cov[3, 3] += frac * (cv + noise_v)
