@@ -40,7 +40,8 @@ class Settings(NodeSettings):
     max_state_age_s: float = Field(0.5, gt=0, description="do not plan from a state older than this [s]")
     compensate_delay: bool = Field(
         True, description="plan from the state predicted to when the command takes effect (state age + compute + "
-        "actuation_delay_s), not from the measured one"
+        "actuation_delay_s), not from the measured one; the age is this host's clock minus the state's stamp, so "
+        "the two clocks must agree (one host, or synchronised clocks): turn it off otherwise"
     )
     actuation_delay_s: float = Field(
         0.005, ge=0, le=0.5, description="from publishing `cmd` to the base applying it (egress hop, base tick) [s]"
