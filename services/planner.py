@@ -171,7 +171,7 @@ def run(settings: Settings) -> int:
             if not due or latest is None:
                 if now >= next_task:
                     # only here, between cycles: never on a state's path to its command (encoding the lane's
-                    # polyline took up to 7 ms of a command's latency)
+                    # polyline takes milliseconds; a cycle with it on the path measured 22.9 ms, the median 5)
                     next_task = now + settings.task_period_s
                     task_pub.put(task_to_message(task, time.time_ns()))
                 # trigger 'state': input wakes the wait; 'rate': do not sleep past the next tick
