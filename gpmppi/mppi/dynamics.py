@@ -121,9 +121,11 @@ def step_state(
     gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_mean: np.ndarray, gp_var: np.ndarray,
-    px: float, py: float, yaw: float, v: float, w: float, u0: float, u1: float,
-) -> tuple[float, float, float, float, float, float, float]:
-    """Next state (5 scalars) and the step's residual variances (var_v, var_w) of the chosen model."""
+    px: float, py: float, yaw: float, v: float, w: float, u0: float, u1: float, residual_scale: float = 1.0,
+) -> tuple[float, float, float, float, float, float, float, float, float]:
+    """Next state (5 scalars) of the chosen model, the residual means it added (mean_v, mean_w) and the step's
+    residual variances (var_v, var_w). `residual_scale` < 1 adds that share of the residual mean (a step
+    shorter than the GP's)."""
     mv = 0.0
     mw = 0.0
     cv = 0.0
@@ -133,8 +135,10 @@ def step_state(
             gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
             terrain_w, work, gp_mean, gp_var, u0, u1, v, w,
         )
+        mv *= residual_scale
+        mw *= residual_scale
     px, py, yaw, v, w = advance(dyn_mode, dt, coef, edd5_p, px, py, yaw, v, w, u0, u1, mv, mw)
-    return px, py, yaw, v, w, cv, cw
+    return px, py, yaw, v, w, mv, mw, cv, cw
 
 
 @njit(cache=True, inline="always")
@@ -196,10 +200,9 @@ def propagate(
         for i in range(5):
             states[k + 1, i] = r[i]
         if dyn_mode == DYN_GP:
-            step_var[k, 0] = r[5] + noise_v
-            step_var[k, 1] = r[6] + noise_w
-            v_nom, w_nom = nominal_velocity_step(coef, x[3], x[4], controls[k, 0], controls[k, 1], dt)
-            jac = jacobian(theta, x, controls[k], dt, r[3] - v_nom, r[4] - w_nom)
+            step_var[k, 0] = r[7] + noise_v
+            step_var[k, 1] = r[8] + noise_w
+            jac = jacobian(theta, x, controls[k], dt, r[5], r[6])
             _sandwich(jac, covs[k], tmp, covs[k + 1])
             covs[k + 1, 3, 3] += step_var[k, 0]
             covs[k + 1, 4, 4] += step_var[k, 1]
@@ -231,20 +234,17 @@ def predict_ahead(
     nxt = np.empty((5, 5))
     coef = velocity_coefficients(theta)
     for _ in range(n):
-        mv = 0.0
-        mw = 0.0
+        r = step_state(
+            dyn_mode, h, coef, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale,
+            ex_alpha, ex_chol, terrain_w, work, gp_mean, gp_var, x[0], x[1], x[2], x[3], x[4], control[0],
+            control[1], frac,
+        )
         if dyn_mode == DYN_GP:
-            mv, mw, cv, cw = gp_residual(
-                gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
-                terrain_w, work, gp_mean, gp_var, control[0], control[1], x[3], x[4],
-            )
-            jac = jacobian(theta, x, control, h, frac * mv, frac * mw)
+            jac = jacobian(theta, x, control, h, r[5], r[6])
             _sandwich(jac, cov, tmp, nxt)
             cov[:, :] = nxt
-            cov[3, 3] += frac * (cv + noise_v)
-            cov[4, 4] += frac * (cw + noise_w)
-        r = advance(dyn_mode, h, coef, edd5_p, x[0], x[1], x[2], x[3], x[4], control[0], control[1], frac * mv,
-                    frac * mw)
+            cov[3, 3] += frac * (r[7] + noise_v)
+            cov[4, 4] += frac * (r[8] + noise_w)
         for i in range(5):
             x[i] = r[i]
     return x, cov
