@@ -40,10 +40,11 @@ for scenario in (circle_lane(), paper_obstacle_scene()):
     planner.backend = "cuda"  # the rollouts go to the captured call above
     planner.plan(scenario.start, scenario.task, np.array([0.5, 0.3, 0.2]))
 for args, eps, costs, xy in captured:
-    (x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, theta, edd5_p, gp_mode, table, dims, lo,
-     inv_step, _sx, _il, _os, _al, _ch, _tw, *task, cost_w) = args
+    (x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, theta, lateral, edd5_p, gp_mode, table, dims,
+     lo, inv_step, _sx, _il, _os, _al, _ch, _tw, *task, cost_w) = args
     values = (x0, nominal, noise_std, u_lo, u_hi, dt, np.int64(seed), np.int64(iteration), dyn_mode,
-              velocity_coefficients(theta), edd5_p, gp_mode, table, dims, lo, inv_step, *task, cost_w, eps, costs, xy)
+              velocity_coefficients(theta, lateral),
+              edd5_p, gp_mode, table, dims, lo, inv_step, *task, cost_w, eps, costs, xy)
     ptx, _ = cuda.compile_ptx(cuda_backend._rollout_kernel.py_func, tuple(typeof(v) for v in values), cc=(8, 0))
     assert ".entry" in ptx
 x = np.zeros((3, 4))

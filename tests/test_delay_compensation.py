@@ -20,8 +20,8 @@ from gpmppi.terrain import TerrainEstimator
 def _arrays(planner: Planner, w: np.ndarray) -> tuple:
     """The model arrays `predict_ahead` / `propagate` take after `dyn_mode`, as the planner passes them."""
     edd5_p, _ = planner._terrain_setup(w)
-    return (planner._theta, edd5_p, planner._gp_mode, planner._table, planner._table_dims, planner._grid_lo,
-            planner._grid_inv, *planner._ex, w)
+    return (planner._theta, planner._lateral, edd5_p, planner._gp_mode, planner._table, planner._table_dims,
+            planner._grid_lo, planner._grid_inv, *planner._ex, w)
 
 
 def test_unicycle_prediction_follows_the_arc_of_the_held_command() -> None:

@@ -47,7 +47,7 @@ if sys.argv[1] in ("helpers", "other_first"):
     theta = np.array([0.3, 0.25, 0.1, 1.0, 0.05, 1.1])
     x = np.array([0.1, 0.2, 0.3, 0.8, 0.1])
     u = np.array([1.0, 0.2])
-    coef = velocity_coefficients(theta)
+    coef = velocity_coefficients(theta, np.array([-0.05, -0.02]))
     nominal_velocity_step(coef, 0.5, 0.1, 1.0, 0.2, 0.1)
     advance(2, 0.1, coef, np.ones(5), 0.0, 0.0, 0.1, 0.5, 0.1, 1.0, 0.2, 0.01, 0.02)
     nominal_step(theta, x, u, 0.1)

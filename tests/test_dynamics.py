@@ -32,21 +32,22 @@ def test_exact_velocity_step_matches_scipy_ode() -> None:
         assert w1[i] == pytest.approx(ref[1], abs=1e-9)
 
 
-def test_jacobian_matches_central_differences() -> None:
+@pytest.mark.parametrize("with_lateral", [False, True])
+def test_jacobian_matches_central_differences(with_lateral: bool) -> None:
     rng = np.random.default_rng(1)
     for _ in range(25):
         x = rng.uniform([-5, -5, -np.pi, 0, -3], [5, 5, np.pi, 2, 3])
         u = rng.uniform([0, -3], [2, 3])
         mv, mw = rng.uniform(-0.2, 0.2, 2)  # the step's GP residual, held
-        J = jacobian(THETA, x, u, 0.1, mv, mw)
+        lat = rng.uniform(-0.2, 0.05, 2) if with_lateral else np.zeros(2)  # sideways slide (a, b)
+        J = jacobian(THETA, x, u, 0.1, mv, mw, *lat)
         eps = 1e-6
         num = np.empty((5, 5))
         for j in range(5):
             e = np.zeros(5)
             e[j] = eps
-            num[:, j] = (nominal_step(THETA, x + e, u, 0.1, mv, mw) - nominal_step(THETA, x - e, u, 0.1, mv, mw)) / (
-                2 * eps
-            )
+            hi, lo = nominal_step(THETA, x + e, u, 0.1, mv, mw, *lat), nominal_step(THETA, x - e, u, 0.1, mv, mw, *lat)
+            num[:, j] = (hi - lo) / (2 * eps)
         np.testing.assert_allclose(J, num, atol=1e-8)
 
 

@@ -21,7 +21,7 @@ def test_propagation_adds_the_likelihood_noise_to_the_latent_variance() -> None:
     x0 = np.array([0.0, 0.0, 0.0, 0.8, 0.1])
     m2 = 2 * len(model.terrains)
     dummy = (np.zeros((m2, 1, 4)), np.ones((m2, 4)), np.zeros(m2), np.zeros((m2, 1)), np.ones((m2, 1, 1)))
-    args = (x0, controls, 0.1, DYN_GP, model.theta, model.edd5["grass"], GP_GRID, table.reshape(-1, 4),
+    args = (x0, controls, 0.1, DYN_GP, model.theta, np.zeros(2), model.edd5["grass"], GP_GRID, table.reshape(-1, 4),
             np.array(table.shape[:4]), g.lo[TABLE_AXES], g.inv_step[TABLE_AXES], *dummy, w)
     _, cov_latent, var_latent = propagate(*args)
     _, cov_pred, var_pred = propagate(*args, 2e-3, 5e-3)

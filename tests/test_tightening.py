@@ -88,8 +88,8 @@ def test_propagation_matches_finite_difference_jacobians() -> None:
     x0 = np.array([1.0, -2.0, 0.4, 0.8, 0.3])
     m2 = 2 * len(model.terrains)
     dummy = (np.zeros((m2, 1, 4)), np.ones((m2, 4)), np.zeros(m2), np.zeros((m2, 1)), np.ones((m2, 1, 1)))
-    states, covs, step_var = propagate(x0, controls, 0.1, DYN_GP, model.theta, model.edd5["grass"], GP_GRID,
-                                       table.reshape(-1, 4), np.array(table.shape[:4]), g.lo[TABLE_AXES],
+    states, covs, step_var = propagate(x0, controls, 0.1, DYN_GP, model.theta, np.zeros(2), model.edd5["grass"],
+                                       GP_GRID, table.reshape(-1, 4), np.array(table.shape[:4]), g.lo[TABLE_AXES],
                                        g.inv_step[TABLE_AXES], *dummy, w)
     sigma = np.zeros((5, 5))
     for k in range(15):

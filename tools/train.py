@@ -97,7 +97,7 @@ def csv_residuals(cols: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarr
 
 # ---- MCAP ---------------------------------------------------------------------------------------
 def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | None) -> dict[str, dict]:
-    """terrain -> {"v", "w", "v_ref", "w_ref", "seg"} series on a dt grid from a recorded log.
+    """terrain -> {"v", "w", "v_ref", "w_ref", "seg", "x", "y", "yaw"} series on a dt grid from a recorded log.
 
     Ticks are the state stamps resampled every dt; the command over [t_k, t_k + dt) is the last one
     stamped at or before t_k (+dt/4 for clock jitter) and at most 2 dt old; a terrain label the same.
@@ -105,7 +105,7 @@ def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | Non
     """
     from services.mcap_io import read_messages
 
-    states: dict[str, list[tuple[int, float, float]]] = {}
+    states: dict[str, list[tuple[int, float, float, float, float, float]]] = {}
     cmds: dict[str, list[tuple[int, float, float]]] = {}
     labels: dict[str, list[tuple[int, str]]] = {}
     try:
@@ -116,7 +116,7 @@ def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | Non
             rob, rest = parts[1], "/".join(parts[2:])
             stamp = msg.header.stamp_ns
             if rest == "state":
-                states.setdefault(rob, []).append((stamp, msg.v, msg.omega))
+                states.setdefault(rob, []).append((stamp, msg.v, msg.omega, msg.x, msg.y, msg.theta))
             elif rest == "cmd":
                 cmds.setdefault(rob, []).append((stamp, msg.v_ref, msg.omega_ref))
             elif rest == "terrain/label":
@@ -164,9 +164,13 @@ def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | Non
             continue
         if prev is None or prev[0] != tick - 1 or prev[1] != name:
             seg_id += 1
-        series = out.setdefault(name, {"v": [], "w": [], "v_ref": [], "w_ref": [], "seg": []})
+        series = out.setdefault(name, {"v": [], "w": [], "v_ref": [], "w_ref": [], "seg": [], "x": [], "y": [],
+                                       "yaw": []})
         series["v"].append(st[j, 1])
         series["w"].append(st[j, 2])
+        series["x"].append(st[j, 3])
+        series["y"].append(st[j, 4])
+        series["yaw"].append(st[j, 5])
         series["v_ref"].append(cm[c, 1])
         series["w_ref"].append(cm[c, 2])
         series["seg"].append(seg_id)
@@ -328,3 +332,5 @@ def register(app: typer.Typer) -> None:
             f"wrote {output}: terrains {model.terrains}, {len(model.train_x)} training inputs, "
             f"theta {np.array2string(model.theta, precision=4)}"
         )
+        lateral = ", ".join(f"{t} ({p[0]:+.4f}, {p[1]:+.4f})" for t, p in model.lateral_slip.items())
+        console.print(f"lateral slip (a, b) of v_y = (a + b |omega|) v omega: {lateral}")

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from gpmppi.models.lateral_slip import N_LATERAL
+
 FORMAT_NAME = "gpmppi-gp-model"
 FORMAT_VERSION = 1
 INPUT_NAMES = ("v_ref", "omega_ref", "v", "omega")
@@ -77,6 +79,8 @@ class GPModel:
     chol: np.ndarray
     alpha: np.ndarray
     dt: float = 0.1
+    # per terrain (a, b) of `gpmppi.models.lateral_slip` (absent: zeros, the unicycle's no sideways slide)
+    lateral_slip: dict[str, np.ndarray] | None = None
     _grid: GridTable | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -97,6 +101,11 @@ class GPModel:
         if output not in ("v", "omega"):
             raise ValueError(f"output must be 'v' or 'omega', got {output!r}")
         return 2 * self.terrains.index(terrain) + (0 if output == "v" else 1)
+
+    def lateral_matrix(self) -> np.ndarray:
+        """(M, 2) lateral slip coefficients in terrain order (`gpmppi.models.lateral_slip`)."""
+        assert self.lateral_slip is not None
+        return np.stack([self.lateral_slip[t] for t in self.terrains])
 
     def grid(self) -> GridTable:
         """The grid predictor's table: the stored one, else built from the exact GP once and cached."""
@@ -140,6 +149,7 @@ class GPModel:
             "noise": self.noise,
             "chol": self.chol,
             "alpha": self.alpha,
+            "lateral_slip": self.lateral_matrix(),
         }
         if self._grid is not None:
             arrays.update(encode_grid_table(self._grid.table))
@@ -181,6 +191,8 @@ class GPModel:
                 if grid_present and len(grid_present) != len(_GRID_ARRAYS):
                     raise ModelFileError(f"{where}: model file has only part of the grid table {grid_present}")
                 grid_arr = {n: z[n] for n in grid_present}
+                # optional: files written before the lateral slip model load with none
+                lateral = np.asarray(z["lateral_slip"], dtype=np.float64) if "lateral_slip" in names else None
         except ModelFileError:
             raise
         except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError) as e:
@@ -189,6 +201,10 @@ class GPModel:
         edd5 = arr["edd5"]
         if edd5.shape != (len(terrains), 5):
             raise ModelFileError(f"{where}: 'edd5' has shape {edd5.shape}, expected ({len(terrains)}, 5)")
+        if lateral is not None and lateral.shape != (len(terrains), N_LATERAL):
+            raise ModelFileError(
+                f"{where}: 'lateral_slip' has shape {lateral.shape}, expected ({len(terrains)}, {N_LATERAL})"
+            )
         try:
             model = cls(
                 terrains=terrains, tasks=tasks, theta=arr["theta"],
@@ -196,6 +212,7 @@ class GPModel:
                 domain_lo=arr["domain_lo"], domain_hi=arr["domain_hi"], train_x=arr["train_x"],
                 lengthscale=arr["lengthscale"], outputscale=arr["outputscale"], noise=arr["noise"],
                 chol=arr["chol"], alpha=arr["alpha"], dt=meta["dt"],
+                lateral_slip=None if lateral is None else {t: lateral[i].copy() for i, t in enumerate(terrains)},
             )
             if grid_arr:
                 table = decode_grid_table(grid_arr["grid_q"], grid_arr["grid_offset"], grid_arr["grid_scale"])
@@ -303,6 +320,17 @@ def _validate(m: GPModel, where: str) -> None:
     for name in ("theta", "domain_lo", "domain_hi", "train_x", "lengthscale", "outputscale", "noise", "chol", "alpha"):
         setattr(m, name, np.ascontiguousarray(getattr(m, name), dtype=np.float64))
     m.edd5 = {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in m.edd5.items()}
+    if m.lateral_slip is None:
+        m.lateral_slip = {t: np.zeros(N_LATERAL) for t in m.terrains}
+    if set(m.lateral_slip) != set(m.terrains):
+        raise ValueError(
+            f"{where}: lateral slip terrains {sorted(m.lateral_slip)} differ from model terrains {m.terrains}"
+        )
+    m.lateral_slip = {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in m.lateral_slip.items()}
+    for t, p in m.lateral_slip.items():
+        _shape(f"lateral_slip[{t}]", p, (N_LATERAL,), where)
+        if not np.all(np.isfinite(p)):
+            raise ValueError(f"{where}: lateral_slip[{t}] must be finite, got {p.tolist()}")
     if m.train_x.ndim != 2 or m.train_x.shape[0] < 1:
         raise ValueError(f"{where}: 'train_x' has shape {m.train_x.shape}, expected (n, {N_INPUT}) with n >= 1")
     n = m.train_x.shape[0]

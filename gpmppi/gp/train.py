@@ -27,6 +27,7 @@ from sklearn.neighbors import NearestNeighbors
 from gpmppi.gp.grid import predict_dense
 from gpmppi.gp.model_file import GPModel, task_names
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
+from gpmppi.models.lateral_slip import N_LATERAL, body_lateral_velocity, fit_lateral_slip
 
 LOCAL_NEIGHBOURS = 3
 
@@ -38,6 +39,7 @@ class Transitions:
     x: np.ndarray
     residual: np.ndarray
     next_vw: np.ndarray | None = None  # measured next (v, omega), when known
+    lateral_slip: np.ndarray | None = None  # (a, b) of `gpmppi.models.lateral_slip`, when poses were logged
 
 
 @dataclass
@@ -74,6 +76,19 @@ def residual_targets(theta: np.ndarray, x: np.ndarray, next_vw: np.ndarray, dt: 
     return np.column_stack([next_vw[:, 0] - pv, next_vw[:, 1] - pw])
 
 
+def fit_lateral_from_series(s: dict[str, np.ndarray], dt: float) -> np.ndarray | None:
+    """Lateral slip (a, b) of one terrain's series from the sideways velocity between consecutive poses against
+    the step's mean speed and yaw rate; None when the series has no poses."""
+    if not all(k in s for k in ("x", "y", "yaw")):
+        return None
+    pose = [np.asarray(s[k], dtype=np.float64) for k in ("x", "y", "yaw")]
+    if any(not np.all(np.isfinite(p)) for p in pose):
+        raise ValueError("non-finite poses in the data")
+    i, vy = body_lateral_velocity(*pose, dt, np.asarray(s["seg"]))
+    v, w = np.asarray(s["v"], dtype=np.float64), np.asarray(s["w"], dtype=np.float64)
+    return fit_lateral_slip(0.5 * (v[i] + v[i + 1]), 0.5 * (w[i] + w[i + 1]), vy)
+
+
 def prepare_from_series(
     series: dict[str, dict[str, np.ndarray]],
     dt: float,
@@ -84,7 +99,8 @@ def prepare_from_series(
     """Per-terrain time series -> (transitions with residual targets, theta, EDD5 per terrain).
 
     series[terrain] has equal-length arrays "v", "w" (measured at t_k), "v_ref", "w_ref" (applied
-    over [t_k, t_k + dt)) and "seg" (segment id; nothing is paired across a segment change).
+    over [t_k, t_k + dt)) and "seg" (segment id; nothing is paired across a segment change), and may have the
+    poses "x", "y", "yaw": then each terrain's lateral slip is fitted too (`fit_lateral_from_series`).
     theta is identified from all terrains pooled when not given (the nominal model is shared), and
     each terrain's EDD5 from its commands and the velocities measured one step later.
     """
@@ -99,6 +115,8 @@ def prepare_from_series(
             raise ValueError(f"terrain {t!r}: series lacks {missing}")
         if any(not np.all(np.isfinite(s[k])) for k in keys):
             raise ValueError(f"terrain {t!r}: non-finite velocities or commands in the data")
+        if any(k in s and not np.all(np.isfinite(s[k])) for k in ("x", "y", "yaw")):
+            raise ValueError(f"terrain {t!r}: non-finite poses in the data")
         if len(s["v"]) < 2:
             raise ValueError(f"terrain {t!r}: fewer than 2 samples")
     if theta is None:
@@ -111,7 +129,7 @@ def prepare_from_series(
         v, w, vr, wr, vn, wn = one_step_pairs(s["v"], s["w"], s["v_ref"], s["w_ref"], segment_ids=np.asarray(s["seg"]))
         x = np.column_stack([vr, wr, v, w])
         nxt = np.column_stack([vn, wn])
-        sets[t] = Transitions(x, residual_targets(theta, x, nxt, dt), nxt)
+        sets[t] = Transitions(x, residual_targets(theta, x, nxt, dt), nxt, fit_lateral_from_series(s, dt))
     if edd5 is None:
         edd5 = {t: identify_edd5(s.x[:, 0], s.x[:, 1], s.next_vw[:, 0], s.next_vw[:, 1], seed=seed)
                 for t, s in sets.items()}
@@ -350,6 +368,8 @@ def train_model(
         edd5={t: np.asarray(edd5[t], dtype=np.float64) for t in terrains},
         domain_lo=lo, domain_hi=hi, train_x=train_x, lengthscale=hp.lengthscale, outputscale=hp.outputscale,
         noise=hp.noise, chol=chol, alpha=alpha, dt=dt,
+        lateral_slip={t: np.zeros(N_LATERAL) if sets[t].lateral_slip is None else sets[t].lateral_slip
+                      for t in terrains},
     )
     if test_sets is not None:
         report = evaluate_fit(model, {t: test_sets[t] for t in terrains}, "test data")

@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from gpmppi.models.lateral_slip import lateral_velocity, lateral_velocity_grad
+
 N_STATE = 5
 N_CONTROL = 2
 
@@ -39,13 +41,15 @@ def wrap_angle(a: float) -> float:
 
 @njit(cache=True)
 def nominal_step(
-    theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float, mv: float = 0.0, mw: float = 0.0
+    theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float, mv: float = 0.0, mw: float = 0.0,
+    lat_a: float = 0.0, lat_b: float = 0.0,
 ) -> np.ndarray:
     """One step of the full state as the rollouts take it. Yaw is not wrapped.
 
     Velocities: explicit Euler of the nominal model plus the step's residual (mv, mw). Pose: the mean of
     the start and end velocities along the heading at mid-step (second order in dt; the pose of an
-    explicit-Euler step lags by half a step's change in yaw rate, 0.05 rad for 1 rad/s).
+    explicit-Euler step lags by half a step's change in yaw rate, 0.05 rad for 1 rad/s), plus the sideways
+    slide `lateral_velocity(lat_a, lat_b)` at those mean velocities (`gpmppi.models.lateral_slip`).
     """
     vdot, wdot = accel(theta, x[3], x[4], u[0], u[1])
     v1 = x[3] + vdot * dt + mv
@@ -53,9 +57,11 @@ def nominal_step(
     vm = 0.5 * (x[3] + v1)
     wm = 0.5 * (x[4] + w1)
     heading = x[2] + 0.5 * wm * dt
+    vy = lateral_velocity(lat_a, lat_b, vm, wm)
+    c, s = np.cos(heading), np.sin(heading)
     out = np.empty(N_STATE)
-    out[0] = x[0] + vm * np.cos(heading) * dt
-    out[1] = x[1] + vm * np.sin(heading) * dt
+    out[0] = x[0] + (vm * c - vy * s) * dt
+    out[1] = x[1] + (vm * s + vy * c) * dt
     out[2] = x[2] + wm * dt
     out[3] = v1
     out[4] = w1
@@ -64,7 +70,8 @@ def nominal_step(
 
 @njit(cache=True)
 def jacobian(
-    theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float, mv: float = 0.0, mw: float = 0.0
+    theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float, mv: float = 0.0, mw: float = 0.0,
+    lat_a: float = 0.0, lat_b: float = 0.0,
 ) -> np.ndarray:
     """d nominal_step / d x at (x, u) with the residual (mv, mw) held: the 5x5 Jacobian that propagates covariance."""
     v, w = x[3], x[4]
@@ -80,13 +87,20 @@ def jacobian(
     wm_v, wm_w = 0.5 * dw_dv, 0.5 * (1.0 + dw_dw)
     heading = x[2] + 0.5 * wm * dt
     c, s = np.cos(heading), np.sin(heading)
+    vy = lateral_velocity(lat_a, lat_b, vm, wm)
+    vy_vm, vy_wm = lateral_velocity_grad(lat_a, lat_b, vm, wm)
+    # d vy / d(v, w) through the mean velocities; d heading / d(v, w) = 0.5 dt d wm / d(v, w)
+    vy_v, vy_w = vy_vm * vm_v + vy_wm * wm_v, vy_vm * vm_w + vy_wm * wm_w
+    h_v, h_w = 0.5 * dt * wm_v, 0.5 * dt * wm_w
+    fx = vm * c - vy * s  # world-frame velocity of the step
+    fy = vm * s + vy * c
     J = np.eye(N_STATE)
-    J[0, 2] = -vm * s * dt
-    J[0, 3] = (vm_v * c - vm * s * 0.5 * dt * wm_v) * dt
-    J[0, 4] = (vm_w * c - vm * s * 0.5 * dt * wm_w) * dt
-    J[1, 2] = vm * c * dt
-    J[1, 3] = (vm_v * s + vm * c * 0.5 * dt * wm_v) * dt
-    J[1, 4] = (vm_w * s + vm * c * 0.5 * dt * wm_w) * dt
+    J[0, 2] = -fy * dt
+    J[0, 3] = (vm_v * c - vy_v * s - fy * h_v) * dt
+    J[0, 4] = (vm_w * c - vy_w * s - fy * h_w) * dt
+    J[1, 2] = fx * dt
+    J[1, 3] = (vm_v * s + vy_v * c + fx * h_v) * dt
+    J[1, 4] = (vm_w * s + vy_w * c + fx * h_w) * dt
     J[2, 3] = wm_v * dt
     J[2, 4] = wm_w * dt
     J[3, 3] = dv_dv

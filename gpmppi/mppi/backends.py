@@ -42,6 +42,7 @@ def resolve(backend: str) -> str:
 class ModelArrays:
     dyn_mode: int
     theta: np.ndarray
+    lateral: np.ndarray  # (2,) terrain-weighted lateral slip coefficients (`gpmppi.models.lateral_slip`)
     edd5_p: np.ndarray
     gp_mode: int
     table: np.ndarray  # (nodes, 4) float32 collapsed GP table
@@ -108,7 +109,7 @@ def rollouts(
     xy = np.empty((n_xy, horizon + 1, 2))
     args = (
         x0, np.ascontiguousarray(nominal), noise_std, u_lo, u_hi, float(dt), int(seed), int(iteration),
-        m.dyn_mode, m.theta, m.edd5_p, m.gp_mode, m.table, m.dims, m.lo, m.inv_step, *m.exact, m.terrain_w,
+        m.dyn_mode, m.theta, m.lateral, m.edd5_p, m.gp_mode, m.table, m.dims, m.lo, m.inv_step, *m.exact, m.terrain_w,
         t.kind, t.seg, t.cell_start, t.candidates, t.field, t.grid_origin, float(t.inv_cell), float(t.half_width),
         t.tightened_hw, float(t.speed_target), t.goal, t.obstacles, t.radii, cost_w,
     )

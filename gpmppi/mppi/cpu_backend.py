@@ -67,7 +67,7 @@ def _add_costs(
 def rollout_kernel(
     x0: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray, dt: float,
     seed: int, iteration: int,
-    dyn_mode: int, theta: np.ndarray, edd5_p: np.ndarray,
+    dyn_mode: int, theta: np.ndarray, lateral: np.ndarray, edd5_p: np.ndarray,
     gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray,
@@ -83,7 +83,7 @@ def rollout_kernel(
     n_train = ex_alpha.shape[1]
     discount = cost_w[W_EXIT_DISCOUNT]
     n_groups = (samples + GROUP - 1) // GROUP
-    coef = velocity_coefficients(theta)
+    coef = velocity_coefficients(theta, lateral)
     (lo0, lo1, lo2, lo3, inv0, inv1, inv2, inv3, top0, top1, top2, top3, last0, last1, last2, last3, s0, s1,
      s2) = simplex_params(dims, lo, inv_step)
     flat = table.reshape(-1)  # the (nodes, 4) table as one run of floats

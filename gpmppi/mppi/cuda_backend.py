@@ -87,8 +87,8 @@ def _rollout_kernel(
 
 def cuda_rollouts(args: tuple, eps: np.ndarray, costs: np.ndarray, xy: np.ndarray) -> None:
     """Run the kernel with the CPU kernel's argument tuple (see `backends.rollouts`); fill eps, costs, xy."""
-    (x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, theta, edd5_p, gp_mode, table, dims, lo,
-     inv_step, _sx, _il, _os, _al, _ch, _tw, task_kind, seg, cell_start, candidates, field, grid_origin, inv_cell,
+    (x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, theta, lateral, edd5_p, gp_mode, table, dims,
+     lo, inv_step, _sx, _il, _os, _al, _ch, _tw, task_kind, seg, cell_start, candidates, field, grid_origin, inv_cell,
      half_width, tightened_hw, speed_target, goal, obstacles, radii, cost_w) = args
     if dyn_mode == DYN_GP and gp_mode == GP_EXACT:
         raise ValueError("the CUDA backend evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
@@ -100,7 +100,7 @@ def cuda_rollouts(args: tuple, eps: np.ndarray, costs: np.ndarray, xy: np.ndarra
     # (under the simulator numpy runs the uint64 hash and warns about its intended wrap-around)
     _rollout_kernel[blocks, THREADS_PER_BLOCK](
         dev(x0), dev(nominal), dev(noise_std), dev(u_lo), dev(u_hi), dt, np.int64(seed), np.int64(iteration),
-        dyn_mode, dev(velocity_coefficients(theta)), dev(edd5_p), gp_mode, dev(table), dev(dims), dev(lo),
+        dyn_mode, dev(velocity_coefficients(theta, lateral)), dev(edd5_p), gp_mode, dev(table), dev(dims), dev(lo),
         dev(inv_step), task_kind, dev(seg), dev(cell_start), dev(candidates), dev(field), dev(grid_origin), inv_cell,
         half_width, dev(tightened_hw), speed_target, dev(goal), dev(obstacles), dev(radii), dev(cost_w), d_eps,
         d_costs, d_xy,

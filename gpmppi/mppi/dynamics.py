@@ -3,7 +3,8 @@
 Models (`DYN_*`): the kinematic unicycle; EDD5 of one terrain; the nominal dynamic unicycle
 (explicit Euler on the velocities, second order on the pose: `nominal_step`) plus the weighted GP ensemble
 residual on the velocities,
-mean `sum_i w_i m_i`, variance `sum_i w_i^2 C_i` (C = latent variance).
+mean `sum_i w_i m_i`, variance `sum_i w_i^2 C_i` (C = latent variance), and the terrain-weighted sideways slide
+of a skid-steer turn on the pose (`gpmppi.models.lateral_slip`).
 
 GP evaluation (`GP_*`): `grid` interpolates (simplex or multilinear) the collapsed table of
 [mean_v, mean_w, var_v, var_w] (`gpmppi.mppi.gp_table`); `exact` evaluates the exact GP
@@ -20,6 +21,7 @@ from numba import njit
 from gpmppi.gp.exact import exact_tasks
 from gpmppi.models.dynamic_unicycle import jacobian
 from gpmppi.models.edd5 import edd5_velocity
+from gpmppi.models.lateral_slip import lateral_velocity
 from gpmppi.mppi.flags import FASTMATH
 from gpmppi.mppi.gp_table import interp4, interp4_simplex
 
@@ -62,10 +64,11 @@ def gp_residual(
 
 
 @njit(cache=True, inline="always")
-def velocity_coefficients(theta: np.ndarray) -> np.ndarray:
-    """[th3/th1, th4/th1, 1/th1, th5/th2, th6/th2, 1/th2]: divisions done once, not at every sample-step."""
+def velocity_coefficients(theta: np.ndarray, lateral: np.ndarray) -> np.ndarray:
+    """[th3/th1, th4/th1, 1/th1, th5/th2, th6/th2, 1/th2, a, b]: divisions done once, not at every sample-step;
+    (a, b) the terrain-weighted lateral slip coefficients (`gpmppi.models.lateral_slip`)."""
     return np.array([theta[2] / theta[0], theta[3] / theta[0], 1.0 / theta[0],
-                     theta[4] / theta[1], theta[5] / theta[1], 1.0 / theta[1]])
+                     theta[4] / theta[1], theta[5] / theta[1], 1.0 / theta[1], lateral[0], lateral[1]])
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -100,11 +103,12 @@ def advance(
         w1 += mw
         # dynamic model: the pose advances with the mean of the step's start and end velocities, along the
         # heading at mid-step (second order; with the start velocities alone a yaw rate changing by 1 rad/s in
-        # a step puts the pose 0.05 rad behind)
+        # a step puts the pose 0.05 rad behind), plus the sideways slide of a skid-steer turn
         vm = 0.5 * (v + v1)
         wm = 0.5 * (w + w1)
+        vy = lateral_velocity(coef[6], coef[7], vm, wm)
         c, s = _cos_sin(yaw + 0.5 * wm * dt)
-        return px + vm * c * dt, py + vm * s * dt, yaw + wm * dt, v1, w1
+        return px + (vm * c - vy * s) * dt, py + (vm * s + vy * c) * dt, yaw + wm * dt, v1, w1
     c, s = _cos_sin(yaw)
     if dyn_mode == DYN_EDD5:
         v1, w1 = edd5_velocity(edd5_p, u0, u1)
@@ -161,8 +165,8 @@ def _sandwich(a: np.ndarray, b: np.ndarray, tmp: np.ndarray, out: np.ndarray) ->
 
 @njit(cache=True)
 def propagate(
-    x0: np.ndarray, controls: np.ndarray, dt: float, dyn_mode: int, theta: np.ndarray, edd5_p: np.ndarray,
-    gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
+    x0: np.ndarray, controls: np.ndarray, dt: float, dyn_mode: int, theta: np.ndarray, lateral: np.ndarray,
+    edd5_p: np.ndarray, gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray, noise_v: float = 0.0, noise_w: float = 0.0,
     cov0: np.ndarray | None = None,
@@ -189,7 +193,7 @@ def propagate(
     gp_mean = np.empty(ex_alpha.shape[0])
     gp_var = np.empty(ex_alpha.shape[0])
     tmp = np.empty((5, 5))
-    coef = velocity_coefficients(theta)
+    coef = velocity_coefficients(theta, lateral)
     for k in range(n):
         x = states[k]
         r = step_state(
@@ -202,7 +206,7 @@ def propagate(
         if dyn_mode == DYN_GP:
             step_var[k, 0] = r[7] + noise_v
             step_var[k, 1] = r[8] + noise_w
-            jac = jacobian(theta, x, controls[k], dt, r[5], r[6])
+            jac = jacobian(theta, x, controls[k], dt, r[5], r[6], lateral[0], lateral[1])
             _sandwich(jac, covs[k], tmp, covs[k + 1])
             covs[k + 1, 3, 3] += step_var[k, 0]
             covs[k + 1, 4, 4] += step_var[k, 1]
@@ -212,7 +216,8 @@ def propagate(
 @njit(cache=True)
 def predict_ahead(
     x0: np.ndarray, cov0: np.ndarray, control: np.ndarray, delay: float, dt: float, dyn_mode: int, theta: np.ndarray,
-    edd5_p: np.ndarray, gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
+    lateral: np.ndarray, edd5_p: np.ndarray, gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray,
+    inv_step: np.ndarray,
     ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
     ex_chol: np.ndarray, terrain_w: np.ndarray, noise_v: float = 0.0, noise_w: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -232,7 +237,7 @@ def predict_ahead(
     gp_var = np.empty(ex_alpha.shape[0])
     tmp = np.empty((5, 5))
     nxt = np.empty((5, 5))
-    coef = velocity_coefficients(theta)
+    coef = velocity_coefficients(theta, lateral)
     for _ in range(n):
         r = step_state(
             dyn_mode, h, coef, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale,
@@ -240,7 +245,7 @@ def predict_ahead(
             control[1], frac,
         )
         if dyn_mode == DYN_GP:
-            jac = jacobian(theta, x, control, h, r[5], r[6])
+            jac = jacobian(theta, x, control, h, r[5], r[6], lateral[0], lateral[1])
             _sandwich(jac, cov, tmp, nxt)
             cov[:, :] = nxt
             cov[3, 3] += frac * (r[7] + noise_v)

@@ -108,6 +108,8 @@ class Planner:
             self._ex = (np.zeros((2 * m, 1, 4)), np.ones((2 * m, 4)), np.zeros(2 * m), np.zeros((2 * m, 1)),
                         np.ones((2 * m, 1, 1)))
         self._table_weights: np.ndarray | None = None
+        self._lateral_full = model.lateral_matrix()
+        self._lateral = np.zeros(2)
         self._lane_key: tuple | None = None
         self._lane: LaneLookup | None = None
         self.reset()
@@ -195,6 +197,8 @@ class Planner:
             # covariance both read it from the table
             self._table = collapse_table(self._table_full, w, self._noise_var(w), ordered=True).reshape(-1, 4)
             self._table_weights = w.copy()
+        # the sideways slide is linear in its coefficients, so the ensemble's is the weighted sum (GP model only)
+        self._lateral = w @ self._lateral_full if self._dyn == DYN_GP else np.zeros(2)
         name = self.config.edd5_terrain
         idx = self.model.terrains.index(name) if name is not None else int(np.argmax(w))
         return self._edd5[idx], (time.perf_counter() - t0) * 1e3
@@ -213,9 +217,9 @@ class Planner:
     def _propagate(
         self, x: np.ndarray, controls: np.ndarray, edd5_p: np.ndarray, w: np.ndarray, cov0: np.ndarray
     ) -> tuple:
-        return propagate(x, controls, self.config.dt, self._dyn, self._theta, edd5_p, self._gp_mode, self._table,
-                         self._table_dims, self._grid_lo, self._grid_inv, *self._ex, w, *self._exact_noise_var(w),
-                         cov0)
+        return propagate(x, controls, self.config.dt, self._dyn, self._theta, self._lateral, edd5_p, self._gp_mode,
+                         self._table, self._table_dims, self._grid_lo, self._grid_inv, *self._ex, w,
+                         *self._exact_noise_var(w), cov0)
 
     def _predict_ahead(
         self, x: np.ndarray, cov0: np.ndarray, delay_s: float, edd5_p: np.ndarray, w: np.ndarray
@@ -235,8 +239,8 @@ class Planner:
             )
         held = self._last_control if self._last_control is not None else np.clip(x[3:5], self._u_lo, self._u_hi)
         return predict_ahead(x, cov0, np.ascontiguousarray(held, dtype=np.float64), float(delay_s), c.dt, self._dyn,
-                             self._theta, edd5_p, self._gp_mode, self._table, self._table_dims, self._grid_lo,
-                             self._grid_inv, *self._ex, w, *self._exact_noise_var(w))
+                             self._theta, self._lateral, edd5_p, self._gp_mode, self._table, self._table_dims,
+                             self._grid_lo, self._grid_inv, *self._ex, w, *self._exact_noise_var(w))
 
     def _state_covariance(self, state_cov: np.ndarray | None) -> np.ndarray:
         if state_cov is None:
@@ -300,8 +304,8 @@ class Planner:
         else:
             task_arrays = backends.TaskArrays.for_goal(task.goal, task.obstacles, bounds, self._goal_field(task, x))
         model_arrays = backends.ModelArrays(
-            self._dyn, self._theta, edd5_p, self._gp_mode, self._table, self._table_dims, self._grid_lo, self._grid_inv,
-            self._ex, w,
+            self._dyn, self._theta, self._lateral, edd5_p, self._gp_mode, self._table, self._table_dims, self._grid_lo,
+            self._grid_inv, self._ex, w,
         )
         n_xy = min(c.sample_output, c.samples)
         noise_std = self._lane_std if is_lane else self._std
