@@ -70,6 +70,18 @@ if sys.argv[1] in ("helpers", "other_first"):
     stage_cost(0, np.ones(N_COST_WEIGHTS), lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin,
                lane.inv_cell, 1.0, 0.8, 1.0, np.zeros(2), np.zeros((0, 3)), np.zeros(0), 1.0, 0.5, 0.1, 0.3, 0.5,
                0.1, 1.0, 0.2, 0.01, 0.02)
+    # the delay predictor (its own kernel over the same helpers) compiled first: with the 'contract' fastmath flag
+    # this history alone changed the rollout kernel's last bits
+    from gpmppi.mppi.dynamics import DYN_GP, predict_ahead
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.mppi.synthetic import synthetic_model
+
+    pl = Planner(PlannerConfig(backend="cpu"), synthetic_model(nodes=6, n_train=30))
+    tw = np.full(3, 1.0 / 3.0)
+    edd5_p, _ = pl._terrain_setup(tw)
+    predict_ahead(np.array([0.0, 0.0, 0.1, 0.8, 0.2]), np.eye(5) * 1e-4, np.array([1.0, 0.5]), 0.05, 0.1, DYN_GP,
+                  pl._theta, pl._lateral, edd5_p, pl._gp_mode, pl._table, pl._table_dims, pl._grid_lo, pl._grid_inv,
+                  *pl._ex, tw)
     if sys.argv[1] == "helpers":
         sys.exit(0)
 

@@ -17,9 +17,10 @@ import numpy as np
 from numba import njit, prange
 
 from gpmppi.gp.model_file import GPModel
+from gpmppi.mppi.flags import FASTMATH
 
 
-@njit(cache=True, inline="always", fastmath=True)  # fastmath lets the O(n^2) triangular solve use SIMD
+@njit(cache=True, inline="always", fastmath=FASTMATH)  # fastmath lets the O(n^2) triangular solve use SIMD
 def exact_tasks(
     x0: float,
     x1: float,
@@ -71,7 +72,7 @@ def exact_tasks(
             var[t] = var_t if var_t > 0.0 else 0.0  # a select: numba's CUDA target cannot compile float max
 
 
-@njit(cache=True, parallel=True, fastmath=True)
+@njit(cache=True, parallel=True, fastmath=FASTMATH)
 def exact_predict_arrays(
     x: np.ndarray,
     scaled_x: np.ndarray,

@@ -2,7 +2,8 @@
 
 A model is a batch of 2M independent exact GPs (M terrains x {v, omega}) over the 4-D input
 `[v_ref, omega_ref, v, omega]`, each ScaleKernel(RBF-ARD) with zero mean, plus the nominal
-dynamic-unicycle parameters and the per-terrain EDD5 baselines it was trained with.
+dynamic-unicycle parameters, the per-terrain EDD5 baselines it was trained with and the per-terrain
+lateral slip coefficients (`lateral_slip`, (M, 2); optional, zeros when the file has none).
 
 File format: one `.npz` archive (no pickles) holding the arrays below and a `metadata` entry,
 a JSON string with the format name and version, terrain and task names, input names and dt.

@@ -7,8 +7,13 @@ from numba import njit
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-# fastmath without 'nnan'/'ninf': the kernels rely on inf/NaN checks (infinite costs, safe controls)
-FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
+# fastmath without 'nnan'/'ninf': the kernels rely on inf/NaN checks (infinite costs, safe controls), and
+# without 'contract': with it LLVM fuses a multiply and an add into one FMA (one rounding instead of two)
+# wherever the instruction order lets it, and numba's order of a kernel's statements (inlined helpers, hoisting
+# out of parallel loops) depends on what the process compiled before, so seeded plans changed with the numba
+# cache's history (costs in the last bits, then the chaotic closed loop: EDD5 on the tile circle 169.6, 166.3
+# or 163.3 mm from three caches). Without it the planner is 5-9% slower (`gpmppi bench planner`).
+FASTMATH = {"nsz", "arcp", "afn", "reassoc"}
 
 
 @njit(cache=True, inline="always")
