@@ -9,10 +9,11 @@ Per terrain, two coefficients fitted by least squares from logged poses:
 
     v_y = a v omega + b v omega |omega|
 
-The pair of features fits the physics plant's steady turns on asphalt, grass and sand to 1.5-2.5 mm/s rms
-(of 36-48 mm/s rms), and on tile, where the slide saturates in the tightest fast turns, to 65 mm/s of 238;
-one feature alone (`v omega`) left 5-40% rms. The planner blends the coefficients by the terrain weights
-(the model is linear in them), as it blends the GP means.
+The pair of features fits the physics plant's steady turns (v 0.25-2 m/s, |omega| 0.3-2 rad/s, 4 s each)
+on asphalt, grass and sand to 1.5-2.7 mm/s rms (of 36-48 mm/s rms), and on tile, where the slide saturates
+in the tightest fast turns, to 65 mm/s of 238; one feature alone (`v omega`) left 15-47% of the rms.
+The planner blends the coefficients by the terrain weights (the model is linear in them), as it blends
+the GP means.
 """
 
 from __future__ import annotations
