@@ -142,16 +142,24 @@ class Plan(Message):
     samples: list[list[Vec2]] = Field(default_factory=list, description="subset of rollouts, XY only")
     sample_costs: list[float] = Field(default_factory=list)
     terrain_weights: list[float] = Field(default_factory=list)
+    weights_stale: bool = Field(False, description="the terrain weights planned with are older than the limit")
     timings_ms: dict[str, float] = Field(default_factory=dict)
 
 
 class Heartbeat(Message):
-    service: str
-    rate_hz: float = Field(0.0, ge=0)
-    received: int = Field(0, ge=0)
-    rejected: int = Field(0, ge=0)
-    published: int = Field(0, ge=0)
-    last_error: str = ""
+    """A service's health, once a second on `gpmppi/{robot}/health/{service}`."""
+
+    service: str = Field(description="service name")
+    rate_hz: float = Field(0.0, ge=0, description="main-work cycles per second over the last 2 s [Hz]")
+    received: int = Field(0, ge=0, description="messages received since start")
+    rejected: int = Field(0, ge=0, description="messages rejected since start (bad payload, stale, out of range)")
+    published: int = Field(0, ge=0, description="messages published since start")
+    last_error: str = Field("", description="the most recent error or rejection, in words")
+    status: Literal["ok", "degraded", "failing"] = Field(
+        "ok", description="ok; degraded (working on fallbacks, e.g. stale inputs); failing (main work not done)"
+    )
+    counts: dict[str, int] = Field(default_factory=dict, description="service-specific named counters")
+    flags: dict[str, bool] = Field(default_factory=dict, description="service-specific named conditions")
 
 
 class EStop(Message):

@@ -161,7 +161,16 @@ class Counters:
         self.published = 0
         self.cycles = 0
         self.last_error = ""
+        # service-specific health, sent in each heartbeat: named counters, named conditions, overall status
+        self.counts: dict[str, int] = {}
+        self.flags: dict[str, bool] = {}
+        self.status: Literal["ok", "degraded", "failing"] = "ok"
         self.lock = threading.Lock()
+
+    def count(self, name: str, n: int = 1) -> None:
+        """Add n to the named counter `name` (reported in the heartbeat's `counts`)."""
+        with self.lock:
+            self.counts[name] = self.counts.get(name, 0) + n
 
 
 class TypedPublisher(Generic[M]):
@@ -385,6 +394,9 @@ class Node:
                 rejected=c.rejected,
                 published=c.published,
                 last_error=c.last_error,
+                status=c.status,
+                counts=dict(c.counts),
+                flags=dict(c.flags),
             )
         hb.header.stamp_ns = time.time_ns()
         self._health.put(hb)
