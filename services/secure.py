@@ -125,6 +125,11 @@ def role_keys(identity: str, robot: str, ros2: dict[str, str] | None = None) -> 
     }
 
 
+def _hear(puts: list[str]) -> list[str]:
+    # gpmppi/** covers every gpmppi subscription (the recorder's is that wide); a ROS 2 key is outside it
+    return ["gpmppi/**", *(p for p in puts if not p.startswith("gpmppi/"))] if puts else []
+
+
 def acl_section(robot: str, identities: list[str] | None = None, ros2: dict[str, str] | None = None) -> dict:
     """The router's `access_control`: deny by default; per identity, its rules under one subject (its username).
 
@@ -137,7 +142,7 @@ def acl_section(robot: str, identities: list[str] | None = None, ros2: dict[str,
         k = role_keys(identity, robot, ros2)
         wants = [
             ("put", ["put"], "ingress", k["puts"]),
-            ("hear-subscribers", ["declare_subscriber"], "egress", ["gpmppi/**", *k["puts"]] if k["puts"] else []),
+            ("hear-subscribers", ["declare_subscriber"], "egress", _hear(k["puts"])),
             ("subscribe", ["declare_subscriber"], "ingress", k["subscribe"]),
             ("receive", ["put"], "egress", k["reads"]),
             ("token", ["liveliness_token"], "ingress", k["tokens"]),

@@ -454,3 +454,49 @@ def test_secured_stack_drives(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
     assert summary.messages.get("gpmppi/jackal/cmd", 0) > 20 and summary.messages.get("gpmppi/jackal/base/cmd", 0) > 30
     assert summary.planner_rate_hz is not None and summary.planner_rate_hz > 2.0, log[-3000:]
     assert summary.distance_driven_m > 1.0
+
+
+# ---- the robot: ROS 2 nodes on the same (rmw_zenoh) router -----------------------------------------------------
+def test_ros2_identity_shares_the_router_but_cannot_command_the_base(tmp_path: Path) -> None:
+    from tools.secure_cmd import ROS2_CMD_KEY, ROS2_ODOM_KEY
+
+    secrets = tmp_path / "s"
+    init_secrets(secrets, robot=ROBOT, ros2={"cmd": ROS2_CMD_KEY, "odom": ROS2_ODOM_KEY})
+    assert "ros2" in check_secrets(secrets, ROBOT).users
+    port = free_port()
+    router = _router_process(secrets, [endpoint(port)], tmp_path)
+    s = Sessions(secrets, port)
+    try:
+        cmd_vel = "0/cmd_vel/geometry_msgs::msg::dds_::Twist_/RIHS01_0123"
+        odom = "0/odometry/filtered/nav_msgs::msg::dds_::Odometry_/RIHS01_4567"
+        base_driver, teleop, egress, ingress = s("ros2"), s("ros2"), s("egress"), s("ingress")
+        at_base, at_ingress, at_egress = Inbox(base_driver, cmd_vel), Inbox(ingress, odom), Inbox(egress, f"{P}/cmd")
+        graph: list[str] = []
+        base_driver.liveliness().declare_subscriber("@ros2_lv/**", lambda x: graph.append(str(x.key_expr)))
+        teleop.liveliness().declare_token("@ros2_lv/0/teleop/NN/%/%/teleop")  # the ROS graph still works
+        for _ in range(10):
+            teleop.put(cmd_vel, b"teleop")  # only egress commands the base
+            teleop.put(f"{P}/cmd", _cmd(2.0))  # and no ROS node puts on gpmppi keys
+            time.sleep(0.01)
+        assert wait_for(lambda: (egress.put(cmd_vel, b"egress"), b"egress" in at_base.payloads())[1], 10.0)
+        assert wait_for(lambda: (base_driver.put(odom, b"odom"), b"odom" in at_ingress.payloads())[1], 10.0)
+        assert wait_for(lambda: bool(graph), 5.0)
+        time.sleep(0.3)
+        assert b"teleop" not in at_base.payloads() and at_egress.got == []
+    finally:
+        s.close()
+        router.stop()
+
+
+def test_the_robot_launch_file_runs_secured_without_a_router_of_its_own(tmp_path: Path) -> None:
+    import yaml
+
+    secrets = tmp_path / "s"
+    init_secrets(secrets, robot="jackal", ros2={"cmd": "0/cmd_vel/*/*", "odom": "0/odometry/filtered/*/*"})
+    launcher, _ = build(LaunchFile.load(REPO / "deploy" / "robot.yaml"), None, None, None, secrets=str(secrets))
+    kinds = {c.kind for c in launcher.children}
+    assert "router" not in kinds and {"ingress", "planner", "egress", "recorder"} <= kinds
+    for child in launcher.children:
+        config = yaml.safe_load(child.config_path.read_text())
+        assert config["zenoh"]["config_file"] == str(secrets.resolve() / f"{child.kind}.json5")
+        assert config["zenoh"]["connect"] == ["tcp/127.0.0.1:7447"]  # the launch file's endpoint still applies
