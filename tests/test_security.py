@@ -500,3 +500,20 @@ def test_the_robot_launch_file_runs_secured_without_a_router_of_its_own(tmp_path
         config = yaml.safe_load(child.config_path.read_text())
         assert config["zenoh"]["config_file"] == str(secrets.resolve() / f"{child.kind}.json5")
         assert config["zenoh"]["connect"] == ["tcp/127.0.0.1:7447"]  # the launch file's endpoint still applies
+
+
+def test_the_cli_init_and_check(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    runner = CliRunner()
+    done = runner.invoke(app, ["secure", "init", str(tmp_path / "s"), "--robot", "r7", "--tls"])
+    assert done.exit_code == 0 and "monitor.json5" in done.output, done.output
+    assert json.loads((tmp_path / "s" / "secure.json").read_text())["robot"] == "r7"
+    ok = runner.invoke(app, ["secure", "check", str(tmp_path / "s"), "--robot", "r7"])
+    assert ok.exit_code == 0 and "TLS on; ok" in ok.output, ok.output
+    again = runner.invoke(app, ["secure", "init", str(tmp_path / "s")])
+    assert again.exit_code == 2 and "--force" in again.output
+    missing = runner.invoke(app, ["secure", "check", str(tmp_path / "nowhere")])
+    assert missing.exit_code == 2 and "does not exist" in missing.output
