@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,15 +38,13 @@ ROUTER_CERT_NAME = "gpmppi-router"
 
 @dataclass(frozen=True)
 class Role:
-    """What one identity may do. Keys are relative to `gpmppi/{robot}/` unless they start with `/` (absolute,
-    e.g. a ROS 2 key); `{id}` is the identity's own name."""
+    """What one identity may do. Keys are relative to `gpmppi/{robot}/` (ROS 2 keys are added by options)."""
 
     description: str
     puts: tuple[str, ...] = ()
     reads: tuple[str, ...] = ()
     node: bool = True  # a gpmppi service: heartbeat on health/<id> and a liveliness token on alive/<id>
     watches_liveliness: bool = False  # subscribes to / queries the liveliness tokens alive/**
-    extra_puts: tuple[str, ...] = field(default_factory=tuple)  # absolute keys (ROS 2) added by options
 
 
 # the stack's processes and the people and tools around it; a service's identity is its kind
@@ -73,7 +71,6 @@ ROLES: dict[str, Role] = {
     ),
 }
 ROS2_IDENTITY = "ros2"  # the robot's ROS 2 nodes (rmw_zenoh sessions), only with `secure init --ros2`
-SERVICE_IDENTITIES = ("sim", "ingress", "terrain", "planner", "egress", "recorder", "viewer")
 # the keys that move the robot: exactly one identity may put each
 EXCLUSIVE_PUTS: dict[str, str] = {"cmd": "planner", "base/cmd": "egress", "state": "ingress"}
 
@@ -82,18 +79,9 @@ class SecretsError(ValueError):
     """A secrets directory that cannot be used: the message names the file, the field and what to do."""
 
 
-def identity_for(kind: str) -> str:
-    """The identity a service of this kind runs as (its kind; the router has none: it reads the dictionary)."""
-    if kind not in ROLES:
-        raise SecretsError(f"no identity for service kind {kind!r}; known: {', '.join(ROLES)}")
-    return kind
-
-
 # ---- the access-control section -----------------------------------------------------------------------------
 def _abs(key: str, robot: str) -> str:
-    if key.startswith("/"):
-        return key[1:]
-    return f"gpmppi/{robot}/{key}" if key != "**" else f"gpmppi/{robot}/**"
+    return f"gpmppi/{robot}/{key}"
 
 
 def role_keys(identity: str, robot: str, ros2: dict[str, str] | None = None) -> dict[str, list[str]]:
