@@ -340,21 +340,35 @@ def _edit_acl(secrets: Path, edit) -> None:  # noqa: ANN001 - a callable on the 
     os.chmod(path, 0o600)
 
 
+def _delivered(secrets: Path, tmp_path: Path, sender: str, key: str, reader: str) -> bool:
+    """Whether a real router running DIR/router.json5 delivers `sender`'s put on `key` to `reader`."""
+    port = free_port()
+    router = _router_process(secrets, [endpoint(port)], tmp_path)
+    s = Sessions(secrets, port)
+    try:
+        inbox = Inbox(s(reader), key)
+        src = s(sender)
+        return wait_for(lambda: (src.put(key, _cmd(0.3)), bool(inbox.got))[1], 3.0)
+    finally:
+        s.close()
+        router.stop()
+
+
 def test_an_acl_that_locks_the_planner_out_of_cmd_is_refused_at_start(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     secrets = tmp_path / "s"
     init_secrets(secrets, robot="jackal")
-    _edit_acl(
-        secrets,
-        lambda acl: (
-            acl["rules"][:]
-            and [r for r in acl["rules"] if r["id"] == "planner:put"][0]["key_exprs"].remove("gpmppi/jackal/cmd")
-        ),
-    )
+
+    def lock_out(acl: dict) -> None:
+        next(r for r in acl["rules"] if r["id"] == "planner:put")["key_exprs"].remove("gpmppi/jackal/cmd")
+
+    _edit_acl(secrets, lock_out)
     err = _launch_error(capsys, secrets)
     assert str(secrets / "router.json5") in err and "access_control" in err
     assert "planner" in err and "gpmppi/jackal/cmd" in err and "cannot be driven" in err
+    # the check says what Zenoh does: under that ACL a real router drops the planner's commands
+    assert not _delivered(secrets, tmp_path, "planner", "gpmppi/jackal/cmd", "egress")
     # a broad allow (a subject with no usernames matches every session) opens cmd to everyone: refused too
     init_secrets(secrets, robot="jackal", force=True)
 
@@ -368,6 +382,7 @@ def test_an_acl_that_locks_the_planner_out_of_cmd_is_refused_at_start(
     _edit_acl(secrets, broad)
     with pytest.raises(SecretsError, match="lets sim put on gpmppi/jackal/cmd; only planner may"):
         check_secrets(secrets, "jackal")
+    assert _delivered(secrets, tmp_path, "sim", "gpmppi/jackal/cmd", "egress")  # and Zenoh lets it through
 
 
 def test_a_client_config_with_the_wrong_password_or_robot_is_refused(tmp_path: Path) -> None:
