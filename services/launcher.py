@@ -1,5 +1,5 @@
 """The launcher (supervisor): `gpmppi launch [LAUNCH.yaml] [--duration S] [--record FILE.mcap]
-[--rerun spawn|save FILE|connect URL|off] [--port N]`.
+[--rerun spawn|save FILE|connect URL|off] [--port N] [--secrets DIR]`.
 
 Starts the Zenoh router and each service as its own process (`python -m services.run NAME --config FILE`),
 prefixes their logs, restarts a crashed service with backoff, stops all in reverse order on Ctrl-C
@@ -29,6 +29,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from services.monitor import Monitor, Summary, summarize
 from services.node import ZenohSettings
 from services.run import SERVICES
+from services.secure_check import check_launch_secrets
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_LAUNCH = Path(__file__).resolve().parent / "launch" / "default.yaml"
@@ -249,16 +250,21 @@ def wait_for_endpoint(endpoint: str, timeout_s: float) -> None:
 
 
 def build(
-    launch: LaunchFile, record: str | None, rerun: list[str] | None, port: int | None
+    launch: LaunchFile, record: str | None, rerun: list[str] | None, port: int | None, secrets: str | None = None
 ) -> tuple[Launcher, list[str]]:
     if port is not None:
         endpoint = f"tcp/127.0.0.1:{port}"
         launch.router.listen = [endpoint]
         launch.zenoh.connect = [endpoint]
+    # --secrets: checked before anything starts; each session then joins as its own identity (services/secure.py)
+    secured = check_launch_secrets(launch, secrets, record, rerun) if secrets is not None else None
     launcher = Launcher(launch)
     common = {"robot": launch.robot, "zenoh": launch.zenoh.model_dump()}
     if launch.router.enabled:
-        launcher.add("router", "router", {"listen": launch.router.listen, **launch.router.config}, required=True)
+        router = {"listen": launch.router.listen, **launch.router.config}
+        if secured is not None:
+            router["router_config_file"] = str(secured.router_file)
+        launcher.add("router", "router", router, required=True)
     entries = [e for e in launch.services if e.enabled]
     names = [e.name for e in entries]
     if record:
@@ -274,7 +280,12 @@ def build(
             config["url"] = rerun[1]
         entries.insert(0, ServiceEntry(name="viewer", required=False, config=config))
     for e in entries:
-        launcher.add(e.name, e.kind or e.name, {**common, **e.config, "service": e.name}, e.required)
+        config = {**common, **e.config, "service": e.name}
+        if secured is not None:
+            config["zenoh"] = {**config["zenoh"], "config_file": str(secured.client_file(e.kind or e.name))}
+        launcher.add(e.name, e.kind or e.name, config, e.required)
+    if secured is not None:
+        launch.zenoh.config_file = str(secured.client_file("launcher"))  # the launcher's own Monitor session
     return launcher, names
 
 
@@ -287,6 +298,7 @@ def run_launch(
     out: IO[str] | None = None,
     ready_timeout_s: float = 600.0,
     then: Callable[[Launcher, Monitor], None] | None = None,
+    secrets: str | None = None,
 ) -> tuple[int, Summary]:
     """Run a launch file (default: the simulated Jackal) for `duration` seconds after every service is up
     (first heartbeat; a cold numba cache can take minutes), or until Ctrl-C; (exit code, summary).
@@ -294,7 +306,7 @@ def run_launch(
     `then`, if given, runs in a thread once every service is up, instead of the `duration`; the run ends when
     it returns (it should return soon after `launcher.stop_event` is set). Its exception is raised here."""
     launch = LaunchFile.load(launch_path or DEFAULT_LAUNCH)
-    launcher, service_names = build(launch, record, rerun, port)
+    launcher, service_names = build(launch, record, rerun, port, secrets)
     launcher.out = out or sys.stdout
     interrupted = threading.Event()
 
@@ -370,6 +382,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--rerun", nargs="+", default=None, metavar="MODE", help="spawn | save FILE.rrd | connect URL | off"
     )
     parser.add_argument("--port", type=int, default=None, help="router port on 127.0.0.1 (overrides the file)")
+    parser.add_argument(
+        "--secrets", default=None, metavar="DIR", help="run secured with the identities of `gpmppi secure init DIR`"
+    )
     args = parser.parse_args(argv)
     if args.rerun and (args.rerun[0] not in ("spawn", "save", "connect", "off") or len(args.rerun) > 2):
         parser.error(f"--rerun takes spawn | save FILE | connect URL | off, got {' '.join(args.rerun)}")
@@ -379,7 +394,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
-        code, _ = run_launch(args.launch_file, args.duration, args.record, args.rerun, args.port)
+        code, _ = run_launch(
+            args.launch_file, args.duration, args.record, args.rerun, args.port, secrets=args.secrets
+        )
     except (FileNotFoundError, ValueError, TimeoutError) as exc:
         print(f"gpmppi launch: {exc}", file=sys.stderr)
         return 2
