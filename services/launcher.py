@@ -2,9 +2,10 @@
 [--rerun spawn|save FILE|connect URL|off] [--port N]`.
 
 Starts the Zenoh router and each service as its own process (`python -m services.run NAME --config FILE`),
-prefixes their logs, restarts a crashed service with backoff, stops all in reverse order on Ctrl-C
-(SIGINT, then SIGTERM, then SIGKILL after timeouts) and prints a summary. Exit status 1 when a required
-service failed for good.
+prefixes their logs, restarts a crashed service with backoff (a thread waits on each process, so a death is
+seen at once), stops all in reverse order on Ctrl-C (SIGINT, then SIGTERM, then SIGKILL after timeouts) and
+prints a summary with every restart and its cause. Exit status 1 when a required service failed for good;
+2 when the launch cannot start (bad launch file, no router to connect to).
 """
 
 from __future__ import annotations
@@ -24,10 +25,11 @@ from pathlib import Path
 from typing import IO, Any
 
 import yaml
+import zenoh
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.monitor import Monitor, Summary, summarize
-from services.node import ZenohSettings
+from services.node import StoppedWhileWaiting, ZenohSettings
 from services.run import SERVICES
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -39,6 +41,10 @@ class RouterEntry(BaseModel):
     enabled: bool = Field(True, description="start a router process (False: use an existing router or peers)")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], description="router endpoints")
     config: dict[str, Any] = Field(default_factory=dict, description="extra router settings")
+    wait_s: float = Field(
+        0.0, ge=0, description="enabled false: how long to wait for the outside router (0: it must be up at "
+        "launch; >0: the services start at once and wait for it themselves, as under systemd)"
+    )
 
 
 class ServiceEntry(BaseModel):
@@ -56,8 +62,16 @@ class LaunchFile(BaseModel):
     router: RouterEntry = Field(default_factory=RouterEntry)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how services join")
     services: list[ServiceEntry] = Field(default_factory=list)
-    max_restarts: int = Field(3, ge=0, description="restarts of a crashed service before it has failed for good")
-    restart_backoff_s: float = Field(0.5, gt=0, description="first restart delay; doubles each time (max 8 s)")
+    max_restarts: int = Field(
+        3, ge=0, description="restarts in a row (each run shorter than restart_reset_s) before a service has "
+        "failed for good"
+    )
+    restart_backoff_s: float = Field(
+        0.25, gt=0, description="first restart delay [s]; doubles with each restart in a row (max 8 s)"
+    )
+    restart_reset_s: float = Field(
+        30.0, gt=0, description="a service that ran this long before it died starts its backoff over [s]"
+    )
     stop_timeout_s: float = Field(5.0, gt=0, description="wait after SIGINT, then after SIGTERM, before escalating")
 
     @classmethod
@@ -84,6 +98,35 @@ class Child:
     started_at: float = 0.0
     first_started_at: float = 0.0
     exit_codes: list[int] = field(default_factory=list)
+    in_a_row: int = 0  # restarts since the last run that lasted restart_reset_s
+    exited_at: float | None = None  # when the watcher saw the current process end (monotonic)
+    hold_until: float = 0.0  # a crash restart waits at least until then (see Launcher.kill)
+
+
+@dataclass
+class RestartEvent:
+    """One crash restart, for the summary."""
+
+    name: str
+    died_s: float  # since launch start [s]
+    cause: str  # 'SIGKILL', 'exit code 1', ...
+    uptime_s: float  # how long the process that died had run [s]
+    delay_s: float  # backoff before the new process [s]
+    note: str = ""
+
+
+def exit_cause(code: int) -> str:
+    """A process's return code in words: 'SIGKILL' (killed by a signal), 'exit code 1'."""
+    if code < 0:
+        try:
+            return signal.Signals(-code).name
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
+
+
+class RouterUnreachable(RuntimeError):
+    """The launch file starts no router and none answers at its endpoint."""
 
 
 class Launcher:
@@ -98,6 +141,19 @@ class Launcher:
         self._process_lock = threading.RLock()
         self.run_dir = Path(tempfile.mkdtemp(prefix="gpmppi-launch-"))
         self.t0 = time.monotonic()
+        self.restart_events: list[RestartEvent] = []
+        # set by a process's watcher thread when it ends (and by request_stop): the supervision loop wakes at once
+        self.wake = threading.Event()
+
+    def child(self, name: str) -> Child:
+        child = next((c for c in self.children if c.name == name), None)
+        if child is None:
+            raise KeyError(f"no service named {name!r}; running: {', '.join(c.name for c in self.children)}")
+        return child
+
+    def request_stop(self) -> None:
+        self.stop_event.set()
+        self.wake.set()
 
     # ---- output -------------------------------------------------------------------------------
     def say(self, name: str, line: str) -> None:
@@ -136,10 +192,19 @@ class Launcher:
             start_new_session=True,  # Ctrl-C reaches only the launcher, which stops children in order
         )
         child.started_at = time.monotonic()
+        child.exited_at = None
         child.first_started_at = child.first_started_at or child.started_at
         assert child.process.stdout is not None
         threading.Thread(target=self._pump, args=(child, child.process.stdout), daemon=True).start()
+        threading.Thread(target=self._watch, args=(child, child.process), daemon=True).start()
         self.say("launch", f"started {child.name} ({child.kind}) pid {child.process.pid}")
+
+    def _watch(self, child: Child, process: subprocess.Popen) -> None:
+        """Wait on one process; when it ends, note when and wake the supervision loop (no polling delay)."""
+        process.wait()
+        if child.process is process:
+            child.exited_at = time.monotonic()
+        self.wake.set()
 
     def start_all(self) -> None:
         for child in self.children:
@@ -147,34 +212,65 @@ class Launcher:
             if child.kind == "router":
                 wait_for_endpoint(self.launch.router.listen[0], timeout_s=10.0)
 
-    def supervise(self) -> None:
-        """Restart crashed services with backoff; mark them failed after max_restarts."""
+    def supervise(self) -> float:
+        """Restart crashed services with backoff; mark them failed after max_restarts in a row. Returns how
+        long the caller may wait before the next call (the next restart due), at most 0.1 s."""
         with self._process_lock:
-            self._supervise(time.monotonic())
+            return self._supervise(time.monotonic())
 
-    def _supervise(self, now: float) -> None:
+    def _supervise(self, now: float) -> float:
+        next_due = 0.1
         for child in self.children:
             if child.failed or child.process is None:
                 continue
-            code = child.process.poll()
             if child.restart_at is not None:
                 if now >= child.restart_at:
                     child.restart_at = None
                     child.restarts += 1
+                    if child.kind == "recorder":
+                        self._recorder_continues(child)
                     self._spawn(child)
+                else:
+                    next_due = min(next_due, child.restart_at - now)
                 continue
+            code = child.process.poll()
             if code is None:
                 continue
+            died = child.exited_at or now
+            uptime = died - child.started_at
             child.exit_codes.append(code)
-            if child.restarts >= self.launch.max_restarts:
+            cause = exit_cause(code)
+            if uptime >= self.launch.restart_reset_s:
+                child.in_a_row = 0  # it had run well: a new crash is not part of a crash loop
+            if child.in_a_row >= self.launch.max_restarts:
                 child.failed = True
-                self.say("launch", f"{child.name} exited with {code} and has failed for good")
+                self.say("launch", f"{child.name} exited ({cause}) and has failed for good")
                 if child.required:
-                    self.stop_event.set()
+                    self.request_stop()
                 continue
-            delay = min(8.0, self.launch.restart_backoff_s * 2**child.restarts)
-            child.restart_at = now + delay
-            self.say("launch", f"{child.name} exited with {code}; restart {child.restarts + 1} in {delay:.1f} s")
+            delay = min(8.0, self.launch.restart_backoff_s * 2**child.in_a_row)
+            child.in_a_row += 1
+            child.restart_at = max(died + delay, child.hold_until)
+            delay = child.restart_at - died
+            next_due = min(next_due, max(0.0, child.restart_at - now))
+            self.restart_events.append(RestartEvent(child.name, died - self.t0, cause, uptime, delay))
+            self.say(
+                "launch",
+                f"{child.name} exited ({cause}) after {uptime:.1f} s; restart {child.restarts + 1} in {delay:.2f} s",
+            )
+        return next_due
+
+    def _recorder_continues(self, child: Child) -> None:
+        """A restarted recorder must not overwrite what its predecessor wrote: it continues in a new file."""
+        config = yaml.safe_load(child.config_path.read_text()) or {}
+        path = Path(config.get("path", "runs/recording.mcap"))
+        stem = path.stem.split(".restart")[0]
+        new = path.with_name(f"{stem}.restart{child.restarts}{path.suffix}")
+        config["path"] = str(new)
+        child.config_path.write_text(yaml.safe_dump(config, sort_keys=False))
+        if self.restart_events and self.restart_events[-1].name == child.name:
+            self.restart_events[-1].note = f"continues in {new}"
+        self.say("launch", f"{child.name}: {path} is kept as written; the restarted recorder writes {new}")
 
     def stop_all(self) -> None:
         """Reverse start order: SIGINT, wait, SIGTERM, wait, SIGKILL."""
@@ -186,6 +282,10 @@ class Launcher:
         timeout = self.launch.stop_timeout_s
         p = child.process
         if p is None or p.poll() is not None:
+            return
+        try:
+            p.send_signal(signal.SIGCONT)  # a frozen (SIGSTOP) process could not act on SIGINT
+        except ProcessLookupError:
             return
         for sig, wait_s in ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, timeout)):
             try:
@@ -203,13 +303,24 @@ class Launcher:
         """Stop a running service as stop_all does and start it again at once (a deliberate restart, e.g. to
         measure its start-up; not counted in `restarts`). The child's `started_at` is the new process's start."""
         with self._process_lock:
-            child = next((c for c in self.children if c.name == name), None)
-            if child is None:
-                raise KeyError(f"no service named {name!r}; running: {', '.join(c.name for c in self.children)}")
+            child = self.child(name)
             if child.failed or child.restart_at is not None:
                 raise RuntimeError(f"{name} is not running (failed or waiting for a crash restart)")
             self._stop(child)
             self._spawn(child)
+            return child
+
+    def kill(self, name: str, sig: signal.Signals = signal.SIGKILL, restart_after_s: float | None = None) -> Child:
+        """A fault on purpose (fault tests, drills): send `sig` to a running service. Supervision treats a death
+        like any crash; `restart_after_s` keeps the service down at least that long (an outage of known length)."""
+        with self._process_lock:
+            child = self.child(name)
+            if child.process is None or child.process.poll() is not None:
+                raise RuntimeError(f"{name} is not running")
+            if restart_after_s is not None:
+                child.hold_until = time.monotonic() + restart_after_s
+            child.process.send_signal(sig)
+            self.say("launch", f"sent {sig.name} to {name} (pid {child.process.pid})")
             return child
 
     def failed_required(self) -> list[str]:
@@ -300,7 +411,7 @@ def run_launch(
 
     def on_signal(signum: int, frame: Any) -> None:
         interrupted.set()
-        launcher.stop_event.set()
+        launcher.request_stop()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     monitor: Monitor | None = None
@@ -315,14 +426,25 @@ def run_launch(
             hook_errors.append(exc)
 
     t_start = time.monotonic()
+    outside_router = not launch.router.enabled and launch.zenoh.mode == "client"
+    # the launcher's own session: at once for a router it starts; an outside router must be up now (wait_s 0),
+    # or may come up while the services, started first, wait for it themselves
+    wait_s = launch.router.wait_s if outside_router else 10.0
+    monitor_zenoh = launch.zenoh.model_copy(update={"wait_for_router_s": wait_s})
     try:
+        if outside_router and wait_s == 0:
+            monitor = open_monitor(launch, monitor_zenoh, t_start, launch_path)
         launcher.start_all()
-        monitor = Monitor(launch.robot, launch.zenoh, t_start)
+        if monitor is None:
+            if outside_router:
+                endpoints = ", ".join(launch.zenoh.connect)
+                launcher.say("launch", f"waiting up to {wait_s:.0f} s for the router at {endpoints}")
+            monitor = open_monitor(launch, monitor_zenoh, t_start, launch_path, launcher.stop_event)
         expected = {c.name for c in launcher.children if c.kind != "router"}
         ready_by = time.monotonic() + ready_timeout_s
         deadline: float | None = None
         while not launcher.stop_event.is_set():
-            launcher.supervise()
+            wait = launcher.supervise()
             now = time.monotonic()
             if deadline is None and hook is None and (duration is not None or then is not None):
                 with monitor.lock:
@@ -342,7 +464,9 @@ def run_launch(
                 break
             if hook is not None and not hook.is_alive():
                 break
-            launcher.stop_event.wait(0.1)
+            # a child's death wakes this wait at once (its watcher thread); restarts due sooner shorten it
+            launcher.wake.wait(wait)
+            launcher.wake.clear()
     finally:
         launcher.stop_event.set()
         if hook is not None:
@@ -359,6 +483,27 @@ def run_launch(
         raise hook_errors[0]
     failed = launcher.failed_required()
     return (1 if failed else 0), summary
+
+
+def open_monitor(
+    launch: LaunchFile, zenoh_settings: ZenohSettings, t_start: float, path: str | Path | None,
+    stop: threading.Event | None = None,
+) -> Monitor:
+    """The launcher's session; an unreachable router is one line naming the endpoint and what to start."""
+    endpoints = ", ".join(launch.zenoh.connect)
+    try:
+        return Monitor(launch.robot, zenoh_settings, t_start, stop)
+    except StoppedWhileWaiting:
+        raise RouterUnreachable(f"stopped while waiting for the router at {endpoints}") from None
+    except zenoh.ZError as exc:
+        if launch.router.enabled:
+            raise RouterUnreachable(f"cannot join the router this launch started at {endpoints}: {exc}") from None
+        waited = f" within {launch.router.wait_s:.0f} s" if launch.router.wait_s else ""
+        raise RouterUnreachable(
+            f"no Zenoh router at {endpoints}{waited}, and {path or DEFAULT_LAUNCH} starts none (router.enabled: "
+            "false): start it first (on the robot `ros2 run rmw_zenoh_cpp rmw_zenohd`, or `gpmppi service router`), "
+            "or set router.enabled: true, or router.wait_s to wait for it"
+        ) from None
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -380,7 +525,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         code, _ = run_launch(args.launch_file, args.duration, args.record, args.rerun, args.port)
-    except (FileNotFoundError, ValueError, TimeoutError) as exc:
+    except (FileNotFoundError, ValueError, TimeoutError, RouterUnreachable) as exc:
         print(f"gpmppi launch: {exc}", file=sys.stderr)
         return 2
     return code

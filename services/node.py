@@ -55,14 +55,91 @@ class ZenohSettings(BaseModel):
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on (peers)")
     multicast_scouting: bool = Field(False, description="discover peers by UDP multicast (off: loopback only)")
     config_file: str | None = Field(None, description="a Zenoh json5 config applied before the fields above")
+    # Zenoh's own connect retry (connect/retry/*): used while waiting for the router at start and to reconnect
+    # after the router went away (a client re-opens its session to `connect` by itself, subscriptions included)
+    retry_init_ms: int = Field(100, gt=0, description="first wait before retrying a connect (connect/retry) [ms]")
+    retry_max_ms: int = Field(500, gt=0, description="longest wait between connect retries (connect/retry) [ms]")
+    retry_factor: float = Field(2.0, ge=1.0, description="growth of the wait between connect retries")
+    wait_for_router_s: float | None = Field(
+        None, ge=0, description="how long a client waits at start for its router (None: until it appears or the "
+        "service is stopped; 0: fail at once if it is not up)"
+    )
 
-    def to_config(self) -> zenoh.Config:
+    def to_config(self, connect_timeout_ms: int | None = None) -> zenoh.Config:
+        """The Zenoh config; `connect_timeout_ms` sets connect/timeout_ms (0: one try; >0: retry that long)."""
         config = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
         config.insert_json5("mode", json.dumps(self.mode))
         config.insert_json5("connect/endpoints", json.dumps(self.connect))
         config.insert_json5("listen/endpoints", json.dumps(self.listen))
         config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        retry = {"period_init_ms": self.retry_init_ms, "period_max_ms": max(self.retry_max_ms, self.retry_init_ms),
+                 "period_increase_factor": self.retry_factor}
+        config.insert_json5("connect/retry", json.dumps(retry))
+        if connect_timeout_ms is not None:
+            config.insert_json5("connect/timeout_ms", json.dumps(connect_timeout_ms))
         return config
+
+
+class StoppedWhileWaiting(KeyboardInterrupt):
+    """Stopped (SIGINT/SIGTERM) while waiting for the router: a clean exit, not a failure."""
+
+
+def _accepts_tcp(endpoint: str) -> bool:
+    """Whether a tcp/ or tls/ endpoint accepts a TCP connection (something listens there)."""
+    import socket
+
+    proto, _, address = endpoint.partition("/")
+    if proto not in ("tcp", "tls") or ":" not in address:
+        return False
+    host, port = address.split("#")[0].split("?")[0].rsplit(":", 1)
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
+            return True
+    except (OSError, ValueError):
+        return False
+
+
+def open_session(
+    settings: ZenohSettings, log: logging.Logger, stop: threading.Event | None = None, attempt_ms: int = 500
+) -> zenoh.Session:
+    """Open a Zenoh session; a client whose router is not up yet waits for it (Zenoh's own connect retry, with
+    backoff, in attempts of `attempt_ms` between which `stop` is checked) and logs one line while it waits.
+
+    Raises `StoppedWhileWaiting` when `stop` is set meanwhile, and `zenoh.ZError` when `wait_for_router_s`
+    passes, or when the endpoint accepts connections but keeps refusing the session (credentials, TLS)."""
+    if settings.mode != "client":
+        return zenoh.open(settings.to_config())
+    try:
+        return zenoh.open(settings.to_config(connect_timeout_ms=0))
+    except zenoh.ZError as exc:
+        first_error = exc
+    endpoints = ", ".join(settings.connect)
+    if settings.wait_for_router_s == 0:
+        raise zenoh.ZError(f"no Zenoh router at {endpoints}: {str(first_error).split(' at ')[0]}")
+    log.warning(f"waiting for router at {endpoints}", extra={"fields": {"error": str(first_error).split(" at ")[0]}})
+    t0 = time.monotonic()
+    refused = 0
+    while True:
+        if stop is not None and stop.is_set():
+            raise StoppedWhileWaiting(f"stopped while waiting for the router at {endpoints}")
+        waited = time.monotonic() - t0
+        limit = settings.wait_for_router_s
+        if limit is not None and waited >= limit:
+            raise zenoh.ZError(f"no Zenoh router at {endpoints} after {waited:.1f} s: start the router first")
+        chunk = attempt_ms if limit is None else max(1, min(attempt_ms, int((limit - waited) * 1000)))
+        try:
+            session = zenoh.open(settings.to_config(connect_timeout_ms=chunk))
+        except zenoh.ZError as exc:
+            # something listens but the session is refused, attempt after attempt: waiting will not help
+            refused = refused + 1 if any(_accepts_tcp(e) for e in settings.connect) else 0
+            if refused >= 3:
+                raise zenoh.ZError(
+                    f"the router at {endpoints} accepts connections but refuses this session ({exc}): check the "
+                    "credentials / TLS settings of this service and of the router"
+                ) from exc
+            continue
+        log.info(f"router reached at {endpoints}", extra={"fields": {"waited_s": round(time.monotonic() - t0, 2)}})
+        return session
 
 
 class NodeSettings(BaseSettings):
@@ -281,7 +358,8 @@ class Node:
     def open(self) -> Node:
         if self.session is not None:
             return self
-        self.session = zenoh.open(self.settings.zenoh.to_config())
+        # a client waits for its router (services start in any order); a stop meanwhile ends the wait
+        self.session = open_session(self.settings.zenoh, self.log, self._stop)
         robot, service = self.settings.robot, self.name
         self._token = self.session.liveliness().declare_token(LIVELINESS_PREFIX.format(robot=robot, service=service))
         self._health = self.publisher("health")
