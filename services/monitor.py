@@ -29,7 +29,7 @@ from schemas import (
 from services.node import ZenohSettings, open_session
 
 if TYPE_CHECKING:
-    from services.launcher import Launcher, RestartEvent
+    from services.supervisor import Launcher, RestartEvent
 
 
 # the key each service's first real output appears on (start-up time is measured to it)

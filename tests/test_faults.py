@@ -13,6 +13,7 @@ from __future__ import annotations
 import io
 import json
 import signal
+import socket
 import threading
 import time
 import traceback
@@ -149,6 +150,14 @@ class Observer:
         self.session.close()
 
 
+def _accepts(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
 def _standing(obs: Observer, t0: float, t1: float) -> list[float]:
     """Measured speeds of the states that arrived in [t0, t1]."""
     return [abs(m.v) for t, m in obs.states(t0) if t <= t1]
@@ -259,23 +268,27 @@ def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPat
             last_state = max((t for t, _ in obs.states()), default=0.0)
             t_kill = time.monotonic()
             launcher.kill("router", signal.SIGTERM, restart_after_s=2.5)
-            wait_for(lambda: launcher.child("router").restarts == 1, 10.0)
-            # the new router is up when it says it listens (its log reaches us through a pipe)
-            wait_for(lambda: bool(out.after(t_kill, "router listening")), 15.0)
-            t_up = (out.after(t_kill, "router listening") or [launcher.child("router").started_at])[0]
-            t_state = wait_for(lambda: bool(obs.states(t_up)), 15.0) and obs.states(t_up)[0][0]
+            wait_for(lambda: not _accepts(port), 5.0, 0.01)
+            t_gone = time.monotonic()
+            time.sleep(2.0)
+            # the new router is up when its port accepts connections
+            wait_for(lambda: _accepts(port), 20.0, 0.01)
+            t_up = time.monotonic()
+            # the first state after the outage: after the gap in the 10 Hz stream
+            t_state = wait_for(lambda: bool(obs.states(t_up)), 15.0) and min(
+                t for t, _ in obs.states(t_gone + 1.0))
             t_drive = obs.wait_driving(t_up, 20.0)
             watchdog_lines = out.after(t_kill, "output zero: watchdog")
             check(bool(watchdog_lines) and watchdog_lines[0] - t_kill < 1.0,
                   "router stop: egress's watchdog did not stop the output")
             # the first state after the outage: the sim stood (its own timeout) before new commands reached it
-            first = [abs(m.v) for _, m in obs.states(t_up)[:1]]
+            first = [abs(m.v) for _, m in obs.states(t_gone + 1.0)[:1]]
             check(bool(first) and max(first) < STOPPED, f"router stop: speed right after the outage {first}")
             restarts_after = {c.name: c.restarts for c in launcher.children if c.kind != "router"}
             check(restarts_after == restarts_before, f"router stop: services restarted {restarts_after}")
             check(bool(t_state) and t_drive is not None, f"router stop: state at {t_state}, driving at {t_drive}")
             if t_state and t_drive is not None:
-                timings["router_outage_s"] = t_up - t_kill
+                timings["router_outage_s"] = t_up - t_gone
                 timings["router_reconnect_s"] = t_state - t_up
                 timings["router_resume_s"] = t_drive - t_up
             check(last_state < t_kill, "router stop: no state before the outage")
@@ -359,10 +372,15 @@ def test_services_started_before_their_router(tmp_path: Path, monkeypatch: pytes
     assert result.get("driving") is not None, log[-3000:]
     print(f"router started {t_router[0] - t0:.1f} s after the services; driving {result['driving'] - t_router[0]:.2f}"
           " s after the router")
-    # each service waited (one line each) and none crashed or was restarted
+    # each service that reached its session before the router waited (one line), went on when it appeared, and
+    # none crashed or was restarted (a slow starter on a loaded machine may open its session after the router)
+    waited = []
     for name in ("sim", "ingress", "terrain", "planner", "egress"):
-        lines = [line for line in log.splitlines() if line.startswith(f"[{name:>9}]") and "waiting for router" in line]
-        assert len(lines) == 1, (name, lines)
+        mine = [line for line in log.splitlines() if line.startswith(f"[{name:>9}]")]
+        lines = [line for line in mine if "waiting for router" in line]
+        assert len(lines) <= 1 and len(lines) == sum("router reached" in line for line in mine), (name, lines)
+        waited += [name] * len(lines)
+    assert "egress" in waited, log[-3000:]  # the lightest service: up within 10 s even on a loaded machine
     assert summary.restarts == {} and summary.failed == []
 
 
