@@ -455,3 +455,38 @@ def test_launch_without_a_router_says_what_to_start(tmp_path: Path, capsys: pyte
     assert "started" not in captured.out
     with pytest.raises(RouterUnreachable, match="starts none"):
         run_launch(path, duration=1.0, port=port, out=io.StringIO())
+
+
+def test_stop_while_waiting_for_the_router_is_a_clean_exit(tmp_path: Path) -> None:
+    svc = ServiceProcess("egress", settings("egress", free_port(), robot=ROBOT), tmp_path)
+    assert wait_for(lambda: "waiting for router" in svc.log(), 20.0), svc.log()
+    time.sleep(1.0)
+    assert svc.alive(), svc.log()
+    assert svc.stop(timeout=5.0) == 0, svc.log()
+    assert svc.log().count("waiting for router") == 1 and "Traceback" not in svc.log()
+
+
+def test_a_router_that_refuses_the_session_is_not_waited_for(tmp_path: Path) -> None:
+    """Something listens but refuses the session (here: a router that wants credentials): the service gets an
+    error that says so after a few attempts instead of waiting for ever."""
+    import logging
+
+    from services.node import ZenohSettings
+    from services.session import open_session
+
+    port = free_port()
+    users = tmp_path / "users.txt"
+    users.write_text("planner:secret\n")
+    config = zenoh.Config()
+    config.insert_json5("mode", '"router"')
+    config.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
+    router = zenoh.open(config)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(zenoh.ZError, match="refuses this session"):
+            open_session(ZenohSettings(connect=[endpoint(port)]), logging.getLogger("test"))
+        assert time.monotonic() - t0 < 10.0
+    finally:
+        router.close()
