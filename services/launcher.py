@@ -176,6 +176,7 @@ def run_launch(
         ready_by = time.monotonic() + ready_timeout_s
         deadline: float | None = None
         while not launcher.stop_event.is_set():
+            launcher.wake.clear()  # before supervise: a death from here on ends the wait below at once
             wait = launcher.supervise()
             now = time.monotonic()
             if deadline is None and hook is None and (duration is not None or then is not None):
@@ -198,7 +199,6 @@ def run_launch(
                 break
             # a child's death wakes this wait at once (its watcher thread); restarts due sooner shorten it
             launcher.wake.wait(wait)
-            launcher.wake.clear()
     finally:
         launcher.stop_event.set()
         if hook is not None:
