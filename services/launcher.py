@@ -2,36 +2,40 @@
 [--rerun spawn|save FILE|connect URL|off] [--port N] [--secrets DIR]`.
 
 Starts the Zenoh router and each service as its own process (`python -m services.run NAME --config FILE`),
-prefixes their logs, restarts a crashed service with backoff, stops all in reverse order on Ctrl-C
-(SIGINT, then SIGTERM, then SIGKILL after timeouts) and prints a summary. Exit status 1 when a required
-service failed for good.
+prefixes their logs, restarts a crashed service with backoff (a thread waits on each process, so a death is
+seen at once), stops all in reverse order on Ctrl-C (SIGINT, then SIGTERM, then SIGKILL after timeouts) and
+prints a summary with every restart and its cause. Exit status 1 when a required service failed for good;
+2 when the launch cannot start (bad launch file, no router to connect to).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import signal
-import subprocess
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
 import yaml
+import zenoh
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from services.monitor import Monitor, Summary, summarize
-from services.node import ZenohSettings
-from services.run import SERVICES
+from services.node import StoppedWhileWaiting, ZenohSettings
 from services.secure_check import check_launch_secrets
+from services.supervisor import (  # noqa: F401 - re-exported: the launcher's public names
+    REPO_ROOT,
+    Child,
+    Launcher,
+    RestartEvent,
+    exit_cause,
+    readable,
+    wait_for_endpoint,
+)
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_LAUNCH = Path(__file__).resolve().parent / "launch" / "default.yaml"
 
 
@@ -40,6 +44,10 @@ class RouterEntry(BaseModel):
     enabled: bool = Field(True, description="start a router process (False: use an existing router or peers)")
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], description="router endpoints")
     config: dict[str, Any] = Field(default_factory=dict, description="extra router settings")
+    wait_s: float = Field(
+        0.0, ge=0, description="enabled false: how long to wait for the outside router (0: it must be up at "
+        "launch; >0: the services start at once and wait for it themselves, as under systemd)"
+    )
 
 
 class ServiceEntry(BaseModel):
@@ -57,8 +65,16 @@ class LaunchFile(BaseModel):
     router: RouterEntry = Field(default_factory=RouterEntry)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how services join")
     services: list[ServiceEntry] = Field(default_factory=list)
-    max_restarts: int = Field(3, ge=0, description="restarts of a crashed service before it has failed for good")
-    restart_backoff_s: float = Field(0.5, gt=0, description="first restart delay; doubles each time (max 8 s)")
+    max_restarts: int = Field(
+        3, ge=0, description="restarts in a row (each run shorter than restart_reset_s) before a service has "
+        "failed for good"
+    )
+    restart_backoff_s: float = Field(
+        0.25, gt=0, description="first restart delay [s]; doubles with each restart in a row (max 8 s)"
+    )
+    restart_reset_s: float = Field(
+        30.0, gt=0, description="a service that ran this long before it died starts its backoff over [s]"
+    )
     stop_timeout_s: float = Field(5.0, gt=0, description="wait after SIGINT, then after SIGTERM, before escalating")
 
     @classmethod
@@ -72,181 +88,8 @@ class LaunchFile(BaseModel):
             raise ValueError(f"launch file {path}: {exc}") from exc
 
 
-@dataclass
-class Child:
-    name: str
-    kind: str
-    config_path: Path
-    required: bool
-    process: subprocess.Popen | None = None
-    restarts: int = 0
-    failed: bool = False
-    restart_at: float | None = None
-    started_at: float = 0.0
-    first_started_at: float = 0.0
-    exit_codes: list[int] = field(default_factory=list)
-
-
-class Launcher:
-    def __init__(self, launch: LaunchFile, out: IO[str] = sys.stdout) -> None:
-        self.launch = launch
-        self.out = out
-        self.children: list[Child] = []
-        self.stop_event = threading.Event()
-        self._print_lock = threading.Lock()
-        # held while a child's process is replaced (supervise, restart, stop_all): supervise must not take a
-        # deliberate stop for a crash
-        self._process_lock = threading.RLock()
-        self.run_dir = Path(tempfile.mkdtemp(prefix="gpmppi-launch-"))
-        self.t0 = time.monotonic()
-
-    # ---- output -------------------------------------------------------------------------------
-    def say(self, name: str, line: str) -> None:
-        with self._print_lock:
-            self.out.write(f"[{name:>9}] {line.rstrip()}\n")
-            self.out.flush()
-
-    def _pump(self, child: Child, stream: IO[bytes]) -> None:
-        for raw in iter(stream.readline, b""):
-            self.say(child.name, readable(raw.decode(errors="replace")))
-        stream.close()
-
-    # ---- processes ----------------------------------------------------------------------------
-    def _write_config(self, name: str, config: dict[str, Any]) -> Path:
-        path = self.run_dir / f"{name}.yaml"
-        path.write_text(yaml.safe_dump(config, sort_keys=False))
-        return path
-
-    def add(self, name: str, kind: str, config: dict[str, Any], required: bool) -> None:
-        if kind not in SERVICES:
-            raise ValueError(f"service {name!r}: unknown kind {kind!r}; known: {', '.join(SERVICES)}")
-        if any(c.name == name for c in self.children):
-            raise ValueError(f"two services are named {name!r}; names must be unique")
-        self.children.append(Child(name, kind, self._write_config(name, config), required))
-
-    def _spawn(self, child: Child) -> None:
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-        env["PYTHONUNBUFFERED"] = "1"
-        child.process = subprocess.Popen(
-            [sys.executable, "-m", "services.run", child.kind, "--config", str(child.config_path)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            env=env,
-            cwd=os.getcwd(),
-            start_new_session=True,  # Ctrl-C reaches only the launcher, which stops children in order
-        )
-        child.started_at = time.monotonic()
-        child.first_started_at = child.first_started_at or child.started_at
-        assert child.process.stdout is not None
-        threading.Thread(target=self._pump, args=(child, child.process.stdout), daemon=True).start()
-        self.say("launch", f"started {child.name} ({child.kind}) pid {child.process.pid}")
-
-    def start_all(self) -> None:
-        for child in self.children:
-            self._spawn(child)
-            if child.kind == "router":
-                wait_for_endpoint(self.launch.router.listen[0], timeout_s=10.0)
-
-    def supervise(self) -> None:
-        """Restart crashed services with backoff; mark them failed after max_restarts."""
-        with self._process_lock:
-            self._supervise(time.monotonic())
-
-    def _supervise(self, now: float) -> None:
-        for child in self.children:
-            if child.failed or child.process is None:
-                continue
-            code = child.process.poll()
-            if child.restart_at is not None:
-                if now >= child.restart_at:
-                    child.restart_at = None
-                    child.restarts += 1
-                    self._spawn(child)
-                continue
-            if code is None:
-                continue
-            child.exit_codes.append(code)
-            if child.restarts >= self.launch.max_restarts:
-                child.failed = True
-                self.say("launch", f"{child.name} exited with {code} and has failed for good")
-                if child.required:
-                    self.stop_event.set()
-                continue
-            delay = min(8.0, self.launch.restart_backoff_s * 2**child.restarts)
-            child.restart_at = now + delay
-            self.say("launch", f"{child.name} exited with {code}; restart {child.restarts + 1} in {delay:.1f} s")
-
-    def stop_all(self) -> None:
-        """Reverse start order: SIGINT, wait, SIGTERM, wait, SIGKILL."""
-        with self._process_lock:
-            for child in reversed(self.children):
-                self._stop(child)
-
-    def _stop(self, child: Child) -> None:
-        timeout = self.launch.stop_timeout_s
-        p = child.process
-        if p is None or p.poll() is not None:
-            return
-        for sig, wait_s in ((signal.SIGINT, timeout), (signal.SIGTERM, timeout), (signal.SIGKILL, timeout)):
-            try:
-                p.send_signal(sig)
-            except ProcessLookupError:
-                break
-            try:
-                p.wait(wait_s)
-                break
-            except subprocess.TimeoutExpired:
-                self.say("launch", f"{child.name} ignored {sig.name} for {wait_s:.0f} s")
-        self.say("launch", f"stopped {child.name} (exit {p.returncode})")
-
-    def restart(self, name: str) -> Child:
-        """Stop a running service as stop_all does and start it again at once (a deliberate restart, e.g. to
-        measure its start-up; not counted in `restarts`). The child's `started_at` is the new process's start."""
-        with self._process_lock:
-            child = next((c for c in self.children if c.name == name), None)
-            if child is None:
-                raise KeyError(f"no service named {name!r}; running: {', '.join(c.name for c in self.children)}")
-            if child.failed or child.restart_at is not None:
-                raise RuntimeError(f"{name} is not running (failed or waiting for a crash restart)")
-            self._stop(child)
-            self._spawn(child)
-            return child
-
-    def failed_required(self) -> list[str]:
-        return [c.name for c in self.children if c.failed and c.required]
-
-
-def readable(line: str) -> str:
-    """A service's JSON log line as `LEVEL message key=value ...` (other lines unchanged)."""
-    try:
-        entry = json.loads(line)
-    except ValueError:
-        return line
-    if not isinstance(entry, dict) or "msg" not in entry:
-        return line
-    skip = {"t", "level", "service", "logger", "msg"}
-    extras = " ".join(f"{k}={v}" for k, v in entry.items() if k not in skip and k != "exc")
-    text = f"{entry.get('level', ''):<7} {entry['msg']} {extras}".rstrip()
-    return text + ("\n" + entry["exc"] if "exc" in entry else "")
-
-
-def wait_for_endpoint(endpoint: str, timeout_s: float) -> None:
-    """Wait until a tcp/<host>:<port> endpoint accepts connections."""
-    import socket
-
-    if not endpoint.startswith("tcp/"):
-        time.sleep(0.5)
-        return
-    host, port = endpoint[4:].rsplit(":", 1)
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            with socket.create_connection((host, int(port)), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.05)
-    raise TimeoutError(f"the router did not open {endpoint} within {timeout_s} s")
+class RouterUnreachable(RuntimeError):
+    """The launch file starts no router and none answers at its endpoint."""
 
 
 def build(
@@ -312,7 +155,7 @@ def run_launch(
 
     def on_signal(signum: int, frame: Any) -> None:
         interrupted.set()
-        launcher.stop_event.set()
+        launcher.request_stop()
 
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     monitor: Monitor | None = None
@@ -327,14 +170,26 @@ def run_launch(
             hook_errors.append(exc)
 
     t_start = time.monotonic()
+    outside_router = not launch.router.enabled and launch.zenoh.mode == "client"
+    # the launcher's own session: at once for a router it starts; an outside router must be up now (wait_s 0),
+    # or may come up while the services, started first, wait for it themselves
+    wait_s = launch.router.wait_s if outside_router else 10.0
+    monitor_zenoh = launch.zenoh.model_copy(update={"wait_for_router_s": wait_s})
     try:
+        if outside_router and wait_s == 0:
+            monitor = open_monitor(launch, monitor_zenoh, t_start, launch_path)
         launcher.start_all()
-        monitor = Monitor(launch.robot, launch.zenoh, t_start)
+        if monitor is None:
+            if outside_router:
+                endpoints = ", ".join(launch.zenoh.connect)
+                launcher.say("launch", f"waiting up to {wait_s:.0f} s for the router at {endpoints}")
+            monitor = open_monitor(launch, monitor_zenoh, t_start, launch_path, launcher.stop_event)
         expected = {c.name for c in launcher.children if c.kind != "router"}
         ready_by = time.monotonic() + ready_timeout_s
         deadline: float | None = None
         while not launcher.stop_event.is_set():
-            launcher.supervise()
+            launcher.wake.clear()  # before supervise: a death from here on ends the wait below at once
+            wait = launcher.supervise()
             now = time.monotonic()
             if deadline is None and hook is None and (duration is not None or then is not None):
                 with monitor.lock:
@@ -354,7 +209,8 @@ def run_launch(
                 break
             if hook is not None and not hook.is_alive():
                 break
-            launcher.stop_event.wait(0.1)
+            # a child's death wakes this wait at once (its watcher thread); restarts due sooner shorten it
+            launcher.wake.wait(wait)
     finally:
         launcher.stop_event.set()
         if hook is not None:
@@ -371,6 +227,27 @@ def run_launch(
         raise hook_errors[0]
     failed = launcher.failed_required()
     return (1 if failed else 0), summary
+
+
+def open_monitor(
+    launch: LaunchFile, zenoh_settings: ZenohSettings, t_start: float, path: str | Path | None,
+    stop: threading.Event | None = None,
+) -> Monitor:
+    """The launcher's session; an unreachable router is one line naming the endpoint and what to start."""
+    endpoints = ", ".join(launch.zenoh.connect)
+    try:
+        return Monitor(launch.robot, zenoh_settings, t_start, stop)
+    except StoppedWhileWaiting:
+        raise RouterUnreachable(f"stopped while waiting for the router at {endpoints}") from None
+    except zenoh.ZError as exc:
+        if launch.router.enabled:
+            raise RouterUnreachable(f"cannot join the router this launch started at {endpoints}: {exc}") from None
+        waited = f" within {launch.router.wait_s:.0f} s" if launch.router.wait_s else ""
+        raise RouterUnreachable(
+            f"no Zenoh router at {endpoints}{waited}, and {path or DEFAULT_LAUNCH} starts none (router.enabled: "
+            "false): start it first (on the robot `ros2 run rmw_zenoh_cpp rmw_zenohd`, or `gpmppi service router`), "
+            "or set router.enabled: true, or router.wait_s to wait for it"
+        ) from None
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -397,7 +274,7 @@ def main(argv: list[str] | None = None) -> int:
         code, _ = run_launch(
             args.launch_file, args.duration, args.record, args.rerun, args.port, secrets=args.secrets
         )
-    except (FileNotFoundError, ValueError, TimeoutError) as exc:
+    except (FileNotFoundError, ValueError, TimeoutError, RouterUnreachable) as exc:
         print(f"gpmppi launch: {exc}", file=sys.stderr)
         return 2
     return code

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import Counter
@@ -25,10 +26,10 @@ from schemas import (
     decode,
     model_for_key,
 )
-from services.node import ZenohSettings
+from services.node import ZenohSettings, open_session
 
 if TYPE_CHECKING:
-    from services.launcher import Launcher
+    from services.supervisor import Launcher, RestartEvent
 
 
 # the key each service's first real output appears on (start-up time is measured to it)
@@ -44,7 +45,9 @@ PRIMARY_OUTPUT = {
 class Monitor:
     """Counts every key and keeps what the summary needs; opens its own client session."""
 
-    def __init__(self, robot: str, zenoh_settings: ZenohSettings, t_start: float) -> None:
+    def __init__(
+        self, robot: str, zenoh_settings: ZenohSettings, t_start: float, stop: threading.Event | None = None
+    ) -> None:
         self.robot = robot
         self.t_start = t_start
         self.lock = threading.Lock()
@@ -61,7 +64,8 @@ class Monitor:
         # at 0 in each new process, which tells a restarted service's first output from its predecessor's last
         self.output_keys = {f"gpmppi/{robot}/{key}" for key in PRIMARY_OUTPUT.values()}
         self.output_arrivals: dict[str, list[tuple[float, int]]] = {key: [] for key in self.output_keys}
-        self.session = zenoh.open(zenoh_settings.to_config())
+        # waits for the router as long as zenoh_settings.wait_for_router_s says (services start in any order)
+        self.session = open_session(zenoh_settings, logging.getLogger("gpmppi.launch"), stop)
         self._sub = self.session.declare_subscriber("gpmppi/**", self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -125,6 +129,7 @@ class Summary:
     first_heartbeat_s: dict[str, float] = field(default_factory=dict)  # service -> s from its process start
     first_output_s: dict[str, float] = field(default_factory=dict)  # service -> s from process start to output
     restarts: dict[str, int] = field(default_factory=dict)
+    restart_events: list[RestartEvent] = field(default_factory=list)  # every crash restart, with its cause
     failed: list[str] = field(default_factory=list)
     recording: str | None = None
 
@@ -148,6 +153,12 @@ class Summary:
         starts = ", ".join(f"{k} {v:.2f}" for k, v in sorted(self.first_output_s.items()))
         out.append(f"start-up, process start -> first output [s]: {starts or 'n/a'}")
         out.append(f"restarts: {self.restarts or 'none'}; failed for good: {self.failed or 'none'}")
+        for e in self.restart_events:
+            note = f"; {e.note}" if e.note else ""
+            out.append(
+                f"  {e.name}: {e.cause} at {e.died_s:.1f} s after {e.uptime_s:.1f} s up, restarted after "
+                f"{e.delay_s:.2f} s{note}"
+            )
         if self.recording:
             out.append(f"recording: {self.recording}")
         return out
@@ -160,6 +171,7 @@ def _fmt(v: float | None, unit: str) -> str:
 def summarize(monitor: Monitor | None, launcher: Launcher, service_names: list[str], record: str | None) -> Summary:
     s = Summary(duration_s=time.monotonic() - launcher.t0, recording=record)
     s.restarts = {c.name: c.restarts for c in launcher.children if c.restarts}
+    s.restart_events = list(launcher.restart_events)
     s.failed = [c.name for c in launcher.children if c.failed]
     if monitor is None:
         return s

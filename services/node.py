@@ -38,6 +38,7 @@ from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_f
 from schemas.codec import ENCODING, MAX_PAYLOAD_BYTES
 from schemas.keys import DEFAULT_ROBOT
 from services.scheduling import Inbox
+from services.session import StoppedWhileWaiting, open_session  # noqa: F401 - re-exported
 
 M = TypeVar("M", bound=Message)
 S = TypeVar("S", bound="NodeSettings")
@@ -55,13 +56,28 @@ class ZenohSettings(BaseModel):
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on (peers)")
     multicast_scouting: bool = Field(False, description="discover peers by UDP multicast (off: loopback only)")
     config_file: str | None = Field(None, description="a Zenoh json5 config applied before the fields above")
+    # Zenoh's own connect retry (connect/retry/*): used while waiting for the router at start and to reconnect
+    # after the router went away (a client re-opens its session to `connect` by itself, subscriptions included)
+    retry_init_ms: int = Field(100, gt=0, description="first wait before retrying a connect (connect/retry) [ms]")
+    retry_max_ms: int = Field(500, gt=0, description="longest wait between connect retries (connect/retry) [ms]")
+    retry_factor: float = Field(2.0, ge=1.0, description="growth of the wait between connect retries")
+    wait_for_router_s: float | None = Field(
+        None, ge=0, description="how long a client waits at start for its router (None: until it appears or the "
+        "service is stopped; 0: fail at once if it is not up)"
+    )
 
-    def to_config(self) -> zenoh.Config:
+    def to_config(self, connect_timeout_ms: int | None = None) -> zenoh.Config:
+        """The Zenoh config; `connect_timeout_ms` sets connect/timeout_ms (0: one try; >0: retry that long)."""
         config = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
         config.insert_json5("mode", json.dumps(self.mode))
         config.insert_json5("connect/endpoints", json.dumps(self.connect))
         config.insert_json5("listen/endpoints", json.dumps(self.listen))
         config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        retry = {"period_init_ms": self.retry_init_ms, "period_max_ms": max(self.retry_max_ms, self.retry_init_ms),
+                 "period_increase_factor": self.retry_factor}
+        config.insert_json5("connect/retry", json.dumps(retry))
+        if connect_timeout_ms is not None:
+            config.insert_json5("connect/timeout_ms", json.dumps(connect_timeout_ms))
         return config
 
 
@@ -281,7 +297,8 @@ class Node:
     def open(self) -> Node:
         if self.session is not None:
             return self
-        self.session = zenoh.open(self.settings.zenoh.to_config())
+        # a client waits for its router (services start in any order); a stop meanwhile ends the wait
+        self.session = open_session(self.settings.zenoh, self.log, self._stop)
         robot, service = self.settings.robot, self.name
         self._token = self.session.liveliness().declare_token(LIVELINESS_PREFIX.format(robot=robot, service=service))
         self._health = self.publisher("health")

@@ -1,0 +1,492 @@
+"""Faults on purpose, on real processes driven through the launcher (loopback, free ports): the robot must stop
+when its command chain breaks, and the stack must heal by itself.
+
+One stack run takes several faults in turn (planner SIGKILL, planner SIGSTOP/SIGCONT, egress SIGKILL, recorder
+SIGKILL, router stop + restart, terrain SIGKILL), each measured from an outside Zenoh client and from the
+launcher's own log (which reaches us through pipes, not Zenoh, so it also covers the time the router is gone).
+A second run starts the services 10 s before their router. Timings print with `-s`; the bounds carry margins for
+a loaded 2-core machine.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import signal
+import socket
+import threading
+import time
+import traceback
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+import zenoh
+from zenoh_helpers import Collector, ServiceProcess, client, endpoint, free_port, settings, wait_for
+
+from schemas import BaseCommand, Command, Heartbeat, State, TerrainWeights, decode, key_for
+from services.launcher import Launcher, RouterUnreachable, run_launch
+from services.mcap_io import read_messages
+from services.monitor import Monitor
+
+REPO = Path(__file__).resolve().parents[1]
+ROBOT = "jackal"
+WATCHDOG_S = 0.25  # egress's watchdog, set explicitly so the bounds hold whatever egress's default is
+EGRESS_HZ = 20.0
+SIM_TIMEOUT_S = 0.5  # the sim's own command timeout (services/sim.py command_timeout_s default)
+MOVING = 0.05  # [m/s] a base command above this is driving
+STOPPED = 0.1  # [m/s] a measured speed below this is standing (the sim runs without sensor noise here)
+
+
+class TimedLog(io.TextIOBase):
+    """The launcher's output with the arrival time of each line (it comes through pipes, not Zenoh)."""
+
+    def __init__(self) -> None:
+        self.lines: list[tuple[float, str]] = []
+        self._lock = threading.Lock()
+        self._buf = ""
+
+    def write(self, s: str) -> int:
+        now = time.monotonic()
+        with self._lock:
+            self._buf += s
+            *done, self._buf = self._buf.split("\n")
+            self.lines += [(now, line) for line in done]
+        return len(s)
+
+    def after(self, t: float, text: str) -> list[float]:
+        with self._lock:
+            return [tl for tl, line in self.lines if tl >= t and text in line]
+
+    def text(self) -> str:
+        with self._lock:
+            return "\n".join(line for _, line in self.lines)
+
+
+def _launch_file(tmp_path: Path, port: int, router_enabled: bool = True, wait_s: float = 0.0) -> Path:
+    ep = endpoint(port)
+    launch = {
+        "robot": ROBOT,
+        "router": {"enabled": router_enabled, "listen": [ep], "wait_s": wait_s},
+        "zenoh": {"mode": "client", "connect": [ep]},
+        "restart_backoff_s": 0.25,
+        "services": [
+            {"name": "sim", "config": {"lane": "circle", "noise": False, "command_timeout_s": SIM_TIMEOUT_S}},
+            {"name": "ingress", "config": {"source": "sim"}},
+            {"name": "terrain", "required": False, "config": {"nice": 10}},
+            {"name": "planner", "config": {"scenario": "circle", "trigger": "state"}},
+            {"name": "egress", "config": {"output": "sim", "watchdog_timeout_s": WATCHDOG_S, "rate_hz": EGRESS_HZ}},
+        ],
+    }
+    path = tmp_path / "faults.yaml"
+    path.write_text(yaml.safe_dump(launch))
+    return path
+
+
+class Observer:
+    """An outside client: base commands, commands, states, plans and heartbeats, decoded once on arrival
+    (plans only the fields the checks read: full decoding of every plan would load the 2 cores)."""
+
+    MODELS = {"base/cmd": BaseCommand, "cmd": Command, "state": State, "terrain/weights": TerrainWeights}
+
+    def __init__(self, port: int) -> None:
+        self.session = client(port)
+        self.lock = threading.Lock()
+        self.got: dict[str, list[tuple[float, Any]]] = {}
+        self._sub = self.session.declare_subscriber(f"gpmppi/{ROBOT}/**", self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        t = time.monotonic()
+        name = str(sample.key_expr)[len(f"gpmppi/{ROBOT}/") :]
+        raw = sample.payload.to_bytes()
+        if name in self.MODELS:
+            msg: Any = decode(self.MODELS[name], raw)
+        elif name == "plan":
+            fields = json.loads(raw)
+            msg = (bool(fields.get("weights_stale", False)), fields["terrain_weights"])
+        elif name.startswith("health/"):
+            msg = decode(Heartbeat, raw)
+        else:
+            return
+        with self.lock:
+            self.got.setdefault(name, []).append((t, msg))
+
+    def _since(self, name: str, since: float) -> list[tuple[float, Any]]:
+        with self.lock:
+            return [(t, m) for t, m in self.got.get(name, []) if t >= since]
+
+    def base(self, since: float = 0.0) -> list[tuple[float, BaseCommand]]:
+        return self._since("base/cmd", since)
+
+    def cmds(self, since: float = 0.0) -> list[tuple[float, Command]]:
+        return self._since("cmd", since)
+
+    def states(self, since: float = 0.0) -> list[tuple[float, State]]:
+        return self._since("state", since)
+
+    def plans(self, since: float = 0.0) -> list[tuple[float, tuple[bool, list[float]]]]:
+        """(arrival, (weights_stale, terrain_weights)) of each Plan."""
+        return self._since("plan", since)
+
+    def heartbeats(self, service: str, since: float = 0.0) -> list[tuple[float, Heartbeat]]:
+        return self._since(f"health/{service}", since)
+
+    def driving_since(self, since: float) -> float | None:
+        """Arrival of the first planner-driven base command (moving) after `since`."""
+        return next((t for t, m in self.base(since) if m.reason == "planner" and m.v > MOVING), None)
+
+    def wait_driving(self, since: float, timeout: float) -> float | None:
+        wait_for(lambda: self.driving_since(since) is not None, timeout, 0.05)
+        return self.driving_since(since)
+
+    def first_zero(self, since: float, reason: str | None = None) -> float | None:
+        return next(
+            (t for t, m in self.base(since) if m.v == 0.0 and m.omega == 0.0 and reason in (None, m.reason)), None
+        )
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def _accepts(port: int) -> bool:
+    try:
+        with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+            return True
+    except OSError:
+        return False
+
+
+def _standing(obs: Observer, t0: float, t1: float) -> list[float]:
+    """Measured speeds of the states that arrived in [t0, t1]."""
+    return [abs(m.v) for t, m in obs.states(t0) if t <= t1]
+
+
+@pytest.mark.slow
+def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    port = free_port()
+    record = tmp_path / "faults.mcap"
+    out = TimedLog()
+    failures: list[str] = []
+    timings: dict[str, float] = {}
+
+    def check(ok: bool, what: str) -> None:
+        if not ok:
+            failures.append(what)
+
+    def faults(launcher: Launcher, monitor: Monitor) -> None:
+        obs = Observer(port)
+        try:
+            assert obs.wait_driving(time.monotonic(), 60.0), "the robot never drove"
+            time.sleep(1.0)
+
+            # ---- SIGKILL planner: zero within the watchdog + one egress period, restarted, driving again
+            t_kill = time.monotonic()
+            launcher.kill("planner", signal.SIGKILL)
+            wait_for(lambda: obs.first_zero(t_kill, "watchdog") is not None, 3.0)
+            t_zero = obs.first_zero(t_kill, "watchdog")
+            last_cmd = max((t for t, _ in obs.cmds() if t < t_kill), default=None)
+            # (until the watchdog fires, egress repeats the last command: driving again counts from the zero)
+            t_drive = obs.wait_driving(t_zero or t_kill, 120.0)
+            if t_zero is None or last_cmd is None or t_drive is None:
+                failures.append(f"planner SIGKILL: zero at {t_zero}, last command {last_cmd}, driving {t_drive}")
+            else:
+                timings["planner_kill_zero_after_last_cmd_s"] = t_zero - last_cmd
+                timings["planner_kill_zero_after_kill_s"] = t_zero - t_kill
+                timings["planner_kill_resume_s"] = t_drive - t_kill
+                # nothing but zero between the watchdog firing and the new planner's first command
+                t_new = min((t for t, _ in obs.cmds(t_zero)), default=t_drive)
+                between = [m for t, m in obs.base(t_zero) if t < t_new and m.reason != "watchdog"]
+                check(not between, f"planner SIGKILL: non-watchdog output while the planner was gone: {between[:3]}")
+                check(t_zero - last_cmd <= WATCHDOG_S + 1 / EGRESS_HZ + 0.15,
+                      f"planner SIGKILL: zero {t_zero - last_cmd:.3f} s after the last command")
+                # driving resumed (t_drive is not None): the 2 s goal (warm cache) is the planner's start-up on an
+                # idle machine, see docs/faults.md; on 2 shared cores under load its imports alone took 5 s and
+                # more, so no bound on it here
+            check(launcher.child("planner").restarts == 1, "planner SIGKILL: not restarted once")
+            deaths = [e for e in launcher.restart_events if e.name == "planner"]
+            if deaths:  # the launcher's watcher thread saw the death (not its 0.1 s loop)
+                timings["planner_kill_seen_by_launcher_s"] = deaths[0].died_s + launcher.t0 - t_kill
+                check(deaths[0].died_s + launcher.t0 - t_kill < 0.25, "planner SIGKILL: the launcher saw it late")
+            time.sleep(1.0)
+
+            # ---- SIGSTOP planner: frozen, not dead: the watchdog stops the robot; SIGCONT: driving again
+            t_stop = time.monotonic()
+            launcher.kill("planner", signal.SIGSTOP)
+            wait_for(lambda: obs.first_zero(t_stop, "watchdog") is not None, 3.0)
+            t_zero = obs.first_zero(t_stop, "watchdog")
+            last_cmd = max((t for t, _ in obs.cmds() if t < t_stop), default=None)
+            time.sleep(1.0)
+            frozen_ok = launcher.child("planner").process.poll() is None  # type: ignore[union-attr]
+            t_cont = time.monotonic()
+            launcher.kill("planner", signal.SIGCONT)
+            t_drive = obs.wait_driving(t_cont, 15.0)
+            if t_zero is None or last_cmd is None or t_drive is None:
+                failures.append(f"planner SIGSTOP: zero at {t_zero}, last command {last_cmd}, driving {t_drive}")
+            else:
+                timings["planner_stop_zero_after_last_cmd_s"] = t_zero - last_cmd
+                timings["planner_cont_resume_s"] = t_drive - t_cont
+                check(t_zero - last_cmd <= WATCHDOG_S + 1 / EGRESS_HZ + 0.15,
+                      f"planner SIGSTOP: zero {t_zero - last_cmd:.3f} s after the last command")
+                moving = [m for t, m in obs.base(t_zero) if t < t_cont and m.v != 0.0]
+                check(not moving, f"planner SIGSTOP: moving output while it was frozen: {moving[:3]}")
+            check(frozen_ok and launcher.child("planner").restarts == 1, "planner SIGSTOP: it must not be restarted")
+            time.sleep(1.0)
+
+            # ---- SIGKILL egress (down 2 s): the base's own timeout stops it; the launcher restarts egress
+            t_kill = time.monotonic()
+            launcher.kill("egress", signal.SIGKILL, restart_after_s=2.0)
+            wait_for(lambda: launcher.child("egress").started_at > t_kill, 10.0)
+            t_drive = obs.wait_driving(max(t_kill, launcher.child("egress").started_at), 60.0)
+            last_base = max((t for t, _ in obs.base() if t < t_kill), default=t_kill)
+            # from the sim's timeout on, until egress is back, the robot brakes (nothing drives it) and stands
+            speeds = _standing(obs, last_base + SIM_TIMEOUT_S + 0.2, t_kill + 2.0)
+            braking = all(b <= a + 1e-3 for a, b in zip(speeds, speeds[1:], strict=False))
+            check(len(speeds) >= 5 and braking and speeds[-1] < STOPPED,
+                  f"egress SIGKILL: speeds while egress was gone {speeds}")
+            moving_before = [abs(m.v) for t, m in obs.states() if t < t_kill][-1:]
+            timings["egress_kill_speed_before_m_s"] = moving_before[0] if moving_before else float("nan")
+            timings["egress_kill_speed_at_restart_m_s"] = speeds[-1] if speeds else float("nan")
+            check(launcher.child("egress").restarts == 1, "egress SIGKILL: not restarted")
+            check(t_drive is not None, "egress SIGKILL: driving did not resume")
+            if t_drive is not None:
+                timings["egress_kill_resume_s"] = t_drive - t_kill
+            time.sleep(1.0)
+
+            # ---- SIGKILL recorder: what it wrote is readable; its successor writes a new file
+            launcher.kill("recorder", signal.SIGKILL)
+            wait_for(lambda: launcher.child("recorder").restarts == 1, 5.0)
+            try:
+                recorded = list(read_messages(record))
+                states_in_file = sum(1 for key, _, _ in recorded if key == key_for("state", ROBOT))
+                check(states_in_file > 20, f"recorder SIGKILL: only {states_in_file} states readable")
+            except Exception as exc:  # noqa: BLE001 - any failure to read is the finding
+                failures.append(f"recorder SIGKILL: the file is not readable: {exc!r}")
+            check(launcher.child("recorder").restarts == 1, "recorder SIGKILL: not restarted")
+            time.sleep(1.0)
+
+            # ---- router stopped for 2.5 s and restarted: the robot stops, sessions reconnect, driving resumes
+            restarts_before = {c.name: c.restarts for c in launcher.children if c.kind != "router"}
+            last_state = max((t for t, _ in obs.states()), default=0.0)
+            t_kill = time.monotonic()
+            launcher.kill("router", signal.SIGTERM, restart_after_s=2.5)
+            wait_for(lambda: not _accepts(port), 5.0, 0.01)
+            t_gone = time.monotonic()
+            time.sleep(2.0)
+            # the new router is up when its port accepts connections
+            wait_for(lambda: _accepts(port), 20.0, 0.01)
+            t_up = time.monotonic()
+            # the first state after the outage: after the gap in the 10 Hz stream
+            t_state = wait_for(lambda: bool(obs.states(t_up)), 15.0) and min(
+                t for t, _ in obs.states(t_gone + 1.0))
+            t_drive = obs.wait_driving(t_up, 20.0)
+            watchdog_lines = out.after(t_kill, "output zero: watchdog")
+            check(bool(watchdog_lines) and watchdog_lines[0] - t_kill < 1.0,
+                  "router stop: egress's watchdog did not stop the output")
+            # the first state after the outage: the sim stood (its own timeout) before new commands reached it
+            first = [abs(m.v) for _, m in obs.states(t_gone + 1.0)[:1]]
+            check(bool(first) and max(first) < STOPPED, f"router stop: speed right after the outage {first}")
+            restarts_after = {c.name: c.restarts for c in launcher.children if c.kind != "router"}
+            check(restarts_after == restarts_before, f"router stop: services restarted {restarts_after}")
+            check(bool(t_state) and t_drive is not None, f"router stop: state at {t_state}, driving at {t_drive}")
+            if t_state and t_drive is not None:
+                timings["router_outage_s"] = t_up - t_gone
+                timings["router_reconnect_s"] = t_state - t_up
+                timings["router_resume_s"] = t_drive - t_up
+            check(last_state < t_kill, "router stop: no state before the outage")
+            heard = {s for s in ("sim", "ingress", "planner", "egress", "terrain") if obs.heartbeats(s, t_up)}
+            wait_for(lambda: len({s for s in ("sim", "ingress", "planner", "egress", "terrain")
+                                  if obs.heartbeats(s, t_up)}) == 5, 5.0)
+            heard = {s for s in ("sim", "ingress", "planner", "egress", "terrain") if obs.heartbeats(s, t_up)}
+            check(len(heard) == 5, f"router stop: heartbeats after the restart only from {heard}")
+            time.sleep(1.0)
+
+            # ---- SIGKILL terrain (down 6 s): driving continues on the last weights, flagged stale
+            last_weights = [m.weights for _, m in obs._since("terrain/weights", 0.0)]
+            t_kill = time.monotonic()
+            launcher.kill("terrain", signal.SIGKILL, restart_after_s=6.0)
+            time.sleep(4.0)
+            after = [p for _, p in obs.plans(t_kill + 0.3)]
+            moving = [m for _, m in obs.base(t_kill) if m.reason == "planner" and m.v > MOVING]
+            check(len(moving) > 40, f"terrain SIGKILL: driving stopped ({len(moving)} moving commands in 4 s)")
+            check(bool(last_weights and after), "terrain SIGKILL: no weights or no plans")
+            if last_weights and after:
+                # (Plan lists the weights in the model's terrain order, TerrainWeights in its own: compare values)
+                kept = np.allclose(sorted(after[0][1]), sorted(last_weights[-1]), atol=1e-9)
+                check(kept, f"terrain SIGKILL: planned with {after[0][1]}, not the last weights {last_weights[-1]}")
+            check(any(stale for stale, _ in after), "terrain SIGKILL: no Plan flagged weights_stale")
+        except Exception:  # noqa: BLE001 - reported with the launcher's log below
+            failures.append(traceback.format_exc())
+        finally:
+            obs.close()
+
+    code, summary = run_launch(_launch_file(tmp_path, port), record=str(record), out=out, then=faults)
+    log = out.text()
+    (tmp_path / "launch.log").write_text(log)
+    print("\n".join(f"{k}: {v:.3f}" for k, v in timings.items()))
+    assert not failures, "\n".join(failures) + "\n" + log[-3000:]
+    assert code == 0, log[-3000:]
+    # the summary lists every restart with its cause
+    causes = {(e.name, e.cause) for e in summary.restart_events}
+    assert {("planner", "SIGKILL"), ("egress", "SIGKILL"), ("recorder", "SIGKILL"), ("terrain", "SIGKILL")} <= causes
+    assert any(e.name == "router" for e in summary.restart_events)
+    assert "planner: SIGKILL at" in log and "restarted after" in log
+    # the restarted recorder wrote a file of its own next to the first
+    assert (tmp_path / "faults.restart1.mcap").is_file()
+
+
+@pytest.mark.slow
+def test_services_started_before_their_router(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Router started last: services started 10 s before it come up by themselves once it appears."""
+    monkeypatch.chdir(tmp_path)
+    port = free_port()
+    out = TimedLog()
+    router: dict[str, ServiceProcess] = {}
+    t_router: list[float] = []
+
+    def start_router_later() -> None:
+        time.sleep(10.0)
+        t_router.append(time.monotonic())
+        router["p"] = ServiceProcess("router", {"service": "router", "listen": [endpoint(port)]}, tmp_path)
+
+    result: dict = {}
+
+    def drive(launcher: Launcher, monitor: Monitor) -> None:
+        obs = Observer(port)
+        try:
+            result["driving"] = obs.wait_driving(t_router[0], 60.0)
+        finally:
+            obs.close()
+
+    starter = threading.Thread(target=start_router_later, daemon=True)
+    starter.start()
+    t0 = time.monotonic()
+    try:
+        code, summary = run_launch(_launch_file(tmp_path, port, router_enabled=False, wait_s=120.0), out=out,
+                                   then=drive)
+    finally:
+        starter.join(15)
+        if "p" in router:
+            router["p"].stop()
+    log = out.text()
+    assert code == 0, log[-3000:]
+    assert t_router and t_router[0] - t0 >= 9.5
+    assert result.get("driving") is not None, log[-3000:]
+    print(f"router started {t_router[0] - t0:.1f} s after the services; driving {result['driving'] - t_router[0]:.2f}"
+          " s after the router")
+    # each service that reached its session before the router waited (one line), went on when it appeared, and
+    # none crashed or was restarted (a slow starter on a loaded machine may open its session after the router)
+    waited = []
+    for name in ("sim", "ingress", "terrain", "planner", "egress"):
+        mine = [line for line in log.splitlines() if line.startswith(f"[{name:>9}]")]
+        lines = [line for line in mine if "waiting for router" in line]
+        assert len(lines) <= 1 and len(lines) == sum("router reached" in line for line in mine), (name, lines)
+        waited += [name] * len(lines)
+    assert "egress" in waited, log[-3000:]  # the lightest service: up within 10 s even on a loaded machine
+    assert summary.restarts == {} and summary.failed == []
+
+
+def test_service_waits_for_a_late_router_and_survives_its_restart(tmp_path: Path) -> None:
+    """One service process: one 'waiting for router' line, on once the router appears, and its session
+    reconnects (heartbeats again) after the router process is stopped and started again."""
+    port = free_port()
+    ep = endpoint(port)
+    svc = ServiceProcess("egress", settings("egress", port, robot=ROBOT, heartbeat_hz=10.0), tmp_path)
+    try:
+        time.sleep(2.0)
+        assert svc.alive(), svc.log()
+        first = ServiceProcess("router", {"service": "router", "listen": [ep]}, tmp_path)
+        session = None
+        try:
+            session = _client_when_up(port)
+            col = Collector(session, key_for("health", ROBOT, "egress"))
+            assert wait_for(lambda: len(col.on(key_for("health", ROBOT, "egress"))) > 0, 15.0), svc.log()
+        finally:
+            if session is not None:
+                session.close()
+            first.stop()
+        assert svc.log().count("waiting for router at " + ep) == 1, svc.log()
+        # router gone 1.5 s, then a new router process on the same port
+        time.sleep(1.5)
+        second = ServiceProcess("router", {"service": "router", "listen": [ep]}, tmp_path)
+        try:
+            t_up = time.monotonic()
+            session = _client_when_up(port)
+            col = Collector(session, key_for("health", ROBOT, "egress"))
+            assert wait_for(lambda: len(col.on(key_for("health", ROBOT, "egress"))) > 0, 10.0), svc.log()
+            print(f"heartbeat again {col.on(key_for('health', ROBOT, 'egress'))[0][0] - t_up:.2f} s after the "
+                  "router restart")
+            session.close()
+        finally:
+            second.stop()
+        assert svc.alive(), svc.log()
+    finally:
+        assert svc.stop() == 0
+
+
+def _client_when_up(port: int) -> zenoh.Session:
+    deadline = time.monotonic() + 15.0
+    while True:
+        try:
+            return client(port)
+        except zenoh.ZError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+def test_launch_without_a_router_says_what_to_start(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`gpmppi launch` of a file that starts no router, with none up: one line naming the endpoint, no traceback,
+    and no service started."""
+    from services.launcher import main
+
+    port = free_port()
+    robot = yaml.safe_load((REPO / "deploy" / "robot.yaml").read_text())
+    robot["zenoh"].pop("config_file", None)
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(robot))
+    assert main([str(path), "--port", str(port), "--duration", "1"]) == 2
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    assert len(lines) == 1, captured.err
+    assert f"tcp/127.0.0.1:{port}" in lines[0] and "rmw_zenohd" in lines[0] and "Traceback" not in captured.err
+    assert "started" not in captured.out
+    with pytest.raises(RouterUnreachable, match="starts none"):
+        run_launch(path, duration=1.0, port=port, out=io.StringIO())
+
+
+def test_stop_while_waiting_for_the_router_is_a_clean_exit(tmp_path: Path) -> None:
+    svc = ServiceProcess("egress", settings("egress", free_port(), robot=ROBOT), tmp_path)
+    assert wait_for(lambda: "waiting for router" in svc.log(), 20.0), svc.log()
+    time.sleep(1.0)
+    assert svc.alive(), svc.log()
+    assert svc.stop(timeout=5.0) == 0, svc.log()
+    assert svc.log().count("waiting for router") == 1 and "Traceback" not in svc.log()
+
+
+def test_a_router_that_refuses_the_session_is_not_waited_for(tmp_path: Path) -> None:
+    """Something listens but refuses the session (here: a router that wants credentials): the service gets an
+    error that says so after a few attempts instead of waiting for ever."""
+    import logging
+
+    from services.node import ZenohSettings
+    from services.session import open_session
+
+    port = free_port()
+    users = tmp_path / "users.txt"
+    users.write_text("planner:secret\n")
+    config = zenoh.Config()
+    config.insert_json5("mode", '"router"')
+    config.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    config.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
+    router = zenoh.open(config)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(zenoh.ZError, match="refuses this session"):
+            open_session(ZenohSettings(connect=[endpoint(port)]), logging.getLogger("test"))
+        assert time.monotonic() - t0 < 10.0
+    finally:
+        router.close()
