@@ -176,18 +176,19 @@ def memory_report(ticks: list[Tick], warmup_s: float) -> dict[str, dict]:
     return out
 
 
-def planner_windows(data: SoakData, warmup_s: float, window_s: float) -> list[dict]:
-    """Command rate [Hz], state stamp -> command p50 / p99 [ms] and plan compute p99 [ms] per window."""
-    ticks = [t for t in data.ticks if t.t_s >= warmup_s]
+def planner_windows(data: SoakData, warmup_s: float, window_s: float, sample_s: float = 1.0) -> list[dict]:
+    """Command rate [Hz], state stamp -> command p50 / p99 [ms] and plan compute p99 [ms] per window of
+    `window_s` from the end of the warm-up (each window's ends are the samples nearest its boundaries)."""
+
+    def tick_at(t: float) -> Tick | None:
+        return next((k for k in data.ticks if k.t_s >= t - sample_s / 2), None)
+
     windows = []
-    i = 0
-    while i < len(ticks) - 1:
-        j = i
-        while j + 1 < len(ticks) and ticks[j + 1].t_s - ticks[i].t_s <= window_s + 1e-6:
-            j += 1
-        if j == i:
+    k = 0
+    while (a := tick_at(warmup_s + k * window_s)) is not None and (b := tick_at(warmup_s + (k + 1) * window_s)):
+        k += 1
+        if b.t_s - a.t_s < window_s / 2:  # the run ended inside this window
             break
-        a, b = ticks[i], ticks[j]
         lat = np.array(data.latencies_ms[a.latencies : b.latencies])
         plan = np.array(data.plan_ms[a.plans : b.plans])
         windows.append({
@@ -199,7 +200,6 @@ def planner_windows(data: SoakData, warmup_s: float, window_s: float) -> list[di
             "latency_p99_ms": round(float(np.percentile(lat, 99)), 2) if lat.size else None,
             "plan_p99_ms": round(float(np.percentile(plan, 99)), 2) if plan.size else None,
         })
-        i = j
     return windows
 
 
