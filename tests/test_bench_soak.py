@@ -14,7 +14,7 @@ from mcap.reader import make_reader
 from zenoh_helpers import client, free_port
 
 from schemas import key_for
-from tools.bench_soak import rss_kib, soak
+from tools.bench_soak import SoakData, Tick, memory_report, planner_windows, rss_kib, soak
 
 SERVICES = {"router", "recorder", "sim", "ingress", "terrain", "planner", "egress"}
 
@@ -23,6 +23,25 @@ def test_rss_of_this_process() -> None:
     kib = rss_kib(os.getpid())
     assert kib is not None and kib > 10_000  # a Python process with numpy loaded
     assert rss_kib(2**22 + 12345) is None  # no such process
+
+
+def test_windows_and_memory_from_samples() -> None:
+    # 10 Hz commands, one latency per command (1 ms .. ), a process restarted at t = 6 s, a 3 s warm-up
+    ticks = [
+        Tick(t + 0.01 * (t % 3), {"a": 1000 + 10 * t, "b": 2048}, {"a": 1 if t < 6 else 2, "b": 3}, 10 * t, 10 * t,
+             10 * t)
+        for t in range(13)
+    ]
+    data = SoakData(ticks=ticks, latencies_ms=[float(i) for i in range(130)], plan_ms=[1.0] * 130)
+    windows = planner_windows(data, warmup_s=3.0, window_s=3.0)
+    assert [(w["t0_s"], w["t1_s"]) for w in windows] == [(3.0, 6.0), (6.0, 9.0), (9.0, 12.0)]
+    assert all(w["commands"] == 30 and w["rate_hz"] == pytest.approx(10.0) for w in windows)
+    assert windows[0]["latency_p50_ms"] == pytest.approx(44.5)  # latencies 30 .. 59
+    memory = memory_report(ticks, warmup_s=3.0)
+    assert memory["b"]["spread_pct"] == 0.0 and memory["b"]["start_mib"] == 2.0 and memory["b"]["samples"] == 10
+    a = memory["a"]  # only the current process (pid 2, from t = 6 s)
+    assert a["pid"] == 2 and a["samples"] == 7 and a["start_mib"] == round(1060 / 1024, 1)
+    assert a["growth_pct"] == pytest.approx(100 * (1120 - 1060) / 1060, abs=0.01)
 
 
 @pytest.mark.slow
