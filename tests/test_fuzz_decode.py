@@ -146,19 +146,25 @@ def test_command_schema_refuses_non_finite_values() -> None:
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known bug: for a finite but extreme state (|v| ~ 200 m/s, x = 1e308) Planner.plan returns non-finite "
-    "nominal states / sample costs; the planner service's Plan then fails the publisher's validation and the "
-    "DecodeError escapes services/planner.py run(): the process exits 1 (see docs/fuzz-soak.md)",
+    reason="known bug: for a finite but extreme state Planner.plan returns non-finite nominal states / sample "
+    "costs; the planner service's Plan then fails the publisher's validation and the DecodeError escapes "
+    "services/planner.py run(): the process exits 1 (see docs/fuzz-soak.md)",
 )
-def test_planner_output_for_an_extreme_but_finite_state_is_publishable() -> None:
+@pytest.mark.parametrize(
+    "v, omega, x",
+    [(-5.0, 20.0, None), (-212.5, 0.0, None), (0.0, 0.0, 1e308), (0.0, 1e6, None)],
+    ids=["v-5_omega20_ingress_passes_it", "v-212", "x1e308", "omega1e6"],
+)
+def test_planner_output_for_an_extreme_but_finite_state_is_publishable(v: float, omega: float, x: float | None
+                                                                       ) -> None:
     from gpmppi.mppi.planner import Planner, PlannerConfig
     from services.planner import load_model, load_scenario, plan_message
 
     scenario = load_scenario("circle")
     planner = Planner(PlannerConfig(), load_model(None))
-    for state in ([0.0, -1000.0, -1.0, -212.5, 0.0], [1e308, 0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 1e6]):
-        planner.reset()
-        result = planner.plan(np.array(state), scenario.task, delay_s=0.01)
-        assert np.all(np.isfinite(result.control))
-        plan = plan_message(result, time.time_ns(), scenario.task, 16)
-        decode(type(plan), plan.model_dump_json().encode())  # what the planner's publisher checks
+    state = np.array([*scenario.start[:3], v, omega], dtype=np.float64)  # at the lane's start
+    state[0] = state[0] if x is None else x
+    result = planner.plan(state, scenario.task, delay_s=0.01)
+    assert np.all(np.isfinite(result.control))
+    plan = plan_message(result, time.time_ns(), scenario.task, 16)
+    decode(type(plan), plan.model_dump_json().encode())  # what the planner's publisher checks
