@@ -23,6 +23,7 @@ import tempfile
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,6 +33,7 @@ import zenoh
 from mcap.reader import make_reader
 
 from services.launcher import Launcher, run_launch
+from services.mcap_io import recording_files
 from services.monitor import Monitor, Summary
 
 
@@ -75,7 +77,7 @@ def _digest(payload: bytes) -> bytes:
     return hashlib.blake2b(payload, digest_size=16).digest()
 
 
-def soak_hook(duration_s: float, data: SoakData, sample_s: float = 1.0):
+def soak_hook(duration_s: float, data: SoakData, sample_s: float = 1.0) -> Callable[[Launcher, Monitor], None]:
     """The `then` hook of `run_launch`: sample memory and counters for `duration_s`, and note every message an
     outside subscriber (on the monitor's session) receives meanwhile."""
 
@@ -137,13 +139,15 @@ def soak_hook(duration_s: float, data: SoakData, sample_s: float = 1.0):
 
 
 def recorded(path: str | Path) -> tuple[Counter[tuple[str, bytes]], Counter[str]]:
-    """(key, payload digest) and per-key counts of every message in an MCAP file (raw: valid or not)."""
+    """(key, payload digest) and per-key counts of every message in an MCAP recording, rotated parts included
+    (raw: valid or not)."""
     by_payload: Counter[tuple[str, bytes]] = Counter()
     per_key: Counter[str] = Counter()
-    with open(path, "rb") as f:
-        for _, channel, message in make_reader(f).iter_messages():
-            by_payload[(channel.topic, _digest(message.data))] += 1
-            per_key[channel.topic] += 1
+    for part in recording_files(path) or [Path(path)]:
+        with open(part, "rb") as f:
+            for _, channel, message in make_reader(f).iter_messages():
+                by_payload[(channel.topic, _digest(message.data))] += 1
+                per_key[channel.topic] += 1
     return by_payload, per_key
 
 
