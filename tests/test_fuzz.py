@@ -50,6 +50,8 @@ from schemas import (
 )
 from services import ros2
 
+pytestmark = pytest.mark.slow  # eight service processes: ~1 min (they still run in CI)
+
 EXAMPLES = 25  # per key: ~10 keys, each example waits for the service to take it
 # no shrinking: a failing example is reported as it was sent (replaying it against a process that has changed
 # state, or died, proves nothing)
