@@ -160,7 +160,10 @@ def odometry_from_cdr(data: bytes, distro: Distro = "jazzy") -> OdometryReading:
     cov[3:, 3:] = twist_cov[np.ix_(_TWIST_IDX, _TWIST_IDX)]
     if not np.any(cov):
         cov = None
-    stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+    sec, nanosec = int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)
+    if sec < 0 or not 0 <= nanosec < 1_000_000_000:
+        raise ValueError(f"nav_msgs/msg/Odometry stamp {sec} s {nanosec} ns is not a time since the epoch")
+    stamp_ns = sec * 1_000_000_000 + nanosec
     return OdometryReading(stamp_ns, msg.header.frame_id or "odom", state, cov)
 
 
