@@ -249,7 +249,11 @@ def wait_for_endpoint(endpoint: str, timeout_s: float) -> None:
 
 
 def build(
-    launch: LaunchFile, record: str | None, rerun: list[str] | None, port: int | None
+    launch: LaunchFile,
+    record: str | None,
+    rerun: list[str] | None,
+    port: int | None,
+    launch_path: str | Path | None = None,
 ) -> tuple[Launcher, list[str]]:
     if port is not None:
         endpoint = f"tcp/127.0.0.1:{port}"
@@ -273,9 +277,26 @@ def build(
         elif mode == "connect" and len(rerun) > 1:
             config["url"] = rerun[1]
         entries.insert(0, ServiceEntry(name="viewer", required=False, config=config))
+    entries = _describe_run_to_recorders(launcher, entries, launch_path)
     for e in entries:
         launcher.add(e.name, e.kind or e.name, {**common, **e.config, "service": e.name}, e.required)
     return launcher, names
+
+
+def _describe_run_to_recorders(
+    launcher: Launcher, entries: list[ServiceEntry], launch_path: str | Path | None
+) -> list[ServiceEntry]:
+    """Tell each recorder where every service's settings file will be (the launcher writes each to
+    run_dir/<name>.yaml) and which launch file ran, so it records their resolved settings and attaches the
+    launch file. Settings given in the launch file win."""
+    configs = {c.name: {"kind": c.kind, "config": str(c.config_path)} for c in launcher.children}
+    for e in entries:
+        configs[e.name] = {"kind": e.kind or e.name, "config": str(launcher.run_dir / f"{e.name}.yaml")}
+    run = {"service_configs": configs, "launch_file": str(Path(launch_path).resolve()) if launch_path else None}
+    return [
+        e.model_copy(update={"config": {**run, **e.config}}) if (e.kind or e.name) == "recorder" else e
+        for e in entries
+    ]
 
 
 def run_launch(
@@ -294,7 +315,7 @@ def run_launch(
     `then`, if given, runs in a thread once every service is up, instead of the `duration`; the run ends when
     it returns (it should return soon after `launcher.stop_event` is set). Its exception is raised here."""
     launch = LaunchFile.load(launch_path or DEFAULT_LAUNCH)
-    launcher, service_names = build(launch, record, rerun, port)
+    launcher, service_names = build(launch, record, rerun, port, launch_path or DEFAULT_LAUNCH)
     launcher.out = out or sys.stdout
     interrupted = threading.Event()
 
