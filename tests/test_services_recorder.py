@@ -15,6 +15,7 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 import yaml
 import zenoh
 from mcap.reader import make_reader
@@ -359,3 +360,63 @@ def test_a_file_size_limit_is_one_error_a_readable_file_and_a_failing_heartbeat(
     assert len(seqs) > 100 and seqs == list(range(len(seqs)))  # what was written reads back, in order
     report = inspect_recording(path)
     assert report.truncated and report.messages >= len(seqs)
+
+
+@pytest.mark.slow
+def test_a_recorded_stack_run_validates_quarantines_and_carries_its_metadata(tmp_path: Path) -> None:
+    """The whole stack (launcher, default launch) recorded while an outside client sends hostile payloads on the
+    keys the services subscribe to: every message on every schema'd channel validates with `jsonschema`, the
+    hostile payloads are on the quarantine channels, and the run's metadata and attachments round-trip."""
+    import io
+
+    from gpmppi.gp.model_file import DEFAULT_MODEL_PATH
+    from services.launcher import DEFAULT_LAUNCH, run_launch
+    from services.run import settings_class
+
+    port = free_port()
+    record = tmp_path / "stack.mcap"
+    targets = ["gpmppi/jackal/state", "gpmppi/jackal/odom/raw", "gpmppi/jackal/task", "gpmppi/jackal/cmd"]
+    sent: dict[str, list[bytes]] = {}
+
+    def hostile(launcher: object, monitor: object) -> None:
+        s = client(port)
+        for key in targets:
+            pub = s.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            for payload in HOSTILE:
+                pub.put(payload)
+                sent.setdefault(key, []).append(payload)
+                time.sleep(0.05)
+        time.sleep(3.0)  # the stack keeps running on good input
+        s.close()
+
+    out = io.StringIO()
+    code, summary = run_launch(None, record=str(record), port=port, out=out, then=hostile)
+    assert code == 0, out.getvalue()[-4000:]
+    assert summary.failed == []
+    checked = _assert_every_schemad_message_validates(record)
+    raw = _raw(record)
+    assert checked > 100 and {t for t, s, _ in raw if s} >= {"gpmppi/jackal/state", "gpmppi/jackal/plan"}
+    for key, payloads in sent.items():
+        assert [d for t, _, d in raw if t == key + "/_rejected"] == payloads, key
+    recorder_hb = [m for _, _, m in read_messages(record, ["gpmppi/jackal/health/recorder"])]
+    assert max(h.counts.get("quarantined", 0) for h in recorder_hb) == len(targets) * len(HOSTILE)
+    # metadata: the run, and each service's resolved settings; attachments: the launch file and the GP model
+    with open(record, "rb") as f:
+        reader = make_reader(f)
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+        attachments = {a.name: (a.media_type, a.data) for a in reader.iter_attachments()}
+    run = metadata["gpmppi.run"]
+    assert set(run) == {"version", "commit", "host", "robot", "started_ns", "launch_file"}
+    assert run["robot"] == "jackal" and run["launch_file"] == str(DEFAULT_LAUNCH) and int(run["started_ns"]) > 0
+    services = {"router", "recorder", "sim", "ingress", "terrain", "planner", "egress"}
+    assert {n.removeprefix("gpmppi.settings.") for n in metadata if n != "gpmppi.run"} == services
+    for name in services:
+        entry = metadata[f"gpmppi.settings.{name}"]
+        assert "error" not in entry, entry
+        resolved = json.loads(entry["settings"])
+        # what the settings class makes of it again is what was recorded: nothing lost or invented
+        assert settings_class(entry["kind"]).model_validate(resolved).model_dump(mode="json") == resolved
+    planner = json.loads(metadata["gpmppi.settings.planner"]["settings"])
+    assert planner["service"] == "planner" and planner["scenario"] == "circle" and planner["robot"] == "jackal"
+    assert attachments["launch.yaml"] == ("application/yaml", DEFAULT_LAUNCH.read_bytes())
+    assert attachments[f"model/{Path(DEFAULT_MODEL_PATH).name}"][1] == Path(DEFAULT_MODEL_PATH).read_bytes()
