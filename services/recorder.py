@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import signal
 import time
+from concurrent import futures
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import zenoh
@@ -160,7 +161,7 @@ def run(settings: Settings) -> int:
             if meta is not None:  # stopped soon after the start: the run's metadata still goes in
                 try:
                     write_metadata(meta.result(timeout=10.0))
-                except TimeoutError:
+                except futures.TimeoutError:  # not the built-in TimeoutError before Python 3.11
                     node.log.warning("run metadata not resolved within 10 s of the stop; the file has none")
     finally:
         pool.shutdown(wait=False, cancel_futures=True)

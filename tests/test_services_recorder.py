@@ -390,7 +390,8 @@ def test_a_recorded_stack_run_validates_quarantines_and_carries_its_metadata(tmp
         s.close()
 
     out = io.StringIO()
-    code, summary = run_launch(None, record=str(record), port=port, out=out, then=hostile)
+    # a cold numba cache on a loaded machine can take minutes; past that the hook runs anyway and the asserts say why
+    code, summary = run_launch(None, record=str(record), port=port, out=out, then=hostile, ready_timeout_s=420)
     assert code == 0, out.getvalue()[-4000:]
     assert summary.failed == []
     checked = _assert_every_schemad_message_validates(record)
@@ -420,3 +421,44 @@ def test_a_recorded_stack_run_validates_quarantines_and_carries_its_metadata(tmp
     assert planner["service"] == "planner" and planner["scenario"] == "circle" and planner["robot"] == "jackal"
     assert attachments["launch.yaml"] == ("application/yaml", DEFAULT_LAUNCH.read_bytes())
     assert attachments[f"model/{Path(DEFAULT_MODEL_PATH).name}"][1] == Path(DEFAULT_MODEL_PATH).read_bytes()
+
+
+def test_the_launcher_tells_the_recorder_what_ran_and_the_metadata_resolves(tmp_path: Path) -> None:
+    """The launcher's recorder gets every service's settings file and the launch file; from them the recorder
+    resolves the run metadata and attachments that the stack test checks in a real recording (fast: no stack)."""
+    import shutil
+
+    from gpmppi.gp.model_file import DEFAULT_MODEL_PATH
+    from services.launcher import DEFAULT_LAUNCH, LaunchFile, build
+    from services.recorder import Settings as RecorderSettings
+    from services.recorder_meta import resolve_run_record
+
+    launcher, _ = build(LaunchFile.load(DEFAULT_LAUNCH), str(tmp_path / "r.mcap"), None, free_port(), DEFAULT_LAUNCH)
+    try:
+        children = {c.name: c for c in launcher.children}
+        rec = RecorderSettings.load(children["recorder"].config_path)
+        assert rec.launch_file == str(DEFAULT_LAUNCH)
+        assert {n: (s.kind, s.config) for n, s in rec.service_configs.items()} == {
+            c.name: (c.kind, str(c.config_path)) for c in launcher.children
+        }
+        record = resolve_run_record(rec, 123)
+    finally:
+        shutil.rmtree(launcher.run_dir, ignore_errors=True)
+    assert record.warnings == []
+    metadata = dict(record.metadata)
+    assert metadata["gpmppi.run"]["robot"] == "jackal" and metadata["gpmppi.run"]["started_ns"] == "123"
+    assert set(metadata) == {"gpmppi.run"} | {f"gpmppi.settings.{n}" for n in children}
+    planner = json.loads(metadata["gpmppi.settings.planner"]["settings"])
+    assert planner["service"] == "planner" and planner["model_file"] is None
+    names = {name: (media, data) for name, data, media in record.attachments}
+    assert names["launch.yaml"] == ("application/yaml", DEFAULT_LAUNCH.read_bytes())
+    assert names["model/default_gp_model.npz"][1] == Path(DEFAULT_MODEL_PATH).read_bytes()
+
+
+def test_secret_settings_are_masked_in_the_metadata() -> None:
+    from services.recorder_meta import mask_secrets
+
+    settings = {"zenoh": {"password": "hunter2", "user": "robot", "tls": {"private_key": "/k.pem"}}, "list": [{}]}
+    assert mask_secrets(settings) == {
+        "zenoh": {"password": "***", "user": "robot", "tls": {"private_key": "***"}}, "list": [{}]
+    }
