@@ -381,7 +381,7 @@ def test_a_recorded_stack_run_validates_quarantines_and_carries_its_metadata(tmp
     def hostile(launcher: object, monitor: object) -> None:
         s = client(port)
         for key in targets:
-            pub = s.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            pub = matched_publisher(s, key, congestion_control=zenoh.CongestionControl.BLOCK)
             for payload in HOSTILE:
                 pub.put(payload)
                 sent.setdefault(key, []).append(payload)
