@@ -9,7 +9,10 @@ chunk is recovered by a linear scan.
 
 Rotation (for the recorder): with `max_bytes` or `max_duration_s`, the writer closes the current
 file and continues in `<stem>_001.mcap`, `<stem>_002.mcap`, ... ; `recording_files(path)` lists
-the parts of a recording in order.
+the parts of a recording in order. Metadata records are repeated at the start of every part.
+
+`McapWriter.record` is the recorder's entry: what fails its key's model goes raw to the schema-less
+quarantine channel `<key>/_rejected`, so every message on a schema'd channel meets its JSON Schema.
 """
 
 from __future__ import annotations
