@@ -222,3 +222,18 @@ def test_the_gpmppi_command_registers_inspect(tmp_path: Path) -> None:
     )
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["messages"] == 160
+
+
+def test_a_corrupt_chunk_gives_partial_results_and_says_where(tmp_path: Path) -> None:
+    path = tmp_path / "corrupt.mcap"
+    _write_run(path, chunk_size=1500, compression="none")
+    data = bytearray(path.read_bytes())
+    at = data.index(b'"x":60.0')  # inside a chunk in the middle of the file
+    data[at + 5] = ord("9")  # one flipped byte: the chunk's CRC no longer matches
+    path.write_bytes(bytes(data))
+    code, out, _ = _inspect(str(path), "--json")
+    assert code == 1
+    report = json.loads(out)
+    assert 0 < report["messages"] < 160 and report["truncated"]
+    (error,) = report["errors"]
+    assert "CRC" in error and "unreadable after byte" in error
