@@ -80,8 +80,8 @@ def run(settings: Settings) -> int:
         )
     except OSError as exc:
         failure = _write_failure(settings.path, exc.strerror or str(exc), 0)
-    # the settings of the other services are resolved off the loop (it imports their modules), so recording
-    # starts at once; the metadata is written when it is ready
+    # the run's metadata is resolved off the loop (the services' settings in a child process, since loading
+    # them imports their modules), so recording starts at once; it is written when it is ready
     pool = ThreadPoolExecutor(1, thread_name_prefix="recorder-meta")
     meta: Future[RunRecord] | None = pool.submit(resolve_run_record, settings, started_ns)
     try:

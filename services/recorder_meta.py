@@ -15,9 +15,11 @@ Attachments: the launch file as `launch.yaml` (application/yaml), and each plann
 from __future__ import annotations
 
 import json
+import os
 import re
 import socket
 import subprocess
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -79,8 +81,6 @@ def resolve_run_record(settings: Settings, started_ns: int) -> RunRecord:
 
 
 def _resolve(settings: Settings, started_ns: int, record: RunRecord) -> None:
-    from services.run import settings_class
-
     launch = str(Path(settings.launch_file).resolve()) if settings.launch_file else ""
     record.metadata.append(
         (
@@ -100,24 +100,54 @@ def _resolve(settings: Settings, started_ns: int, record: RunRecord) -> None:
             record.attachments.append((LAUNCH_ATTACHMENT, Path(launch).read_bytes(), "application/yaml"))
         except OSError as exc:
             record.warnings.append(f"launch file {launch} not attached: {exc}")
-    models: list[Path] = []
-    for name, service in settings.service_configs.items():
-        entry = {"kind": service.kind, "settings": ""}
-        try:
-            resolved = settings_class(service.kind).load(service.config)
-            entry["settings"] = json.dumps(mask_secrets(resolved.model_dump(mode="json")), sort_keys=True)
-            if service.kind == "planner":
-                models.append(_model_path(getattr(resolved, "model_file", None)))
-        except Exception as exc:  # noqa: BLE001 - one bad entry must not cost the others
-            entry["error"] = f"{type(exc).__name__}: {exc}"[:2000]
-            record.warnings.append(f"settings of {name} ({service.kind}) not recorded: {entry['error']}")
-        record.metadata.append((SETTINGS_METADATA_PREFIX + name, entry))
-    for path in dict.fromkeys(p.resolve() for p in models):  # each distinct file once
+    configs = {name: {"kind": c.kind, "config": c.config} for name, c in settings.service_configs.items()}
+    resolved = _settings_in_subprocess(configs) if configs else {"metadata": [], "models": [], "warnings": []}
+    record.metadata += [(name, dict(entry)) for name, entry in resolved["metadata"]]
+    record.warnings += resolved["warnings"]
+    for path in dict.fromkeys(Path(p).resolve() for p in resolved["models"]):  # each distinct file once
         try:
             data = path.read_bytes()
             record.attachments.append((MODEL_ATTACHMENT_PREFIX + path.name, data, "application/octet-stream"))
         except OSError as exc:
             record.warnings.append(f"GP model {path} not attached: {exc}")
+
+
+def _settings_in_subprocess(configs: dict[str, dict[str, str]]) -> dict[str, Any]:
+    """`resolve_settings` in a child process: loading a service's settings imports its module (the planner's
+    pulls in numba), which the recorder itself need not carry (memory, start-up, shutdown)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO_ROOT), os.environ.get("PYTHONPATH", "")])}
+    try:
+        out = subprocess.run(
+            [sys.executable, "-m", "services.recorder_meta"], input=json.dumps(configs), capture_output=True,
+            text=True, timeout=300, env=env, check=True,
+        )
+        return json.loads(out.stdout.strip().splitlines()[-1])
+    except (OSError, subprocess.SubprocessError, ValueError, IndexError) as exc:
+        detail = getattr(exc, "stderr", "") or ""
+        return {"metadata": [], "models": [], "warnings": [f"service settings not recorded: {exc} {detail[-500:]}"]}
+
+
+def resolve_settings(configs: dict[str, dict[str, str]]) -> dict[str, Any]:
+    """{"metadata": [(gpmppi.settings.<name>, entry)], "models": [GP model paths], "warnings": [...]} for
+    service name -> {"kind", "config"}; one bad entry does not cost the others."""
+    from services.run import settings_class
+
+    metadata: list[tuple[str, dict[str, str]]] = []
+    models: list[str] = []
+    warnings: list[str] = []
+    for name, service in configs.items():
+        kind = service["kind"]
+        entry = {"kind": kind, "settings": ""}
+        try:
+            resolved = settings_class(kind).load(service["config"])
+            entry["settings"] = json.dumps(mask_secrets(resolved.model_dump(mode="json")), sort_keys=True)
+            if kind == "planner":
+                models.append(str(_model_path(getattr(resolved, "model_file", None))))
+        except Exception as exc:  # noqa: BLE001 - one bad entry must not cost the others
+            entry["error"] = f"{type(exc).__name__}: {exc}"[:2000]
+            warnings.append(f"settings of {name} ({kind}) not recorded: {entry['error']}")
+        metadata.append((SETTINGS_METADATA_PREFIX + name, entry))
+    return {"metadata": metadata, "models": models, "warnings": warnings}
 
 
 def _model_path(model_file: str | None) -> Path:
@@ -126,3 +156,7 @@ def _model_path(model_file: str | None) -> Path:
     from gpmppi.gp.model_file import DEFAULT_MODEL_PATH
 
     return Path(DEFAULT_MODEL_PATH)
+
+
+if __name__ == "__main__":  # the child of _settings_in_subprocess: configs as JSON on stdin, one JSON line out
+    print(json.dumps(resolve_settings(json.loads(sys.stdin.read()))))
