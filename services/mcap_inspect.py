@@ -20,7 +20,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from mcap.exceptions import EndOfFile
+from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
 from mcap.records import Attachment, Channel, Footer, Header, McapRecord, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
@@ -160,8 +160,10 @@ def scan_file(path: Path, on_record: Callable[[McapRecord], None]) -> FileReport
                 record = next(records)
             except StopIteration:
                 break
-            except (EndOfFile, struct.error):
-                break  # an incomplete last record: what a kill or a writer still at work leaves
+            except (EndOfFile, struct.error, RecordLengthLimitExceeded):
+                # an incomplete last record (one longer than the file: it was cut off), what a kill or a writer
+                # still at work leaves
+                break
             except Exception as exc:  # noqa: BLE001 - a corrupt record (bad CRC, undecompressable chunk) ends the scan
                 report.error = f"unreadable after byte {stream.tell()}: {type(exc).__name__}: {exc}"[:500]
                 break

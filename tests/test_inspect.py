@@ -237,3 +237,22 @@ def test_a_corrupt_chunk_gives_partial_results_and_says_where(tmp_path: Path) ->
     assert 0 < report["messages"] < 160 and report["truncated"]
     (error,) = report["errors"]
     assert "CRC" in error and "unreadable after byte" in error
+
+
+def test_a_file_cut_inside_a_large_attachment_is_truncated_not_corrupt(tmp_path: Path) -> None:
+    """The recorder attaches the GP model (MBs) early: a kill while it is written cuts a record longer than
+    what is left of the file; that is a truncation, with the messages before it recovered."""
+    path = tmp_path / "att.mcap"
+    with McapWriter(path, chunk_size=500) as w:
+        for i in range(20):
+            w.write("gpmppi/r1/cmd", Command(header=Header(seq=i), v_ref=0.0, omega_ref=0.0), T0 + i)
+        w.flush()
+        w.add_attachment("model/m.npz", bytes(200_000), "application/octet-stream")
+        for i in range(20, 40):
+            w.write("gpmppi/r1/cmd", Command(header=Header(seq=i), v_ref=0.0, omega_ref=0.0), T0 + i)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    code, out, _ = _inspect(str(cut), "--json")
+    report = json.loads(out)
+    assert code == 0 and report["truncated"] and report["messages"] == 20 and report["errors"] == []
