@@ -93,7 +93,12 @@ class RouterUnreachable(RuntimeError):
 
 
 def build(
-    launch: LaunchFile, record: str | None, rerun: list[str] | None, port: int | None, secrets: str | None = None
+    launch: LaunchFile,
+    record: str | None,
+    rerun: list[str] | None,
+    port: int | None,
+    secrets: str | None = None,
+    launch_path: str | Path | None = None,
 ) -> tuple[Launcher, list[str]]:
     if port is not None:
         endpoint = f"tcp/127.0.0.1:{port}"
@@ -122,6 +127,7 @@ def build(
         elif mode == "connect" and len(rerun) > 1:
             config["url"] = rerun[1]
         entries.insert(0, ServiceEntry(name="viewer", required=False, config=config))
+    entries = _describe_run_to_recorders(launcher, entries, launch_path)
     for e in entries:
         config = {**common, **e.config, "service": e.name}
         if secured is not None:
@@ -130,6 +136,22 @@ def build(
     if secured is not None:
         launch.zenoh.config_file = str(secured.client_file("launcher"))  # the launcher's own Monitor session
     return launcher, names
+
+
+def _describe_run_to_recorders(
+    launcher: Launcher, entries: list[ServiceEntry], launch_path: str | Path | None
+) -> list[ServiceEntry]:
+    """Tell each recorder where every service's settings file will be (the launcher writes each to
+    run_dir/<name>.yaml) and which launch file ran, so it records their resolved settings and attaches the
+    launch file. Settings given in the launch file win."""
+    configs = {c.name: {"kind": c.kind, "config": str(c.config_path)} for c in launcher.children}
+    for e in entries:
+        configs[e.name] = {"kind": e.kind or e.name, "config": str(launcher.run_dir / f"{e.name}.yaml")}
+    run = {"service_configs": configs, "launch_file": str(Path(launch_path).resolve()) if launch_path else None}
+    return [
+        e.model_copy(update={"config": {**run, **e.config}}) if (e.kind or e.name) == "recorder" else e
+        for e in entries
+    ]
 
 
 def run_launch(
@@ -149,7 +171,7 @@ def run_launch(
     `then`, if given, runs in a thread once every service is up, instead of the `duration`; the run ends when
     it returns (it should return soon after `launcher.stop_event` is set). Its exception is raised here."""
     launch = LaunchFile.load(launch_path or DEFAULT_LAUNCH)
-    launcher, service_names = build(launch, record, rerun, port, secrets)
+    launcher, service_names = build(launch, record, rerun, port, secrets, launch_path or DEFAULT_LAUNCH)
     launcher.out = out or sys.stdout
     interrupted = threading.Event()
 

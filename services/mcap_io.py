@@ -9,25 +9,31 @@ chunk is recovered by a linear scan.
 
 Rotation (for the recorder): with `max_bytes` or `max_duration_s`, the writer closes the current
 file and continues in `<stem>_001.mcap`, `<stem>_002.mcap`, ... ; `recording_files(path)` lists
-the parts of a recording in order.
+the parts of a recording in order. Metadata records are repeated at the start of every part.
+
+`McapWriter.record` is the recorder's entry: what fails its key's model goes raw to the schema-less
+quarantine channel `<key>/_rejected`, so every message on a schema'd channel meets its JSON Schema.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from types import TracebackType
-from typing import IO
+from typing import IO, TypeVar
 
 from mcap.reader import make_reader
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
+from pydantic import ValidationError
 
 from schemas import DecodeError, Message, decode, encode, model_for_key
+from schemas.codec import MAX_PAYLOAD_BYTES
 from schemas.messages import MODELS
 
 log = logging.getLogger(__name__)
@@ -35,6 +41,15 @@ log = logging.getLogger(__name__)
 PROFILE = ""  # no ROS profile: plain JSON messages
 LIBRARY = "gpmppi"
 SCHEMA_PREFIX = "gpmppi."
+REJECTED_SUFFIX = "/_rejected"  # quarantine: payloads that break their key's model, raw and schema-less
+RAW_ENCODING = "application/octet-stream"
+
+M = TypeVar("M", bound=Message)
+
+
+def rejected_topic(key: str) -> str:
+    """The quarantine channel of a key: `<key>/_rejected`."""
+    return key + REJECTED_SUFFIX
 
 
 def schema_name(model: type[Message]) -> str:
@@ -63,6 +78,10 @@ class McapWriter:
     flush_interval_s: a chunk older than this is written out at the next write, so a slow stream also
     reaches the disk. max_bytes / max_duration_s: rotate to a new file past this size / age (None: never).
     compression: "zstd", "lz4" or "none".
+
+    A write that fails in the operating system (disk full, file-size limit) raises `OSError` once; the
+    writer is then `failed` (its message says why), what reached the file reads back (linear recovery),
+    and later writes raise `RuntimeError`.
     """
 
     def __init__(
@@ -96,11 +115,16 @@ class McapWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._sequences: dict[str, int] = {}
+        self._models: dict[str, type[Message] | None] = {}
+        self._metadata: list[tuple[str, dict[str, str]]] = []  # repeated at the start of every rotated part
         self._pending_bytes = 0
+        self._data_start = 0
         self._last_flush = 0.0
         self._opened_at = 0.0
         self.files: list[Path] = []
         self.messages_written = 0
+        self.quarantined = 0
+        self.failed: str | None = None  # why writing stopped (disk full, file-size limit), or None
         self._open()
 
     # ---- file lifecycle -------------------------------------------------------------------
@@ -109,35 +133,92 @@ class McapWriter:
         target.parent.mkdir(parents=True, exist_ok=True)
         self._stream = open(target, "wb")  # noqa: SIM115 - closed in _close_file
         self._writer = Writer(self._stream, chunk_size=self._chunk_size, compression=self._compression)
+        self.files.append(target)
+        self._guarded(lambda: self._start_part())
+
+    def _start_part(self) -> None:
+        assert self._writer is not None and self._stream is not None
         self._writer.start(profile=PROFILE, library=LIBRARY)
+        for name, data in self._metadata:
+            self._writer.add_metadata(name, data)
         self._stream.flush()
         self._schemas.clear()
         self._channels.clear()
         self._pending_bytes = 0
+        self._data_start = self._stream.tell()  # rotation by size counts the data, not the preamble
         self._last_flush = self._opened_at = time.monotonic()
-        self.files.append(target)
 
     def _close_file(self) -> None:
-        if self._writer is not None and self._stream is not None:
-            self._writer.finish()
-            self._stream.close()
+        writer, stream = self._writer, self._stream
         self._writer = None
         self._stream = None
+        if writer is not None and stream is not None:
+            try:
+                writer.finish()
+                stream.close()
+            except OSError as exc:
+                self._fail(exc, stream)
+                raise
+
+    def _fail(self, exc: OSError, stream: IO[bytes] | None) -> None:
+        """Stop writing after an operating-system error; what reached the file stays readable."""
+        self.failed = f"{exc.strerror or exc} (errno {errno.errorcode.get(exc.errno or 0, exc.errno)})"
+        self._writer = None
+        self._stream = None
+        if stream is not None:
+            try:
+                stream.close()  # flushing the buffer fails again; the descriptor is closed regardless
+            except OSError:
+                pass
+
+    def _guarded(self, action: Callable[[], None]) -> None:
+        try:
+            action()
+        except OSError as exc:
+            self._fail(exc, self._stream)
+            raise
 
     def _maybe_rotate(self) -> None:
         assert self._stream is not None
-        too_big = self._max_bytes is not None and self._stream.tell() + self._pending_bytes >= self._max_bytes
+        size = self._stream.tell() - self._data_start + self._pending_bytes
+        too_big = self._max_bytes is not None and size >= self._max_bytes
         too_old = self._max_duration_s is not None and time.monotonic() - self._opened_at >= self._max_duration_s
         if (too_big or too_old) and self.messages_written > 0:
             self._close_file()
             self._index += 1
             self._open()
 
+    def _check_open(self) -> None:
+        if self.failed is not None:
+            raise RuntimeError(f"McapWriter for {self.path} stopped after a write error: {self.failed}")
+        if self._writer is None:
+            raise RuntimeError(f"McapWriter for {self.path} is closed; open a new one to write more")
+
+    # ---- metadata and attachments -----------------------------------------------------------
+    def add_metadata(self, name: str, data: Mapping[str, str]) -> None:
+        """A metadata record (string -> string), written now and again at the start of every rotated part."""
+        self._check_open()
+        record = {str(k): str(v) for k, v in data.items()}
+        self._metadata.append((name, record))
+        assert self._writer is not None and self._stream is not None
+        writer, stream = self._writer, self._stream
+        self._guarded(lambda: (writer.add_metadata(name, record), stream.flush()))
+
+    def add_attachment(self, name: str, data: bytes, media_type: str, create_time_ns: int = 0) -> None:
+        """A file attached to the part now open (attachments are not repeated in later parts: they may be big)."""
+        self._check_open()
+        assert self._writer is not None and self._stream is not None
+        writer, stream = self._writer, self._stream
+        now = time.time_ns()
+        self._guarded(
+            lambda: (writer.add_attachment(create_time_ns, now, name, media_type, bytes(data)), stream.flush())
+        )
+
     # ---- writing --------------------------------------------------------------------------
-    def _channel(self, key: str, model: type[Message] | None) -> int:
+    def _channel(self, topic: str, model: type[Message] | None, encoding: str) -> int:
         assert self._writer is not None
-        if key in self._channels:
-            return self._channels[key]
+        if topic in self._channels:
+            return self._channels[topic]
         schema_id = 0
         if model is not None:
             name = schema_name(model)
@@ -145,12 +226,24 @@ class McapWriter:
                 schema = json.dumps(model.model_json_schema()).encode()
                 self._schemas[name] = self._writer.register_schema(name=name, encoding="jsonschema", data=schema)
             schema_id = self._schemas[name]
-        self._channels[key] = self._writer.register_channel(topic=key, message_encoding="json", schema_id=schema_id)
-        return self._channels[key]
+        self._channels[topic] = self._writer.register_channel(
+            topic=topic, message_encoding=encoding, schema_id=schema_id
+        )
+        return self._channels[topic]
+
+    def _model(self, key: str) -> type[Message] | None:
+        if key not in self._models:
+            try:
+                self._models[key] = None if key.endswith(REJECTED_SUFFIX) else model_for_key(key)
+            except KeyError:
+                self._models[key] = None
+        return self._models[key]
 
     def write(self, key: str, msg: Message, log_time_ns: int | None = None) -> None:
         """Record `msg` on topic `key`; log time defaults to now (publish time is the header stamp)."""
-        self.write_bytes(key, encode(msg), type(msg), log_time_ns, publish_time_ns=msg.header.stamp_ns)
+        self.write_bytes(
+            key, encode(msg), type(msg), log_time_ns, publish_time_ns=msg.header.stamp_ns, sequence=msg.header.seq
+        )
 
     def write_bytes(
         self,
@@ -159,27 +252,60 @@ class McapWriter:
         model: type[Message] | None = None,
         log_time_ns: int | None = None,
         publish_time_ns: int | None = None,
+        sequence: int | None = None,
     ) -> None:
-        """Record an already-encoded JSON payload as received (the recorder does not re-encode)."""
-        if self._writer is None:
-            raise RuntimeError(f"McapWriter for {self.path} is closed; open a new one to write more")
-        self._maybe_rotate()
-        if model is None:
-            try:
-                model = model_for_key(key)
-            except KeyError:
-                model = None
-        channel_id = self._channel(key, model)
-        now_ns = time.time_ns()
-        log_time = now_ns if log_time_ns is None else int(log_time_ns)
-        sequence = self._sequences.get(key, 0)
-        self._sequences[key] = sequence + 1
-        self._writer.add_message(
-            channel_id=channel_id,
-            log_time=log_time,
-            data=payload,
-            publish_time=log_time if publish_time_ns is None else int(publish_time_ns),
-            sequence=sequence,
+        """Record an already-encoded, already-valid JSON payload on its key's channel (not re-encoded, not
+        checked: use `record` for input from the network)."""
+        self._write(key, model or self._model(key), "json", payload, log_time_ns, publish_time_ns, sequence)
+
+    def record(self, key: str, payload: bytes, log_time_ns: int, max_payload_bytes: int = MAX_PAYLOAD_BYTES) -> bool:
+        """Record a payload as received on `key`, keeping every channel true to what it declares.
+
+        A key with a registered model: a payload that validates (strictly, so it also meets the channel's
+        JSON Schema) goes on `key` with publish time = header stamp and sequence = header seq; anything else
+        goes, raw, to the schema-less `<key>/_rejected` channel. A key with no model: JSON goes on `key`
+        (schema-less JSON); anything else to `<key>/_rejected`. Returns False when it was quarantined."""
+        model = self._model(key)
+        if key.endswith(REJECTED_SUFFIX):
+            self._write(key, None, RAW_ENCODING, payload, log_time_ns, None, None)
+            return False
+        if model is not None:
+            msg = _strict_decode(model, payload, max_payload_bytes)
+            if msg is not None:
+                self._write(key, model, "json", payload, log_time_ns, msg.header.stamp_ns, msg.header.seq)
+                return True
+        elif len(payload) <= max_payload_bytes and _is_json(payload):
+            self._write(key, None, "json", payload, log_time_ns, None, None)
+            return True
+        self._write(rejected_topic(key), None, RAW_ENCODING, payload, log_time_ns, None, None)
+        self.quarantined += 1
+        return False
+
+    def _write(
+        self,
+        topic: str,
+        model: type[Message] | None,
+        encoding: str,
+        payload: bytes,
+        log_time_ns: int | None,
+        publish_time_ns: int | None,
+        sequence: int | None,
+    ) -> None:
+        self._check_open()
+        self._guarded(self._maybe_rotate)
+        assert self._writer is not None
+        writer = self._writer
+        channel_id = self._channel(topic, model, encoding)
+        log_time = time.time_ns() if log_time_ns is None else int(log_time_ns)
+        if sequence is None:  # no header: a count of this channel's messages
+            sequence = self._sequences.get(topic, 0)
+            self._sequences[topic] = sequence + 1
+        publish_time = log_time if publish_time_ns is None else int(publish_time_ns)
+        self._guarded(
+            lambda: writer.add_message(
+                channel_id=channel_id, log_time=log_time, data=payload, publish_time=publish_time,
+                sequence=int(sequence) & 0xFFFFFFFF,  # MCAP sequence is uint32
+            )
         )
         self.messages_written += 1
         self._pending_bytes += len(payload)
@@ -190,7 +316,7 @@ class McapWriter:
         """Write out the chunk in progress and hand it to the operating system."""
         if self._writer is None:
             return
-        self._writer.flush()
+        self._guarded(self._writer.flush)
         self._pending_bytes = 0
         self._last_flush = time.monotonic()
 
@@ -200,7 +326,7 @@ class McapWriter:
             self.flush()
 
     def close(self) -> None:
-        """Finish the file (summary + index) and close it; safe to call twice."""
+        """Finish the file (summary + index) and close it; safe to call twice (and after a failure)."""
         self._close_file()
 
     def __enter__(self) -> McapWriter:
@@ -210,6 +336,30 @@ class McapWriter:
         self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
     ) -> None:
         self.close()
+
+
+def _strict_decode(model: type[M], payload: bytes, max_bytes: int) -> M | None:
+    """The message, or None when the payload is not a valid `model`. Strict: a number sent as a string, which
+    lenient parsing would coerce, is invalid too, since the stored bytes must meet the JSON Schema."""
+    if len(payload) > max_bytes:
+        return None
+    try:
+        return model.model_validate_json(payload, strict=True)
+    except (ValidationError, RecursionError, ValueError):
+        return None
+
+
+def _no_constant(name: str) -> object:
+    raise ValueError(f"{name} is not JSON")
+
+
+def _is_json(payload: bytes) -> bool:
+    """Standard JSON (NaN / Infinity, which Python's parser accepts, are not)."""
+    try:
+        json.loads(payload, parse_constant=_no_constant)
+    except (ValueError, RecursionError, UnicodeDecodeError):
+        return False
+    return True
 
 
 # ---- reading ----------------------------------------------------------------------------------
@@ -252,9 +402,10 @@ def _iter_raw(path: Path, keys: set[str] | None) -> Iterator[tuple[str, str | No
 def read_messages(path: str | Path, keys: Iterable[str] | None = None) -> Iterator[tuple[str, int, Message]]:
     """(key, log_time_ns, decoded message) for every message in the recording at `path`.
 
-    `keys` limits the topics (exact keys). Messages on keys with no registered model, or that do not
-    decode, are skipped with a warning (a recording keeps what was on the wire, valid or not).
-    Rotated parts (`<stem>_001.mcap`, ...) are read after `path`.
+    `keys` limits the topics (exact keys). Quarantine channels (`<key>/_rejected`) are not messages and are
+    skipped; messages on keys with no registered model, or that do not decode (a foreign schema, CDR, ...),
+    are skipped with one warning per topic that says how many. Rotated parts (`<stem>_001.mcap`, ...) are
+    read after `path`.
     """
     path = Path(path)
     if not path.is_file():
@@ -262,10 +413,16 @@ def read_messages(path: str | Path, keys: Iterable[str] | None = None) -> Iterat
     wanted = set(keys) if keys is not None else None
     by_name = {schema_name(m): m for m in MODELS.values()}
     for part in recording_files(path) or [path]:
+        skipped: dict[str, tuple[int, str]] = {}
         for topic, name, record in _iter_raw(part, wanted):
+            if topic.endswith(REJECTED_SUFFIX):
+                continue
             model = by_name.get(name) if name else None
             try:
                 model = model or model_for_key(topic)
                 yield topic, record.log_time, decode(model, record.data)
             except (KeyError, DecodeError) as exc:
-                log.warning("%s: skipped a message on %s: %s", part, topic, exc)
+                count, first = skipped.get(topic, (0, str(exc)))
+                skipped[topic] = (count + 1, first)
+        for topic, (count, first) in skipped.items():
+            log.warning("%s: skipped %d message(s) on %s that are not gpmppi messages: %s", part, count, topic, first)

@@ -1,19 +1,38 @@
-"""recorder: everything under `gpmppi/**` to MCAP, as received (JSON + JSON Schema; Foxglove opens it).
+"""recorder: everything under `gpmppi/**` to MCAP (JSON + JSON Schema; Foxglove opens it).
 
-The subscription uses a FIFO channel, which never drops: when it is full Zenoh waits for us instead.
-Chunks are flushed as they fill (and at least every `flush_interval_s`), so a crash loses at most the last
-chunk; files rotate by size or duration.
+- Every channel holds what it declares: a payload that fails its key's model is written raw to the
+  schema-less `<key>/_rejected` channel (counted as `quarantined` in the heartbeat), never onto the key's own
+  schema'd channel. Keys with no registered model are recorded as schema-less JSON on their own key.
+- Record fields: log time = receive time, publish time = header stamp, sequence = header seq.
+- Run metadata (`gpmppi.run`), each service's resolved settings (`gpmppi.settings.<name>`) and attachments
+  (`launch.yaml`, `model/<file>`): see `services.recorder_meta`.
+- The subscription is a FIFO channel, which never drops: when it is full Zenoh waits for us instead.
+  Chunks are flushed at least every `flush_interval_s`, so a SIGKILL loses at most about that long;
+  SIGINT / SIGTERM finish the file (summary and index). Files rotate by size or duration.
+- A write error (disk full, file-size limit) is logged once; the file so far stays readable, and the
+  recorder keeps running (draining its input, so no publisher ever waits on it) with status "failing".
 """
 
 from __future__ import annotations
 
+import signal
 import time
+from concurrent import futures
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import zenoh
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field
 
 from services.mcap_io import McapWriter
 from services.node import Node, NodeSettings
+from services.recorder_meta import RunRecord, resolve_run_record
+
+
+class ServiceConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    kind: str = Field(description="service kind (sim, ingress, planner, ...)")
+    config: str = Field(description="path of the YAML settings file the service was started with")
 
 
 class Settings(NodeSettings):
@@ -22,21 +41,49 @@ class Settings(NodeSettings):
     key_expr: str = Field("gpmppi/**", description="what to record")
     queue_capacity: int = Field(100_000, gt=0, description="FIFO capacity (full: the sender waits, nothing drops)")
     chunk_size: int = Field(256 * 1024, gt=0, description="MCAP chunk size [bytes]")
-    flush_interval_s: float = Field(1.0, gt=0, description="flush a partial chunk after this long [s]")
+    flush_interval_s: float = Field(
+        0.5, gt=0, description="flush a partial chunk after this long [s]: the most a SIGKILL loses"
+    )
     max_bytes: int | None = Field(None, description="rotate past this file size [bytes] (None: never)")
     max_duration_s: float | None = Field(None, description="rotate past this file age [s] (None: never)")
     compression: str = Field("zstd", description="chunk compression: zstd, lz4 or none")
+    launch_file: str | None = Field(None, description="the launch file of this run, attached as launch.yaml")
+    service_configs: dict[str, ServiceConfig] = Field(
+        default_factory=dict,
+        description="service name -> kind and settings file, recorded as each service's resolved settings "
+        "(the launcher fills it in)",
+    )
+
+
+def _write_failure(path: str, reason: str, written: int) -> str:
+    return (
+        f"cannot write {path}: {reason}: the disk is full or a file-size limit was reached; recording stopped "
+        f"(the {written} messages written so far read back: gpmppi inspect {path})"
+    )
 
 
 def run(settings: Settings) -> int:
-    writer = McapWriter(
-        settings.path,
-        chunk_size=settings.chunk_size,
-        flush_interval_s=settings.flush_interval_s,
-        max_bytes=settings.max_bytes,
-        max_duration_s=settings.max_duration_s,
-        compression=settings.compression,
-    )
+    # past a file-size limit (RLIMIT_FSIZE) the kernel's default is to kill the process with SIGXFSZ; ignored,
+    # the write fails with EFBIG instead and is handled like a full disk
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    started_ns = time.time_ns()
+    failure = ""
+    writer: McapWriter | None = None
+    try:
+        writer = McapWriter(
+            settings.path,
+            chunk_size=settings.chunk_size,
+            flush_interval_s=settings.flush_interval_s,
+            max_bytes=settings.max_bytes,
+            max_duration_s=settings.max_duration_s,
+            compression=settings.compression,
+        )
+    except OSError as exc:
+        failure = _write_failure(settings.path, exc.strerror or str(exc), 0)
+    # the run's metadata is resolved off the loop (the services' settings in a child process, since loading
+    # them imports their modules), so recording starts at once; it is written when it is ready
+    pool = ThreadPoolExecutor(1, thread_name_prefix="recorder-meta")
+    meta: Future[RunRecord] | None = pool.submit(resolve_run_record, settings, started_ns)
     try:
         with Node(settings) as node:
             assert node.session is not None
@@ -45,22 +92,84 @@ def run(settings: Settings) -> int:
             )
             node.log.info("recording %s to %s", settings.key_expr, settings.path)
 
+            def failed(exc: OSError) -> None:
+                nonlocal failure
+                assert writer is not None
+                failure = _write_failure(settings.path, writer.failed or str(exc), writer.messages_written)
+                node.error(failure)  # the one error line
+                with node.counters.lock:
+                    node.counters.status = "failing"
+                    node.counters.flags["writing"] = False
+
+            if failure:
+                node.error(failure)
+                with node.counters.lock:
+                    node.counters.status = "failing"
+            node.counters.flags["writing"] = not failure
+
             def drain() -> int:
-                n = 0
+                n = quarantined = unwritten = 0
                 while (sample := sub.try_recv()) is not None:
                     if sample.kind != zenoh.SampleKind.PUT:
                         continue
-                    writer.write_bytes(str(sample.key_expr), sample.payload.to_bytes(), log_time_ns=time.time_ns())
                     n += 1
-                node.counters.received += n
+                    if failure or writer is None:
+                        unwritten += 1  # still taken off the queue: a failing recorder never blocks a sender
+                        continue
+                    payload = sample.payload.to_bytes()
+                    try:
+                        ok = writer.record(str(sample.key_expr), payload, time.time_ns(), settings.max_payload_bytes)
+                    except OSError as exc:
+                        failed(exc)
+                        unwritten += 1
+                        continue
+                    quarantined += not ok and not str(sample.key_expr).endswith("/_rejected")
+                with node.counters.lock:
+                    node.counters.received += n
+                if quarantined:
+                    node.counters.count("quarantined", quarantined)
+                if unwritten:
+                    node.counters.count("unwritten", unwritten)
                 return n
+
+            def write_metadata(record: RunRecord) -> None:
+                for warning in record.warnings:
+                    node.log.warning(warning)
+                if writer is None or failure:
+                    return
+                try:
+                    for name, data in record.metadata:
+                        writer.add_metadata(name, data)
+                    for name, data, media_type in record.attachments:
+                        writer.add_attachment(name, data, media_type)
+                except OSError as exc:
+                    failed(exc)
 
             while node.ok():
                 if drain():
                     node.cycle()
-                writer.flush_if_due()  # a quiet stream still reaches the disk within flush_interval_s
+                if meta is not None and meta.done():
+                    write_metadata(meta.result())
+                    meta = None
+                if writer is not None and not failure:
+                    try:
+                        writer.flush_if_due()  # a quiet stream still reaches the disk within flush_interval_s
+                    except OSError as exc:
+                        failed(exc)
                 node.spin_once()
             drain()  # what arrived before the stop
+            if meta is not None:  # stopped soon after the start: the run's metadata still goes in
+                try:
+                    write_metadata(meta.result(timeout=10.0))
+                except futures.TimeoutError:  # not the built-in TimeoutError before Python 3.11
+                    node.log.warning("run metadata not resolved within 10 s of the stop; the file has none")
     finally:
-        writer.close()
+        pool.shutdown(wait=False, cancel_futures=True)
+        if writer is not None and not failure:
+            writer.close()
+        elif writer is not None:
+            try:
+                writer.close()
+            except OSError:
+                pass  # already reported; what reached the file reads back
     return 0

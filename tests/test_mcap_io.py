@@ -109,3 +109,122 @@ def test_writer_rejects_bad_options_and_closed_use(tmp_path: Path) -> None:
         writer.write("gpmppi/jackal/cmd", Command(v_ref=0.0, omega_ref=0.0))
     with pytest.raises(FileNotFoundError):
         list(read_messages(tmp_path / "missing.mcap"))
+
+
+# ---- the recorder's path: validation, quarantine, record fields, metadata, write errors ----------------
+HOSTILE: list[bytes] = [
+    b"",
+    b"{",
+    b"null",
+    b'{"v_ref": NaN, "omega_ref": 0}',
+    b"[" * 5000 + b"]" * 5000,
+    b"[" + b"1.0," * 1_300_000 + b"1.0]",  # ~5 MB: over the payload limit
+    b'{"v_ref": "1.0", "omega_ref": 0}',  # a number as a string: lenient parsing takes it, the JSON Schema does not
+    b'{"header": {"seq": "3"}, "v_ref": 1, "omega_ref": 0}',
+    b"\xff\xfe not utf-8",
+]
+
+
+def _schema_validators(path: Path) -> dict[str, object]:
+    import jsonschema
+
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    return {
+        c.topic: jsonschema.Draft202012Validator(json.loads(summary.schemas[c.schema_id].data))
+        for c in summary.channels.values()
+        if c.schema_id
+    }
+
+
+def test_record_quarantines_what_breaks_the_schema(tmp_path: Path) -> None:
+    path = tmp_path / "q.mcap"
+    key = "gpmppi/r1/cmd"
+    with McapWriter(path, chunk_size=50_000) as writer:
+        for i in range(20):
+            good = Command(header=Header(stamp_ns=5_000 + i, seq=100 + i), v_ref=0.1 * i, omega_ref=0.0)
+            assert writer.record(key, encode(good), log_time_ns=1_000 + i)
+            for payload in HOSTILE:
+                assert not writer.record(key, payload, log_time_ns=1_000 + i)
+        assert writer.record("gpmppi/r1/custom/thing", b'{"a": [1, 2]}', log_time_ns=2_000)  # no model: JSON
+        assert not writer.record("gpmppi/r1/custom/thing", b"{nope", log_time_ns=2_001)
+        assert not writer.record("gpmppi/r1/custom/thing", b"NaN", log_time_ns=2_002)
+        assert writer.quarantined == 20 * len(HOSTILE) + 2
+    validators = _schema_validators(path)
+    assert set(validators) == {key}
+    by_topic: dict[str, list] = {}
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages(log_time_order=False):
+            by_topic.setdefault(channel.topic, []).append((schema, channel, message))
+    # the schema'd channel: only valid messages, each validating; publish time = header stamp, sequence = seq
+    good = by_topic[key]
+    assert len(good) == 20
+    for i, (_, _, message) in enumerate(good):
+        validators[key].validate(json.loads(message.data))  # type: ignore[attr-defined]
+        assert (message.log_time, message.publish_time, message.sequence) == (1_000 + i, 5_000 + i, 100 + i)
+    # the quarantine channel: schema-less, raw bytes exactly as received, in order
+    rejected = by_topic[key + "/_rejected"]
+    assert all(s is None and c.schema_id == 0 and c.message_encoding == "application/octet-stream"
+               for s, c, _ in rejected)
+    assert [m.data for _, _, m in rejected] == HOSTILE * 20
+    # a key with no model: schema-less JSON on its own key; what is not JSON is quarantined
+    (custom,) = by_topic["gpmppi/r1/custom/thing"]
+    assert custom[1].message_encoding == "json" and custom[1].schema_id == 0 and custom[2].data == b'{"a": [1, 2]}'
+    assert [m.data for _, _, m in by_topic["gpmppi/r1/custom/thing/_rejected"]] == [b"{nope", b"NaN"]
+    # our reader yields the valid messages only, without complaint about the quarantine
+    assert [m.header.seq for _, _, m in read_messages(path)] == list(range(100, 120))
+
+
+def test_metadata_and_attachments_round_trip_and_rotated_parts_carry_the_metadata(tmp_path: Path) -> None:
+    path = tmp_path / "meta.mcap"
+    run = {"version": "0.1.0", "commit": "abc", "host": "h", "robot": "r1", "started_ns": "12", "launch_file": ""}
+    model = bytes(range(256)) * 400  # 100 kB: bigger than a part, so rotation must not count it
+    with McapWriter(path, chunk_size=1000, max_bytes=4000) as writer:
+        writer.add_metadata("gpmppi.run", run)
+        writer.add_attachment("model/m.npz", model, "application/octet-stream")
+        for i in range(200):
+            writer.write("gpmppi/r1/cmd", Command(header=Header(seq=i), v_ref=0.5, omega_ref=0.0), log_time_ns=i)
+    parts = recording_files(path)
+    assert 3 <= len(parts) < 40
+    for index, part in enumerate(parts):
+        with open(part, "rb") as f:
+            reader = make_reader(f)
+            assert [(m.name, m.metadata) for m in reader.iter_metadata()] == [("gpmppi.run", run)]
+            attachments = [(a.name, a.media_type, a.data) for a in reader.iter_attachments()]
+        assert attachments == ([("model/m.npz", "application/octet-stream", model)] if index == 0 else [])
+    assert [m.header.seq for _, _, m in read_messages(path)] == list(range(200))
+
+
+def test_a_write_error_stops_the_writer_and_leaves_a_readable_file(tmp_path: Path) -> None:
+    """A file-size limit (what a full disk does too): one OSError, then `failed`; the file reads back."""
+    path = tmp_path / "full.mcap"
+    code = f"""
+import resource, signal, sys
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (40_000, 40_000))
+from schemas import Command, Header, encode
+from services.mcap_io import McapWriter
+w = McapWriter({str(path)!r}, chunk_size=2000, compression="none")
+n = 0
+try:
+    for i in range(100_000):
+        w.record("gpmppi/r1/cmd", encode(Command(header=Header(seq=i), v_ref=1.0, omega_ref=0.0)), i + 1)
+        n += 1
+except OSError as exc:
+    print("ERR", exc.errno, w.failed, n)
+try:
+    w.record("gpmppi/r1/cmd", b"{{}}", 1)
+except RuntimeError as exc:
+    print("AFTER", exc)
+w.close()
+"""
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, timeout=60, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    err = next(line for line in out.stdout.splitlines() if line.startswith("ERR"))
+    assert "File too large" in err and "EFBIG" in err
+    assert "stopped after a write error" in out.stdout
+    assert path.stat().st_size <= 40_000
+    seqs = [m.header.seq for _, _, m in read_messages(path)]
+    accepted = int(err.split()[-1])
+    assert seqs == list(range(len(seqs))) and accepted - 40 <= len(seqs) <= accepted
