@@ -236,7 +236,7 @@ def run(settings: Settings) -> int:
                     # for them is done now, not on the next state's path to its command
                     planner.prepare(new_weights)
                     weights = new_weights
-                    terrain.refreshed(now)
+                    terrain.refreshed(now, new_weights)
                 except ValueError as exc:
                     node.reject(f"terrain weights: {exc}; kept the previous weights")
             if terrain.check(now) and weights is not None:
@@ -311,8 +311,10 @@ def run(settings: Settings) -> int:
 
 class TerrainWatch:
     """Whether the terrain weights are current: stale after `weights_stale_after_s` without a valid message, the
-    prior after `weights_fallback_after_s`. Before the first message the planner runs on the prior, which is not
-    stale (the terrain service is optional and starts after the planner)."""
+    prior after `weights_fallback_after_s`. Weights equal to the prior are never stale: falling back would change
+    nothing. That covers the planner before the first message (the terrain service is optional and starts after
+    it) and the terrain service's own start, which publishes the prior and then goes quiet while it builds its
+    solver."""
 
     def __init__(self, node: Node, settings: Settings) -> None:
         self.node = node
@@ -322,15 +324,16 @@ class TerrainWatch:
         self.on_prior = True
         self._flags()
 
-    def refreshed(self, now: float) -> None:
+    def refreshed(self, now: float, weights: np.ndarray) -> None:
         if self.stale:
             self.node.log.info("terrain weights arrive again after %.1f s", now - (self.last or now))
-        self.last, self.stale, self.on_prior = now, False, False
+        self.last, self.stale = now, False
+        self.on_prior = bool(np.allclose(weights, 1.0 / weights.size, rtol=0.0, atol=1e-9))
         self._flags()
 
     def check(self, now: float) -> bool:
         """Update the state; True once the weights are to be replaced by the prior."""
-        if self.last is None:
+        if self.last is None or self.on_prior:
             return False
         silent = now - self.last
         if not self.stale and silent > self.s.weights_stale_after_s:

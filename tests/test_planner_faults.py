@@ -94,10 +94,12 @@ def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp
             def counted(name: str, n: int = 1) -> bool:
                 return wait_for(lambda: any(h.counts.get(name, 0) >= n for h in hb()), 3.0)
 
-            # it plans from good states
-            drive(1.0)
+            # it plans from good states; the terrain service's first message is the prior (uniform)
+            uniform = [1.0 / len(terrains)] * len(terrains)
+            drive(1.0, weights=uniform)
             assert wait_for(lambda: bool(cmd_stamps()), 5.0), planner.log()
             # stale, future-stamped and non-finite states: refused, named, and no command from them
+            t_prior = time.monotonic()
             stale = time.time_ns() - 2 * NS
             state_pub.put(encode(_state(stamp_ns=stale)))
             assert counted("state_stale"), hb()[-1]
@@ -116,6 +118,9 @@ def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp
             assert all(math.isfinite(c.v_ref) and math.isfinite(c.omega_ref)
                        for c in (decode(Command, p) for _, p, _ in col.on("gpmppi/r1/cmd")))
             assert planner.alive()
+            # silent after the prior (the terrain service building its solver): nothing is stale, nothing changes
+            drive(max(0.0, 1.0 - (time.monotonic() - t_prior)))
+            assert all(not p.weights_stale for _, p in plans()) and not any(h.flags["weights_stale"] for h in hb())
 
             # terrain weights: used while fresh; silent: kept and flagged stale; later the prior
             w = [0.0] * len(terrains)
@@ -130,7 +135,6 @@ def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp
             assert kept and all(p.terrain_weights == pytest.approx(w) and p.weights_stale for p in kept), [
                 (round(t - t_silent, 2), p.weights_stale, p.terrain_weights) for t, p in plans() if t > t_silent]
             prior = [p for t, p in plans() if t > t_silent + 1.6 + 0.3]
-            uniform = [1.0 / len(terrains)] * len(terrains)
             assert prior and all(p.terrain_weights == pytest.approx(uniform) and p.weights_stale for p in prior)
             during: list[Heartbeat] = [h for h in hb() if h.flags.get("weights_stale")]
             assert during and all(h.status == "degraded" for h in during)
