@@ -76,15 +76,16 @@ class Settings(NodeSettings):
     )
     v_limits: tuple[float, float] = Field((-0.5, 2.0), description="forward velocity limits [m/s] (must include 0)")
     omega_limit: float = Field(3.1416, gt=0, description="|yaw rate| limit [rad/s]")
-    # the defaults are the Jackal base's own (ROS 2 diff_drive_controller: 2.0 and 4.0 m/s^2 on v); on omega they
-    # are an envelope the planner's commands stay inside (docs/safety.md has the measurement)
+    # the defaults are a safety envelope, not a shaping filter (slowing down twice as fast as speeding up): the
+    # Jackal base's own 2.0 / 4.0 m/s^2 on v cost tracking in simulation (docs/safety.md), so deploy/robot.yaml sets
+    # them where the base applies them anyway
     accel_limit: float = Field(
-        2.0, gt=0, description="|v| increasing: |dv/dt| limit [m/s^2] (planner commands; zeros are not ramped)"
+        10.0, gt=0, description="|v| increasing: |dv/dt| limit [m/s^2] (planner commands; zeros are not ramped)"
     )
-    decel_limit: float = Field(4.0, gt=0, description="|v| decreasing or changing sign: |dv/dt| limit [m/s^2]")
+    decel_limit: float = Field(20.0, gt=0, description="|v| decreasing or changing sign: |dv/dt| limit [m/s^2]")
     yaw_accel_limit: float = Field(40.0, gt=0, description="|omega| increasing: |domega/dt| limit [rad/s^2]")
     yaw_decel_limit: float = Field(
-        40.0, gt=0, description="|omega| decreasing or changing sign: |domega/dt| limit [rad/s^2]"
+        80.0, gt=0, description="|omega| decreasing or changing sign: |domega/dt| limit [rad/s^2]"
     )
     jerk_limit: float | None = Field(None, gt=0, description="|d2v/dt2| limit [m/s^3] (None: off)")
     yaw_jerk_limit: float | None = Field(None, gt=0, description="|d2omega/dt2| limit [rad/s^3] (None: off)")

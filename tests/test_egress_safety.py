@@ -104,9 +104,9 @@ def _ramp(s: Safety, v: float, omega: float, start: float, stop: float) -> list[
     return out
 
 
-def test_defaults_are_the_jackal_base_limits_on_v() -> None:
+def test_default_limits_let_slowing_down_be_faster_than_speeding_up() -> None:
     s = Settings()
-    assert (s.accel_limit, s.decel_limit) == (2.0, 4.0)
+    assert s.decel_limit > s.accel_limit and s.yaw_decel_limit > s.yaw_accel_limit
     assert s.jerk_limit is None and s.yaw_jerk_limit is None
 
 
