@@ -11,9 +11,19 @@ from typing import get_args
 
 import numpy as np
 import pytest
-from zenoh_helpers import Collector, ServiceProcess, client, free_port, heartbeats, matched_publisher, router, settings
+from zenoh_helpers import (
+    Collector,
+    ServiceProcess,
+    client,
+    free_port,
+    heartbeats,
+    matched_publisher,
+    router,
+    settings,
+    wait_for,
+)
 
-from schemas import BaseCommand, Command, EStop, Header, Heartbeat, decode, encode
+from schemas import BaseCommand, Command, EStop, Header, Heartbeat, State, decode, encode
 from services.egress import ZERO_REASONS, Safety, Settings
 
 NS = 1_000_000_000
@@ -302,3 +312,31 @@ def wait_for_hb(col: Collector, predicate: Callable[[Heartbeat], bool], timeout:
             return True
         time.sleep(0.05)
     return False
+
+
+def test_sim_base_stops_by_itself_250_ms_after_its_last_command(tmp_path: Path) -> None:
+    """The sim models the base's own timeout (Jackal ROS 1 cmd_vel_timeout 0.25 s): egress dead, robot stops."""
+    port = free_port()
+    with router(port):
+        observer = client(port)
+        col = Collector(observer)
+        sim = ServiceProcess("sim", settings("sim", port, publish_hz=50.0, noise=False), tmp_path)
+        try:
+            assert wait_for(lambda: bool(col.on("gpmppi/r1/odom/raw")), 20.0), sim.log()
+            pub = matched_publisher(observer, "gpmppi/r1/base/cmd")
+            for _ in range(40):  # 2 s at 20 Hz, as egress sends
+                pub.put(encode(BaseCommand(v=1.0, omega=0.0, header=Header(stamp_ns=time.time_ns()))))
+                time.sleep(0.05)
+            t_last = time.monotonic()
+            time.sleep(1.0)
+        finally:
+            assert sim.stop() == 0
+            observer.close()
+    odom = [(t, decode(State, p)) for t, p, _ in col.on("gpmppi/r1/odom/raw")]
+    v_last = max(s.v for t, s in odom if t <= t_last)
+    assert v_last > 0.5, "the sim did not follow the commands"
+    slowing = next(t for t, s in odom if t > t_last and s.v < v_last - 0.05)
+    print(f"last base command -> the sim slowing down: {(slowing - t_last) * 1000:.0f} ms")
+    # 0.25 s, plus the plant's response to zero and one 20 ms odom period, plus load; the old 0.5 s fails this
+    assert slowing - t_last < 0.25 + 0.17
+    assert odom[-1][1].v < 0.2
