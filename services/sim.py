@@ -25,7 +25,10 @@ class Settings(NodeSettings):
     publish_hz: float = Field(10.0, gt=0, description="odom/raw publication rate [Hz]")
     seed: int = Field(0, description="sensor-noise seed")
     noise: bool = Field(True, description="add sensor noise to the published state")
-    command_timeout_s: float = Field(0.5, gt=0, description="apply zero when base/cmd is older than this [s]")
+    command_timeout_s: float = Field(
+        0.25, gt=0, description="apply zero when base/cmd is older than this [s] (the base's own safety; the "
+        "Jackal's ROS 1 cmd_vel_timeout; egress repeats its output at rate_hz, well inside it)"
+    )
     frame_id: str = Field("odom", description="frame of the published pose")
 
 

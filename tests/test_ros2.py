@@ -24,7 +24,7 @@ from zenoh_helpers import (
     wait_for,
 )
 
-from schemas import Command, State, decode, encode
+from schemas import Command, Header, State, decode, encode
 
 TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
 # rmw_zenoh (jazzy) key of /jackal/cmd_vel, written out by hand: domain/namespace/topic/DDS type/RIHS01 hash
@@ -40,11 +40,11 @@ def _attachment(data: bytes) -> tuple[int, int, bytes]:
     return int(keys_values[1]), int(keys_values[3]), bytes(keys_values[5])
 
 
-def _drive(port: int, v: float, omega: float, n: int = 10) -> None:
+def _drive(port: int, v: float, omega: float, n: int = 20) -> None:
     s = client(port)
     pub = matched_publisher(s, "gpmppi/r1/cmd")
     for _ in range(n):
-        pub.put(encode(Command(v_ref=v, omega_ref=omega)))
+        pub.put(encode(Command(v_ref=v, omega_ref=omega, header=Header(stamp_ns=time.time_ns()))))
         time.sleep(0.05)
     s.close()
 

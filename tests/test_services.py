@@ -188,7 +188,7 @@ def test_egress_watchdog_limits_and_estop(tmp_path: Path) -> None:
             estop_pub = matched_publisher(observer, "gpmppi/r1/estop")
             t_cmd = time.monotonic()
             for _ in range(20):  # 1 s of commands above the velocity limit
-                cmd_pub.put(encode(Command(v_ref=5.0, omega_ref=0.0)))
+                cmd_pub.put(encode(Command(v_ref=5.0, omega_ref=0.0, header=Header(stamp_ns=time.time_ns()))))
                 time.sleep(0.05)
             t_stop = time.monotonic()
             time.sleep(1.0)
@@ -205,12 +205,12 @@ def test_egress_watchdog_limits_and_estop(tmp_path: Path) -> None:
             time.sleep(0.2)
             t_e = time.monotonic()
             for _ in range(10):
-                cmd_pub.put(encode(Command(v_ref=0.5, omega_ref=0.0)))
+                cmd_pub.put(encode(Command(v_ref=0.5, omega_ref=0.0, header=Header(stamp_ns=time.time_ns()))))
                 time.sleep(0.05)
             estop_pub.put(encode(EStop(engaged=False)))
             time.sleep(0.1)
             for _ in range(10):
-                cmd_pub.put(encode(Command(v_ref=0.5, omega_ref=0.0)))
+                cmd_pub.put(encode(Command(v_ref=0.5, omega_ref=0.0, header=Header(stamp_ns=time.time_ns()))))
                 time.sleep(0.05)
             base = [(t, decode(BaseCommand, p)) for t, p, _ in col.on("gpmppi/r1/base/cmd")]
             engaged = [b for t, b in base if t_e < t < t_e + 0.45]
