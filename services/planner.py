@@ -143,6 +143,12 @@ def load_model(model_file: str | None) -> GPModel:
     return load_default_model() if model_file is None else GPModel.load(model_file)
 
 
+def plan_is_finite(result: PlanResult) -> bool:
+    """Whether a plan's command and nominal trajectory are finite numbers (the rest of a Plan is checked when
+    it is published)."""
+    return bool(np.all(np.isfinite(result.control)) and np.all(np.isfinite(result.states)))
+
+
 def plan_message(
     result: PlanResult, stamp_ns: int, task: LaneTask | GoalTask, n_samples: int,
     extra_timings_ms: dict[str, float] | None = None, weights_stale: bool = False,
@@ -289,6 +295,12 @@ def run(settings: Settings) -> int:
                 # no command this cycle: egress's watchdog stops the robot if this persists
                 node.error(f"planning failed: {exc}")
                 continue
+            if not plan_is_finite(result):
+                # a state far outside what the model knows (e.g. v = -5 m/s with omega = 20 rad/s) can make the
+                # rollouts diverge: such a plan is no plan, so no command (egress's watchdog stops the robot)
+                node.counters.count("plan_nonfinite")
+                node.error(f"planning from {np.round(x, 3).tolist()} gave non-finite states: no command")
+                continue
             cmd = Command(v_ref=float(result.control[0]), omega_ref=float(result.control[1]))
             cmd.header.stamp_ns = latest.header.stamp_ns
             cmd.header.frame_id = "base_link"
@@ -301,8 +313,12 @@ def run(settings: Settings) -> int:
                 fields = {k: None if v is None else round(v, 3) for k, v in startup.items()}
                 node.log.info("first command", extra={"fields": fields})
             if cycle % settings.plan_every == 0:
-                plan_pub.put(plan_message(result, latest.header.stamp_ns, task, settings.plan_samples,
-                                          {"state_to_cmd": state_to_cmd_ms}, terrain.stale))
+                try:
+                    plan_pub.put(plan_message(result, latest.header.stamp_ns, task, settings.plan_samples,
+                                              {"state_to_cmd": state_to_cmd_ms}, terrain.stale))
+                except DecodeError as exc:  # e.g. non-finite sample costs: the command went out, the plan cannot
+                    node.counters.count("plan_invalid")
+                    node.error(f"plan not published: {exc}")
             cycle += 1
             node.cycle()
             node.spin_once(0.0)

@@ -53,8 +53,11 @@ def test_fallback_must_not_come_before_stale() -> None:
         Settings(weights_stale_after_s=2.0, weights_fallback_after_s=1.0)
 
 
-def _state(x: float = START[0], y: float = START[1], theta: float = START[2], stamp_ns: int | None = None) -> State:
-    return State(x=x, y=y, theta=theta, v=0.0, omega=0.0, header=Header(stamp_ns=stamp_ns or time.time_ns()))
+def _state(
+    x: float = START[0], y: float = START[1], theta: float = START[2], stamp_ns: int | None = None,
+    v: float = 0.0, omega: float = 0.0,
+) -> State:
+    return State(x=x, y=y, theta=theta, v=v, omega=omega, header=Header(stamp_ns=stamp_ns or time.time_ns()))
 
 
 @pytest.mark.slow
@@ -113,6 +116,16 @@ def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp
             assert counted("state_nonfinite"), hb()[-1]
             state_pub.put(b'{"x": "here"}')
             assert counted("state_invalid"), hb()[-1]
+            # finite but far outside the model (ingress lets it through): the rollouts diverge; no crash, no
+            # non-finite output, and planning goes on from good states
+            n_before = len(cmd_stamps())
+            for _ in range(3):
+                state_pub.put(encode(_state(v=-5.0, omega=20.0)))
+                time.sleep(0.1)
+            drive(0.5)
+            assert planner.alive() and len(cmd_stamps()) > n_before, planner.log()
+            refused = hb()[-1].counts
+            assert refused.get("plan_nonfinite", 0) + refused.get("plan_invalid", 0) >= 1, refused
             drive(0.5)
             assert stale not in cmd_stamps() and future not in cmd_stamps()
             assert all(math.isfinite(c.v_ref) and math.isfinite(c.omega_ref)
