@@ -282,6 +282,15 @@ class Player:
         if first_log_ns is not None and last_log_ns is not None:
             s.log_span_s = max(s.log_span_s, (last_log_ns - first_log_ns) / 1e9)
 
+    def declare(self, keys: set[str]) -> None:
+        """Declare the publishers of these recorded keys now (those the filters let through), so the first put on
+        each key does not pay for the declaration."""
+        for key in sorted(keys):
+            if not key.endswith(QUARANTINE_SUFFIX) and key not in self.o.suppress and not (
+                (self._keys_re and not self._keys_re.search(key)) or (self._exclude_re and self._exclude_re.search(key))
+            ):
+                self._publisher(rename_robot(key, self.o.robot))
+
     def play(self) -> PlayStats:
         t0 = time.monotonic()
         try:
@@ -297,3 +306,25 @@ class Player:
                 pub.undeclare()
             self._pubs.clear()
         return self.stats
+
+
+def drain(session: zenoh.Session, helper: zenoh.Session, timeout_s: float = 60.0) -> bool:
+    """Wait until the router has taken everything `session` has put (True), so closing it loses nothing in flight.
+
+    A query from `session` to a queryable on a second session `helper` goes through the router on the same link
+    and at the same priority as the data, after it: its reply means the router has forwarded all the data before
+    it (with congestion control BLOCK, into the subscribers' queues, however slow they are). Closing a session with
+    data still queued in its own buffers loses that data (measured: at --speed 0 against a subscriber taking 2 ms
+    per 20 kB message, 660 of 1000 messages were lost when the session was closed right after the last put)."""
+    key = f"gpmppi/_replay/drain/{helper.zid()}"
+    queryable = helper.declare_queryable(key, lambda query: query.reply(key, b""))
+    try:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            replies = session.get(key, timeout=min(5.0, max(0.1, deadline - time.monotonic())),
+                                  congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA)
+            if any(r.ok is not None for r in replies):
+                return True
+        return False
+    finally:
+        queryable.undeclare()

@@ -62,7 +62,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
 
     from services.launcher import Launcher, LaunchFile, wait_for_endpoint
     from services.node import DEFAULT_ROUTER, ZenohSettings
-    from services.player import Player, PlayOptions
+    from services.player import Player, PlayOptions, drain
     from services.player_log import (
         LogError,
         check_log,
@@ -140,6 +140,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
     )
     launcher: Launcher | None = None
     session: zenoh.Session | None = None
+    helper: zenoh.Session | None = None
     stop = stop or threading.Event()
     result: dict[str, Any] = {"services": [s.name for s in live]}
     try:
@@ -161,6 +162,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
                 raise TimeoutError(f"no router at {endpoint}: start the stack (gpmppi launch), pass --connect "
                                    "ENDPOINT, or --port N to start a router for the replay") from None
         session = zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).to_config())
+        helper = zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).to_config())
         live_cmds: list[tuple[int, float, float]] = []
         lock = threading.Lock()
 
@@ -177,8 +179,11 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
             _wait_ready(session, robot, live, launcher, req.ready_timeout_s, stop)
         time.sleep(req.delay_s)  # subscriptions of listeners that just joined reach the router
         player = Player(session, lambda: iter_records(parts), options, stop=stop)
+        player.declare(keys)
         total_s = None if span is None else (span[1] - span[0]) / 1e9
         stats = _play_with_progress(player, total_s, req.progress)
+        if not drain(session, helper):
+            _say("replay: warning: the router did not confirm it took every message within 60 s; some may be lost")
         result["play"] = stats
         if live and not stop.is_set():
             time.sleep(req.settle_s)  # the live services' answers to the last inputs
@@ -192,6 +197,8 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
     finally:
         if session is not None:
             session.close()
+        if helper is not None:
+            helper.close()
         if launcher is not None:
             launcher.stop_all()
     return result

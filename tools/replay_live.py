@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import difflib
 import tempfile
 import typing
 from dataclasses import dataclass
@@ -67,7 +68,15 @@ def resolve_path(cls: type[BaseModel], parts: list[str], what: str) -> list[str]
                 fields = model.model_fields
         if part not in fields:
             where = ".".join(path) or "the service's settings"
-            raise ReplaceError(f"{what}: unknown field {part!r} in {where}; valid fields: {', '.join(sorted(fields))}")
+            # near misses, also inside the settings' groups (planner.temprature -> planner.planner.temperature)
+            names = {n: n for n in fields}
+            for n, f in fields.items():
+                if (m := _model_of(f.annotation)) is not None:
+                    names.update({sub: f"{n}.{sub}" for sub in m.model_fields if sub not in names})
+            close = difflib.get_close_matches(part, list(names), n=3, cutoff=0.7)
+            hint = f"; did you mean {' or '.join(repr(names[c]) for c in close)}?" if close else ""
+            raise ReplaceError(f"{what}: unknown field {part!r} in {where}{hint}; valid fields: "
+                               f"{', '.join(sorted(fields))}")
         path.append(part)
         model = _model_of(fields[part].annotation)
     return path
