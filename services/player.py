@@ -47,6 +47,11 @@ class PlayOptions:
     # e.g. the task or the terrain weights, which a live service needs from the first played state on)
     prime: set[str] = field(default_factory=set)
     track_key: str | None = None  # recorded key whose (replayed stamp -> recorded stamp) map is kept
+    # only these recorded header stamps are played on `track_key` (e.g. the states a recorded planner answered)
+    only_stamps: set[int] | None = None
+    # after each `track_key` message, wait up to this long for `Player.answered(replayed stamp)` (a live service's
+    # answer) before going on; the schedule moves by the wait (None: recorded timing, no waiting)
+    lockstep_timeout_s: float | None = None
 
     def __post_init__(self) -> None:
         if self.speed < 0:
@@ -145,6 +150,9 @@ class Player:
         # replayed stamp -> recorded stamp on `track_key` (to match a live service's outputs with the recorded ones)
         self.stamp_map: dict[int, int] = {}
         self.log_start_ns: int | None = None
+        # lockstep: called with a replayed stamp and a timeout, True once the live service has answered it
+        self.answered: Callable[[int, float], bool] | None = None
+        self.lockstep_misses = 0
 
     def _publisher(self, key: str) -> zenoh.Publisher:
         pub = self._pubs.get(key)
@@ -237,6 +245,14 @@ class Player:
                 rec, primed = item
                 if not self._selected(rec):
                     continue
+                if self.o.only_stamps is not None and rec.key == self.o.track_key:
+                    try:
+                        stamp = json.loads(rec.data)["header"]["stamp_ns"]
+                    except (ValueError, KeyError, TypeError):
+                        stamp = None
+                    if stamp not in self.o.only_stamps:
+                        s.filtered += 1
+                        continue
                 log_ns = rec.log_time_ns
                 if first_log_ns is None:
                     first_log_ns = log_ns
@@ -267,6 +283,13 @@ class Player:
                             self.stamp_map[original + due_epoch_ns - rec.log_time_ns] = original
                 key = rename_robot(rec.key, self.o.robot)
                 self._publisher(key).put(payload)
+                if rec.key == self.o.track_key and self.o.lockstep_timeout_s is not None and self.answered:
+                    t_wait = time.monotonic()
+                    answer_stamp = json.loads(payload)["header"]["stamp_ns"]
+                    if not self.answered(answer_stamp, self.o.lockstep_timeout_s):
+                        self.lockstep_misses += 1
+                    waited = time.monotonic() - t_wait
+                    w0 += waited  # the rest of the log keeps its spacing, after the wait (stamps follow the clock)
                 if speed > 0:
                     s.lateness_ms.append((time.monotonic() - due) * 1e3)
                 s.published += 1

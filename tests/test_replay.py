@@ -339,3 +339,89 @@ def test_replace_and_set_errors_name_what_is_wrong(tmp_path: Path) -> None:
     with pytest.raises(ReplaceError, match="no service 'planner' in the recording"):
         live_services(["planner"], read_run_info(check_log(old)), set(), ROBOT, warn=print)
     _ = Task  # (imported for the schema registry)
+
+
+# ---- --replace planner on a real, seeded recording ----------------------------------------------------------
+def _add_metadata(raw: Path, out: Path, launch: dict, launch_text: str) -> None:
+    """The recording with the metadata the recorder stores (gpmppi.run, gpmppi.settings.<name>, launch.yaml):
+    every message copied as recorded (channel, schema, log and publish time, sequence)."""
+    from mcap.reader import make_reader
+
+    with open(raw, "rb") as f_in, open(out, "wb") as f_out:
+        reader = make_reader(f_in)
+        w = Writer(f_out, compression=CompressionType.ZSTD)
+        w.start(profile="", library="gpmppi")
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        for schema, channel, msg in reader.iter_messages():
+            if channel.id not in channel_ids:
+                sid = 0
+                if schema is not None:
+                    if schema.id not in schema_ids:
+                        schema_ids[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
+                    sid = schema_ids[schema.id]
+                channel_ids[channel.id] = w.register_channel(channel.topic, channel.message_encoding, sid)
+            w.add_message(channel_ids[channel.id], msg.log_time, msg.data, msg.publish_time, msg.sequence)
+        common = {"robot": launch["robot"], "zenoh": launch["zenoh"]}
+        w.add_metadata("gpmppi.run", {"version": "test", "commit": "test", "host": "localhost",
+                                      "robot": launch["robot"], "started_ns": "0", "launch_file": "launch.yaml"})
+        for entry in launch["services"]:
+            settings = {**common, **entry["config"], "service": entry["name"]}
+            meta = {"kind": entry["name"], "settings": json.dumps(settings)}
+            w.add_metadata(f"gpmppi.settings.{entry['name']}", meta)
+        w.add_attachment(0, 0, "launch.yaml", "application/yaml", launch_text.encode())
+        w.finish()
+
+
+@pytest.mark.slow
+def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import io
+
+    import yaml
+
+    from services.launcher import run_launch
+
+    monkeypatch.chdir(tmp_path)
+    port = free_port()
+    # a seeded run without delay compensation: the planner's commands then depend only on the states, weights and
+    # task it is given, and the seed (the sampling noise is drawn from (seed, iteration))
+    launch = {
+        "robot": "jackal",
+        "router": {"listen": [endpoint(port)]},
+        "zenoh": {"mode": "client", "connect": [endpoint(port)]},
+        "services": [
+            {"name": "sim", "config": {"terrain": "asphalt", "lane": "circle", "publish_hz": 10.0, "seed": 3}},
+            {"name": "ingress", "config": {"source": "sim"}},
+            {"name": "planner", "config": {"scenario": "circle", "compensate_delay": False, "planner": {"seed": 5}}},
+            {"name": "egress", "config": {"output": "sim"}},
+        ],
+    }
+    text = yaml.safe_dump(launch)
+    (tmp_path / "launch.yaml").write_text(text)
+    out = io.StringIO()
+    code, _ = run_launch(tmp_path / "launch.yaml", duration=6.0, record=str(tmp_path / "raw.mcap"), out=out)
+    assert code == 0, out.getvalue()[-3000:]
+    log = tmp_path / "run.mcap"
+    _add_metadata(tmp_path / "raw.mcap", log, launch, text)
+    recorded = [m for k, _, m, _ in _raw(log) if k == "gpmppi/jackal/cmd"]
+    assert len(recorded) > 30
+
+    same = run_replay(ReplayRequest(log, replace="planner", compare=True, progress=False, delay_s=0.3))["compare"]
+    print(f"\nreplay --replace planner --compare (seeded, no delay compensation): {same}")
+    # every recorded command answered again, and the same within float noise (see docs/replay.md: measured 0)
+    assert same["compared"] >= 0.9 * len(recorded), (same, len(recorded))
+    assert same["v_max"] < 1e-6 and same["omega_max"] < 1e-6, same
+
+    changed = run_replay(ReplayRequest(log, replace="planner", compare=True, progress=False, delay_s=0.3,
+                                       sets=["planner.w_speed=40"]))["compare"]
+    print(f"with --set planner.w_speed=40: {changed}")
+    assert changed["compared"] >= 0.9 * len(recorded)
+    assert changed["v_rmse"] > 0.01, changed  # a different cost weight plans different commands
+
+
+def _raw(path: Path) -> list[tuple[str, int, dict, str | None]]:
+    from services.player_log import iter_records
+
+    return [(r.key, r.log_time_ns, json.loads(r.data), r.schema) for r in iter_records(check_log(path))]

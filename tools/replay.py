@@ -41,6 +41,7 @@ class ReplayRequest:
     ready_timeout_s: float = 600.0
     settle_s: float = 1.0
     progress: bool = True
+    lockstep: bool = False
 
 
 def _say(line: str) -> None:
@@ -89,6 +90,8 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         raise ReplaceError("--set / --config change the settings of replaced services: add --replace SERVICE")
     if req.compare and not any(n for n in names):
         raise ReplaceError("--compare compares a live planner with the recorded one: add --replace planner")
+    if req.lockstep and not req.compare:
+        raise ReplaceError("--lockstep paces the states by the live planner's answers: it needs --compare")
     live = rl.live_services(names, info, logged_services, robot, _say)
     rl.apply_overrides(live, req.configs, req.sets)
     planners = [s for s in live if s.kind == "planner"]
@@ -137,6 +140,9 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         robot=req.robot, keep_stamps=req.keep_stamps, suppress=suppress,
         prime={rkey(k) for k in ("task", "terrain/weights", "estop")} if start_s else set(),
         track_key=rkey("state"),
+        # compared: only the states the recorded planner answered (those it skipped, being busy, had no effect on it)
+        only_stamps=set(recorded_cmds) if req.compare else None,
+        lockstep_timeout_s=2.0 if req.lockstep else None,
     )
     launcher: Launcher | None = None
     session: zenoh.Session | None = None
@@ -164,15 +170,20 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         session = zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).to_config())
         helper = zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).to_config())
         live_cmds: list[tuple[int, float, float]] = []
-        lock = threading.Lock()
+        lock = threading.Condition()
 
         def on_cmd(sample: zenoh.Sample) -> None:
             try:
                 m = json.loads(sample.payload.to_bytes())
                 with lock:
                     live_cmds.append((int(m["header"]["stamp_ns"]), float(m["v_ref"]), float(m["omega_ref"])))
+                    lock.notify_all()
             except (ValueError, KeyError, TypeError):
                 pass
+
+        def answered(stamp: int, timeout_s: float) -> bool:
+            with lock:
+                return lock.wait_for(lambda: any(c[0] == stamp for c in live_cmds[-8:]), timeout_s)
 
         subs = [session.declare_subscriber(f"gpmppi/{robot}/cmd", on_cmd)] if planners else []
         if live:
@@ -180,6 +191,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         time.sleep(req.delay_s)  # subscriptions of listeners that just joined reach the router
         player = Player(session, lambda: iter_records(parts), options, stop=stop)
         player.declare(keys)
+        player.answered = answered
         total_s = None if span is None else (span[1] - span[0]) / 1e9
         stats = _play_with_progress(player, total_s, req.progress)
         if not drain(session, helper):
@@ -194,6 +206,8 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
                 got = list(live_cmds)
             result["compare"] = rl.compare(got, recorded_cmds, None if req.keep_stamps else player.stamp_map)
             result["compare"]["live_commands"] = len(got)
+            if req.lockstep:
+                result["compare"]["lockstep_misses"] = player.lockstep_misses
     finally:
         if session is not None:
             session.close()
@@ -299,6 +313,8 @@ def register(app: typer.Typer) -> None:
         rerun: str | None = typer.Option(None, help="convert offline for rerun: save OUT.rrd | spawn | connect URL "
                                          "| serve (no Zenoh)"),
         quiet: bool = typer.Option(False, help="no progress bar"),
+        lockstep: bool = typer.Option(False, help="with --compare: put each state only after the live planner "
+                                      "answered the one before (for a live planner slower than the recorded one)"),
     ) -> None:
         """Replay a recording onto Zenoh (like `ros2 bag play`), with live services in place of recorded ones
         (`--replace`, like `dora replay --replace`), or convert it for rerun (`--rerun`)."""
@@ -323,7 +339,7 @@ def register(app: typer.Typer) -> None:
                 raise ValueError("give --connect ENDPOINT (an existing router) or --port N (start one), not both")
             req = ReplayRequest(log, speed, start, end, keys, exclude, loop, robot, keep_stamps, replace, list(set_),
                                 list(config), compare, connect, port, delay, ready_timeout,
-                                progress=not (quiet or as_json))
+                                progress=not (quiet or as_json), lockstep=lockstep)
             stop = threading.Event()
             import signal
 
