@@ -193,6 +193,8 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         player.declare(keys)
         player.answered = answered
         total_s = None if span is None else (span[1] - span[0]) / 1e9
+        if req.end_s is not None:
+            total_s = req.end_s if total_s is None else min(total_s, req.end_s)
         stats = _play_with_progress(player, total_s, req.progress)
         if not drain(session, helper):
             _say("replay: warning: the router did not confirm it took every message within 60 s; some may be lost")
