@@ -401,7 +401,8 @@ def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
     text = yaml.safe_dump(launch)
     (tmp_path / "launch.yaml").write_text(text)
     out = io.StringIO()
-    code, _ = run_launch(tmp_path / "launch.yaml", duration=6.0, record=str(tmp_path / "raw.mcap"), out=out)
+    code, _ = run_launch(tmp_path / "launch.yaml", duration=6.0, record=str(tmp_path / "raw.mcap"), out=out,
+                         ready_timeout_s=1200.0)  # a cold numba cache on a loaded machine takes minutes
     assert code == 0, out.getvalue()[-3000:]
     log = tmp_path / "run.mcap"
     _add_metadata(tmp_path / "raw.mcap", log, launch, text)
