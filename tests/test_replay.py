@@ -417,15 +417,29 @@ def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
     # every recorded command answered again, and the same within float noise (see docs/replay.md: measured 0)
     assert same["compared"] >= 0.9 * len(recorded), (same, len(recorded))
     assert same["v_max"] < 1e-6 and same["omega_max"] < 1e-6, same
+    assert same["exact"] == same["compared"]  # measured: bit for bit
 
     changed = run_replay(ReplayRequest(log, replace="planner", compare=True, progress=False, delay_s=0.3,
                                        lockstep=True, sets=["planner.w_speed=40"]))["compare"]
     print(f"with --set planner.w_speed=40: {changed}")
     assert changed["compared"] >= 0.9 * len(recorded)
-    assert changed["v_rmse"] > 0.01, changed  # a different cost weight plans different commands
+    assert changed["v_rmse"] > 0.01 and changed["exact"] < changed["compared"], changed  # a different weight
 
 
 def _raw(path: Path) -> list[tuple[str, int, dict, str | None]]:
     from services.player_log import iter_records
 
     return [(r.key, r.log_time_ns, json.loads(r.data), r.schema) for r in iter_records(check_log(path))]
+
+
+def test_compare_matches_by_the_answered_state_stamp() -> None:
+    from tools.replay_live import compare
+
+    recorded = {100: (1.0, 0.5), 200: (1.2, 0.0), 300: (0.8, -0.5)}
+    # replayed stamps 1100/1200/1300 map back to 100/200/300; 9999 answers a state that was not recorded
+    live = [(1100, 1.0, 0.5), (1200, 1.0, 0.0), (1300, 0.8, -0.2), (9999, 5.0, 5.0)]
+    c = compare(live, recorded, {1100: 100, 1200: 200, 1300: 300})
+    assert c["compared"] == 3 and c["exact"] == 1
+    assert c["v_max"] == pytest.approx(0.2) and c["omega_max"] == pytest.approx(0.3)
+    assert c["v_rmse"] == pytest.approx(np.sqrt(0.04 / 3)) and c["omega_rmse"] == pytest.approx(np.sqrt(0.09 / 3))
+    assert compare([], recorded, None)["compared"] == 0

@@ -283,7 +283,8 @@ def _print(result: dict[str, Any], as_json: bool) -> None:
         typer.echo("skipped: " + "; ".join(extras))
     if "compare" in result:
         c = result["compare"]
-        typer.echo(f"compare: {c['compared']} live commands matched with recorded ones (of {c['live_commands']} live): "
+        typer.echo(f"compare: {c['compared']} live commands matched with recorded ones (of {c['live_commands']} live), "
+                   f"{c['exact']} of them bit for bit: "
                    f"v_ref RMS {c['v_rmse']:.4g} max {c['v_max']:.4g} m/s, omega_ref RMS {c['omega_rmse']:.4g} "
                    f"max {c['omega_max']:.4g} rad/s")
 

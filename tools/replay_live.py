@@ -234,11 +234,13 @@ def compare(
         dv.append(v - rv)
         dw.append(w - rw)
     if not dv:
-        return {"compared": 0, "v_rmse": float("nan"), "omega_rmse": float("nan"), "v_max": float("nan"),
+        return {"compared": 0, "exact": 0, "v_rmse": float("nan"), "omega_rmse": float("nan"), "v_max": float("nan"),
                 "omega_max": float("nan")}
     a, b = np.asarray(dv), np.asarray(dw)
     return {
         "compared": len(dv),
+        # bit for bit the same (a seeded planner given the same states in the same order reproduces exactly)
+        "exact": int(np.sum((np.abs(a) < 1e-12) & (np.abs(b) < 1e-12))),
         "v_rmse": float(np.sqrt(np.mean(a * a))),
         "omega_rmse": float(np.sqrt(np.mean(b * b))),
         "v_max": float(np.abs(a).max()),
