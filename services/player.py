@@ -76,6 +76,7 @@ class PlayStats:
     suppressed: int = 0
     filtered: int = 0
     quarantined: int = 0
+    unanswered: int = 0  # states left out because the recorded planner did not answer them (only_stamps)
     unshifted: int = 0  # payloads that are not JSON messages with a header: published as recorded
     loops: int = 0
     log_span_s: float = 0.0  # log time covered by what was played (one pass)
@@ -251,7 +252,7 @@ class Player:
                     except (ValueError, KeyError, TypeError):
                         stamp = None
                     if stamp not in self.o.only_stamps:
-                        s.filtered += 1
+                        s.unanswered += 1
                         continue
                 log_ns = rec.log_time_ns
                 if first_log_ns is None:

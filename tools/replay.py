@@ -277,6 +277,7 @@ def _print(result: dict[str, Any], as_json: bool) -> None:
     skipped = ((stats.suppressed, "outputs of replaced services not replayed"),
                (stats.quarantined, "quarantined (_rejected) not replayed"),
                (stats.filtered, "filtered by --keys/--exclude"),
+               (stats.unanswered, "states the recorded planner did not answer"),
                (stats.unshifted, "without a header, published unchanged"))
     extras = [f"{n} {what}" for n, what in skipped if n]
     if extras:
