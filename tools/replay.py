@@ -330,7 +330,11 @@ def register(app: typer.Typer) -> None:
                     raise ValueError(f"--rerun {rerun!r}: expected one of {', '.join(RERUN_MODES)}")
                 if rerun in ("save", "connect") and rerun_target is None:
                     raise ValueError(f"--rerun {rerun} needs a target: --rerun save OUT.rrd / --rerun connect URL")
-                from tools.replay_rerun import convert
+                try:
+                    from tools.replay_rerun import convert
+                except ImportError as exc:
+                    raise RuntimeError(f"--rerun: the offline rerun conversion is not available in this build ({exc})"
+                                       ) from None
 
                 stats = convert(log, rerun, rerun_target, start_s=start, end_s=end, keys=keys, exclude=exclude)
                 typer.echo(json.dumps(stats) if as_json else
