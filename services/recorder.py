@@ -23,7 +23,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field
 
-from services.mcap_io import McapWriter
+from services.mcap_io import REJECTED_SUFFIX, McapWriter
 from services.node import Node, NodeSettings
 from services.recorder_meta import RunRecord, resolve_run_record
 
@@ -123,7 +123,7 @@ def run(settings: Settings) -> int:
                         failed(exc)
                         unwritten += 1
                         continue
-                    quarantined += not ok and not str(sample.key_expr).endswith("/_rejected")
+                    quarantined += not ok and not str(sample.key_expr).endswith(REJECTED_SUFFIX)
                 with node.counters.lock:
                     node.counters.received += n
                 if quarantined:

@@ -290,6 +290,12 @@ def fresh(x: float) -> bytes:
     return encode(msg)
 
 
+def fresh_command(v_ref: float, omega_ref: float) -> bytes:
+    msg = Command(v_ref=v_ref, omega_ref=omega_ref)
+    msg.header.stamp_ns = time.time_ns()  # egress refuses commands older than max_command_age_s
+    return encode(msg)
+
+
 def assert_still_working(stack: Stack, name: str, since: float) -> None:
     """The service still does its job on valid input after the fuzz: its main output appears."""
     s, t = stack.session, stack.targets[name]
@@ -306,7 +312,7 @@ def assert_still_working(stack: Stack, name: str, since: float) -> None:
         "ingress_ros2": lambda: s.put(ROS2_KEY, ros2.odometry_cdr(np.array([5.0, 0, 0, 0.5, 0]), time.time_ns())),
         "planner": lambda: s.put(key_for("state", robot=r), fresh(5.0)),
         "terrain": lambda: s.put(key_for("state", robot=r), fresh(5.0)),
-        "egress": lambda: s.put(key_for("cmd", robot=r), encode(Command(v_ref=0.3, omega_ref=0.1))),
+        "egress": lambda: s.put(key_for("cmd", robot=r), fresh_command(0.3, 0.1)),
         "sim": lambda: None,  # publishes odometry on its own
     }
     output = {"ingress": "state", "ingress_ros2": "state", "planner": "cmd", "terrain": "terrain_weights",

@@ -108,7 +108,8 @@ def test_egress_safety_output_is_finite_and_within_limits_for_any_command(
         if not (math.isfinite(v) and math.isfinite(w)):
             continue  # the Command schema refuses these before egress sees them (checked above)
         safety.estop = estop[i % len(estop)]
-        safety.on_command(v, w, now)
+        now_ns = int(now * 1e9)
+        safety.on_command(v, w, now_ns, now, now_ns)  # stamped now: fresh
         out = safety.output(now)  # egress's clock is monotonic: time never goes back
         assert math.isfinite(out.v) and math.isfinite(out.omega), (v, w, out)
         assert s.v_limits[0] - 1e-9 <= out.v <= s.v_limits[1] + 1e-9 and abs(out.omega) <= s.omega_limit + 1e-9

@@ -433,7 +433,9 @@ def test_the_launcher_tells_the_recorder_what_ran_and_the_metadata_resolves(tmp_
     from services.recorder import Settings as RecorderSettings
     from services.recorder_meta import resolve_run_record
 
-    launcher, _ = build(LaunchFile.load(DEFAULT_LAUNCH), str(tmp_path / "r.mcap"), None, free_port(), DEFAULT_LAUNCH)
+    launcher, _ = build(
+        LaunchFile.load(DEFAULT_LAUNCH), str(tmp_path / "r.mcap"), None, free_port(), launch_path=DEFAULT_LAUNCH
+    )
     try:
         children = {c.name: c for c in launcher.children}
         rec = RecorderSettings.load(children["recorder"].config_path)

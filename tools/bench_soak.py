@@ -33,7 +33,7 @@ import zenoh
 from mcap.reader import make_reader
 
 from services.launcher import Launcher, run_launch
-from services.mcap_io import recording_files
+from services.mcap_io import REJECTED_SUFFIX, recording_files
 from services.monitor import Monitor, Summary
 
 
@@ -146,7 +146,8 @@ def recorded(path: str | Path) -> tuple[Counter[tuple[str, bytes]], Counter[str]
     for part in recording_files(path) or [Path(path)]:
         with open(part, "rb") as f:
             for _, channel, message in make_reader(f).iter_messages():
-                by_payload[(channel.topic, _digest(message.data))] += 1
+                # a payload that broke its key's schema is kept on `<key>/_rejected`: recorded, not lost
+                by_payload[(channel.topic.removesuffix(REJECTED_SUFFIX), _digest(message.data))] += 1
                 per_key[channel.topic] += 1
     return by_payload, per_key
 
