@@ -19,7 +19,7 @@ def circle(x: float, y: float, r: float, n: int = 48) -> np.ndarray:
     return np.stack([x + r * np.cos(a), y + r * np.sin(a)], axis=1)
 
 
-def ellipse(cx: float, cy: float, sxx: float, sxy: float, syy: float, n_sigma: float = 2.0, n: int = 24) -> np.ndarray:
+def ellipse(cx: float, cy: float, sxx: float, sxy: float, syy: float, n_sigma: float = 2.0, n: int = 16) -> np.ndarray:
     """Closed polyline of the n_sigma ellipse of a 2-D position covariance [m^2] about (cx, cy)."""
     cov = np.array([[sxx, sxy], [sxy, syy]])
     vals, vecs = np.linalg.eigh(cov)

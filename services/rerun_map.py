@@ -48,18 +48,26 @@ PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 1
 # map layers, bottom to top
 DRAW = {"edges": 10.0, "centre": 11.0, "tightened": 12.0, "inflated": 13.0, "obstacles": 14.0, "goal": 15.0,
         "samples": 20.0, "covariance": 25.0, "nominal": 30.0, "path": 40.0, "robot": 50.0}  # fmt: skip
-ROBOT_BLUE = (20, 90, 230)
+ROBOT_COLOUR = (200, 0, 110)  # magenta: apart from the blue path, the orange plan and the grey lane
 
 
 @dataclass
 class ViewOptions:
     """How much per-plan data is drawn (the big part of a recording)."""
 
-    samples_every: int = 1  # draw the rollouts of every n-th plan
+    samples_every: int = 2  # draw the rollouts of every n-th plan
     max_samples: int = 32  # at most this many rollouts of a plan
-    ellipse_every: int = 5  # every n-th covariance ellipse of the plan
+    sample_stride: int = 2  # every n-th point along a rollout
+    ellipse_every: int = 8  # every n-th covariance ellipse of the plan
     path_chunk: int = 50  # driven-path states per strip entity
     timing_warmup_plans: int = 5  # a (re)started planner's first plans: reported as an event, not plotted
+
+
+def _strips(strips: list) -> np.ndarray | list[np.ndarray]:
+    """Strips as one float32 array when they have the same length (rerun's fast path), else a list."""
+    if len({len(p) for p in strips}) == 1:
+        return np.asarray(strips, dtype=np.float32)
+    return [np.asarray(p, dtype=np.float32) for p in strips]
 
 
 class RerunMapper:
@@ -90,7 +98,12 @@ class RerunMapper:
         import rerun.blueprint as rrb
 
         def plot(origin: str, name: str) -> rrb.TimeSeriesView:
-            return rrb.TimeSeriesView(origin=origin, name=name, plot_legend=rrb.PlotLegend(corner="LeftTop"))
+            return rrb.TimeSeriesView(
+                origin=origin,
+                name=name,
+                plot_legend=rrb.PlotLegend(corner="LeftTop"),
+                axis_x=rrb.TimeAxis(link="LinkToGlobal"),  # the plots share one time range
+            )
 
         return rrb.Blueprint(
             rrb.Vertical(
@@ -191,9 +204,11 @@ class RerunMapper:
 
         self._at(t)
         self._static(
-            "map/robot", rr.LineStrips2D.from_fields(colors=[ROBOT_BLUE], radii=[0.04], draw_order=DRAW["robot"])
+            "map/robot", rr.LineStrips2D.from_fields(colors=[ROBOT_COLOUR], radii=[0.05], draw_order=DRAW["robot"])
         )
-        self.rec.log("map/robot", rr.LineStrips2D.from_fields(strips=[geo.robot_outline(msg.x, msg.y, msg.theta)]))
+        self.rec.log(
+            "map/robot", rr.LineStrips2D.from_fields(strips=_strips([geo.robot_outline(msg.x, msg.y, msg.theta)]))
+        )
         # the driven path: a strip per `path_chunk` states, starting where the previous one ended
         if len(self._path_points) >= self.opt.path_chunk:
             self._path_chunk_index += 1
@@ -202,18 +217,21 @@ class RerunMapper:
         entity = f"map/driven_path/{self._path_chunk_index:05d}"
         self._static(entity, rr.LineStrips2D.from_fields(colors=[(0, 60, 200)], radii=[0.05], draw_order=DRAW["path"]))
         if len(self._path_points) >= 2:
-            self.rec.log(entity, rr.LineStrips2D.from_fields(strips=[self._path_points]))
+            self.rec.log(entity, rr.LineStrips2D.from_fields(strips=_strips([self._path_points])))
         self._scalar("plots/v/state", t, msg.v)
         self._scalar("plots/omega/state", t, msg.omega)
 
     def _base(self, msg: BaseCommand, t: int) -> None:
         self._scalar("plots/v/base", t, msg.v)
         self._scalar("plots/omega/base", t, msg.omega)
-        if msg.reason != self._last_reason:
-            if self._last_reason is not None or msg.reason != "planner":
-                level = "WARN" if msg.reason in ("watchdog", "estop") else "INFO"
-                self.event(t, f"egress: base command from {msg.reason} (was {self._last_reason})", level)
-            self._last_reason = msg.reason
+        # planner and limit alternate all the time (a limited planner command): events are the safety overrides
+        reason = msg.reason if msg.reason in ("watchdog", "estop") else "planner"
+        if reason != self._last_reason:
+            if reason != "planner":
+                self.event(t, f"egress: {reason} override, base command v {msg.v:.2f} omega {msg.omega:.2f}", "WARN")
+            elif self._last_reason is not None:
+                self.event(t, f"egress: {self._last_reason} override ended, planner commands again")
+            self._last_reason = reason
 
     def _weights(self, msg: TerrainWeights, t: int) -> None:
         for name, w in zip(msg.names, msg.weights, strict=True):
@@ -281,7 +299,7 @@ class RerunMapper:
     def _plan(self, msg: Plan, t: int) -> None:
         import rerun as rr
 
-        if msg.header.seq <= self._plan_seq:  # a new planner process counts from 0 again
+        if msg.header.seq < self._plan_seq:  # a new planner process counts from 0 again
             self.event(t, "planner restarted (plan sequence began again)", "WARN")
             self._plans = 0
         self._plan_seq = msg.header.seq
@@ -298,25 +316,32 @@ class RerunMapper:
                 "map/plan/nominal",
                 rr.LineStrips2D.from_fields(colors=[(255, 140, 0)], radii=[0.06], draw_order=DRAW["nominal"]),
             )
-            self.rec.log("map/plan/nominal", rr.LineStrips2D.from_fields(strips=[states[:, :2]]))
+            self.rec.log("map/plan/nominal", rr.LineStrips2D.from_fields(strips=_strips([states[:, :2]])))
             if msg.cov_xy:
                 n = min(len(msg.cov_xy), len(states))
+                every = self.opt.ellipse_every
+                # from step `every` on (step 0 is the known start, no spread) and always the horizon's end
                 ellipses = [
-                    geo.ellipse(states[k, 0], states[k, 1], *msg.cov_xy[k]) for k in range(0, n, self.opt.ellipse_every)
+                    geo.ellipse(states[k, 0], states[k, 1], *msg.cov_xy[k])
+                    for k in sorted({*range(every, n, every), n - 1})
                 ]
                 self._static(
                     "map/plan/covariance",
                     rr.LineStrips2D.from_fields(colors=[(150, 60, 220)], radii=[0.02], draw_order=DRAW["covariance"]),
                 )
-                self.rec.log("map/plan/covariance", rr.LineStrips2D.from_fields(strips=ellipses))
+                self.rec.log("map/plan/covariance", rr.LineStrips2D.from_fields(strips=_strips(ellipses)))
             if msg.tightened:
                 self._tightened(msg, states, t)
-        if msg.samples and (self._plans - 1) % self.opt.samples_every == 0:
+        if msg.samples and self.opt.max_samples > 0 and (self._plans - 1) % self.opt.samples_every == 0:
             k = min(len(msg.samples), self.opt.max_samples)
             costs = np.asarray(msg.sample_costs[:k] if len(msg.sample_costs) >= k else np.zeros(k))
-            self._static("map/plan/rollouts", rr.LineStrips2D.from_fields(radii=[0.015], draw_order=DRAW["samples"]))
+            self._static("map/plan/rollouts", rr.LineStrips2D.from_fields(radii=[0.02], draw_order=DRAW["samples"]))
+            # every `sample_stride`-th point of each rollout (and its last): smooth curves, a fraction of the bytes
+            rollouts = np.asarray(msg.samples[:k], dtype=np.float32)
+            keep = np.unique(np.r_[np.arange(0, rollouts.shape[1], self.opt.sample_stride), rollouts.shape[1] - 1])
             self.rec.log(
-                "map/plan/rollouts", rr.LineStrips2D.from_fields(strips=msg.samples[:k], colors=geo.cost_colors(costs))
+                "map/plan/rollouts",
+                rr.LineStrips2D.from_fields(strips=rollouts[:, keep], colors=geo.cost_colors(costs)),
             )
         if msg.sample_costs:
             costs = np.asarray(msg.sample_costs, dtype=np.float64)
@@ -343,7 +368,7 @@ class RerunMapper:
                     "map/lane/tightened",
                     rr.LineStrips2D.from_fields(colors=[(240, 180, 0)], radii=[0.05], draw_order=DRAW["tightened"]),
                 )
-                self.rec.log("map/lane/tightened", rr.LineStrips2D.from_fields(strips=bounds))
+                self.rec.log("map/lane/tightened", rr.LineStrips2D.from_fields(strips=_strips(bounds)))
         else:
             inflation = float(tightened.max())
             self._scalar("plots/tightening/first", t, tightened[min(1, len(tightened) - 1)])
@@ -354,7 +379,7 @@ class RerunMapper:
                     "map/obstacles_inflated",
                     rr.LineStrips2D.from_fields(colors=[(255, 120, 120)], radii=[0.03], draw_order=DRAW["inflated"]),
                 )
-                self.rec.log("map/obstacles_inflated", rr.LineStrips2D.from_fields(strips=circles))
+                self.rec.log("map/obstacles_inflated", rr.LineStrips2D.from_fields(strips=_strips(circles)))
 
     def _timings(self, msg: Plan, t: int) -> None:
         if self._plans <= self.opt.timing_warmup_plans:

@@ -35,9 +35,10 @@ class Settings(NodeSettings):
         4000, gt=0, description="samples waiting for the viewer at most; beyond, the oldest are dropped (counted)"
     )
     flush_s: float = Field(0.25, gt=0, description="time series are sent to rerun in columns this often [s]")
-    samples_every: int = Field(1, ge=1, description="draw the rollouts of every n-th plan")
+    samples_every: int = Field(2, ge=1, description="draw the rollouts of every n-th plan")
     max_samples: int = Field(32, ge=0, description="draw at most this many rollouts of a plan")
-    ellipse_every: int = Field(5, ge=1, description="draw every n-th covariance ellipse of the plan")
+    sample_stride: int = Field(2, ge=1, description="draw every n-th point along a rollout")
+    ellipse_every: int = Field(8, ge=1, description="draw every n-th covariance ellipse of the plan")
     path_chunk: int = Field(50, ge=2, description="driven-path states per strip (the path grows by strips)")
     timing_warmup_plans: int = Field(
         5, ge=0, description="a (re)started planner's first plans are an event, not plotted (start-up spike)"
@@ -47,6 +48,7 @@ class Settings(NodeSettings):
         return ViewOptions(
             samples_every=self.samples_every,
             max_samples=self.max_samples,
+            sample_stride=self.sample_stride,
             ellipse_every=self.ellipse_every,
             path_chunk=self.path_chunk,
             timing_warmup_plans=self.timing_warmup_plans,

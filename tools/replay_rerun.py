@@ -21,6 +21,7 @@ from pathlib import Path
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 MODES = ("save", "spawn", "connect", "serve")
 FLUSH_ROWS = 50_000  # buffered time-series rows before they are sent (bounds memory on long logs)
+FLUSH_LOG_S = 10.0  # and at least every this much log time: chunks come in time order, as the live viewer's do
 
 
 class _SkipCounter(logging.Handler):
@@ -132,6 +133,7 @@ def convert(
     messages = 0
     first_seen: int | None = None
     last_seen: int | None = None
+    flushed_at: int | None = None
     ok = False
     try:
         for key, log_ns, msg in mcap_io.read_messages(path, chosen):
@@ -139,6 +141,8 @@ def convert(
                 continue
             if first_ns is None:
                 first_ns = log_ns
+            if flushed_at is None:
+                flushed_at = log_ns
             rel_s = (log_ns - first_ns) / 1e9
             if start_s is not None and rel_s < start_s:
                 continue
@@ -148,8 +152,9 @@ def convert(
             messages += 1
             first_seen = log_ns if first_seen is None else min(first_seen, log_ns)
             last_seen = log_ns if last_seen is None else max(last_seen, log_ns)
-            if mapper.buffered >= FLUSH_ROWS:
+            if mapper.buffered >= FLUSH_ROWS or log_ns - flushed_at >= FLUSH_LOG_S * 1e9:
                 mapper.flush()
+                flushed_at = log_ns
         mapper.flush()
         rec.flush()
         ok = True
