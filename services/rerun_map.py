@@ -425,12 +425,17 @@ class RerunMapper:
             )
 
 
-def open_stream(mode: str, target: str | None = None, serve_port: int = 9876) -> rr.RecordingStream:
+def open_stream(
+    mode: str, target: str | None = None, serve_port: int = 9876, batch_s: float = 0.25
+) -> rr.RecordingStream:
     """A recording stream to `mode`: 'save' (target: .rrd path), 'spawn', 'connect' (target: URL) or 'serve'
-    (a gRPC server on `serve_port`), with the blueprint sent."""
+    (a gRPC server on `serve_port`), with the blueprint sent; rows are batched into chunks for `batch_s` [s]."""
+    from datetime import timedelta
+
     import rerun as rr
 
-    rec = rr.RecordingStream("gpmppi")
+    # rows logged within `batch_s` travel as one chunk: per-message chunks would each carry their own schema
+    rec = rr.RecordingStream("gpmppi", batcher_config=rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=batch_s)))
     # one timeline, `stamp`: the SDK's own log_time / log_tick would add two columns to every row
     rec.set_log_time_enabled(False)
     rec.set_log_tick_enabled(False)

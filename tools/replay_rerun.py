@@ -125,7 +125,7 @@ def convert(
 
     out_path = Path(target) if mode == "save" and target else None
     tmp_path = out_path.with_name(out_path.name + ".part") if out_path is not None else None
-    rec = open_stream(mode, str(tmp_path) if tmp_path is not None else target)
+    rec = open_stream(mode, str(tmp_path) if tmp_path is not None else target, batch_s=2.0)
     mapper = RerunMapper(rec, options if isinstance(options, ViewOptions) else ViewOptions())
     counter = _SkipCounter()
     io_log = logging.getLogger(mcap_io.__name__)
