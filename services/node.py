@@ -79,12 +79,16 @@ class NodeSettings(BaseSettings):
         0.05, gt=0, description="longest idle wait of the loop [s] (input wakes it at once; this bounds timers)"
     )
     nice: int = Field(
-        0, ge=0, le=19, description="added to the process's niceness at start: a non-critical service (terrain, "
-        "recorder, viewer) yields the cores to the control path (sim/ingress/planner/egress) on a small machine"
+        0,
+        ge=0,
+        le=19,
+        description="added to the process's niceness at start: a non-critical service (terrain, "
+        "recorder, viewer) yields the cores to the control path (sim/ingress/planner/egress) on a small machine",
     )
     numba_threads: int | None = Field(
-        None, description="threads of numba's parallel kernels in this process: n, or -k for all cores but k "
-        "(at least 1); None: one per core"
+        None,
+        description="threads of numba's parallel kernels in this process: n, or -k for all cores but k "
+        "(at least 1); None: one per core",
     )
     max_payload_bytes: int = Field(MAX_PAYLOAD_BYTES, gt=0, description="larger payloads are rejected")
     log_level: str = Field("INFO", description="logging level")

@@ -39,9 +39,10 @@ class Settings(NodeSettings):
     rate_hz: float = Field(10.0, gt=0, description="planning rate when trigger == 'rate' [Hz]")
     max_state_age_s: float = Field(0.5, gt=0, description="do not plan from a state older than this [s]")
     compensate_delay: bool = Field(
-        True, description="plan from the state predicted to when the command takes effect (state age + compute + "
+        True,
+        description="plan from the state predicted to when the command takes effect (state age + compute + "
         "actuation_delay_s), not from the measured one; the age is this host's clock minus the state's stamp, so "
-        "the two clocks must agree (one host, or synchronised clocks): turn it off otherwise"
+        "the two clocks must agree (one host, or synchronised clocks): turn it off otherwise",
     )
     actuation_delay_s: float = Field(
         0.005, ge=0, le=0.5, description="from publishing `cmd` to the base applying it (egress hop, base tick) [s]"
@@ -74,7 +75,10 @@ def load_model(model_file: str | None) -> GPModel:
 
 
 def plan_message(
-    result: PlanResult, stamp_ns: int, task: LaneTask | GoalTask, n_samples: int,
+    result: PlanResult,
+    stamp_ns: int,
+    task: LaneTask | GoalTask,
+    n_samples: int,
     extra_timings_ms: dict[str, float] | None = None,
 ) -> Plan:
     from gpmppi.tasks import GoalTask
@@ -186,8 +190,10 @@ def run(settings: Settings) -> int:
                 continue
             cov = None if latest.covariance is None else np.reshape(latest.covariance, (5, 5))
             if cov is not None and (np.any(np.diag(cov) < 0) or not np.allclose(cov, cov.T)):
-                node.reject("state covariance is not a covariance (negative variance or asymmetric): planned with "
-                            "the configured state_std instead")
+                node.reject(
+                    "state covariance is not a covariance (negative variance or asymmetric): planned with "
+                    "the configured state_std instead"
+                )
                 cov = None
             # the command acts once this plan is computed (about as long as the last one) and has reached the base
             delay_s = max(0.0, age_s) + last_plan_s + settings.actuation_delay_s if settings.compensate_delay else 0.0
@@ -211,8 +217,11 @@ def run(settings: Settings) -> int:
                 fields = {k: None if v is None else round(v, 3) for k, v in startup.items()}
                 node.log.info("first command", extra={"fields": fields})
             if cycle % settings.plan_every == 0:
-                plan_pub.put(plan_message(result, latest.header.stamp_ns, task, settings.plan_samples,
-                                          {"state_to_cmd": state_to_cmd_ms}))
+                plan_pub.put(
+                    plan_message(
+                        result, latest.header.stamp_ns, task, settings.plan_samples, {"state_to_cmd": state_to_cmd_ms}
+                    )
+                )
             cycle += 1
             node.cycle()
             node.spin_once(0.0)

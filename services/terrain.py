@@ -26,8 +26,10 @@ class Settings(NodeSettings):
     model_file: str | None = Field(None, description="GP model file (None: the shipped model)")
     history: int = Field(20, ge=1, description="steps H kept for the weight problem")
     gamma: float = Field(
-        0.1, ge=0, description="L1 weight on changes of the weights between solves (in units of the fit: the mean "
-        "squared velocity residual per step divided by the model's noise variance)"
+        0.1,
+        ge=0,
+        description="L1 weight on changes of the weights between solves (in units of the fit: the mean "
+        "squared velocity residual per step divided by the model's noise variance)",
     )
     dt: float = Field(0.1, gt=0, description="expected time between states (the GP model's step) [s]")
     dt_tolerance: float = Field(0.5, gt=0, description="skip pairs whose spacing differs from dt by more (fraction)")

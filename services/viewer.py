@@ -21,7 +21,8 @@ from pydantic import Field
 
 from schemas import DecodeError, decode, model_for_key
 from services.node import Node, NodeSettings
-from services.rerun_map import RerunMapper, ViewOptions, open_stream
+from services.rerun_map import RerunMapper, ViewOptions
+from services.rerun_stream import open_stream
 
 
 class Settings(NodeSettings):

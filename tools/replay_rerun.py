@@ -99,7 +99,8 @@ def convert(
     Returns {"messages", "log_duration_s", "wall_s"} plus "skipped" (topic -> messages not converted, with a
     reason each in "skipped_reasons") and "output" (save mode)."""
     from services import mcap_io
-    from services.rerun_map import RerunMapper, ViewOptions, open_stream
+    from services.rerun_map import RerunMapper, ViewOptions
+    from services.rerun_stream import open_stream
 
     path = Path(path)
     if mode not in MODES:
