@@ -35,7 +35,12 @@ class Settings(NodeSettings):
     queue: int = Field(
         4000, gt=0, description="samples waiting for the viewer at most; beyond, the oldest are dropped (counted)"
     )
-    flush_s: float = Field(0.25, gt=0, description="time series are sent to rerun in columns this often [s]")
+    flush_s: float = Field(
+        0.25, gt=0, description="live modes: data is sent to rerun in chunks (time series in columns) this often [s]"
+    )
+    save_flush_s: float = Field(
+        2.0, gt=0, description="mode 'save': the same for a file, where no one waits and bigger chunks are smaller [s]"
+    )
     samples_every: int = Field(2, ge=1, description="draw the rollouts of every n-th plan")
     max_samples: int = Field(32, ge=0, description="draw at most this many rollouts of a plan")
     sample_stride: int = Field(2, ge=1, description="draw every n-th point along a rollout")
@@ -77,16 +82,17 @@ class Ring:
 
 def run(settings: Settings) -> int:
     rec = None
+    flush_s = settings.save_flush_s if settings.mode == "save" else settings.flush_s
     if settings.mode != "off":
         target = settings.path if settings.mode == "save" else settings.url if settings.mode == "connect" else None
-        rec = open_stream(settings.mode, target, settings.serve_port)
+        rec = open_stream(settings.mode, target, settings.serve_port, batch_s=flush_s)
     mapper = RerunMapper(rec, settings.options()) if rec is not None else None
     try:
         with Node(settings) as node:
             assert node.session is not None
             ring = Ring(settings.queue)
             sub = node.session.declare_subscriber(settings.key_expr, zenoh.handlers.Callback(ring.push))
-            next_flush = time.monotonic() + settings.flush_s
+            next_flush = time.monotonic() + flush_s
             reported_drops = 0
             while node.ok():
                 handled = 0
@@ -110,7 +116,7 @@ def run(settings: Settings) -> int:
                     node.cycle()
                 if mapper is not None and time.monotonic() >= next_flush:
                     mapper.flush()
-                    next_flush = time.monotonic() + settings.flush_s
+                    next_flush = time.monotonic() + flush_s
                 node.spin_once(0.02)
             sub.undeclare()
     finally:
