@@ -212,3 +212,31 @@ def test_ring_never_blocks_and_drops_the_oldest() -> None:
         ring.push(i)  # type: ignore[arg-type]
     assert ring.dropped == 2
     assert [ring.pop(), ring.pop(), ring.pop(), ring.pop()] == [2, 3, 4, None]
+
+
+def test_goal_task_shows_obstacles_inflation_and_goal(tmp_path: Path) -> None:
+    from schemas import Circle, Command, Plan, Task
+
+    log = tmp_path / "goal.mcap"
+    t0 = 1_700_000_000_000_000_000
+    task = Task(kind="goal", goal=[8.0, 0.0], obstacles=[Circle(x=4.0, y=0.2, r=0.5), Circle(x=6.0, y=-1.0, r=0.7)])
+    task.header.stamp_ns = t0
+    with McapWriter(log) as w:
+        w.write("gpmppi/r1/task", task, log_time_ns=t0)
+        for i in range(10):
+            t = t0 + (i + 1) * 100_000_000
+            plan = Plan(
+                command=Command(v_ref=1.0, omega_ref=0.0), controls=[[1.0, 0.0]] * 10,
+                states=[[0.1 * k, 0.0, 0.0, 1.0, 0.0] for k in range(11)], cov_xy=[[1e-3, 0.0, 1e-3]] * 11,
+                tightened=[0.05 * k for k in range(11)],
+                samples=[[[0.1 * k, 0.01 * j] for k in range(11)] for j in range(4)],
+                sample_costs=[1.0, 2.0, 3.0, 4.0],
+            )  # fmt: skip
+            plan.header.stamp_ns, plan.header.seq = t, i
+            w.write("gpmppi/r1/plan", plan, log_time_ns=t)
+    out = tmp_path / "goal.rrd"
+    convert(log, "save", str(out))
+    rows, static, events = read_rrd(out)
+    assert {"/map/obstacles", "/map/goal"} <= static
+    assert rows["/map/obstacles_inflated"] == 10 and rows["/plots/tightening/last"] == 10
+    assert "/map/lane/tightened" not in rows and any("task: goal" in e for e in events)
