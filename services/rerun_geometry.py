@@ -29,6 +29,20 @@ def ellipse(cx: float, cy: float, sxx: float, sxy: float, syy: float, n_sigma: f
     return np.array([cx, cy]) + n_sigma * (unit * np.sqrt(vals)) @ vecs.T
 
 
+def ellipses(centres: np.ndarray, covs: np.ndarray, n_sigma: float = 2.0, n: int = 16) -> np.ndarray:
+    """K x (n+1) x 2 closed polylines of the n_sigma ellipses of K position covariances [sxx, sxy, syy] [m^2]
+    about K centres (a 2 x 2 eigen-decomposition in closed form, for all at once)."""
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+    sxx, sxy, syy = np.asarray(covs, dtype=np.float64).reshape(-1, 3).T
+    mean, diff = (sxx + syy) / 2, np.sqrt(((sxx - syy) / 2) ** 2 + sxy**2)
+    l1, l2 = np.clip(mean + diff, 0.0, None), np.clip(mean - diff, 0.0, None)
+    angle = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # of the major axis
+    a = np.linspace(0.0, 2.0 * np.pi, n + 1)
+    u, v = n_sigma * np.sqrt(l1)[:, None] * np.cos(a), n_sigma * np.sqrt(l2)[:, None] * np.sin(a)
+    ca, sa = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    return np.stack([c[:, :1] + u * ca - v * sa, c[:, 1:] + u * sa + v * ca], axis=2)
+
+
 def offset(polyline: np.ndarray, distance: np.ndarray | float, closed: bool) -> np.ndarray:
     """The polyline shifted left by `distance` [m] (per vertex or constant) along its normals (closed: the first
     point is repeated at the end)."""
@@ -48,21 +62,24 @@ def closed_polyline(points: np.ndarray, closed: bool) -> np.ndarray:
 
 
 def project_to_lane(points: np.ndarray, centerline: np.ndarray, closed: bool) -> tuple[np.ndarray, np.ndarray]:
-    """For each point, its nearest point on the centre polyline and the lane's left unit normal there."""
+    """For each point, its nearest point on the centre polyline and the lane's left unit normal there (searched
+    on the two segments next to the nearest vertex: exact for lanes whose turns are wider than the lane)."""
     c = np.asarray(centerline, dtype=np.float64)
-    a = c if closed else c[:-1]
-    b = np.roll(c, -1, axis=0) if closed else c[1:]
-    seg = b - a  # S x 2
-    seg_len2 = np.maximum(np.einsum("ij,ij->i", seg, seg), 1e-12)
-    p = np.asarray(points, dtype=np.float64)[:, None, :]  # P x 1 x 2
-    t = np.clip(np.einsum("psk,sk->ps", p - a[None], seg) / seg_len2[None], 0.0, 1.0)  # P x S
-    foot = a[None] + t[..., None] * seg[None]  # P x S x 2
-    d2 = np.einsum("psk,psk->ps", foot - p, foot - p)
-    best = np.argmin(d2, axis=1)
-    rows = np.arange(p.shape[0])
-    tangent = seg[best] / np.sqrt(seg_len2[best])[:, None]
-    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-    return foot[rows, best], normal
+    p = np.asarray(points, dtype=np.float64)
+    m = len(c)
+    d2 = ((p[:, None, :] - c[None]) ** 2).sum(axis=2)  # P x M
+    v = np.argmin(d2, axis=1)
+    starts = np.stack([v - 1, v], axis=1)  # the segments ending and starting at the nearest vertex
+    starts = starts % m if closed else np.clip(starts, 0, m - 2)
+    a, b = c[starts], c[(starts + 1) % m]  # P x 2 x 2
+    seg = b - a
+    seg_len2 = np.maximum((seg**2).sum(axis=2), 1e-12)
+    t = np.clip(((p[:, None, :] - a) * seg).sum(axis=2) / seg_len2, 0.0, 1.0)
+    foot = a + t[..., None] * seg
+    best = np.argmin(((foot - p[:, None, :]) ** 2).sum(axis=2), axis=1)
+    rows = np.arange(len(p))
+    tangent = seg[rows, best] / np.sqrt(seg_len2[rows, best])[:, None]
+    return foot[rows, best], np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
 
 
 def tightened_bounds(
@@ -98,3 +115,9 @@ def cost_colors(costs: np.ndarray) -> np.ndarray:
     i = np.minimum(x.astype(int), len(_RAMP) - 2)
     f = (x - i)[:, None]
     return np.round(_RAMP[i] * (1 - f) + _RAMP[i + 1] * f).astype(np.uint8)
+
+
+def pack_rgba(colors: np.ndarray) -> np.ndarray:
+    """N x 4 uint8 RGBA as N packed 0xRRGGBBAA uint32 (rerun takes these without conversion)."""
+    c = np.asarray(colors, dtype=np.uint32)
+    return (c[:, 0] << 24) | (c[:, 1] << 16) | (c[:, 2] << 8) | c[:, 3]

@@ -285,10 +285,8 @@ class RerunMapper:
                 n = min(len(msg.cov_xy), len(states))
                 every = self.opt.ellipse_every
                 # from step `every` on (step 0 is the known start, no spread) and always the horizon's end
-                ellipses = [
-                    geo.ellipse(states[k, 0], states[k, 1], *msg.cov_xy[k])
-                    for k in sorted({*range(every, n, every), n - 1})
-                ]
+                ks = sorted({*range(every, n, every), n - 1})
+                ellipses = geo.ellipses(states[ks, :2], np.asarray(msg.cov_xy, dtype=np.float64)[ks])
                 self._static(
                     "map/plan/covariance",
                     rr.LineStrips2D.from_fields(colors=[(150, 60, 220)], radii=[0.02], draw_order=DRAW["covariance"]),
@@ -305,7 +303,7 @@ class RerunMapper:
             keep = np.unique(np.r_[np.arange(0, rollouts.shape[1], self.opt.sample_stride), rollouts.shape[1] - 1])
             self.rec.log(
                 "map/plan/rollouts",
-                rr.LineStrips2D.from_fields(strips=rollouts[:, keep], colors=geo.cost_colors(costs)),
+                rr.LineStrips2D.from_fields(strips=rollouts[:, keep], colors=geo.pack_rgba(geo.cost_colors(costs))),
             )
         if msg.sample_costs:
             costs = np.asarray(msg.sample_costs, dtype=np.float64)

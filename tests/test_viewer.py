@@ -52,6 +52,18 @@ def test_tightened_bounds_sit_at_the_tightened_half_width_from_the_centre() -> N
     np.testing.assert_allclose(np.linalg.norm(right, axis=1), 10 + r, atol=2e-3)
 
 
+def test_ellipses_lie_at_two_sigma() -> None:
+    covs = np.array([[0.04, 0.01, 0.02], [0.09, -0.02, 0.01], [1e-4, 0.0, 1e-4]])
+    centres = np.array([[1.0, 2.0], [-3.0, 0.5], [0.0, 0.0]])
+    curves = geo.ellipses(centres, covs)
+    for c, (sxx, sxy, syy), pts in zip(centres, covs, curves, strict=True):
+        d = pts - c
+        inv = np.linalg.inv(np.array([[sxx, sxy], [sxy, syy]]))
+        np.testing.assert_allclose(np.einsum("ni,ij,nj->n", d, inv, d), 4.0, rtol=1e-6)
+        np.testing.assert_allclose(pts[0], pts[-1], atol=1e-12)  # closed
+    assert geo.pack_rgba(np.array([[1, 2, 3, 4]], dtype=np.uint8))[0] == 0x01020304
+
+
 def test_cost_colours_rank_low_to_high_and_robot_points_forward() -> None:
     colors = geo.cost_colors(np.array([5.0, 1.0, 1e9, np.inf]))
     # cheapest teal-ish (green > red), the most expensive red (red > green)

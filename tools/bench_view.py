@@ -120,7 +120,8 @@ def tiled_log(source: Path, path: Path, duration_s: float) -> int:
 def view_numbers(log: Path | None, minutes: list[float], samples: int) -> dict:
     from tools.replay_rerun import convert
 
-    out: dict = {"runs": []}
+    # the machine's 1-minute load average: conversion speed on a loaded machine is not that of an idle one
+    out: dict = {"load_avg_1min": round(os.getloadavg()[0], 2), "runs": []}
     with tempfile.TemporaryDirectory(prefix="gpmppi-bench-view-") as tmp:
         for m in minutes:
             mcap = Path(tmp) / f"run_{m:g}min.mcap"
@@ -336,6 +337,7 @@ def register(bench_app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(result))
             return
+        typer.echo(f"load average (1 min) at start: {result['load_avg_1min']}")
         for r in result["runs"]:
             typer.echo(
                 f"{r['minutes']:>4g} min: {r['messages']} messages, mcap {r['mcap_bytes'] / 1e6:.2f} MB, rrd "
