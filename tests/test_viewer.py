@@ -167,6 +167,8 @@ def test_bad_files_give_clear_errors_and_leave_no_output(tmp_path: Path) -> None
         convert(tmp_path / "text.mcap", "save", str(out))
     with pytest.raises(ValueError, match="not one of"):
         convert(tmp_path / "text.mcap", "play", None)
+    with pytest.raises(ValueError, match="optional gRPC port"):
+        convert(tmp_path / "text.mcap", "serve", "not-a-port")
     with pytest.raises(ValueError, match="bad topic regex"):
         convert(tmp_path / "text.mcap", "save", str(out), keys="(")
     assert not out.exists() and not list(tmp_path.glob("*.part"))

@@ -93,7 +93,8 @@ def convert(
     """Convert the log at `path` (and its rotated parts) to rerun.
 
     mode: 'save' (target: the .rrd path, written whole or not at all), 'spawn' (a local viewer), 'connect'
-    (target: a viewer's gRPC URL) or 'serve' (a gRPC server; blocks until Ctrl-C so viewers can connect).
+    (target: a viewer's gRPC URL) or 'serve' (a gRPC server on port target, default 9876; blocks until Ctrl-C
+    so viewers can connect).
     start_s / end_s: seconds into the log (log time). keys / exclude: regexes searched in the topic.
     options: a `services.rerun_map.ViewOptions` (decimation), default the viewer's defaults.
     Returns {"messages", "log_duration_s", "wall_s"} plus "skipped" (topic -> messages not converted, with a
@@ -116,6 +117,11 @@ def convert(
         raise ValueError(f"bad topic regex ({exc}); --keys and --exclude take Python regular expressions") from exc
     if start_s is not None and end_s is not None and end_s < start_s:
         raise ValueError(f"--end {end_s} s is before --start {start_s} s")
+    serve_port = 9876
+    if mode == "serve" and target:
+        if not target.isdigit() or not 0 < int(target) < 65536:
+            raise ValueError(f"--rerun serve takes an optional gRPC port number, not {target!r}")
+        serve_port = int(target)
     _check_file(path)
 
     t0 = time.perf_counter()
@@ -126,7 +132,7 @@ def convert(
 
     out_path = Path(target) if mode == "save" and target else None
     tmp_path = out_path.with_name(out_path.name + ".part") if out_path is not None else None
-    rec = open_stream(mode, str(tmp_path) if tmp_path is not None else target, batch_s=2.0)
+    rec = open_stream(mode, str(tmp_path) if tmp_path is not None else target, serve_port, batch_s=2.0)
     mapper = RerunMapper(rec, options if isinstance(options, ViewOptions) else ViewOptions())
     counter = _SkipCounter()
     io_log = logging.getLogger(mcap_io.__name__)
