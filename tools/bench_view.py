@@ -127,12 +127,16 @@ def view_numbers(log: Path | None, minutes: list[float], samples: int) -> dict:
             mcap = Path(tmp) / f"run_{m:g}min.mcap"
             n = tiled_log(log, mcap, m * 60) if log else synthetic_log(mcap, m * 60, samples=samples)
             rrd = Path(tmp) / f"run_{m:g}min.rrd"
+            cpu0 = time.process_time()
             r = convert(mcap, "save", str(rrd))
+            cpu_s = time.process_time() - cpu0  # all of this process's threads (rerun encodes on its own)
             size = rrd.stat().st_size
             out["runs"].append({
                 "minutes": m, "messages": n, "mcap_bytes": mcap.stat().st_size, "rrd_bytes": size,
                 "rrd_bytes_per_min": round(size / m), "convert_wall_s": r["wall_s"],
                 "speed_x_real_time": round(r["log_duration_s"] / r["wall_s"], 1),
+                # log seconds per CPU second: what an unloaded core would do (the wall figure depends on the load)
+                "convert_cpu_s": round(cpu_s, 2), "speed_x_real_time_per_cpu": round(r["log_duration_s"] / cpu_s, 1),
             })  # fmt: skip
     runs = out["runs"]
     if len(runs) >= 2:
@@ -321,6 +325,15 @@ def transport_stall_numbers(
         }  # fmt: skip
     r, s_ = result["running"]["p99_ms"], result["stopped"]["p99_ms"]
     result["p99_stopped_minus_running_ms"] = round(s_ - r, 3) if r is not None and s_ is not None else None
+    # per pair of neighbouring windows (running, then stopped): the difference of their p99s. Its median is robust
+    # to a burst of load from elsewhere on the machine landing in one window
+    per_window = []
+    for _, lo, hi in phases:
+        lat = [latencies[i] for i in range(lo, hi) if i in latencies]
+        per_window.append(float(np.percentile(lat, 99)) if lat else float("nan"))
+    diffs = [per_window[k + 1] - per_window[k] for k in range(0, len(per_window) - 1, 2)]
+    result["pair_p99_differences_ms"] = [round(d, 2) for d in diffs]
+    result["median_pair_p99_difference_ms"] = round(float(np.median(diffs)), 3) if diffs else None
     return result
 
 
@@ -342,7 +355,8 @@ def register(bench_app: typer.Typer) -> None:
             typer.echo(
                 f"{r['minutes']:>4g} min: {r['messages']} messages, mcap {r['mcap_bytes'] / 1e6:.2f} MB, rrd "
                 f"{r['rrd_bytes'] / 1e6:.2f} MB = {r['rrd_bytes_per_min'] / 1e6:.3f} MB/min; converted in "
-                f"{r['convert_wall_s']:.2f} s = {r['speed_x_real_time']}x real time"
+                f"{r['convert_wall_s']:.2f} s = {r['speed_x_real_time']}x real time ({r['convert_cpu_s']:.2f} CPU s = "
+                f"{r['speed_x_real_time_per_cpu']}x per CPU second)"
             )
         if "bytes_per_min_ratio_last_to_first" in result:
             typer.echo(
