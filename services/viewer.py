@@ -93,7 +93,7 @@ def run(settings: Settings) -> int:
             ring = Ring(settings.queue)
             sub = node.session.declare_subscriber(settings.key_expr, zenoh.handlers.Callback(ring.push))
             next_flush = time.monotonic() + flush_s
-            reported_drops = 0
+            reported_drops, last_drop = 0, 0.0
             while node.ok():
                 handled = 0
                 while handled < 2000 and (sample := ring.pop()) is not None:
@@ -110,8 +110,10 @@ def run(settings: Settings) -> int:
                     handled += 1
                 if ring.dropped != reported_drops:
                     node.counters.count("dropped", ring.dropped - reported_drops)
-                    node.counters.status = "degraded"
-                    reported_drops = ring.dropped
+                    node.counters.status = "degraded"  # the view has gaps; ok again after 10 s without drops
+                    reported_drops, last_drop = ring.dropped, time.monotonic()
+                elif node.counters.status == "degraded" and time.monotonic() - last_drop > 10.0:
+                    node.counters.status = "ok"
                 if handled:
                     node.cycle()
                 if mapper is not None and time.monotonic() >= next_flush:

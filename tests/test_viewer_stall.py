@@ -65,3 +65,36 @@ def test_live_viewer_service_writes_the_view(tmp_path: Path) -> None:
             rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
     assert rows["/plots/v/state"] == 30 and rows["/map/robot"] == 30
     assert {"/map/lane/edges", "/map/lane/centre"} <= static
+
+
+def test_viewer_that_falls_behind_drops_the_oldest_and_says_so(tmp_path: Path) -> None:
+    """A burst larger than the viewer's queue: the oldest samples are dropped (never a blocked sender), counted
+    as `dropped` in its heartbeat, with status degraded."""
+    from schemas import State, encode
+
+    port = free_port()
+    with router(port):
+        observer = client(port)
+        col = Collector(observer, "gpmppi/r1/health/viewer")
+        viewer = ServiceProcess("viewer", settings("viewer", port, mode="off", queue=5), tmp_path)
+        try:
+            assert wait_for(lambda: len(heartbeats(col, "r1", "viewer")) >= 1, 60.0), viewer.log()
+            payload = encode(State(x=0.0, y=0.0, theta=0.0, v=0.0, omega=0.0))
+            pub = observer.declare_publisher("gpmppi/r1/state")
+            t = time.perf_counter()
+            for _ in range(3000):
+                pub.put(payload)
+            burst_s = time.perf_counter() - t
+
+            def dropped() -> int:
+                hbs = heartbeats(col, "r1", "viewer")
+                return hbs[-1].counts.get("dropped", 0) if hbs else 0
+
+            assert wait_for(lambda: dropped() > 0, 10.0), viewer.log()
+            hb = heartbeats(col, "r1", "viewer")[-1]
+            assert hb.status == "degraded"
+            assert burst_s < 5.0  # the sender was never held up by the viewer's small queue
+        finally:
+            code = viewer.stop(20.0)
+            observer.close()
+    assert code == 0, viewer.log()
