@@ -1,5 +1,5 @@
 """The launcher (supervisor): `gpmppi launch [LAUNCH.yaml] [--duration S] [--record FILE.mcap]
-[--rerun spawn|save FILE|connect URL|off] [--port N] [--secrets DIR]`.
+[--rerun spawn|save FILE|connect URL|serve|off] [--port N] [--secrets DIR]`.
 
 Starts the Zenoh router and each service as its own process (`python -m services.run NAME --config FILE`),
 prefixes their logs, restarts a crashed service with backoff (a thread waits on each process, so a death is
@@ -285,8 +285,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         "--secrets", default=None, metavar="DIR", help="run secured with the identities of `gpmppi secure init DIR`"
     )
     args = parser.parse_args(argv)
-    if args.rerun and (args.rerun[0] not in ("spawn", "save", "connect", "off") or len(args.rerun) > 2):
-        parser.error(f"--rerun takes spawn | save FILE | connect URL | off, got {' '.join(args.rerun)}")
+    if args.rerun and (args.rerun[0] not in ("spawn", "save", "connect", "serve", "off") or len(args.rerun) > 2):
+        parser.error(f"--rerun takes spawn | save FILE | connect URL | serve | off, got {' '.join(args.rerun)}")
     return args
 
 

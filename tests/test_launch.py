@@ -150,7 +150,7 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     from rerun.chunk import RrdReader
 
     paths = {str(c.entity_path) for c in RrdReader(rrd).stream().to_chunks()}
-    assert {"/map/robot", "/map/plan/nominal", "/map/lane/edges", "/plots/velocity/v"} <= paths
+    assert {"/map/robot", "/map/plan/nominal", "/map/lane/edges", "/plots/v/state"} <= paths
     # the stack plans for the state its command meets (each state's age + compute + actuation), the reference for
     # the state after the stack's median latency: both compensate the latency they have
     assert over_zenoh <= 1.5 * reference, f"over Zenoh {over_zenoh:.0f} mm vs in-process {reference:.0f} mm"

@@ -28,7 +28,7 @@ def register(app: typer.Typer) -> None:
     @app.command("launch", context_settings=PASS_THROUGH)
     def launch(ctx: typer.Context) -> None:
         """Run a launch file: [LAUNCH.yaml] [--duration S] [--record FILE.mcap]
-        [--rerun spawn|save FILE|connect URL|off] [--port N] [--secrets DIR]. No file: the simulated Jackal on the
+        [--rerun spawn|save FILE|connect URL|serve|off] [--port N] [--secrets DIR]. No file: the simulated Jackal on the
         circle lane. --secrets DIR (from `gpmppi secure init DIR`) runs it with authentication and access control."""
         from services.launcher import main
 

@@ -1,0 +1,387 @@
+"""The one message -> rerun mapping, shared by the viewer service (live) and the offline converter (replay).
+
+Everything is on one timeline, `stamp` (the header stamp; the receive or log time when a message has none).
+Growth is linear in the run's length:
+- styling (colours, widths, names, draw order) is logged once, static;
+- time series are buffered and sent as columns (`send_columns`), one chunk per series per flush;
+- the driven path is extended incrementally: the robot's positions go in short strips, one entity per
+  `path_chunk` states, each strip re-logged only while it grows, so a state costs at most `path_chunk` points;
+- the per-plan rollouts are decimated by `samples_every` / `max_samples`, the ellipses by `ellipse_every`.
+Events (watchdog, e-stop, restarts, rejected input, status changes) go to a text log, `events`, when they change.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from schemas import BaseCommand, Command, EStop, Heartbeat, Message, Plan, State, Task, TerrainWeights
+from services import rerun_geometry as geo
+
+if TYPE_CHECKING:
+    import rerun as rr
+
+TIMELINE = "stamp"
+EVENTS = "events"
+
+# (entity, legend name, RGB colour, line width [px]) of every fixed time series
+SERIES: dict[str, tuple[str, tuple[int, int, int], float]] = {
+    "plots/v/state": ("v (state)", (30, 120, 255), 2.0),
+    "plots/v/cmd": ("v_ref (planner)", (255, 150, 0), 1.5),
+    "plots/v/base": ("v (base cmd)", (40, 40, 40), 1.0),
+    "plots/omega/state": ("omega (state)", (30, 120, 255), 2.0),
+    "plots/omega/cmd": ("omega_ref (planner)", (255, 150, 0), 1.5),
+    "plots/omega/base": ("omega (base cmd)", (40, 40, 40), 1.0),
+    "plots/tightening/nominal": ("lane half-width", (90, 90, 90), 1.0),
+    "plots/tightening/first": ("tightened, step 1", (230, 170, 0), 2.0),
+    "plots/tightening/last": ("tightened, last step", (200, 90, 0), 2.0),
+    "plots/cost/min": ("min rollout cost", (20, 150, 130), 2.0),
+    "plots/cost/median": ("median rollout cost", (215, 50, 50), 1.5),
+}
+PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+           (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]  # fmt: skip
+
+# map layers, bottom to top
+DRAW = {"edges": 10.0, "centre": 11.0, "tightened": 12.0, "inflated": 13.0, "obstacles": 14.0, "goal": 15.0,
+        "samples": 20.0, "covariance": 25.0, "nominal": 30.0, "path": 40.0, "robot": 50.0}  # fmt: skip
+ROBOT_COLOUR = (200, 0, 110)  # magenta: apart from the blue path, the orange plan and the grey lane
+
+
+@dataclass
+class ViewOptions:
+    """How much per-plan data is drawn (the big part of a recording)."""
+
+    samples_every: int = 2  # draw the rollouts of every n-th plan
+    max_samples: int = 32  # at most this many rollouts of a plan
+    sample_stride: int = 2  # every n-th point along a rollout
+    ellipse_every: int = 8  # every n-th covariance ellipse of the plan
+    path_chunk: int = 50  # driven-path states per strip entity
+    timing_warmup_plans: int = 5  # a (re)started planner's first plans: reported as an event, not plotted
+
+
+def _strips(strips: list) -> np.ndarray | list[np.ndarray]:
+    """Strips as one float32 array when they have the same length (rerun's fast path), else a list."""
+    if len({len(p) for p in strips}) == 1:
+        return np.asarray(strips, dtype=np.float32)
+    return [np.asarray(p, dtype=np.float32) for p in strips]
+
+
+class RerunMapper:
+    """Logs gpmppi messages to one rerun recording stream; `flush()` sends the buffered time series."""
+
+    def __init__(self, rec: rr.RecordingStream, options: ViewOptions | None = None) -> None:
+        self.rec = rec
+        self.opt = options or ViewOptions()
+        self.task: Task | None = None
+        self._series: dict[str, tuple[list[int], list[float]]] = {}
+        self._styled: set[str] = set()
+        self._path_chunk_index = 0
+        self._path_points: list[list[float]] = []
+        self._plans = 0  # plans since the planner (re)started
+        self._plan_seq = -1
+        self._warmup_ms: list[float] = []
+        self._terrain_names: list[str] = []
+        self._last_reason: str | None = None
+        self._estop: bool | None = None
+        self._stale: bool | None = None
+        self._solver_ok: bool | None = None
+        self._health: dict[str, Heartbeat] = {}
+        self.buffered = 0
+
+    # ---- time helpers ---------------------------------------------------------------------
+    def _at(self, stamp_ns: int) -> None:
+        self.rec.set_time(TIMELINE, timestamp=np.datetime64(int(stamp_ns), "ns"))
+
+    def _static(self, entity: str, archetype: Any) -> None:
+        if entity not in self._styled:
+            self._styled.add(entity)
+            self.rec.log(entity, archetype, static=True)
+
+    def _scalar(self, entity: str, stamp_ns: int, value: float, name: str | None = None) -> None:
+        import rerun as rr
+
+        if entity not in self._styled:
+            if entity in SERIES:
+                label, color, width = SERIES[entity]
+            else:
+                label, width = name or entity.rsplit("/", 1)[-1], 1.5
+                color = PALETTE[len([e for e in self._styled if e.startswith(entity.rsplit("/", 1)[0])]) % 10]
+            self._static(entity, rr.SeriesLines(colors=[color], names=[label], widths=[width]))
+        ts, vs = self._series.setdefault(entity, ([], []))
+        ts.append(int(stamp_ns))
+        vs.append(float(value))
+        self.buffered += 1
+
+    def flush(self) -> None:
+        """Send the buffered time series, one column chunk per series."""
+        import rerun as rr
+
+        for entity, (ts, vs) in self._series.items():
+            if ts:
+                self.rec.send_columns(
+                    entity,
+                    indexes=[rr.TimeColumn(TIMELINE, timestamp=np.asarray(ts, dtype="datetime64[ns]"))],
+                    columns=rr.Scalars.columns(scalars=np.asarray(vs, dtype=np.float64)),
+                )
+                ts.clear()
+                vs.clear()
+        self.buffered = 0
+
+    def event(self, stamp_ns: int, text: str, level: str = "INFO") -> None:
+        import rerun as rr
+
+        self._at(stamp_ns)
+        self.rec.log(EVENTS, rr.TextLog(text, level=level))
+
+    # ---- messages -------------------------------------------------------------------------
+    def log(self, key: str, msg: Message, fallback_ns: int) -> None:
+        """Map one message received on `key`; `fallback_ns` is used when its header has no stamp."""
+        t = msg.header.stamp_ns or fallback_ns
+        if isinstance(msg, State):
+            if key.endswith("/state"):  # the plant's own odometry (odom/raw) is the estimator's input, not shown
+                self._state(msg, t)
+        elif isinstance(msg, Plan):
+            self._plan(msg, t)
+        elif isinstance(msg, Command):
+            self._scalar("plots/v/cmd", t, msg.v_ref)
+            self._scalar("plots/omega/cmd", t, msg.omega_ref)
+        elif isinstance(msg, BaseCommand):
+            self._base(msg, t)
+        elif isinstance(msg, TerrainWeights):
+            self._weights(msg, t)
+        elif isinstance(msg, Task):
+            self._task(msg, t)
+        elif isinstance(msg, Heartbeat):
+            self._heartbeat(msg, t)
+        elif isinstance(msg, EStop):
+            if msg.engaged != self._estop:
+                self._estop = msg.engaged
+                state = "engaged" if msg.engaged else "released"
+                self.event(
+                    t, f"e-stop {state}{': ' + msg.reason if msg.reason else ''}", "WARN" if msg.engaged else "INFO"
+                )
+
+    def _state(self, msg: State, t: int) -> None:
+        import rerun as rr
+
+        self._at(t)
+        self._static(
+            "map/robot", rr.LineStrips2D.from_fields(colors=[ROBOT_COLOUR], radii=[0.05], draw_order=DRAW["robot"])
+        )
+        self.rec.log(
+            "map/robot", rr.LineStrips2D.from_fields(strips=_strips([geo.robot_outline(msg.x, msg.y, msg.theta)]))
+        )
+        # the driven path: a strip per `path_chunk` states, starting where the previous one ended
+        if len(self._path_points) >= self.opt.path_chunk:
+            self._path_chunk_index += 1
+            self._path_points = self._path_points[-1:]
+        self._path_points.append([msg.x, msg.y])
+        entity = f"map/driven_path/{self._path_chunk_index:05d}"
+        self._static(entity, rr.LineStrips2D.from_fields(colors=[(0, 60, 200)], radii=[0.05], draw_order=DRAW["path"]))
+        if len(self._path_points) >= 2:
+            self.rec.log(entity, rr.LineStrips2D.from_fields(strips=_strips([self._path_points])))
+        self._scalar("plots/v/state", t, msg.v)
+        self._scalar("plots/omega/state", t, msg.omega)
+
+    def _base(self, msg: BaseCommand, t: int) -> None:
+        self._scalar("plots/v/base", t, msg.v)
+        self._scalar("plots/omega/base", t, msg.omega)
+        # planner and limit alternate all the time (a limited planner command): events are the safety overrides
+        reason = msg.reason if msg.reason in ("watchdog", "estop") else "planner"
+        if reason != self._last_reason:
+            if reason != "planner":
+                self.event(t, f"egress: {reason} override, base command v {msg.v:.2f} omega {msg.omega:.2f}", "WARN")
+            elif self._last_reason is not None:
+                self.event(t, f"egress: {self._last_reason} override ended, planner commands again")
+            self._last_reason = reason
+
+    def _weights(self, msg: TerrainWeights, t: int) -> None:
+        for name, w in zip(msg.names, msg.weights, strict=True):
+            self._scalar(f"plots/terrain/{name}", t, w, name)
+        if msg.solver_ok != self._solver_ok:
+            if self._solver_ok is not None or not msg.solver_ok:
+                text = "terrain: weight solve failed, weights kept" if not msg.solver_ok else "terrain: solving again"
+                self.event(t, text, "WARN" if not msg.solver_ok else "INFO")
+            self._solver_ok = msg.solver_ok
+
+    def _task(self, msg: Task, t: int) -> None:
+        import rerun as rr
+
+        if self.task is not None and self.task.model_dump(exclude={"header"}) == msg.model_dump(exclude={"header"}):
+            return
+        first = self.task is None
+        self.task = msg
+        if msg.kind == "lane":
+            c = np.asarray(msg.centerline, dtype=np.float64)
+            edges = [geo.offset(c, msg.half_width, msg.closed), geo.offset(c, -msg.half_width, msg.closed)]
+            # the lane is static (the map); a later, different task replaces it
+            self.rec.log(
+                "map/lane/edges",
+                rr.LineStrips2D(edges, colors=[(50, 50, 50)], radii=0.06, draw_order=DRAW["edges"]),
+                static=True,
+            )
+            self.rec.log(
+                "map/lane/centre",
+                rr.LineStrips2D(
+                    [geo.closed_polyline(c, msg.closed)],
+                    colors=[(160, 160, 160)],
+                    radii=0.02,
+                    draw_order=DRAW["centre"],
+                ),
+                static=True,
+            )
+            text = f"task: lane, {len(c)} points, half-width {msg.half_width:.2f} m, speed {msg.speed_target:.2f} m/s"
+        else:
+            obs = msg.obstacles
+            if obs:
+                self.rec.log(
+                    "map/obstacles",
+                    rr.Points2D(
+                        [[o.x, o.y] for o in obs],
+                        radii=[o.r for o in obs],
+                        colors=[(200, 40, 40, 220)],
+                        draw_order=DRAW["obstacles"],
+                    ),
+                    static=True,
+                )
+            if msg.goal is not None:
+                self.rec.log(
+                    "map/goal",
+                    rr.LineStrips2D(
+                        [geo.circle(*msg.goal, msg.goal_tolerance)],
+                        colors=[(30, 170, 30)],
+                        radii=0.05,
+                        draw_order=DRAW["goal"],
+                    ),
+                    static=True,
+                )
+            text = f"task: goal {msg.goal}, {len(obs)} obstacles"
+        self.event(t, text if first else "task changed: " + text)
+
+    def _plan(self, msg: Plan, t: int) -> None:
+        import rerun as rr
+
+        if msg.header.seq < self._plan_seq:  # a new planner process counts from 0 again
+            self.event(t, "planner restarted (plan sequence began again)", "WARN")
+            self._plans = 0
+        self._plan_seq = msg.header.seq
+        self._plans += 1
+        if msg.weights_stale != self._stale:
+            if self._stale is not None or msg.weights_stale:
+                text = "planner: terrain weights stale" if msg.weights_stale else "planner: terrain weights fresh again"
+                self.event(t, text, "WARN" if msg.weights_stale else "INFO")
+            self._stale = msg.weights_stale
+        self._at(t)
+        states = np.asarray(msg.states, dtype=np.float64)
+        if states.ndim == 2 and states.shape[0] >= 2:
+            self._static(
+                "map/plan/nominal",
+                rr.LineStrips2D.from_fields(colors=[(255, 140, 0)], radii=[0.06], draw_order=DRAW["nominal"]),
+            )
+            self.rec.log("map/plan/nominal", rr.LineStrips2D.from_fields(strips=_strips([states[:, :2]])))
+            if msg.cov_xy:
+                n = min(len(msg.cov_xy), len(states))
+                every = self.opt.ellipse_every
+                # from step `every` on (step 0 is the known start, no spread) and always the horizon's end
+                ks = sorted({*range(every, n, every), n - 1})
+                ellipses = geo.ellipses(states[ks, :2], np.asarray(msg.cov_xy, dtype=np.float64)[ks])
+                self._static(
+                    "map/plan/covariance",
+                    rr.LineStrips2D.from_fields(colors=[(150, 60, 220)], radii=[0.02], draw_order=DRAW["covariance"]),
+                )
+                self.rec.log("map/plan/covariance", rr.LineStrips2D.from_fields(strips=_strips(ellipses)))
+            if msg.tightened:
+                self._tightened(msg, states, t)
+        if msg.samples and self.opt.max_samples > 0 and (self._plans - 1) % self.opt.samples_every == 0:
+            k = min(len(msg.samples), self.opt.max_samples)
+            costs = np.asarray(msg.sample_costs[:k] if len(msg.sample_costs) >= k else np.zeros(k))
+            self._static("map/plan/rollouts", rr.LineStrips2D.from_fields(radii=[0.02], draw_order=DRAW["samples"]))
+            # every `sample_stride`-th point of each rollout (and its last): smooth curves, a fraction of the bytes
+            rollouts = np.asarray(msg.samples[:k], dtype=np.float32)
+            keep = np.unique(np.r_[np.arange(0, rollouts.shape[1], self.opt.sample_stride), rollouts.shape[1] - 1])
+            self.rec.log(
+                "map/plan/rollouts",
+                rr.LineStrips2D.from_fields(strips=rollouts[:, keep], colors=geo.pack_rgba(geo.cost_colors(costs))),
+            )
+        if msg.sample_costs:
+            costs = np.asarray(msg.sample_costs, dtype=np.float64)
+            finite = costs[np.isfinite(costs)]
+            if finite.size:
+                self._scalar("plots/cost/min", t, float(finite.min()))
+                self._scalar("plots/cost/median", t, float(np.median(finite)))
+        self._timings(msg, t)
+
+    def _tightened(self, msg: Plan, states: np.ndarray, t: int) -> None:
+        import rerun as rr
+
+        task = self.task
+        tightened = np.asarray(msg.tightened, dtype=np.float64)
+        if task is not None and task.kind == "lane":
+            self._scalar("plots/tightening/nominal", t, task.half_width)
+            self._scalar("plots/tightening/first", t, tightened[min(1, len(tightened) - 1)])
+            self._scalar("plots/tightening/last", t, tightened[-1])
+            # per step of the horizon, the tightened half-width on either side of the centre, where the plan is
+            steps = tightened if len(tightened) == len(states) else np.resize(tightened, len(states))
+            bounds = geo.tightened_bounds(states[:, :2], steps, np.asarray(task.centerline), task.closed)
+            if bounds:
+                self._static(
+                    "map/lane/tightened",
+                    rr.LineStrips2D.from_fields(colors=[(240, 180, 0)], radii=[0.05], draw_order=DRAW["tightened"]),
+                )
+                self.rec.log("map/lane/tightened", rr.LineStrips2D.from_fields(strips=_strips(bounds)))
+        else:
+            inflation = float(tightened.max())
+            self._scalar("plots/tightening/first", t, tightened[min(1, len(tightened) - 1)])
+            self._scalar("plots/tightening/last", t, tightened[-1])
+            if task is not None and task.obstacles:
+                circles = [geo.circle(o.x, o.y, o.r + inflation) for o in task.obstacles]
+                self._static(
+                    "map/obstacles_inflated",
+                    rr.LineStrips2D.from_fields(colors=[(255, 120, 120)], radii=[0.03], draw_order=DRAW["inflated"]),
+                )
+                self.rec.log("map/obstacles_inflated", rr.LineStrips2D.from_fields(strips=_strips(circles)))
+
+    def _timings(self, msg: Plan, t: int) -> None:
+        if self._plans <= self.opt.timing_warmup_plans:
+            self._warmup_ms.append(msg.timings_ms.get("total", max(msg.timings_ms.values(), default=0.0)))
+            if self._plans == self.opt.timing_warmup_plans:
+                worst = max(self._warmup_ms)
+                self.event(t, f"planner start-up: first {self._plans} plans took up to {worst:.0f} ms (not plotted)")
+                self._warmup_ms = []
+            return
+        for name, ms in msg.timings_ms.items():
+            self._scalar(f"plots/planner/{name}", t, ms, name)
+
+    def _heartbeat(self, hb: Heartbeat, t: int) -> None:
+        prev = self._health.get(hb.service)
+        self._health[hb.service] = hb
+        name = hb.service
+        if prev is None:
+            self.event(t, f"{name}: up ({hb.status})", "INFO" if hb.status == "ok" else "WARN")
+            return
+        if hb.header.seq < prev.header.seq or hb.published < prev.published or hb.received < prev.received:
+            self.event(t, f"{name}: restarted", "WARN")
+            return
+        if hb.status != prev.status:
+            level = {"ok": "INFO", "degraded": "WARN", "failing": "ERROR"}[hb.status]
+            self.event(t, f"{name}: status {prev.status} -> {hb.status}", level)
+        if hb.rejected > prev.rejected:
+            self.event(
+                t,
+                f"{name}: rejected {hb.rejected - prev.rejected} input(s) (total {hb.rejected}): {hb.last_error}",
+                "WARN",
+            )
+        elif hb.last_error and hb.last_error != prev.last_error:
+            self.event(t, f"{name}: {hb.last_error}", "WARN")
+        changed = {k: v - prev.counts.get(k, 0) for k, v in hb.counts.items() if v != prev.counts.get(k, 0)}
+        if changed:
+            self.event(
+                t, f"{name}: " + ", ".join(f"{k} {d:+d} (now {hb.counts[k]})" for k, d in sorted(changed.items()))
+            )
+        flipped = {k: v for k, v in hb.flags.items() if v != prev.flags.get(k, False)}
+        if flipped:
+            self.event(
+                t, f"{name}: " + ", ".join(f"{k} {'on' if v else 'off'}" for k, v in sorted(flipped.items())), "WARN"
+            )
