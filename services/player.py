@@ -333,13 +333,14 @@ class Player:
 
 
 def drain(session: zenoh.Session, helper: zenoh.Session, timeout_s: float = 60.0) -> bool:
-    """Wait until the router has taken everything `session` has put (True), so closing it loses nothing in flight.
+    """Wait until the router has received everything `session` has put (True).
 
     A query from `session` to a queryable on a second session `helper` goes through the router on the same link
-    and at the same priority as the data, after it: its reply means the router has forwarded all the data before
-    it (with congestion control BLOCK, into the subscribers' queues, however slow they are). Closing a session with
-    data still queued in its own buffers loses that data (measured: at --speed 0 against a subscriber taking 2 ms
-    per 20 kB message, 660 of 1000 messages were lost when the session was closed right after the last put)."""
+    and at the same priority as the data, after it: its reply means the router has read everything before it.
+    It does not mean the router has delivered it: towards a subscriber much slower than the player, the reply
+    comes within milliseconds while most of the data still waits, and that backlog is lost when the player's
+    session object goes away (measured at --speed 0, 1000 x 20 kB to a subscriber taking 2 ms each: about 190
+    received; see docs/replay.md, known limits)."""
     key = f"gpmppi/_replay/drain/{helper.zid()}"
     queryable = helper.declare_queryable(key, lambda query: query.reply(key, b""))
     try:

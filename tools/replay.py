@@ -295,7 +295,7 @@ def register(app: typer.Typer) -> None:
     def replay(
         log: Path = typer.Argument(..., help="the MCAP recording (rotated parts _001, _002 ... follow)"),
         rerun_target: str | None = typer.Argument(None, help="with --rerun save: OUT.rrd; with connect: URL"),
-        speed: float = typer.Option(1.0, help="playback speed (2: twice as fast; 0: as fast as subscribers take)"),
+        speed: float = typer.Option(1.0, help="playback speed (2: twice as fast; 0: as fast as Zenoh takes them)"),
         start: float | None = typer.Option(None, help="begin this many seconds into the log"),
         end: float | None = typer.Option(None, help="stop this many seconds into the log"),
         keys: str | None = typer.Option(None, help="replay only keys matching this regular expression"),
