@@ -332,15 +332,25 @@ class Player:
         return self.stats
 
 
+def copy_payloads(config: zenoh.Config) -> zenoh.Config:
+    """`config` with Zenoh's shared-memory transport optimization off, for the player's session.
+
+    With it on (the default), a payload above its threshold (3 kB) that goes to a session on the same host is
+    placed in this session's shared-memory pool and only a reference is sent. The player exits as soon as it has
+    put the last message, and a backlog still waiting for a slow subscriber then refers to memory that is gone:
+    it is lost (measured at --speed 0, 1000 x 20 kB to a subscriber taking 2 ms each: about 190 of 1000
+    arrived). Copied payloads outlive the player."""
+    config.insert_json5("transport/shared_memory/transport_optimization/enabled", "false")
+    return config
+
+
 def drain(session: zenoh.Session, helper: zenoh.Session, timeout_s: float = 60.0) -> bool:
-    """Wait until the router has received everything `session` has put (True).
+    """Wait until the router has received everything `session` has put (True), so closing it loses nothing in flight.
 
     A query from `session` to a queryable on a second session `helper` goes through the router on the same link
     and at the same priority as the data, after it: its reply means the router has read everything before it.
-    It does not mean the router has delivered it: towards a subscriber much slower than the player, the reply
-    comes within milliseconds while most of the data still waits, and that backlog is lost when the player's
-    session object goes away (measured at --speed 0, 1000 x 20 kB to a subscriber taking 2 ms each: about 190
-    received; see docs/replay.md, known limits)."""
+    Towards a slow subscriber that backlog then waits in the router and the subscriber; it survives the player only
+    because the player's session sends copies, not shared-memory references (`copy_payloads`)."""
     key = f"gpmppi/_replay/drain/{helper.zid()}"
     queryable = helper.declare_queryable(key, lambda query: query.reply(key, b""))
     try:

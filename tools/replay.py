@@ -63,7 +63,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
 
     from services.launcher import Launcher, LaunchFile, wait_for_endpoint
     from services.node import DEFAULT_ROUTER, ZenohSettings
-    from services.player import Player, PlayOptions, drain
+    from services.player import Player, PlayOptions, copy_payloads, drain
     from services.player_log import (
         LogError,
         check_log,
@@ -167,7 +167,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
             except TimeoutError:
                 raise TimeoutError(f"no router at {endpoint}: start the stack (gpmppi launch), pass --connect "
                                    "ENDPOINT, or --port N to start a router for the replay") from None
-        session = zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).to_config())
+        session = zenoh.open(copy_payloads(ZenohSettings(mode="client", connect=[endpoint]).to_config()))
         helper = zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).to_config())
         live_cmds: list[tuple[int, float, float]] = []
         lock = threading.Condition()
