@@ -332,14 +332,25 @@ class Player:
         return self.stats
 
 
+def copy_payloads(config: zenoh.Config) -> zenoh.Config:
+    """`config` with Zenoh's shared-memory transport optimization off, for the player's session.
+
+    With it on (the default), a payload above its threshold (3 kB) that goes to a session on the same host is
+    placed in this session's shared-memory pool and only a reference is sent. The player exits as soon as it has
+    put the last message, and a backlog still waiting for a slow subscriber then refers to memory that is gone:
+    it is lost (measured at --speed 0, 1000 x 20 kB to a subscriber taking 2 ms each: about 190 of 1000
+    arrived). Copied payloads outlive the player."""
+    config.insert_json5("transport/shared_memory/transport_optimization/enabled", "false")
+    return config
+
+
 def drain(session: zenoh.Session, helper: zenoh.Session, timeout_s: float = 60.0) -> bool:
-    """Wait until the router has taken everything `session` has put (True), so closing it loses nothing in flight.
+    """Wait until the router has received everything `session` has put (True), so closing it loses nothing in flight.
 
     A query from `session` to a queryable on a second session `helper` goes through the router on the same link
-    and at the same priority as the data, after it: its reply means the router has forwarded all the data before
-    it (with congestion control BLOCK, into the subscribers' queues, however slow they are). Closing a session with
-    data still queued in its own buffers loses that data (measured: at --speed 0 against a subscriber taking 2 ms
-    per 20 kB message, 660 of 1000 messages were lost when the session was closed right after the last put)."""
+    and at the same priority as the data, after it: its reply means the router has read everything before it.
+    Towards a slow subscriber that backlog then waits in the router and the subscriber; it survives the player only
+    because the player's session sends copies, not shared-memory references (`copy_payloads`)."""
     key = f"gpmppi/_replay/drain/{helper.zid()}"
     queryable = helper.declare_queryable(key, lambda query: query.reply(key, b""))
     try:

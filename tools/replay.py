@@ -63,7 +63,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
 
     from services.launcher import Launcher, LaunchFile, wait_for_endpoint
     from services.node import DEFAULT_ROUTER, ZenohSettings
-    from services.player import Player, PlayOptions, drain
+    from services.player import Player, PlayOptions, copy_payloads, drain
     from services.player_log import (
         LogError,
         check_log,
@@ -167,7 +167,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
             except TimeoutError:
                 raise TimeoutError(f"no router at {endpoint}: start the stack (gpmppi launch), pass --connect "
                                    "ENDPOINT, or --port N to start a router for the replay") from None
-        session = zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).to_config())
+        session = zenoh.open(copy_payloads(ZenohSettings(mode="client", connect=[endpoint]).to_config()))
         helper = zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).to_config())
         live_cmds: list[tuple[int, float, float]] = []
         lock = threading.Condition()
@@ -295,7 +295,7 @@ def register(app: typer.Typer) -> None:
     def replay(
         log: Path = typer.Argument(..., help="the MCAP recording (rotated parts _001, _002 ... follow)"),
         rerun_target: str | None = typer.Argument(None, help="with --rerun save: OUT.rrd; with connect: URL"),
-        speed: float = typer.Option(1.0, help="playback speed (2: twice as fast; 0: as fast as subscribers take)"),
+        speed: float = typer.Option(1.0, help="playback speed (2: twice as fast; 0: as fast as Zenoh takes them)"),
         start: float | None = typer.Option(None, help="begin this many seconds into the log"),
         end: float | None = typer.Option(None, help="stop this many seconds into the log"),
         keys: str | None = typer.Option(None, help="replay only keys matching this regular expression"),
