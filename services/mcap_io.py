@@ -399,13 +399,15 @@ def _iter_raw(path: Path, keys: set[str] | None) -> Iterator[tuple[str, str | No
                     yield topic, schemas.get(schema_id), record
 
 
-def read_messages(path: str | Path, keys: Iterable[str] | None = None) -> Iterator[tuple[str, int, Message]]:
+def read_messages(
+    path: str | Path, keys: Iterable[str] | None = None, skipped: dict[str, tuple[int, str]] | None = None
+) -> Iterator[tuple[str, int, Message]]:
     """(key, log_time_ns, decoded message) for every message in the recording at `path`.
 
     `keys` limits the topics (exact keys). Quarantine channels (`<key>/_rejected`) are not messages and are
     skipped; messages on keys with no registered model, or that do not decode (a foreign schema, CDR, ...),
-    are skipped with one warning per topic that says how many. Rotated parts (`<stem>_001.mcap`, ...) are
-    read after `path`.
+    are skipped with one warning per topic that says how many, and counted in `skipped` if given
+    (topic -> (messages skipped, the first reason)). Rotated parts (`<stem>_001.mcap`, ...) are read after `path`.
     """
     path = Path(path)
     if not path.is_file():
@@ -413,7 +415,7 @@ def read_messages(path: str | Path, keys: Iterable[str] | None = None) -> Iterat
     wanted = set(keys) if keys is not None else None
     by_name = {schema_name(m): m for m in MODELS.values()}
     for part in recording_files(path) or [path]:
-        skipped: dict[str, tuple[int, str]] = {}
+        part_skipped: dict[str, tuple[int, str]] = {}
         for topic, name, record in _iter_raw(part, wanted):
             if topic.endswith(REJECTED_SUFFIX):
                 continue
@@ -422,7 +424,10 @@ def read_messages(path: str | Path, keys: Iterable[str] | None = None) -> Iterat
                 model = model or model_for_key(topic)
                 yield topic, record.log_time, decode(model, record.data)
             except (KeyError, DecodeError) as exc:
-                count, first = skipped.get(topic, (0, str(exc)))
-                skipped[topic] = (count + 1, first)
-        for topic, (count, first) in skipped.items():
+                count, first = part_skipped.get(topic, (0, str(exc)))
+                part_skipped[topic] = (count + 1, first)
+        for topic, (count, first) in part_skipped.items():
             log.warning("%s: skipped %d message(s) on %s that are not gpmppi messages: %s", part, count, topic, first)
+            if skipped is not None:
+                total, reason = skipped.get(topic, (0, first))
+                skipped[topic] = (total + count, reason)

@@ -15,7 +15,6 @@ import os
 import re
 import sys
 import time
-from collections import Counter
 from pathlib import Path
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -24,22 +23,15 @@ FLUSH_ROWS = 50_000  # buffered time-series rows before they are sent (bounds me
 FLUSH_LOG_S = 10.0  # and at least every this much log time: chunks come in time order, as the live viewer's do
 
 
-class _SkipCounter(logging.Handler):
-    """Counts the messages the MCAP reader skipped (no model for the topic, not JSON, not valid), per topic."""
+class _Notes(logging.Handler):
+    """Keeps the MCAP reader's warnings other than skipped messages (a truncated file, a linear scan)."""
 
     def __init__(self) -> None:
         super().__init__(logging.WARNING)
-        self.skipped: Counter[str] = Counter()
-        self.reasons: dict[str, str] = {}
         self.notes: list[str] = []
 
     def emit(self, record: logging.LogRecord) -> None:
-        args = record.args if isinstance(record.args, tuple) else ()
-        if "skipped a message" in str(record.msg) and len(args) == 3:
-            topic = str(args[1])
-            self.skipped[topic] += 1
-            self.reasons.setdefault(topic, str(args[2])[:200])
-        else:
+        if "that are not gpmppi messages" not in str(record.msg):  # those are counted through `skipped`
             self.notes.append(record.getMessage()[:300])
 
 
@@ -134,7 +126,8 @@ def convert(
     tmp_path = out_path.with_name(out_path.name + ".part") if out_path is not None else None
     rec = open_stream(mode, str(tmp_path) if tmp_path is not None else target, serve_port, batch_s=2.0)
     mapper = RerunMapper(rec, options if isinstance(options, ViewOptions) else ViewOptions())
-    counter = _SkipCounter()
+    counter = _Notes()
+    skipped: dict[str, tuple[int, str]] = {}
     io_log = logging.getLogger(mcap_io.__name__)
     io_log.addHandler(counter)
     messages = 0
@@ -143,7 +136,7 @@ def convert(
     flushed_at: int | None = None
     ok = False
     try:
-        for key, log_ns, msg in mcap_io.read_messages(path, chosen):
+        for key, log_ns, msg in mcap_io.read_messages(path, chosen, skipped):
             if chosen is None and ((want is not None and not want.search(key)) or (drop and drop.search(key))):
                 continue
             if first_ns is None:
@@ -178,8 +171,8 @@ def convert(
         "messages": messages,
         "log_duration_s": round(((last_seen or 0) - (first_seen or 0)) / 1e9, 3),
         "wall_s": round(time.perf_counter() - t0, 3),
-        "skipped": dict(counter.skipped),
-        "skipped_reasons": counter.reasons,
+        "skipped": {topic: n for topic, (n, _) in skipped.items()},
+        "skipped_reasons": {topic: reason[:200] for topic, (_, reason) in skipped.items()},
     }
     if counter.notes:
         result["notes"] = counter.notes[:10]
