@@ -49,6 +49,11 @@ DRAW = {"edges": 10.0, "centre": 11.0, "tightened": 12.0, "inflated": 13.0, "obs
 ROBOT_COLOUR = (200, 0, 110)  # magenta: apart from the blue path, the orange plan and the grey lane
 
 
+# heartbeat counters / flags that change in normal operation: egress limiting a ramp is shaping, not an event
+# (the base command's reason shows it in the plots)
+ROUTINE_HEALTH = frozenset({"limited"})
+
+
 @dataclass
 class ViewOptions:
     """How much per-plan data is drawn (the big part of a recording)."""
@@ -375,12 +380,16 @@ class RerunMapper:
             )
         elif hb.last_error and hb.last_error != prev.last_error:
             self.event(t, f"{name}: {hb.last_error}", "WARN")
-        changed = {k: v - prev.counts.get(k, 0) for k, v in hb.counts.items() if v != prev.counts.get(k, 0)}
+        changed = {
+            k: v - prev.counts.get(k, 0)
+            for k, v in hb.counts.items()
+            if v != prev.counts.get(k, 0) and k not in ROUTINE_HEALTH
+        }
         if changed:
             self.event(
                 t, f"{name}: " + ", ".join(f"{k} {d:+d} (now {hb.counts[k]})" for k, d in sorted(changed.items()))
             )
-        flipped = {k: v for k, v in hb.flags.items() if v != prev.flags.get(k, False)}
+        flipped = {k: v for k, v in hb.flags.items() if v != prev.flags.get(k, False) and k not in ROUTINE_HEALTH}
         if flipped:
             self.event(
                 t, f"{name}: " + ", ".join(f"{k} {'on' if v else 'off'}" for k, v in sorted(flipped.items())), "WARN"

@@ -119,12 +119,19 @@ def test_events_from_watchdog_rejections_and_restarts(tmp_path: Path) -> None:
         for i, hb in enumerate(hbs):
             hb.header.stamp_ns, hb.header.seq = t0 + i * 1_000_000_000, [0, 1, 2, 0][i]
             w.write("gpmppi/r1/health/ingress", hb, log_time_ns=hb.header.stamp_ns)
+        # egress limiting its ramps is routine shaping: its flag and count flap every second and are no event
+        for i in range(4):
+            hb = Heartbeat(service="egress", received=10 * (i + 1), published=20 * (i + 1),
+                           counts={"limited": 5 * i, "watchdog": int(i == 3)}, flags={"limited": i % 2 == 1})
+            hb.header.stamp_ns, hb.header.seq = t0 + i * 1_000_000_000, i
+            w.write("gpmppi/r1/health/egress", hb, log_time_ns=hb.header.stamp_ns)
     out = tmp_path / "events.rrd"
     convert(log, "save", str(out))
     _, _, events = read_rrd(out)
     text = "\n".join(events)
     assert "watchdog override" in text and "estop override" in text and "override ended" in text
-    assert "limit" not in text  # a limited planner command is not an event
+    assert "limit" not in text  # a limited planner command is not an event, nor egress's limiting count or flag
+    assert "egress: watchdog +1 (now 1)" in text
     assert "ingress: rejected 3 input(s) (total 3): state: stale by 2 s" in text
     assert "ingress: status ok -> degraded" in text and "ingress: restarted" in text
 
