@@ -26,7 +26,8 @@ from schemas import (
     decode,
     model_for_key,
 )
-from services.node import ZenohSettings, open_session
+from services.node_settings import ZenohSettings
+from services.session import open_session
 
 if TYPE_CHECKING:
     from services.supervisor import Launcher, RestartEvent

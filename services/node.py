@@ -26,115 +26,19 @@ import sys
 import threading
 import time
 from collections import deque
-from pathlib import Path
 from types import FrameType, TracebackType
 from typing import Any, Generic, Literal, TypeVar
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field, field_validator
-from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
 from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_for
-from schemas.codec import ENCODING, MAX_PAYLOAD_BYTES
-from schemas.keys import DEFAULT_ROBOT
+from schemas.codec import ENCODING
+from services.node_settings import DEFAULT_ROUTER, NodeSettings, ZenohSettings  # noqa: F401 - re-exported
 from services.scheduling import Inbox
 from services.session import StoppedWhileWaiting, open_session  # noqa: F401 - re-exported
 
 M = TypeVar("M", bound=Message)
-S = TypeVar("S", bound="NodeSettings")
-
-DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 LIVELINESS_PREFIX = "gpmppi/{robot}/alive/{service}"
-
-
-# ---- settings ---------------------------------------------------------------------------------
-class ZenohSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    mode: Literal["client", "peer"] = Field("client", description="client of a router, or a peer")
-    connect: list[str] = Field(default_factory=lambda: [DEFAULT_ROUTER], description="endpoints to connect to")
-    listen: list[str] = Field(default_factory=list, description="endpoints to listen on (peers)")
-    multicast_scouting: bool = Field(False, description="discover peers by UDP multicast (off: loopback only)")
-    config_file: str | None = Field(None, description="a Zenoh json5 config applied before the fields above")
-    # Zenoh's own connect retry (connect/retry/*): used while waiting for the router at start and to reconnect
-    # after the router went away (a client re-opens its session to `connect` by itself, subscriptions included)
-    retry_init_ms: int = Field(100, gt=0, description="first wait before retrying a connect (connect/retry) [ms]")
-    retry_max_ms: int = Field(500, gt=0, description="longest wait between connect retries (connect/retry) [ms]")
-    retry_factor: float = Field(2.0, ge=1.0, description="growth of the wait between connect retries")
-    wait_for_router_s: float | None = Field(
-        None, ge=0, description="how long a client waits at start for its router (None: until it appears or the "
-        "service is stopped; 0: fail at once if it is not up)"
-    )
-
-    def to_config(self, connect_timeout_ms: int | None = None) -> zenoh.Config:
-        """The Zenoh config; `connect_timeout_ms` sets connect/timeout_ms (0: one try; >0: retry that long)."""
-        config = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
-        config.insert_json5("mode", json.dumps(self.mode))
-        config.insert_json5("connect/endpoints", json.dumps(self.connect))
-        config.insert_json5("listen/endpoints", json.dumps(self.listen))
-        config.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
-        retry = {"period_init_ms": self.retry_init_ms, "period_max_ms": max(self.retry_max_ms, self.retry_init_ms),
-                 "period_increase_factor": self.retry_factor}
-        config.insert_json5("connect/retry", json.dumps(retry))
-        if connect_timeout_ms is not None:
-            config.insert_json5("connect/timeout_ms", json.dumps(connect_timeout_ms))
-        return config
-
-
-class NodeSettings(BaseSettings):
-    """Settings common to every service. YAML file, then `GPMPPI_<FIELD>` environment overrides
-    (nested with `__`, e.g. `GPMPPI_ZENOH__CONNECT='["tcp/127.0.0.1:7447"]'`)."""
-
-    model_config = SettingsConfigDict(env_prefix="GPMPPI_", env_nested_delimiter="__", extra="forbid")
-
-    service: str = Field("node", description="service name: health key, liveliness token, log prefix")
-    robot: str = Field(DEFAULT_ROBOT, description="robot name, the second level of every key")
-    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")
-    heartbeat_hz: float = Field(1.0, gt=0, description="heartbeat rate on gpmppi/{robot}/health/{service}")
-    poll_s: float = Field(
-        0.05, gt=0, description="longest idle wait of the loop [s] (input wakes it at once; this bounds timers)"
-    )
-    nice: int = Field(
-        0, ge=0, le=19, description="added to the process's niceness at start: a non-critical service (terrain, "
-        "recorder, viewer) yields the cores to the control path (sim/ingress/planner/egress) on a small machine"
-    )
-    numba_threads: int | None = Field(
-        None, description="threads of numba's parallel kernels in this process: n, or -k for all cores but k "
-        "(at least 1); None: one per core"
-    )
-    max_payload_bytes: int = Field(MAX_PAYLOAD_BYTES, gt=0, description="larger payloads are rejected")
-    log_level: str = Field("INFO", description="logging level")
-    log_json: bool = Field(True, description="JSON-lines logs (False: plain text)")
-
-    @field_validator("numba_threads")
-    @classmethod
-    def _nonzero_threads(cls, v: int | None) -> int | None:
-        if v == 0:
-            raise ValueError("numba_threads must be a thread count (>= 1), -k for all cores but k, or null")
-        return v
-
-    @classmethod
-    def settings_customise_sources(
-        cls,
-        settings_cls: type[BaseSettings],
-        init_settings: PydanticBaseSettingsSource,
-        env_settings: PydanticBaseSettingsSource,
-        dotenv_settings: PydanticBaseSettingsSource,
-        file_secret_settings: PydanticBaseSettingsSource,
-    ) -> tuple[PydanticBaseSettingsSource, ...]:
-        # precedence: explicit arguments > environment > YAML file (set by `load`) > defaults
-        return init_settings, env_settings, YamlConfigSettingsSource(settings_cls)
-
-    @classmethod
-    def load(cls: type[S], path: str | Path | None = None, **overrides: Any) -> S:
-        """Settings from a YAML file (if given) with environment and keyword overrides on top."""
-        if path is None:
-            return cls(**overrides)
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"config file {path} does not exist; pass an existing YAML file")
-        bound = type(cls.__name__, (cls,), {"model_config": {**cls.model_config, "yaml_file": str(path)}})
-        return bound(**overrides)
 
 
 # ---- logging ----------------------------------------------------------------------------------

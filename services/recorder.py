@@ -21,18 +21,11 @@ from concurrent import futures
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
 from services.mcap_io import REJECTED_SUFFIX, McapWriter
 from services.node import Node, NodeSettings
-from services.recorder_meta import RunRecord, resolve_run_record
-
-
-class ServiceConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-    kind: str = Field(description="service kind (sim, ingress, planner, ...)")
-    config: str = Field(description="path of the YAML settings file the service was started with")
+from services.recorder_meta import RunRecord, ServiceConfig, resolve_run_record
 
 
 class Settings(NodeSettings):

@@ -22,12 +22,11 @@ import subprocess
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
+
+from pydantic import BaseModel, ConfigDict, Field
 
 import gpmppi
-
-if TYPE_CHECKING:
-    from services.recorder import Settings
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 RUN_METADATA = "gpmppi.run"
@@ -70,7 +69,22 @@ def mask_secrets(value: Any) -> Any:
     return value
 
 
-def resolve_run_record(settings: Settings, started_ns: int) -> RunRecord:
+class ServiceConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    kind: str = Field(description="service kind (sim, ingress, planner, ...)")
+    config: str = Field(description="path of the YAML settings file the service was started with")
+
+
+class RecorderSettings(Protocol):
+    """What the run record reads from the recorder's settings (`services.recorder.Settings`)."""
+
+    robot: str
+    launch_file: str | None
+    service_configs: dict[str, ServiceConfig]
+
+
+def resolve_run_record(settings: RecorderSettings, started_ns: int) -> RunRecord:
     """The run's metadata and attachments; never raises (what cannot be resolved is a warning)."""
     record = RunRecord()
     try:
@@ -80,7 +94,7 @@ def resolve_run_record(settings: Settings, started_ns: int) -> RunRecord:
     return record
 
 
-def _resolve(settings: Settings, started_ns: int, record: RunRecord) -> None:
+def _resolve(settings: RecorderSettings, started_ns: int, record: RunRecord) -> None:
     launch = str(Path(settings.launch_file).resolve()) if settings.launch_file else ""
     record.metadata.append(
         (

@@ -33,7 +33,6 @@ USERS_FILE = "users.txt"
 ROUTER_FILE = "router.json5"
 MANIFEST_FILE = "secure.json"
 TLS_DIR = "tls"
-ROUTER_CERT_NAME = "gpmppi-router"
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+ROUTER_CERT_NAME = "gpmppi-router"  # the router certificate's common name
 VALID_DAYS = 825  # the longest lifetime common TLS clients accept for a leaf certificate
 
 
@@ -111,8 +112,6 @@ def make_tls(directory: Path, identities: list[str], hosts: list[str]) -> dict[s
         if server:
             builder = builder.add_extension(x509.SubjectAlternativeName(_sans(hosts)), critical=False)
         return builder.sign(ca_key, hashes.SHA256()), key
-
-    from services.secure import ROUTER_CERT_NAME
 
     save("router", *leaf(ROUTER_CERT_NAME, server=True))
     for identity in identities:

@@ -21,7 +21,7 @@ import yaml
 from services.run import SERVICES
 
 if TYPE_CHECKING:
-    from services.launcher import LaunchFile
+    from services.launch_file import LaunchFile
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,0 +1,65 @@
+"""The launch file: which router and services a launch starts, how they join, and the restart policy.
+
+Its own module so that the supervision (`services.supervisor`) can take a launch file without importing the
+launcher, which builds on the supervision."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from services.node_settings import ZenohSettings
+
+DEFAULT_LAUNCH = Path(__file__).resolve().parent / "launch" / "default.yaml"
+
+
+class RouterEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    enabled: bool = Field(True, description="start a router process (False: use an existing router or peers)")
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], description="router endpoints")
+    config: dict[str, Any] = Field(default_factory=dict, description="extra router settings")
+    wait_s: float = Field(
+        0.0, ge=0, description="enabled false: how long to wait for the outside router (0: it must be up at "
+        "launch; >0: the services start at once and wait for it themselves, as under systemd)"
+    )
+
+
+class ServiceEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    name: str = Field(description="unique name of this process (service name in keys and logs)")
+    kind: str | None = Field(None, description="which service to run (default: the name)")
+    required: bool = Field(True, description="the launch fails when this service fails for good")
+    enabled: bool = Field(True, description="start it at all")
+    config: dict[str, Any] = Field(default_factory=dict, description="the service's settings")
+
+
+class LaunchFile(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    robot: str = Field("jackal", description="robot name in every key")
+    router: RouterEntry = Field(default_factory=RouterEntry)
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how services join")
+    services: list[ServiceEntry] = Field(default_factory=list)
+    max_restarts: int = Field(
+        3, ge=0, description="restarts in a row (each run shorter than restart_reset_s) before a service has "
+        "failed for good"
+    )
+    restart_backoff_s: float = Field(
+        0.25, gt=0, description="first restart delay [s]; doubles with each restart in a row (max 8 s)"
+    )
+    restart_reset_s: float = Field(
+        30.0, gt=0, description="a service that ran this long before it died starts its backoff over [s]"
+    )
+    stop_timeout_s: float = Field(5.0, gt=0, description="wait after SIGINT, then after SIGTERM, before escalating")
+
+    @classmethod
+    def load(cls, path: str | Path) -> LaunchFile:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"launch file {path} does not exist")
+        try:
+            return cls.model_validate(yaml.safe_load(path.read_text()) or {})
+        except ValidationError as exc:
+            raise ValueError(f"launch file {path}: {exc}") from exc
