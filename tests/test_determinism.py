@@ -8,20 +8,22 @@ inline and optimise together with the kernel's fastmath code) or as object code 
 and cached before it. This happened with `velocity_coefficients` before it was inlined: closed-loop
 results changed with the cache's history (with it un-inlined, this test fails). Within one process
 that history is fixed after the first compilation, so only fresh processes with their own cache
-folders can show it:
+folders can show it. Four histories:
 
-- `plan` in an empty cache: the planner's kernels and everything they call are compiled fresh;
-- `helpers` in a second empty cache: compiles the kernels' helper functions on their own (dynamics,
-  GP lookup, noise, costs, lane, grid interpolation) and caches them, without planning; then
-  `other_first` in that cache calls those helpers first (now loaded from the cache) and plans, so
-  its kernels are compiled against cached helpers;
-- `plan` again in the second cache: every kernel is loaded from the cache;
-- `other_first` in a third, empty cache: the helpers and the delay predictor compiled in the process
-  before the kernels. With the 'contract' fastmath flag this order alone changed the kernels' last bits.
+- empty cache: `plan` compiles the planner's kernels and everything they call fresh;
+- helpers first, in an empty cache: `helpers_first` compiles the kernels' helper functions on their own
+  (dynamics, GP lookup, noise, costs, lane, grid interpolation) and the delay predictor (its own kernel over
+  the same helpers) before it plans. With the 'contract' fastmath flag this order alone changed the kernels'
+  last bits;
+- helpers cached: the same process copies its cache folder once the helpers are compiled (so that copy holds
+  the helpers and no kernel); `helpers_first` in that copy loads the helpers from disk and compiles the
+  kernels against them;
+- fully cached: `plan` in the first case's cache loads every kernel from disk.
 
 Each planning run does 10 seeded iterations of the EDD5, unicycle and GP models on the circle lane,
 feeding back the first step of the nominal trajectory, and prints every control sequence and cost
-as exact hex; all runs must print the same bytes.
+as exact hex; all runs must print the same bytes. Compilation dominates the time, so the cases run
+side by side, each as soon as the cache it needs exists.
 """
 
 from __future__ import annotations
@@ -29,15 +31,22 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
+from dataclasses import dataclass
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+
+HELPERS_CACHED = "helpers compiled and cached"
+PLAN_LINES = 30  # 3 models x 10 iterations
 
 SCRIPT = r"""
 import sys
 import numpy as np
 
-if sys.argv[1] in ("helpers", "other_first"):
+HELPERS_CACHED = "@HELPERS_CACHED@"
+
+if sys.argv[1] == "helpers_first":
     from gpmppi.costs import N_COST_WEIGHTS, lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
     from gpmppi.gp.grid_interp import grid_interp
     from gpmppi.models.dynamic_unicycle import nominal_step, jacobian
@@ -83,8 +92,13 @@ if sys.argv[1] in ("helpers", "other_first"):
     edd5_p, _ = pl._terrain_setup(tw)
     predict_ahead(np.zeros(5), np.eye(5), np.array([1.0, 0.5]), 0.25, 0.1, DYN_UNICYCLE, pl._theta, pl._lateral,
                   edd5_p, pl._gp_mode, pl._table, pl._table_dims, pl._grid_lo, pl._grid_inv, *pl._ex, tw)
-    if sys.argv[1] == "helpers":
-        sys.exit(0)
+    if len(sys.argv) > 2:  # a copy of the cache as it is now: the helpers compiled, no planner kernel yet
+        import os
+        import shutil
+
+        shutil.copytree(os.environ["NUMBA_CACHE_DIR"], sys.argv[2] + ".partial")
+        os.rename(sys.argv[2] + ".partial", sys.argv[2])
+    print(HELPERS_CACHED, flush=True)
 
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.mppi.planner import Planner, PlannerConfig
@@ -103,32 +117,55 @@ for dyn in ("edd5", "unicycle", "gp"):
 """
 
 
-def _run(mode: str, cache: Path) -> subprocess.Popen:
+@dataclass
+class Case:
+    """One case of SCRIPT running in its own process; its log (stderr) goes to a file, so no pipe fills up."""
+
+    proc: subprocess.Popen
+    log: Path
+
+
+def start_case(mode: str, cache: Path, copy_helpers_cache_to: Path | None = None) -> Case:
+    """One case of SCRIPT in a fresh process whose numba cache is `cache`: mode `plan` or `helpers_first`;
+    `copy_helpers_cache_to` (helpers_first only): where to copy the cache once the helpers are compiled."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-    return subprocess.Popen([sys.executable, "-c", SCRIPT, mode], cwd=REPO, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    args = [sys.executable, "-c", SCRIPT.replace("@HELPERS_CACHED@", HELPERS_CACHED), mode]
+    if copy_helpers_cache_to is not None:
+        args.append(str(copy_helpers_cache_to))
+    log = cache.with_name(f"{cache.name}-{mode}-{time.monotonic_ns()}.log")
+    with log.open("w") as err:
+        proc = subprocess.Popen(args, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=err, text=True)
+    return Case(proc, log)
 
 
-def _output(proc: subprocess.Popen) -> str:
-    out, err = proc.communicate(timeout=300)
-    assert proc.returncode == 0, err[-3000:]
-    assert out.count("\n") == 30, out[-500:]
-    return out
+def wait_helpers_cached(case: Case) -> None:
+    """Wait until a helpers_first case has compiled (and copied) its helpers' cache."""
+    assert case.proc.stdout is not None
+    line = case.proc.stdout.readline()
+    if line.strip() != HELPERS_CACHED:
+        case.proc.wait(timeout=60)
+        raise AssertionError(f"helpers_first printed {line!r} before its helpers were cached: "
+                             f"{case.log.read_text()[-3000:]}")
+
+
+def case_output(case: Case) -> str:
+    """The case's plans (hex lines) once it has finished."""
+    out, _ = case.proc.communicate(timeout=600)
+    assert case.proc.returncode == 0, case.log.read_text()[-3000:]
+    plans = out.replace(HELPERS_CACHED + "\n", "")
+    assert plans.count("\n") == PLAN_LINES, out[-500:]
+    return plans
 
 
 def test_plans_do_not_depend_on_compile_order_or_cache(tmp_path: Path) -> None:
-    fresh_cache, other_cache = tmp_path / "fresh", tmp_path / "other"
-    # the fresh compilation runs beside the other chain (compilation dominates the time)
-    fresh = _run("plan", fresh_cache)
-    helpers = _run("helpers", other_cache)
-    _, err = helpers.communicate(timeout=300)
-    assert helpers.returncode == 0, err[-3000:]
-    assert any(other_cache.rglob("*.nbi")), "compiling the helpers wrote no numba cache"
-    out_fresh = _output(fresh)
-    # helpers and the delay predictor compiled in this process before the kernels, in an empty cache
-    out_other_order = _output(_run("other_first", tmp_path / "other_order"))
-    out_other_first = _output(_run("other_first", other_cache))
-    out_from_cache = _output(_run("plan", other_cache))
-    assert out_other_order == out_fresh
-    assert out_other_first == out_fresh
-    assert out_from_cache == out_fresh
+    empty, helpers_first, helpers_cached = tmp_path / "empty", tmp_path / "helpers_first", tmp_path / "helpers_cached"
+    fresh = start_case("plan", empty)
+    other_order = start_case("helpers_first", helpers_first, copy_helpers_cache_to=helpers_cached)
+    wait_helpers_cached(other_order)
+    assert any(helpers_cached.rglob("*.nbi")), "compiling the helpers wrote no numba cache"
+    other_first = start_case("helpers_first", helpers_cached)
+    out_fresh = case_output(fresh)
+    from_cache = start_case("plan", empty)
+    assert case_output(other_order) == out_fresh, "helpers and the delay predictor compiled first changed the plans"
+    assert case_output(other_first) == out_fresh, "kernels compiled against cached helpers changed the plans"
+    assert case_output(from_cache) == out_fresh, "kernels loaded from the cache changed the plans"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from tools import bench, dataset, evaluate, gp_cmd, inspect_cmd, replay, secure_cmd, service_cmd, train
+from tools import bench, dataset, evaluate, gp_cmd, inspect_cmd, replay, secure_cmd, service_cmd, train, warm
 
 app = typer.Typer(
     name="gpmppi",
@@ -13,7 +13,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     add_completion=False,
 )
-for _module in (dataset, train, gp_cmd, bench, evaluate, service_cmd, secure_cmd, inspect_cmd, replay):
+for _module in (dataset, train, gp_cmd, bench, evaluate, service_cmd, secure_cmd, inspect_cmd, replay, warm):
     _module.register(app)
 
 if __name__ == "__main__":
