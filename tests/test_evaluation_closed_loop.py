@@ -47,6 +47,7 @@ def test_avoidance_run_is_deterministic_per_seed() -> None:
     assert a.success == b.success and a.status == b.status
 
 
+@pytest.mark.slow  # the evaluation table end to end: three tasks, two models, two trials each
 def test_cli_json_and_files(tmp_path: Path) -> None:
     res = CliRunner().invoke(
         app,
