@@ -1,4 +1,5 @@
-"""The shared runtime of every gpmppi service: settings, Zenoh session, typed pub/sub, heartbeat, logs.
+"""The shared runtime of every gpmppi service: Zenoh session, typed pub/sub, heartbeat, logs (and, re-exported from
+`services.node_settings`, the settings every service shares).
 
 A service is a short event loop over a `Node`:
 
