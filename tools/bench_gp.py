@@ -141,13 +141,14 @@ def register(app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(r, indent=1))
             return
-        console = Console()
+        console = Console(width=max(Console().width, 110))
         dims = "x".join(str(d) for d in r["grid_dims"])
         table = Table(title=f"grid ({dims} nodes) vs exact ({r['train_points']} training inputs), "
-                            f"{r['points']} random in-domain inputs")
-        for col in ("task", "RMS mean", "simplex mean err % (goal < 1)", "multilinear mean err %", "max |mean err|",
-                    "RMS var", "simplex var err %", "multilinear var err %"):
-            table.add_column(col, justify="right")
+                            f"{r['points']} random in-domain inputs; RMS error as % of RMS, goal < 1",
+                      caption="simplex: the planner's interpolation (default); multilinear: `gp predict --mode grid`")
+        for col in ("task", "RMS mean", "simplex mean %", "multilinear mean %", "max |mean err|", "RMS var",
+                    "simplex var %", "multilinear var %"):
+            table.add_column(col, justify="right", no_wrap=True)
         for t in r["tasks"]:
             table.add_row(t["task"], f"{t['rms_mean']:.4g}", f"{t['simplex_mean_error_pct']:.3f}",
                           f"{t['mean_error_pct']:.3f}", f"{t['simplex_max_mean_error']:.3g}", f"{t['rms_var']:.3g}",
