@@ -1,4 +1,4 @@
-"""`gpmppi bench gp`: grid vs exact GP predictor, accuracy and predictions per second."""
+"""`gpmppi bench gp`: grid vs exact GP predictor, accuracy per task, table sizes and predictions per second."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+INTERPOLATIONS = ("simplex", "multilinear")  # the planner's default first
+
 
 def _rate(fn, n_points: int, repeats: int = 3) -> float:
     """Best-of-`repeats` predictions per second (the machine is shared: the best run is the least disturbed)."""
@@ -23,46 +25,85 @@ def _rate(fn, n_points: int, repeats: int = 3) -> float:
     return n_points / best
 
 
-def bench_gp(model_path: Path | None, points: int, seed: int) -> dict:
+def _pct(err: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """RMS of `err` per column as a percentage of the RMS of `ref`."""
+    return 100.0 * np.sqrt(np.mean(err**2, axis=0)) / np.sqrt(np.mean(ref**2, axis=0))
+
+
+def bench_gp(
+    model_path: Path | None, points: int, seed: int, spacing: float | None = None, nodes: int | None = None
+) -> dict:
+    """Grid vs exact on `points` uniform random inputs of the model's domain box.
+
+    `spacing` / `nodes`: rebuild the table (sized from the lengthscales with this spacing, or `nodes`
+    on every axis) instead of using the stored one.
+    """
     from gpmppi.gp.exact import ExactPredictor
     from gpmppi.gp.grid import GridPredictor
+    from gpmppi.gp.grid_table import DEFAULT_SPACING, build_grid
     from gpmppi.gp.model_file import DEFAULT_MODEL_PATH, GPModel
 
     path = model_path or DEFAULT_MODEL_PATH
     model = GPModel.load(path)
-    stored = model.has_stored_grid()
+    stored = model.has_stored_grid() and spacing is None and nodes is None
     t0 = time.perf_counter()
-    grid = GridPredictor(model)  # builds the table when the file does not store one
+    c0 = time.process_time()
+    if stored:
+        model.grid()
+    elif spacing is not None or nodes is not None:
+        model.set_grid(build_grid(model, nodes, spacing=spacing or DEFAULT_SPACING))
+    else:
+        model.grid()  # no stored table: built with the default sizing, as the planner would
     grid_setup_s = time.perf_counter() - t0
+    grid_setup_cpu_s = time.process_time() - c0
+    g = model.grid()
+    predictors = {k: GridPredictor(model, k) for k in INTERPOLATIONS}
     exact = ExactPredictor(model)
     x = np.random.default_rng(seed).uniform(model.domain_lo, model.domain_hi, (points, 4))
     exact.predict(x[:10])  # compile / load the numba caches outside the timing
-    grid.predict(x[:10])
+    for p in predictors.values():
+        p.predict(x[:10])
     em, ev = exact.predict(x)
-    gm, gv = grid.predict(x)
+    errors = {}
+    for k, p in predictors.items():
+        gm, gv = p.predict(x)
+        errors[k] = (_pct(gm - em, em), _pct(gv - ev, ev), np.max(np.abs(gm - em), axis=0))
     tasks = []
     for t, name in enumerate(model.tasks):
-        rms_mean = float(np.sqrt(np.mean(em[:, t] ** 2)))
-        rms_var = float(np.sqrt(np.mean(ev[:, t] ** 2)))
-        tasks.append({
+        row = {
             "task": name,
-            "rms_mean": rms_mean,
-            "mean_error_pct": 100.0 * float(np.sqrt(np.mean((gm[:, t] - em[:, t]) ** 2))) / rms_mean,
-            "max_mean_error": float(np.max(np.abs(gm[:, t] - em[:, t]))),
-            "rms_var": rms_var,
-            "var_error_pct": 100.0 * float(np.sqrt(np.mean((gv[:, t] - ev[:, t]) ** 2))) / rms_var,
-        })
+            "min_lengthscale_axis": int(np.argmin(model.lengthscale[t])),
+            "rms_mean": float(np.sqrt(np.mean(em[:, t] ** 2))),
+            "rms_var": float(np.sqrt(np.mean(ev[:, t] ** 2))),
+        }
+        for k, (mean_pct, var_pct, max_err) in errors.items():
+            prefix = "" if k == "multilinear" else f"{k}_"
+            row[f"{prefix}mean_error_pct"] = float(mean_pct[t])
+            row[f"{prefix}var_error_pct"] = float(var_pct[t])
+            row[f"{prefix}max_mean_error"] = float(max_err[t])
+        tasks.append(row)
+    n_nodes = g.n_nodes
     return {
         "model": str(path),
         "points": points,
-        "grid_nodes": model.grid().nodes,
+        "grid_dims": list(g.dims),
+        "grid_nodes": g.nodes,
+        "grid_n_nodes": n_nodes,
+        # what the planner holds: the per-terrain float32 table (rollout order) and the collapsed (nodes, 4) one
+        "table_mb": n_nodes * g.table.shape[4] * 4 / 1e6,
+        "collapsed_table_mb": n_nodes * 4 * 4 / 1e6,
         "grid_stored": stored,
         "grid_setup_s": grid_setup_s,
+        "grid_setup_cpu_s": grid_setup_cpu_s,
+        "min_lengthscale": model.lengthscale.min(axis=0).tolist(),
+        "spacing_per_lengthscale": ((model.domain_hi - model.domain_lo) / (np.asarray(g.dims) - 1)
+                                    / model.lengthscale.min(axis=0)).tolist(),
         "train_points": int(model.train_x.shape[0]),
         "tasks": tasks,
         "exact_per_s": _rate(lambda: exact.predict(x), points),
         "exact_mean_only_per_s": _rate(lambda: exact.predict(x, with_var=False), points),
-        "grid_per_s": _rate(lambda: grid.predict(x), points),
+        "grid_per_s": _rate(lambda: predictors["multilinear"].predict(x), points),
+        "simplex_per_s": _rate(lambda: predictors["simplex"].predict(x), points),
     }
 
 
@@ -74,34 +115,55 @@ def register(app: typer.Typer) -> None:
         model: Annotated[Path | None, typer.Option(help="model file (default: the shipped model)")] = None,
         points: Annotated[int, typer.Option(help="random in-domain inputs")] = 100_000,
         seed: Annotated[int, typer.Option(help="seed of the inputs")] = 0,
+        spacing: Annotated[float | None, typer.Option(
+            help="rebuild the table with this node spacing (fraction of each axis's smallest lengthscale)")] = None,
+        nodes: Annotated[int | None, typer.Option(help="rebuild the table with this many nodes on every axis")] = None,
         as_json: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
     ) -> None:
-        """Grid vs exact predictor: RMS mean/variance error (% of RMS) per task and predictions/s."""
+        """Grid vs exact predictor: RMS mean/variance error (% of RMS) per task, table size and predictions/s."""
         from gpmppi.gp.model_file import ModelFileError
 
+        err = Console(stderr=True, soft_wrap=True)
         if points < 1:
-            Console(stderr=True, soft_wrap=True).print("[red]error:[/red] --points must be at least 1")
+            err.print("[red]error:[/red] --points must be at least 1")
+            raise typer.Exit(code=2)
+        if spacing is not None and nodes is not None:
+            err.print("[red]error:[/red] give --spacing or --nodes, not both")
+            raise typer.Exit(code=2)
+        if (spacing is not None and not spacing > 0) or (nodes is not None and nodes < 2):
+            err.print("[red]error:[/red] --spacing must be positive and --nodes at least 2")
             raise typer.Exit(code=2)
         try:
-            r = bench_gp(model, points, seed)
+            r = bench_gp(model, points, seed, spacing, nodes)
         except ModelFileError as e:
-            Console(stderr=True, soft_wrap=True).print(f"[red]error:[/red] {e}", highlight=False)
+            err.print(f"[red]error:[/red] {e}", highlight=False)
             raise typer.Exit(code=2) from None
         if as_json:
             typer.echo(json.dumps(r, indent=1))
             return
-        console = Console()
-        table = Table(title=f"grid ({r['grid_nodes']}^4 nodes) vs exact ({r['train_points']} training inputs), "
-                            f"{r['points']} random in-domain inputs")
-        for col in ("task", "RMS mean", "mean err % (goal < 1)", "max |mean err|", "RMS var", "var err %"):
-            table.add_column(col, justify="right")
+        console = Console(width=max(Console().width, 110))
+        dims = "x".join(str(d) for d in r["grid_dims"])
+        table = Table(title=f"grid ({dims} nodes) vs exact ({r['train_points']} training inputs), "
+                            f"{r['points']} random in-domain inputs; RMS error as % of RMS, goal < 1",
+                      caption="simplex: the planner's interpolation (default); multilinear: `gp predict --mode grid`")
+        for col in ("task", "RMS mean", "simplex mean %", "multilinear mean %", "max |mean err|", "RMS var",
+                    "simplex var %", "multilinear var %"):
+            table.add_column(col, justify="right", no_wrap=True)
         for t in r["tasks"]:
-            table.add_row(t["task"], f"{t['rms_mean']:.4g}", f"{t['mean_error_pct']:.3f}",
-                          f"{t['max_mean_error']:.3g}", f"{t['rms_var']:.3g}", f"{t['var_error_pct']:.3f}")
+            table.add_row(t["task"], f"{t['rms_mean']:.4g}", f"{t['simplex_mean_error_pct']:.3f}",
+                          f"{t['mean_error_pct']:.3f}", f"{t['simplex_max_mean_error']:.3g}", f"{t['rms_var']:.3g}",
+                          f"{t['simplex_var_error_pct']:.3f}", f"{t['var_error_pct']:.3f}")
         console.print(table)
+        spacing_txt = ", ".join(f"{s:.3f}" for s in r["spacing_per_lengthscale"])
+        console.print(
+            f"node spacing / smallest lengthscale per axis [v_ref, omega_ref, v, omega]: {spacing_txt}; "
+            f"{r['grid_n_nodes']} nodes: per-terrain float32 table {r['table_mb']:.1f} MB, collapsed (nodes, 4) "
+            f"table {r['collapsed_table_mb']:.1f} MB"
+        )
         console.print(
             f"predictions/s (all {len(r['tasks'])} tasks, mean + variance; shared machine, timings noisy): "
             f"exact {r['exact_per_s']:.3g}, exact mean-only {r['exact_mean_only_per_s']:.3g}, "
-            f"grid {r['grid_per_s']:.3g}; grid table {'loaded' if r['grid_stored'] else 'built'} "
-            f"in {r['grid_setup_s']:.2f} s"
+            f"grid multilinear {r['grid_per_s']:.3g}, simplex {r['simplex_per_s']:.3g}; grid table "
+            f"{'loaded' if r['grid_stored'] else 'built'} in {r['grid_setup_s']:.2f} s "
+            f"({r['grid_setup_cpu_s']:.2f} s CPU)"
         )

@@ -14,7 +14,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from gpmppi.gp.grid import DEFAULT_NODES
+from gpmppi.gp.grid_table import DEFAULT_SPACING
 
 INPUT_COLUMNS = ("cmd_lin", "cmd_ang", "curr_lin", "curr_ang")
 PAPER_PREFIX = "gp_ip_"
@@ -294,11 +294,15 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option(help="seed of k-means, the holdout split and the fit")] = 0,
         dt: Annotated[float, typer.Option(help="sampling step of the data [s]")] = 0.1,
         robot: Annotated[str | None, typer.Option(help="robot name in the log keys (auto when only one)")] = None,
-        grid_nodes: Annotated[int, typer.Option(
-            help="grid predictor nodes per axis stored in the file (0: build on first use)")] = DEFAULT_NODES,
+        grid_nodes: Annotated[int | None, typer.Option(
+            help="grid predictor nodes on every axis of the stored table (0: store none, build on first use; "
+                 "default: each axis sized from its smallest lengthscale, see --grid-spacing)")] = None,
+        grid_spacing: Annotated[float, typer.Option(
+            help="node spacing of the stored grid table as a fraction of each axis's smallest lengthscale")
+        ] = DEFAULT_SPACING,
     ) -> None:
         """Train the per-terrain residual GPs and write the model file."""
-        from gpmppi.gp.grid import build_grid
+        from gpmppi.gp.grid_table import build_grid
         from gpmppi.gp.train import Transitions, train_model
 
         console = Console()
@@ -319,10 +323,12 @@ def register(app: typer.Typer) -> None:
                 sets, th, ed, dt=dt, points=points, iters=iters, seed=seed,
                 hyperparameters=_load_json(hyperparameters, "hyperparameter"), holdout=hold, test_sets=test_sets,
             )
-            if grid_nodes == 1 or grid_nodes < 0:
+            if grid_nodes is not None and (grid_nodes == 1 or grid_nodes < 0):
                 raise DataError(f"--grid-nodes must be 0 (no stored grid) or at least 2, got {grid_nodes}")
-            if grid_nodes > 0:
-                model.set_grid(build_grid(model, grid_nodes))
+            if not grid_spacing > 0:
+                raise DataError(f"--grid-spacing must be positive, got {grid_spacing}")
+            if grid_nodes != 0:
+                model.set_grid(build_grid(model, grid_nodes, spacing=grid_spacing))
         except ValueError as e:
             Console(stderr=True, soft_wrap=True).print(f"[red]error:[/red] {e}", highlight=False)
             raise typer.Exit(code=2) from None

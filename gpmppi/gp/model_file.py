@@ -8,10 +8,10 @@ lateral slip coefficients (`lateral_slip`, (M, 2); optional, zeros when the file
 File format: one `.npz` archive (no pickles) holding the arrays below and a `metadata` entry,
 a JSON string with the format name and version, terrain and task names, input names and dt.
 The grid predictor's table is stored as well when the writer built it; otherwise
-`GPModel.grid()` builds it on first use. To keep the file small the table is stored quantized
-to 16 bits per channel (offset + scale, error <= 1/131070 of the channel's range) and
-difference-coded along the four axes, which the archive's deflate then compresses ~3x
-(a smooth table has small differences).
+`GPModel.grid()` builds it on first use (`grid_table.build_grid`, sized from the lengthscales). To
+keep the file small the table is stored quantized to 16 bits per channel (offset + scale, error
+<= 1/131070 of the channel's range) and difference-coded along the four axes, which the archive's
+deflate then compresses ~3x (a smooth table has small differences).
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from gpmppi.gp.grid_table import GridTable, build_grid
 from gpmppi.models.lateral_slip import N_LATERAL
 
 FORMAT_NAME = "gpmppi-gp-model"
@@ -41,26 +42,6 @@ _GRID_ARRAYS = ("grid_q", "grid_offset", "grid_scale", "grid_lo", "grid_inv_step
 
 class ModelFileError(ValueError):
     """A GP model file could not be read: the message says which file and what is wrong."""
-
-
-@dataclass
-class GridTable:
-    """Precomputed GP predictions on a regular 4-D grid, for `grid_interp`.
-
-    `table` has shape (G, G, G, G, 4M): the means of the 2M tasks, then their latent variances.
-    """
-
-    table: np.ndarray
-    lo: np.ndarray
-    inv_step: np.ndarray
-
-    @property
-    def nodes(self) -> int:
-        return int(self.table.shape[0])
-
-    @property
-    def hi(self) -> np.ndarray:
-        return self.lo + (np.asarray(self.table.shape[:4]) - 1) / self.inv_step
 
 
 @dataclass
@@ -109,10 +90,11 @@ class GPModel:
         return np.stack([self.lateral_slip[t] for t in self.terrains])
 
     def grid(self) -> GridTable:
-        """The grid predictor's table: the stored one, else built from the exact GP once and cached."""
-        if self._grid is None:
-            from gpmppi.gp.grid import build_grid
+        """The grid predictor's table: the stored one, else built from the exact GP once and cached.
 
+        A built table is sized from the lengthscales (`grid_table.model_grid_dims`).
+        """
+        if self._grid is None:
             self._grid = build_grid(self)
         return self._grid
 
@@ -298,7 +280,9 @@ def _shape(name: str, a: np.ndarray, expected: tuple[int, ...], where: str) -> N
 def _check_grid(grid: GridTable, n_tasks: int, where: str) -> None:
     t = np.asarray(grid.table)
     if t.ndim != 5 or t.shape[4] != 2 * n_tasks or min(t.shape[:4]) < 2:
-        raise ValueError(f"{where}: grid table has shape {t.shape}, expected (G, G, G, G, {2 * n_tasks}) with G >= 2")
+        raise ValueError(
+            f"{where}: grid table has shape {t.shape}, expected (G0, G1, G2, G3, {2 * n_tasks}) with every G >= 2"
+        )
     _shape("grid_table", t, t.shape, where)
     _shape("grid_lo", np.asarray(grid.lo), (N_INPUT,), where)
     _shape("grid_inv_step", np.asarray(grid.inv_step), (N_INPUT,), where)

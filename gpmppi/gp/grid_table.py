@@ -1,0 +1,149 @@
+"""The grid predictor's table: exact GP predictions tabulated on a regular 4-D grid, and its sizing.
+
+The table spans the model's domain box with G_d nodes along axis d; each node holds the 2M means
+and the 2M latent variances. The node counts follow the model: along each axis the spacing is at
+most `spacing` times the smallest lengthscale any task has on that axis (`grid_dims`), because the
+interpolation error of an RBF-kernel GP grows with (spacing / lengthscale)^2 (second order, for
+both the multilinear and the simplex interpolation).
+
+This module needs only the model's arrays (`ExactGP`), not the model file, so the file format
+(`model_file`) can build a table on first use without a two-way import.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from scipy.linalg import solve_triangular
+
+# Node spacing along an axis as a fraction of the smallest lengthscale on it. The worst task's RMS
+# mean error of the planner's simplex interpolation falls as spacing^2: measured (`gpmppi bench gp
+# --spacing`, docs/benchmarks.md) 0.75% / 0.50% at 0.16 / 0.13 on the shipped model and 1.03% / 0.67%
+# on the paper's; 0.14 keeps both near 0.8% or below, under the 1% goal.
+DEFAULT_SPACING = 0.14
+MIN_NODES = 2
+
+
+class ExactGP(Protocol):
+    """What tabulating needs of a model: the exact GP's arrays (`model_file.GPModel` has them)."""
+
+    domain_lo: np.ndarray  # (4,) lower corner of the input box
+    domain_hi: np.ndarray  # (4,) upper corner of the input box
+    train_x: np.ndarray  # (n, 4) shared training inputs
+    lengthscale: np.ndarray  # (2M, 4) ARD lengthscales per task, input units
+    outputscale: np.ndarray  # (2M,) kernel output scale per task
+    alpha: np.ndarray  # (2M, n) (K + noise I)^-1 y per task
+    chol: np.ndarray  # (2M, n, n) lower Cholesky factor of K + noise I per task
+
+
+@dataclass
+class GridTable:
+    """Precomputed GP predictions on a regular 4-D grid, for `grid_interp`.
+
+    `table` has shape (G0, G1, G2, G3, 4M): the means of the 2M tasks, then their latent variances.
+    """
+
+    table: np.ndarray
+    lo: np.ndarray
+    inv_step: np.ndarray
+
+    @property
+    def dims(self) -> tuple[int, int, int, int]:
+        """Nodes along each input axis [v_ref, omega_ref, v, omega]."""
+        g0, g1, g2, g3 = (int(n) for n in self.table.shape[:4])
+        return g0, g1, g2, g3
+
+    @property
+    def nodes(self) -> int:
+        """The largest node count of the four axes (the count of a uniform grid)."""
+        return max(self.dims)
+
+    @property
+    def n_nodes(self) -> int:
+        """Total number of grid nodes."""
+        return math.prod(self.dims)
+
+    @property
+    def hi(self) -> np.ndarray:
+        return self.lo + (np.asarray(self.table.shape[:4]) - 1) / self.inv_step
+
+
+def grid_dims(
+    lengthscale: np.ndarray, lo: np.ndarray, hi: np.ndarray, spacing: float = DEFAULT_SPACING
+) -> tuple[int, int, int, int]:
+    """Nodes per axis so the spacing along each axis is <= `spacing` x that axis's smallest lengthscale.
+
+    nodes_d = ceil((hi_d - lo_d) / (spacing * min_t lengthscale[t, d])) + 1, at least 2.
+    """
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise ValueError(f"grid spacing must be a positive fraction of the lengthscale, got {spacing}")
+    ls = np.asarray(lengthscale, dtype=np.float64)
+    span = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
+    if ls.ndim != 2 or ls.shape[1] != 4 or span.shape != (4,):
+        raise ValueError(f"lengthscale must be (tasks, 4) and the box 4-D, got {ls.shape} and {span.shape}")
+    # a tiny tolerance so that an exact multiple does not get an extra node from rounding
+    cells = np.ceil(span / (spacing * ls.min(axis=0)) - 1e-9)
+    g0, g1, g2, g3 = (max(MIN_NODES, int(c) + 1) for c in cells)
+    return g0, g1, g2, g3
+
+
+def model_grid_dims(model: ExactGP, spacing: float = DEFAULT_SPACING) -> tuple[int, int, int, int]:
+    """`grid_dims` over the model's domain box and lengthscales."""
+    return grid_dims(model.lengthscale, model.domain_lo, model.domain_hi, spacing)
+
+
+def predict_dense(model: ExactGP, x: np.ndarray, chunk: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+    """Exact mean and latent variance (P, 2M) with BLAS triangular solves (fast for many points).
+
+    Same math as `exact.exact_tasks`; used to fill grid tables and for large offline batches.
+    """
+    x = np.ascontiguousarray(np.atleast_2d(x), dtype=np.float64)
+    n_tasks = model.lengthscale.shape[0]
+    mean = np.empty((x.shape[0], n_tasks))
+    var = np.empty((x.shape[0], n_tasks))
+    for start in range(0, x.shape[0], chunk):
+        xc = x[start : start + chunk]
+        for t in range(n_tasks):
+            a = xc / model.lengthscale[t]
+            b = model.train_x / model.lengthscale[t]
+            sq = (a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2.0 * a @ b.T
+            k_star = model.outputscale[t] * np.exp(-0.5 * np.maximum(sq, 0.0))  # (c, n)
+            mean[start : start + chunk, t] = k_star @ model.alpha[t]
+            v = solve_triangular(model.chol[t], k_star.T, lower=True, check_finite=False)
+            var[start : start + chunk, t] = np.maximum(model.outputscale[t] - (v * v).sum(0), 0.0)
+    return mean, var
+
+
+def grid_axes(lo: np.ndarray, hi: np.ndarray, dims: int | tuple[int, ...]) -> list[np.ndarray]:
+    """Node coordinates along each axis (`dims`: one count for every axis, or four)."""
+    counts = (dims,) * 4 if isinstance(dims, (int, np.integer)) else tuple(dims)
+    return [np.linspace(lo[d], hi[d], int(counts[d])) for d in range(4)]
+
+
+def build_grid(
+    model: ExactGP, nodes: int | tuple[int, int, int, int] | None = None, spacing: float = DEFAULT_SPACING
+) -> GridTable:
+    """Tabulate the exact GP over the model's domain box.
+
+    `nodes`: one count for every axis, or four; None (the default) sizes each axis from the model's
+    lengthscales (`model_grid_dims` with `spacing`).
+    """
+    if nodes is None:
+        dims = model_grid_dims(model, spacing)
+    elif isinstance(nodes, (int, np.integer)):
+        dims = (int(nodes),) * 4
+    else:
+        dims = tuple(int(n) for n in nodes)
+    if len(dims) != 4 or min(dims) < MIN_NODES:
+        raise ValueError(f"a grid needs 4 axes of at least {MIN_NODES} nodes each, got {dims}")
+    lo, hi = np.asarray(model.domain_lo, dtype=np.float64), np.asarray(model.domain_hi, dtype=np.float64)
+    axes = grid_axes(lo, hi, dims)
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 4)
+    mean, var = predict_dense(model, pts)
+    n_tasks = mean.shape[1]
+    table = np.concatenate([mean, var], axis=1).reshape(*dims, 2 * n_tasks)
+    inv_step = (np.asarray(dims) - 1) / (hi - lo)
+    return GridTable(table=np.ascontiguousarray(table), lo=lo.copy(), inv_step=inv_step)
