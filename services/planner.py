@@ -162,21 +162,18 @@ def run(settings: Settings) -> int:
         state_sub = StateSubscription(node, node.key("state"), State, newest_only=True, capacity=1024)
         weights_sub = node.subscribe("terrain_weights")
         task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
-        cmd_pub = node.publisher("cmd")
-        plan_pub = node.publisher("plan")
-        task_pub = node.publisher("task")
+        outputs = Outputs(node, settings, startup)
         t = time.monotonic()
         planner = Planner(settings.planner, model)
         warm_up(node, planner, scenario)
         startup["warmup_s"] = time.monotonic() - t
+        outputs.started = time.monotonic()
         cycle = PlannerCycle(planner, scenario.task, settings.cycle_config(), len(model.terrains), model.terrains)
-        flags = TerrainFlags(node, cycle)
-        t = time.monotonic()
+        report = CycleReport(node, cycle)
         next_task = 0.0
         next_rate_tick = time.monotonic()
         latest: State | None = None
         fresh = False
-        n_planned = 0
         while node.ok():
             now = time.monotonic()
             if (new_task := task_sub.take()) is not None:
@@ -188,8 +185,7 @@ def run(settings: Settings) -> int:
             if (w := weights_sub.take()) is not None:
                 cycle.on_weights(w.weights, now, names=w.names)
             cycle.tick(now)
-            report(node, cycle.drain_events())
-            flags.update()
+            report(cycle.drain_events())
             if (s := state_sub.take()) is not None:
                 latest, fresh = s, True
             due = fresh if settings.trigger == "state" else now >= next_rate_tick
@@ -198,7 +194,7 @@ def run(settings: Settings) -> int:
                     # only here, between cycles: never on a state's path to its command (encoding the lane's
                     # polyline takes milliseconds; a cycle with it on the path measured 22.9 ms, the median 5)
                     next_task = now + settings.task_period_s
-                    task_pub.put(task_to_message(cycle.task, time.time_ns()))
+                    outputs.task.put(task_to_message(cycle.task, time.time_ns()))
                 # trigger 'state': input wakes the wait; 'rate': do not sleep past the next tick
                 node.spin_once(None if settings.trigger == "state" else min(settings.poll_s, next_rate_tick - now))
                 continue
@@ -207,33 +203,46 @@ def run(settings: Settings) -> int:
             fresh = False
             out = cycle.on_state(state_to_array(latest), latest.header.stamp_ns, now, time.time_ns(),
                                  latest.covariance)
-            report(node, cycle.drain_events())
-            flags.update()
-            if not isinstance(out, Planned):
-                continue  # no command this cycle: egress's watchdog stops the robot if this persists
-            result = out.result
-            cmd = Command(v_ref=float(result.control[0]), omega_ref=float(result.control[1]))
-            cmd.header.stamp_ns = out.stamp_ns
-            cmd.header.frame_id = "base_link"
-            cmd_pub.put(cmd)
-            # the control latency as this process sees it: the state's stamp to the command handed to Zenoh
-            state_to_cmd_ms = (time.time_ns() - out.stamp_ns) / 1e6
-            if n_planned == 0:
-                startup["to_first_command_s"] = time.monotonic() - t
-                startup["process_age_s"] = process_age_s()
-                fields = {k: None if v is None else round(v, 3) for k, v in startup.items()}
-                node.log.info("first command", extra={"fields": fields})
-            if n_planned % settings.plan_every == 0:
-                try:
-                    plan_pub.put(plan_message(result, out.stamp_ns, cycle.task, settings.plan_samples,
-                                              {"state_to_cmd": state_to_cmd_ms}, out.weights_stale))
-                except DecodeError as exc:  # e.g. non-finite sample costs: the command went out, the plan cannot
-                    node.counters.count("plan_invalid")
-                    node.error(f"plan not published: {exc}")
-            n_planned += 1
-            node.cycle()
+            report(cycle.drain_events())
+            if isinstance(out, Planned):  # else no command this cycle: egress's watchdog stops the robot if it lasts
+                outputs.publish(out, cycle.task)
+                node.cycle()
             node.spin_once(0.0)
     return 0
+
+
+class Outputs:
+    """The planner's publishers: each plan's command (stamped with its state's stamp) and Plan, and the task."""
+
+    def __init__(self, node: Node, settings: Settings, startup: dict[str, float]) -> None:
+        self.node, self.s, self.startup = node, settings, startup
+        self.cmd = node.publisher("cmd")
+        self.plan = node.publisher("plan")
+        self.task = node.publisher("task")
+        self.published = 0
+        self.started = time.monotonic()  # when the loop started, for the time to the first command [monotonic s]
+
+    def publish(self, out: Planned, task: LaneTask | GoalTask) -> None:
+        result = out.result
+        cmd = Command(v_ref=float(result.control[0]), omega_ref=float(result.control[1]))
+        cmd.header.stamp_ns = out.stamp_ns
+        cmd.header.frame_id = "base_link"
+        self.cmd.put(cmd)
+        # the control latency as this process sees it: the state's stamp to the command handed to Zenoh
+        state_to_cmd_ms = (time.time_ns() - out.stamp_ns) / 1e6
+        if self.published == 0:
+            self.startup["to_first_command_s"] = time.monotonic() - self.started
+            self.startup["process_age_s"] = process_age_s()
+            fields = {k: None if v is None else round(v, 3) for k, v in self.startup.items()}
+            self.node.log.info("first command", extra={"fields": fields})
+        if self.published % self.s.plan_every == 0:
+            try:
+                self.plan.put(plan_message(result, out.stamp_ns, task, self.s.plan_samples,
+                                           {"state_to_cmd": state_to_cmd_ms}, out.weights_stale))
+            except DecodeError as exc:  # e.g. non-finite sample costs: the command went out, the plan cannot
+                self.node.counters.count("plan_invalid")
+                self.node.error(f"plan not published: {exc}")
+        self.published += 1
 
 
 def warm_up(node: Node, planner: Planner, scenario: Scenario) -> None:
@@ -259,35 +268,31 @@ def warm_up(node: Node, planner: Planner, scenario: Scenario) -> None:
     kernel_cache.record(label, use, seconds if use.compiled else None)
 
 
-def report(node: Node, events: list[Event]) -> None:
-    """The cycle's events into the heartbeat's counters and the log."""
-    for e in events:
-        node.counters.count(e.name)
-        if e.level == "reject":
-            node.reject(e.message)
-        elif e.level == "error":
-            node.error(e.message)
-        elif e.level == "warning":
-            node.log.warning(e.message)
-        else:
-            node.log.info(e.message)
-
-
-class TerrainFlags:
-    """The terrain weights' state in the heartbeat: flags `weights_stale` and `weights_prior`, status degraded
-    while stale."""
+class CycleReport:
+    """The cycle's events into the heartbeat's counters and the log, and the terrain weights' state into its
+    flags (`weights_stale`, `weights_prior`) and status (degraded while stale)."""
 
     def __init__(self, node: Node, cycle: PlannerCycle) -> None:
         self.node, self.cycle = node, cycle
         self.shown: tuple[bool, bool] | None = None
-        self.update()
+        self([])
 
-    def update(self) -> None:
+    def __call__(self, events: list[Event]) -> None:
+        node = self.node
+        for e in events:
+            node.counters.count(e.name)
+            if e.level == "reject":
+                node.reject(e.message)
+            elif e.level == "error":
+                node.error(e.message)
+            elif e.level == "warning":
+                node.log.warning(e.message)
+            else:
+                node.log.info(e.message)
         state = (self.cycle.weights_stale, self.cycle.weights_prior)
-        if state == self.shown:
-            return
-        self.shown = state
-        c = self.node.counters
-        with c.lock:
-            c.flags["weights_stale"], c.flags["weights_prior"] = state
-            c.status = "degraded" if state[0] else "ok"
+        if state != self.shown:
+            self.shown = state
+            c = node.counters
+            with c.lock:
+                c.flags["weights_stale"], c.flags["weights_prior"] = state
+                c.status = "degraded" if state[0] else "ok"
