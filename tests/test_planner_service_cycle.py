@@ -35,6 +35,7 @@ def _states(n: int) -> list[np.ndarray]:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # one cold compile in the service: minutes, more on a loaded machine
 def test_planner_service_announces_a_cold_compile_and_plans_as_the_cycle(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

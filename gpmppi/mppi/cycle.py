@@ -191,7 +191,7 @@ class PlannerCycle:
         The table collapse for them is done now: new weights arrive between states (terrain solves after each
         command), so it stays off the next state's path to its command."""
         try:
-            w = np.asarray(weights, dtype=np.float64).reshape(-1)
+            w = np.array(weights, dtype=np.float64).reshape(-1)  # a copy: the caller may reuse its array
             if names is not None:
                 if self.terrains is None:
                     raise ValueError("weights by name, but this cycle was not given the model's terrain names")
