@@ -63,7 +63,10 @@ class CountingPlanner:
     def reset(self) -> None:
         self.k = 0
 
-    def plan(self, state, task, weights=None, *, delay_s: float = 0.0) -> Result:
+    def prepare(self, weights) -> None:
+        pass
+
+    def plan(self, state, task, weights=None, state_cov=None, delay_s: float = 0.0) -> Result:
         self.weights_seen.append(np.asarray(weights).copy())
         self.delays.append(delay_s)
         u = np.array([1.0 + 0.1 * self.k, 0.0])

@@ -23,8 +23,9 @@ from zenoh_helpers import (
     wait_for,
 )
 
+from gpmppi.mppi.cycle import odometry_jump
 from schemas import Command, Header, Heartbeat, Plan, State, TerrainWeights, decode, encode
-from services.planner import Settings, odometry_jump
+from services.planner import Settings
 
 NS = 1_000_000_000
 START = (20.0, 0.0, math.pi / 2)  # the circle lane's start: (radius, 0) heading +y

@@ -3,8 +3,10 @@
 The plant advances at its own internal step (its `dt`, inside `Plant.step`), the planner runs every
 `planner_dt` on the measured state, the terrain estimator sees each measured transition and its
 weights feed the next plan, and a command can reach the plant late (latency in seconds; use
-`latency_from_cycles` for planner cycles; the planner is told it and plans for the state the command will
-meet, as the planner service does with each state's age). Nothing depends on wall-clock time, so a run is a pure
+`latency_from_cycles` for planner cycles). The planner is driven through the planner service's own cycle
+(`gpmppi.mppi.cycle.PlannerCycle`: weight updates and their ages, state checks, delay compensation) on the
+simulation's clock: states are stamped when measured, planning takes no simulated time, and the command latency
+is what the cycle compensates (`actuation_delay_s`). Nothing depends on wall-clock time, so a run is a pure
 function of its seeds (planner seed, plant seed).
 """
 
@@ -18,6 +20,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from gpmppi.evaluation.metrics import first_collision_index
+from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle, PlannerLike
 from gpmppi.tasks import GoalTask, LaneTask
 
 Status = Literal["goal", "collision", "distance", "time_limit", "planner_error", "plant_error"]
@@ -30,13 +33,6 @@ class PlantLike(Protocol):
     def step(self, command: np.ndarray, duration: float) -> np.ndarray: ...
     def measure(self) -> np.ndarray: ...
     def set_terrain(self, name: str) -> None: ...
-
-
-class PlannerLike(Protocol):
-    def plan(
-        self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None, *, delay_s: float = 0.0
-    ): ...
-    def reset(self) -> None: ...
 
 
 class EstimatorLike(Protocol):
@@ -56,6 +52,9 @@ class ClosedLoopConfig:
     robot_radius: float = 0.0  # [m] robot disc for collisions (0 = point robot, as the paper scores it)
     latency_s: float = 0.0  # [s] delay between a plan and its command reaching the plant
     compensate_latency: bool = True  # the planner plans from the state predicted `latency_s` ahead (as the service)
+    # the planner service's state checks (ages, odometry jumps) and weight ages; its delay settings come from the two
+    # fields above
+    cycle: CycleConfig = field(default_factory=CycleConfig)
     adapt_weights: bool = True  # run the terrain estimator each cycle and feed its weights to the planner
     terrain_switches: tuple[tuple[float, str], ...] = ()  # (time [s], terrain) changes of the plant's ground
 
@@ -64,6 +63,11 @@ class ClosedLoopConfig:
             raise ValueError("planner_dt and time_limit_s must be > 0")
         if self.latency_s < 0:
             raise ValueError(f"latency must be >= 0 s, got {self.latency_s}")
+
+    def cycle_config(self) -> CycleConfig:
+        """The cycle as the service runs it, with this loop's latency as the delay from plan to plant."""
+        return self.cycle.model_copy(update={"compensate_delay": self.compensate_latency,
+                                             "actuation_delay_s": self.latency_s})
 
 
 def latency_from_cycles(cycles: int, planner_dt: float = 0.1) -> float:
@@ -83,7 +87,8 @@ class Trajectory:
     commands: np.ndarray  # (T, 2) planned command at cycle k
     weights: np.ndarray  # (T, M) terrain weights used by the plan at cycle k
     weights_ok: np.ndarray  # (T,) whether the estimator produced the weights of that cycle
-    planner_ms: np.ndarray  # (T,) wall time of each plan() call [ms] (the only non-deterministic field)
+    planner_ms: np.ndarray  # (T,) wall time of the planner's cycle k (new weights, plan) [ms] (the only
+    # non-deterministic field)
     tightened: list[np.ndarray]  # per cycle: lane (N+1,) tightened half-widths or goal (N+1, K) inflated radii
     terrains: list[str]  # plant terrain during cycle k
     status: Status = "time_limit"
@@ -111,14 +116,16 @@ def run_closed_loop(
     cfg = config or ClosedLoopConfig()
     dt = cfg.planner_dt
     eps = 1e-9
-    weights = (
-        np.full(n_terrains, 1.0 / n_terrains) if initial_weights is None else np.asarray(initial_weights, float).copy()
-    )
     switches = sorted(cfg.terrain_switches)
     terrain = initial_terrain or ""
     if initial_terrain is not None:
         plant.set_terrain(initial_terrain)
     planner.reset()
+    # the simulation's clock: it stands still while the planner plans
+    sim_now = [0.0]
+    cycle = PlannerCycle(planner, task, cfg.cycle_config(), n_terrains, clock=lambda: sim_now[0])
+    if initial_weights is not None and not cycle.on_weights(initial_weights, 0.0):
+        raise ValueError(f"initial_weights: {cycle.drain_events()[-1].message}")
     plant.reset(np.asarray(start, dtype=np.float64))
     true_state = np.asarray(start, dtype=np.float64).copy()
     measured = np.asarray(plant.measure(), dtype=np.float64)
@@ -133,27 +140,30 @@ def run_closed_loop(
     steps = int(np.ceil(cfg.time_limit_s / dt - eps))
     for k in range(steps):
         t = k * dt
+        sim_now[0] = t
         while switches and switches[0][0] <= t + eps:
             terrain = switches.pop(0)[1]
             plant.set_terrain(terrain)
         ok = False
+        est = None
         if estimator is not None and cfg.adapt_weights and k > 0:
             estimator.observe(meas[-2], cmds[-1], measured)
             est = estimator.estimate()
             ok = bool(est.ok)
-            if ok:
-                weights = np.asarray(est.weights, dtype=np.float64).copy()
         t0 = time.perf_counter()
-        try:
-            delay = cfg.latency_s if cfg.compensate_latency else 0.0
-            result = planner.plan(measured, task, weights, delay_s=delay)
-        except (ValueError, FloatingPointError) as e:
-            status, message = "planner_error", f"planner failed at t={t:.1f} s: {e}"
+        if est is not None:
+            # as the terrain service: every solve is published, one that failed with the previous weights
+            cycle.on_weights(est.weights, t)
+        stamp_ns = round(t * 1e9)
+        out = cycle.on_state(measured, stamp_ns, t, stamp_ns)
+        if not isinstance(out, Planned):
+            status, message = "planner_error", f"planner refused at t={t:.1f} s ({out.name}): {out.message}"
             break
+        result = out.result
         pms.append((time.perf_counter() - t0) * 1e3)
         command = np.asarray(result.control, dtype=np.float64).copy()
         cmds.append(command)
-        ws.append(weights.copy())
+        ws.append(cycle.weights.copy())
         oks.append(ok)
         tights.append(np.asarray(result.tightened).copy())
         terrs.append(terrain)

@@ -1,0 +1,286 @@
+"""One planning cycle: what happens between a state arriving and its command leaving, free of any transport.
+
+The planner service drives a `PlannerCycle` from its Zenoh loop and the closed-loop evaluation drives one from its
+simulation, so both run the same checks and the same delay compensation:
+
+- task updates (a new task forgets the warm start);
+- terrain-weight updates: the table collapse for new weights is done when they arrive (`Planner.prepare`), off
+  the state -> command path; weights not refreshed for `weights_stale_after_s` are kept but flagged stale, and
+  after `weights_fallback_after_s` replaced by the prior (uniform). Weights equal to the prior are never stale:
+  falling back would change nothing;
+- state checks: refused when there is no task, when the state is not five finite numbers, older than
+  `max_state_age_s` or stamped more than `max_state_future_s` in the future (clock skew); an odometry jump
+  (teleport, relocalisation) resets the warm start;
+- the start covariance from the state's own (a matrix that is not a covariance falls back to the planner's
+  configured `state_std`);
+- delay compensation: the plan starts from the state predicted to when its command acts (state age + this
+  plan's compute time, estimated by the last one + `actuation_delay_s`);
+- the plan itself; a failed or non-finite plan gives no command.
+
+Times: `now` is a monotonic time [s] (arrivals, weight ages), `now_ns` the clock the state stamps are compared
+with [ns], as in egress's `Safety`. What happened goes into `events` (each named, with a level and a message) and
+`counts`; the caller reports them (the service: heartbeat counters and log).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal, Protocol
+
+import numpy as np
+from pydantic import BaseModel, Field, model_validator
+
+if TYPE_CHECKING:
+    from gpmppi.mppi.planner import PlanResult
+    from gpmppi.tasks import GoalTask, LaneTask
+
+Level = Literal["reject", "error", "warning", "info"]
+# why a state gave no command
+Refusal = Literal["no_task", "state_nonfinite", "state_stale", "state_future", "plan_failed", "plan_nonfinite"]
+
+
+class CycleConfig(BaseModel):
+    """The planning cycle's checks and delay compensation."""
+
+    max_state_age_s: float = Field(0.5, gt=0, description="do not plan from a state older than this [s]")
+    max_state_future_s: float = Field(
+        0.2, ge=0, description="do not plan from a state stamped further than this in the future: the clock skew "
+        "tolerated between the state's source and this host [s]"
+    )
+    weights_stale_after_s: float = Field(
+        1.0, gt=0, description="terrain weights not refreshed for this long are flagged stale (kept, Plan."
+        "weights_stale, heartbeat flag weights_stale, status degraded) [s]"
+    )
+    weights_fallback_after_s: float = Field(
+        5.0, gt=0, description="terrain weights not refreshed for this long are replaced by the prior (uniform) [s]"
+    )
+    jump_distance_m: float = Field(
+        0.5, gt=0, description="an odometry jump: consecutive states further apart than this plus what their speed "
+        "explains over their stamp gap; resets the warm start [m]"
+    )
+    jump_yaw_rad: float = Field(
+        0.5, gt=0, description="an odometry jump in yaw: consecutive headings further apart than this plus what "
+        "their yaw rate explains [rad]"
+    )
+    compensate_delay: bool = Field(
+        True, description="plan from the state predicted to when the command takes effect (state age + compute + "
+        "actuation_delay_s), not from the measured one; the age is this host's clock minus the state's stamp, so "
+        "the two clocks must agree (one host, or synchronised clocks): turn it off otherwise"
+    )
+    actuation_delay_s: float = Field(
+        0.005, ge=0, description="from the command leaving the cycle to the base applying it (egress hop, base "
+        "tick; in a simulation: the whole command latency) [s]"
+    )
+
+    @model_validator(mode="after")
+    def _fallback_after_stale(self) -> CycleConfig:
+        if self.weights_fallback_after_s < self.weights_stale_after_s:
+            raise ValueError(
+                f"weights_fallback_after_s {self.weights_fallback_after_s} is shorter than weights_stale_after_s "
+                f"{self.weights_stale_after_s}: weights are flagged stale before they are replaced by the prior"
+            )
+        return self
+
+
+class PlannerLike(Protocol):
+    def plan(self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None,
+             state_cov: np.ndarray | None = None, delay_s: float = 0.0) -> PlanResult: ...
+    def prepare(self, weights: np.ndarray | None) -> None: ...
+    def reset(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class Event:
+    """Something the cycle did or refused: `name` is its counter, `level` how the service logs it."""
+
+    name: str
+    level: Level
+    message: str
+
+
+@dataclass(frozen=True)
+class Planned:
+    """A plan to publish: its command is `result.control`, stamped with the state's stamp."""
+
+    result: PlanResult
+    stamp_ns: int  # the stamp of the state it was planned from [ns]
+    delay_s: float  # how far ahead of the state it planned [s]
+    plan_s: float  # how long `plan` took by the cycle's clock [s]
+    weights_stale: bool  # the weights it used were stale
+
+
+def odometry_jump(previous: tuple[int, np.ndarray], stamp_ns: int, x: np.ndarray, config: CycleConfig) -> str | None:
+    """Why the step from `previous` (stamp, state) to (`stamp_ns`, `x`) is a jump no motion explains, or None."""
+    dt = abs(stamp_ns - previous[0]) / 1e9
+    x0 = previous[1]
+    distance = float(np.hypot(x[0] - x0[0], x[1] - x0[1]))
+    explained = max(abs(x0[3]), abs(x[3])) * dt
+    if distance > config.jump_distance_m + explained:
+        return f"odometry jumped {distance:.2f} m in {dt:.3f} s (speed explains {explained:.2f} m)"
+    yaw = abs(float(np.angle(np.exp(1j * (x[2] - x0[2])))))
+    explained = max(abs(x0[4]), abs(x[4])) * dt
+    if yaw > config.jump_yaw_rad + explained:
+        return f"odometry heading jumped {yaw:.2f} rad in {dt:.3f} s (yaw rate explains {explained:.2f} rad)"
+    return None
+
+
+def plan_is_finite(result: PlanResult) -> bool:
+    """Whether a plan's command and nominal trajectory are finite numbers (the rest of a Plan is checked when
+    it is published)."""
+    return bool(np.all(np.isfinite(result.control)) and np.all(np.isfinite(result.states)))
+
+
+def weights_in_order(names: Sequence[str], values: Sequence[float], terrains: Sequence[str]) -> np.ndarray:
+    """Weights given by terrain name, in the order of `terrains`; ValueError when the names differ."""
+    if sorted(names) != sorted(terrains):
+        raise ValueError(f"terrain weights for {list(names)} but the model has {list(terrains)}")
+    by_name = dict(zip(names, values, strict=True))
+    return np.array([by_name[t] for t in terrains], dtype=np.float64)
+
+
+class PlannerCycle:
+    """The planner's cycle over a planner object, free of Zenoh: feed it tasks, weights and states, get plans.
+
+    `clock` times each plan for the next one's delay estimate: the service's monotonic clock; a simulation
+    passes its own, under which planning takes no time (its command latency is all in `actuation_delay_s`)."""
+
+    def __init__(
+        self, planner: PlannerLike, task: LaneTask | GoalTask | None, config: CycleConfig, n_terrains: int,
+        terrains: Sequence[str] | None = None, clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if terrains is not None and len(terrains) != n_terrains:
+            raise ValueError(f"{n_terrains} terrains but names {list(terrains)}")
+        self.planner = planner
+        self.task = task
+        self.config = config
+        self.terrains = None if terrains is None else list(terrains)
+        self.clock = clock
+        self.prior = np.full(n_terrains, 1.0 / n_terrains)
+        self.weights = self.prior.copy()  # what the next plan uses, in the model's terrain order
+        self.weights_time: float | None = None  # arrival of the last valid weights [monotonic s]
+        self.weights_stale = False
+        self.weights_prior = True
+        self.previous: tuple[int, np.ndarray] | None = None  # the last state planned from: (stamp, array)
+        self.last_plan_s = 0.0
+        self.events: list[Event] = []
+        self.counts: dict[str, int] = {}
+
+    # ---- reporting
+    def _event(self, name: str, level: Level, message: str) -> Event:
+        event = Event(name, level, message)
+        self.events.append(event)
+        self.counts[name] = self.counts.get(name, 0) + 1
+        return event
+
+    def drain_events(self) -> list[Event]:
+        """What happened since the last call, oldest first."""
+        events, self.events = self.events, []
+        return events
+
+    # ---- inputs between states
+    def set_task(self, task: LaneTask | GoalTask) -> None:
+        """Plan for `task` from now on; the warm start was for the old one, so it is forgotten."""
+        self.task = task
+        self.planner.reset()
+
+    def on_weights(self, weights: Sequence[float], now: float, names: Sequence[str] | None = None) -> bool:
+        """Take new terrain weights (in the model's order, or by `names`); False when refused (the previous stay).
+
+        The table collapse for them is done now: new weights arrive between states (terrain solves after each
+        command), so it stays off the next state's path to its command."""
+        try:
+            w = np.array(weights, dtype=np.float64).reshape(-1)  # a copy: the caller may reuse its array
+            if names is not None:
+                if self.terrains is None:
+                    raise ValueError("weights by name, but this cycle was not given the model's terrain names")
+                w = weights_in_order(names, w.tolist(), self.terrains)
+            self.planner.prepare(w)
+        except ValueError as exc:
+            self._event("weights_invalid", "reject", f"terrain weights: {exc}; kept the previous weights")
+            return False
+        if self.weights_stale:
+            self._event("weights_back", "info",
+                        f"terrain weights arrive again after {now - (self.weights_time or now):.1f} s")
+        self.weights = w
+        self.weights_time, self.weights_stale = now, False
+        self.weights_prior = bool(np.allclose(w, self.prior, rtol=0.0, atol=1e-9))
+        return True
+
+    def tick(self, now: float) -> None:
+        """Age the terrain weights: flag them stale, then fall back to the prior."""
+        if self.weights_time is None or self.weights_prior:
+            return
+        silent = now - self.weights_time
+        if not self.weights_stale and silent > self.config.weights_stale_after_s:
+            self.weights_stale = True
+            self._event("weights_stale", "error",
+                        f"no terrain weights for {silent:.1f} s: planning on the last ones (stale)")
+        if silent > self.config.weights_fallback_after_s:
+            self.weights_prior = True
+            self.weights = self.prior.copy()
+            self.planner.prepare(self.weights)
+            self._event("weights_fallback", "error",
+                        f"no terrain weights for {silent:.1f} s: planning on the prior (uniform weights)")
+
+    # ---- a state
+    def _refuse(self, reason: Refusal, level: Level, message: str) -> Event:
+        return self._event(reason, level, message)
+
+    def _start_covariance(self, covariance: Sequence[float] | np.ndarray | None) -> np.ndarray | None:
+        if covariance is None:
+            return None
+        cov = np.asarray(covariance, dtype=np.float64)
+        if cov.size == 25:
+            cov = cov.reshape(5, 5)
+            if np.all(np.isfinite(cov)) and not np.any(np.diag(cov) < 0) and np.allclose(cov, cov.T):
+                return cov
+        self._event("state_covariance_invalid", "reject",
+                    "state covariance is not a covariance (negative variance or asymmetric): planned with the "
+                    "configured state_std instead")
+        return None
+
+    def on_state(
+        self, state: Sequence[float] | np.ndarray, stamp_ns: int, now: float, now_ns: int,
+        covariance: Sequence[float] | np.ndarray | None = None,
+    ) -> Planned | Event:
+        """Plan from `state` (stamped `stamp_ns`, with its 5x5 or flat covariance, if any); the plan, or the
+        refusal (an `Event` whose name says why; there is no command then, and egress's watchdog stops the
+        robot if it persists)."""
+        c = self.config
+        self.tick(now)
+        if self.task is None:
+            return self._refuse("no_task", "reject", "no task yet: not planning")
+        x = np.asarray(state, dtype=np.float64).reshape(-1)
+        if x.shape != (5,) or not np.all(np.isfinite(x)):
+            return self._refuse("state_nonfinite", "reject",
+                                f"state {x.tolist()} is not five finite numbers: not planning")
+        age_s = (now_ns - stamp_ns) / 1e9
+        if age_s > c.max_state_age_s:
+            return self._refuse("state_stale", "reject",
+                                f"state is {age_s:.3f} s old (limit {c.max_state_age_s} s): not planning")
+        if -age_s > c.max_state_future_s:
+            return self._refuse("state_future", "reject",
+                                f"state stamped {-age_s:.3f} s in the future (limit {c.max_state_future_s} s): not "
+                                "planning; the state source's clock is ahead of this host's")
+        if self.previous is not None and (jump := odometry_jump(self.previous, stamp_ns, x, c)):
+            # the warm start was planned for the old pose: from the new one it is a wrong guess
+            self._event("odom_jump", "warning", f"{jump}: warm start reset")
+            self.planner.reset()
+        self.previous = (stamp_ns, x)
+        cov = self._start_covariance(covariance)
+        # the command acts once this plan is computed (about as long as the last one) and has reached the base
+        delay_s = max(0.0, age_s) + self.last_plan_s + c.actuation_delay_s if c.compensate_delay else 0.0
+        try:
+            t_plan = self.clock()
+            result = self.planner.plan(x, self.task, self.weights, state_cov=cov, delay_s=delay_s)
+            self.last_plan_s = self.clock() - t_plan
+        except (ValueError, FloatingPointError) as exc:
+            return self._refuse("plan_failed", "error", f"planning failed: {exc}")
+        if not plan_is_finite(result):
+            # a state far outside what the model knows (e.g. v = -5 m/s with omega = 20 rad/s) can make the
+            # rollouts diverge: such a plan is no plan, so no command
+            return self._refuse("plan_nonfinite", "error",
+                                f"planning from {np.round(x, 3).tolist()} gave non-finite states: no command")
+        return Planned(result, stamp_ns, delay_s, self.last_plan_s, self.weights_stale)

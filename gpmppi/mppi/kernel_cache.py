@@ -1,0 +1,141 @@
+"""Whether a planner configuration's numba kernels are in the on-disk cache, so a service can say that it has to
+compile before it does (minutes on a small machine, once) instead of sitting silent.
+
+Which kernels (and which type signatures) a configuration uses is only known once it has planned: after its
+first warm-up the service records them in a small manifest next to numba's own cache files
+(`$NUMBA_CACHE_DIR/gpmppi-kernels/<label>.json`). A configuration is cached when that manifest exists and numba's
+index for each kernel listed holds the signature for this machine (numba's own lookup key: the signature and the
+code generator's magic tuple; its index is empty when stale). An empty cache folder has no manifest: not cached.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from numba.core import config as numba_config
+from numba.core.dispatcher import Dispatcher
+
+# one planner configuration compiled cold from an empty cache: 95 s wall, `NUMBA_CACHE_DIR=$(mktemp -d)
+# gpmppi bench planner --iters 5` on a 2-core machine; used until this machine has measured its own
+REFERENCE_COMPILE_S = 95.0
+_MANIFEST_DIR = "gpmppi-kernels"
+
+Counts = dict[str, tuple[dict[str, int], dict[str, int]]]  # kernel -> (loads by signature, compiles by signature)
+
+
+@dataclass
+class KernelUse:
+    """What a stretch of code did with the cached kernels: per kernel, the signatures loaded and compiled."""
+
+    loaded: dict[str, list[str]] = field(default_factory=dict)
+    compiled: dict[str, list[str]] = field(default_factory=dict)
+
+
+def _kernels() -> Iterator[tuple[str, Dispatcher]]:
+    """Every disk-cached numba kernel of gpmppi's imported modules, by `module:qualname`."""
+    seen: set[int] = set()
+    for module_name, module in list(sys.modules.items()):
+        if not (module_name == "gpmppi" or module_name.startswith("gpmppi.")) or module is None:
+            continue
+        for value in list(vars(module).values()):
+            if isinstance(value, Dispatcher) and id(value) not in seen and hasattr(value._cache, "_cache_file"):
+                seen.add(id(value))
+                yield f"{value.py_func.__module__}:{value.py_func.__qualname__}", value
+
+
+def cache_counts() -> Counts:
+    """A snapshot of numba's cache loads and compiles so far in this process, for `kernels_used`."""
+    return {name: ({str(s): n for s, n in d._cache_hits.items()}, {str(s): n for s, n in d._cache_misses.items()})
+            for name, d in _kernels()}
+
+
+def kernels_used(before: Counts, after: Counts) -> KernelUse:
+    """The kernels loaded from the cache and compiled between two `cache_counts` snapshots."""
+    use = KernelUse()
+    for name, (hits, misses) in after.items():
+        old_hits, old_misses = before.get(name, ({}, {}))
+        for into, new, old in ((use.loaded, hits, old_hits), (use.compiled, misses, old_misses)):
+            sigs = [s for s, n in new.items() if n > old.get(s, 0)]
+            if sigs:
+                into[name] = sorted(sigs)
+    return use
+
+
+def cache_folder() -> Path:
+    """numba's on-disk cache folder in this process."""
+    return Path(numba_config.CACHE_DIR or os.environ.get("NUMBA_CACHE_DIR", ""))
+
+
+def _manifest(label: str) -> Path:
+    return cache_folder() / _MANIFEST_DIR / f"{label.replace('/', '-').replace(' ', '_')}.json"
+
+
+def record(label: str, use: KernelUse, compile_s: float | None) -> None:
+    """Remember which kernels configuration `label` used (and, if it compiled, how long that took)."""
+    path = _manifest(label)
+    kernels: dict[str, list[str]] = {}
+    for part in (use.loaded, use.compiled):
+        for name, sigs in part.items():
+            kernels[name] = sorted({*kernels.get(name, []), *sigs})
+    if not kernels:
+        return
+    previous = _read(path)
+    entry = {"kernels": kernels, "compile_s": compile_s if compile_s is not None else previous.get("compile_s")}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(entry, indent=1))
+    tmp.replace(path)  # atomic: two services starting at once each write a whole file
+
+
+def _read(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _lookup(name: str) -> Dispatcher | None:
+    module_name, _, qualname = name.partition(":")
+    try:
+        value: object = importlib.import_module(module_name)
+        for part in qualname.split("."):
+            value = getattr(value, part)
+    except (ImportError, AttributeError):
+        return None
+    return value if isinstance(value, Dispatcher) else None
+
+
+def _in_index(dispatcher: Dispatcher, sig: str) -> bool:
+    try:
+        index = dispatcher._cache._cache_file._load_index()
+        magic = dispatcher.targetctx.codegen().magic_tuple()
+    except Exception:  # numba's private cache layout changed: say not cached rather than guess
+        return False
+    return any(str(key[0]) == sig and key[1] == magic for key in index)
+
+
+def is_cached(label: str) -> bool:
+    """Whether configuration `label` planned before with this cache and every kernel it used is still there."""
+    kernels = _read(_manifest(label)).get("kernels")
+    if not isinstance(kernels, dict) or not kernels:
+        return False
+    for name, sigs in kernels.items():
+        dispatcher = _lookup(name)
+        if dispatcher is None or not all(_in_index(dispatcher, s) for s in sigs):
+            return False
+    return True
+
+
+def compile_estimate_s(label: str) -> tuple[float, str]:
+    """About how long a cold compile of `label` takes, and where the number comes from."""
+    measured = _read(_manifest(label)).get("compile_s")
+    if isinstance(measured, int | float) and measured > 0:
+        return float(measured), "as measured when this cache was last filled"
+    return REFERENCE_COMPILE_S, "measured on 2 cores"

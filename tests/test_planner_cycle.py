@@ -1,0 +1,206 @@
+"""The planning cycle (`PlannerCycle`), free of Zenoh: every refusal by name, weight updates and their ages, the
+start covariance, delay compensation; and that the closed-loop evaluation runs exactly this cycle."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from gpmppi.mppi.cycle import CycleConfig, Event, Planned, PlannerCycle
+from gpmppi.tasks import LaneTask
+
+NS = 1_000_000_000
+LANE = LaneTask(np.array([[0.0, 0.0], [100.0, 0.0]]), half_width=1.0, closed=False)
+X0 = np.array([1.0, 0.0, 0.0, 1.0, 0.0])
+
+
+@dataclass
+class Result:
+    control: np.ndarray
+    states: np.ndarray
+
+
+class RecordingPlanner:
+    """Records every call; `fail` makes plan raise, `nan` makes it return a non-finite trajectory."""
+
+    def __init__(self) -> None:
+        self.calls: list[dict] = []
+        self.prepared: list[np.ndarray] = []
+        self.resets = 0
+        self.fail: Exception | None = None
+        self.nan = False
+        self.refuse_weights = False
+
+    def plan(self, state, task, weights=None, state_cov=None, delay_s=0.0) -> Result:
+        self.calls.append({"state": state.copy(), "weights": np.array(weights), "cov": state_cov, "delay": delay_s})
+        if self.fail is not None:
+            raise self.fail
+        states = np.full((3, 5), np.nan if self.nan else 0.0)
+        return Result(np.array([1.0, 0.0]), states)
+
+    def prepare(self, weights) -> None:
+        if self.refuse_weights:
+            raise ValueError("weights must lie on the simplex")
+        self.prepared.append(np.array(weights))
+
+    def reset(self) -> None:
+        self.resets += 1
+
+
+def make(config: CycleConfig | None = None, task=LANE, clock=lambda: 0.0) -> tuple[PlannerCycle, RecordingPlanner]:
+    planner = RecordingPlanner()
+    return PlannerCycle(planner, task, config or CycleConfig(), 2, ["asphalt", "grass"], clock=clock), planner
+
+
+def refusal(out: Planned | Event) -> str:
+    assert isinstance(out, Event), out
+    return out.name
+
+
+def test_each_refusal_is_named_counted_and_gives_no_plan() -> None:
+    cycle, planner = make(CycleConfig(max_state_age_s=0.5, max_state_future_s=0.2))
+    now_ns = 100 * NS
+    assert refusal(cycle.on_state(X0, now_ns - NS, 0.0, now_ns)) == "state_stale"
+    out = cycle.on_state(X0, now_ns + NS // 2, 0.0, now_ns)
+    assert refusal(out) == "state_future" and "future" in out.message
+    assert refusal(cycle.on_state([1.0, np.nan, 0.0, 0.0, 0.0], now_ns, 0.0, now_ns)) == "state_nonfinite"
+    assert refusal(cycle.on_state([1.0, 2.0], now_ns, 0.0, now_ns)) == "state_nonfinite"
+    assert not planner.calls  # none of these reached the planner
+    # inside both limits: planned
+    assert isinstance(cycle.on_state(X0, now_ns - NS // 4, 0.0, now_ns), Planned)
+    assert isinstance(cycle.on_state(X0, now_ns + NS // 10, 0.0, now_ns), Planned)
+    planner.fail = ValueError("delay_s must be between 0 and the horizon")
+    out = cycle.on_state(X0, now_ns, 0.0, now_ns)
+    assert refusal(out) == "plan_failed" and out.level == "error" and "delay_s" in out.message
+    planner.fail, planner.nan = None, True
+    assert refusal(cycle.on_state(X0, now_ns, 0.0, now_ns)) == "plan_nonfinite"
+    no_task, _ = make(task=None)
+    assert refusal(no_task.on_state(X0, now_ns, 0.0, now_ns)) == "no_task"
+    assert cycle.counts == {"state_stale": 1, "state_future": 1, "state_nonfinite": 2, "plan_failed": 1,
+                            "plan_nonfinite": 1}
+    assert [e.name for e in cycle.drain_events()][:3] == ["state_stale", "state_future", "state_nonfinite"]
+    assert cycle.drain_events() == []
+
+
+def test_a_new_task_and_an_odometry_jump_reset_the_warm_start() -> None:
+    cycle, planner = make()
+    assert isinstance(cycle.on_state(X0, NS, 0.0, NS), Planned)
+    step = X0 + np.array([0.1, 0.0, 0.0, 0.0, 0.0])
+    assert isinstance(cycle.on_state(step, NS + NS // 10, 0.1, NS + NS // 10), Planned)
+    assert planner.resets == 0
+    jumped = X0 + np.array([5.0, 0.0, 0.0, 0.0, 0.0])
+    assert isinstance(cycle.on_state(jumped, NS + NS // 5, 0.2, NS + NS // 5), Planned)  # still plans, from scratch
+    assert planner.resets == 1 and cycle.counts["odom_jump"] == 1
+    other = LaneTask(np.array([[0.0, 0.0], [0.0, 50.0]]), half_width=1.0, closed=False)
+    cycle.set_task(other)
+    assert planner.resets == 2 and cycle.task is other
+
+
+def test_start_covariance_from_the_state_or_the_configured_one() -> None:
+    cycle, planner = make()
+    cov = np.diag([0.01, 0.01, 0.001, 0.02, 0.02])
+    cycle.on_state(X0, NS, 0.0, NS, covariance=cov.reshape(-1).tolist())  # flat, as the State message has it
+    np.testing.assert_array_equal(planner.calls[-1]["cov"], cov)
+    bad = cov.copy()
+    bad[0, 0] = -1.0
+    assert isinstance(cycle.on_state(X0, NS, 0.0, NS, covariance=bad), Planned)
+    assert planner.calls[-1]["cov"] is None and cycle.counts["state_covariance_invalid"] == 1
+    asymmetric = cov.copy()
+    asymmetric[0, 1] = 0.5
+    cycle.on_state(X0, NS, 0.0, NS, covariance=asymmetric)
+    assert planner.calls[-1]["cov"] is None and cycle.counts["state_covariance_invalid"] == 2
+    cycle.on_state(X0, NS, 0.0, NS)
+    assert planner.calls[-1]["cov"] is None and cycle.counts["state_covariance_invalid"] == 2
+
+
+def test_delay_is_state_age_plus_last_compute_plus_actuation() -> None:
+    clock = iter([10.0, 10.03, 20.0, 20.05])
+    cycle, planner = make(CycleConfig(actuation_delay_s=0.005), clock=lambda: next(clock))
+    first = cycle.on_state(X0, NS, 0.0, NS + NS // 10)  # 0.1 s old, no plan timed yet
+    assert isinstance(first, Planned) and first.delay_s == pytest.approx(0.105)
+    assert first.plan_s == pytest.approx(0.03)
+    second = cycle.on_state(X0, 2 * NS, 0.0, 2 * NS - NS // 10)  # stamped 0.1 s ahead: counts as age 0
+    assert isinstance(second, Planned) and second.delay_s == pytest.approx(0.03 + 0.005)
+    assert [c["delay"] for c in planner.calls] == [first.delay_s, second.delay_s]
+    off, planner = make(CycleConfig(compensate_delay=False, actuation_delay_s=0.005))
+    off.on_state(X0, NS, 0.0, NS + NS // 10)
+    assert planner.calls[-1]["delay"] == 0.0
+
+
+def test_weights_by_name_prepared_on_arrival_refused_when_wrong() -> None:
+    cycle, planner = make()
+    np.testing.assert_array_equal(cycle.weights, [0.5, 0.5])  # the prior until the terrain service speaks
+    assert cycle.on_weights([0.2, 0.8], 1.0, names=["grass", "asphalt"])
+    np.testing.assert_array_equal(cycle.weights, [0.8, 0.2])  # the model's order
+    np.testing.assert_array_equal(planner.prepared[-1], [0.8, 0.2])  # collapsed now, not on the state's path
+    assert not cycle.on_weights([0.5, 0.5], 1.1, names=["asphalt", "ice"])
+    planner.refuse_weights = True
+    assert not cycle.on_weights([2.0, -1.0], 1.2)
+    assert cycle.counts == {"weights_invalid": 2}
+    np.testing.assert_array_equal(cycle.weights, [0.8, 0.2])  # kept
+    cycle.on_state(X0, NS, 1.3, NS)
+    np.testing.assert_array_equal(planner.calls[-1]["weights"], [0.8, 0.2])
+
+
+def test_silent_weights_are_flagged_stale_then_replaced_by_the_prior() -> None:
+    cycle, planner = make(CycleConfig(weights_stale_after_s=1.0, weights_fallback_after_s=3.0))
+    cycle.on_weights([0.9, 0.1], 0.0)
+    out = cycle.on_state(X0, NS, 0.5, NS)
+    assert isinstance(out, Planned) and not out.weights_stale and not cycle.weights_prior
+    out = cycle.on_state(X0, NS, 1.5, NS)
+    assert isinstance(out, Planned) and out.weights_stale and cycle.counts["weights_stale"] == 1
+    np.testing.assert_array_equal(planner.calls[-1]["weights"], [0.9, 0.1])  # kept while stale
+    cycle.tick(2.0)
+    assert cycle.counts["weights_stale"] == 1  # once per silence
+    out = cycle.on_state(X0, NS, 3.5, NS)
+    assert isinstance(out, Planned) and out.weights_stale and cycle.weights_prior
+    np.testing.assert_array_equal(planner.calls[-1]["weights"], [0.5, 0.5])
+    np.testing.assert_array_equal(planner.prepared[-1], [0.5, 0.5])
+    assert cycle.counts["weights_fallback"] == 1
+    cycle.on_weights([0.9, 0.1], 4.0)
+    assert not cycle.weights_stale and cycle.counts["weights_back"] == 1
+    # the prior itself never goes stale: falling back would change nothing
+    quiet, _ = make(CycleConfig(weights_stale_after_s=1.0, weights_fallback_after_s=3.0))
+    quiet.on_weights([0.5, 0.5], 0.0)
+    quiet.tick(10.0)
+    assert not quiet.weights_stale and "weights_stale" not in quiet.counts
+
+
+def test_the_closed_loop_runs_this_cycle() -> None:
+    """A seeded closed loop (physics plant, terrain estimator, command latency) and the same cycle driven by hand
+    from its measured states give identical commands and weights, bit for bit."""
+    from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+    from gpmppi.gp.model_file import load_default_model
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.plant.physics import PhysicsPlant
+    from gpmppi.plant.terrains import load_terrains
+    from gpmppi.scenarios import circle_lane
+    from gpmppi.terrain import TerrainEstimator
+
+    model = load_default_model()
+    sc = circle_lane()
+    cfg = ClosedLoopConfig(time_limit_s=1.5, latency_s=0.1)
+    traj = run_closed_loop(Planner(PlannerConfig(samples=64, seed=3), model),
+                           PhysicsPlant(load_terrains(None), "grass", seed=3), sc.task, sc.start,
+                           len(model.terrains), cfg, estimator=TerrainEstimator(model))
+    assert traj.status == "time_limit" and len(traj.commands) == 15
+
+    planner = Planner(PlannerConfig(samples=64, seed=3), model)
+    cycle = PlannerCycle(planner, sc.task, CycleConfig(actuation_delay_s=0.1), len(model.terrains),
+                         clock=lambda: 0.0)
+    estimator = TerrainEstimator(model)
+    commands, weights = [], []
+    for k, x in enumerate(traj.measured_states[:-1]):
+        stamp = round(k * 0.1 * NS)
+        if k > 0:
+            estimator.observe(traj.measured_states[k - 1], commands[-1], x)
+            cycle.on_weights(estimator.estimate().weights, k * 0.1)
+        out = cycle.on_state(x, stamp, k * 0.1, stamp)
+        assert isinstance(out, Planned) and out.delay_s == 0.1
+        commands.append(np.asarray(out.result.control).copy())
+        weights.append(cycle.weights.copy())
+    np.testing.assert_array_equal(np.array(commands), traj.commands)
+    np.testing.assert_array_equal(np.array(weights), traj.weights)
+    assert not np.allclose(traj.weights[-1], traj.weights[0])  # the estimator moved them: the weight path ran

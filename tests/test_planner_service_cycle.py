@@ -1,0 +1,130 @@
+"""The planner service as a real process over loopback Zenoh: it says in its log when it has to compile its
+kernels (an empty numba cache) and says nothing of the kind when they are cached; and its commands are those of
+a `PlannerCycle` driven directly with the same states, bit for bit. Plus the cache check itself, in-process."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from zenoh_helpers import (
+    Collector,
+    ServiceProcess,
+    client,
+    free_port,
+    heartbeats,
+    matched_publisher,
+    router,
+    settings,
+    wait_for,
+)
+
+from gpmppi.mppi import kernel_cache
+from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle
+from schemas import Command, Header, State, decode, encode
+
+NOTICE = "compiling planner kernels for gp/grid on cpu (not cached yet"
+
+
+def _states(n: int) -> list[np.ndarray]:
+    """Along the circle lane from its start (radius 20 m, heading +y), 0.1 m apart at 1 m/s: no odometry jump."""
+    return [np.array([20.0, 0.1 * k, math.pi / 2, 1.0, 0.05]) for k in range(n)]
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(1800)  # one cold compile in the service: minutes, more on a loaded machine
+def test_planner_service_announces_a_cold_compile_and_plans_as_the_cycle(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cache = tmp_path / "numba"
+    cache.mkdir()
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))  # the services' cache (this process has its own already)
+    port = free_port()
+    cfg = settings("planner", port, heartbeat_hz=5.0, compensate_delay=False, planner={"samples": 64, "backend": "cpu"})
+    sent: list[tuple[int, np.ndarray]] = []
+    with router(port):
+        observer = client(port)
+        col = Collector(observer)
+        (tmp_path / "cold").mkdir()
+        cold = ServiceProcess("planner", cfg, tmp_path / "cold")
+        try:
+            # the notice comes before the compile, not after it
+            assert wait_for(lambda: NOTICE in cold.log(), 60.0), cold.log()
+            assert not heartbeats(col, "r1", "planner") and "compiled planner kernels" not in cold.log()
+            assert wait_for(lambda: bool(heartbeats(col, "r1", "planner")), 900.0), cold.log()
+            state_pub = matched_publisher(observer, "gpmppi/r1/state")
+
+            def commands() -> dict[int, Command]:
+                return {(c := decode(Command, p)).header.stamp_ns: c for _, p, _ in col.on("gpmppi/r1/cmd")}
+
+            for x in _states(8):
+                stamp = time.time_ns()
+                state_pub.put(encode(State(x=x[0], y=x[1], theta=x[2], v=x[3], omega=x[4],
+                                           header=Header(stamp_ns=stamp))))
+                assert wait_for(lambda s=stamp: s in commands(), 20.0), cold.log()  # noqa: B023
+                sent.append((stamp, x))
+        finally:
+            assert cold.stop(30.0) == 0
+        log = cold.log()
+        line = next(s for s in log.splitlines() if NOTICE in s)
+        assert "about" in line and str(cache) in line, line
+        assert "compiled planner kernels for gp/grid on cpu in" in log, log
+
+        # a second start finds them cached: no notice, no compile
+        (tmp_path / "warm").mkdir()
+        n_beats = len(heartbeats(col, "r1", "planner"))
+        warm = ServiceProcess("planner", cfg, tmp_path / "warm")
+        try:
+            assert wait_for(lambda: len(heartbeats(col, "r1", "planner")) > n_beats, 120.0), warm.log()
+        finally:
+            assert warm.stop(30.0) == 0
+        assert "compiling planner kernels" not in warm.log() and "compiled planner kernels" not in warm.log()
+        observer.close()
+    got = commands()
+
+    # the same states through a PlannerCycle in this process, warmed up as the service does
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+    from services.planner import load_model, load_scenario
+
+    scenario = load_scenario("circle")
+    planner = Planner(PlannerConfig(samples=64, backend="cpu"), load_model(None))
+    planner.plan(np.asarray(scenario.start, dtype=np.float64), scenario.task, delay_s=0.01)
+    planner.reset()
+    cycle = PlannerCycle(planner, scenario.task, CycleConfig(compensate_delay=False), len(planner.model.terrains))
+    for stamp, x in sent:
+        out = cycle.on_state(x, stamp, 0.0, stamp)
+        assert isinstance(out, Planned)
+        assert (got[stamp].v_ref, got[stamp].omega_ref) == (float(out.result.control[0]),
+                                                            float(out.result.control[1])), stamp
+
+
+def test_cache_check_needs_the_manifest_and_every_kernel_it_lists(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from gpmppi.gp.model_file import load_default_model
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.scenarios import circle_lane
+
+    monkeypatch.setattr(kernel_cache, "cache_folder", lambda: tmp_path)  # the manifest only; kernels stay numba's
+    label = "gp/grid on cpu"
+    assert not kernel_cache.is_cached(label)  # an empty folder: nothing planned with it yet
+    estimate, source = kernel_cache.compile_estimate_s(label)
+    assert estimate == kernel_cache.REFERENCE_COMPILE_S and "2 cores" in source
+    sc = circle_lane()
+    Planner(PlannerConfig(samples=64, backend="cpu"), load_default_model()).plan(sc.start, sc.task, delay_s=0.01)
+    use = kernel_cache.kernels_used({}, kernel_cache.cache_counts())  # everything this process loaded or compiled
+    names = {**use.loaded, **use.compiled}
+    assert any(name.endswith(":rollout_kernel") for name in names), names
+    kernel_cache.record(label, use, 42.0)
+    assert kernel_cache.is_cached(label)
+    assert kernel_cache.compile_estimate_s(label) == (42.0, "as measured when this cache was last filled")
+    # a listed signature numba's index does not hold: not cached
+    manifest = next((tmp_path / "gpmppi-kernels").glob("*.json"))
+    text = manifest.read_text()
+    manifest.write_text(text.replace("float64", "float32", 1))
+    assert not kernel_cache.is_cached(label)
+    manifest.write_text(text.replace(":rollout_kernel", ":no_such_kernel"))
+    assert not kernel_cache.is_cached(label)
