@@ -23,8 +23,11 @@ def test_propagation_adds_the_likelihood_noise_to_the_latent_variance() -> None:
     dummy = (np.zeros((m2, 1, 4)), np.ones((m2, 4)), np.zeros(m2), np.zeros((m2, 1)), np.ones((m2, 1, 1)))
     args = (x0, controls, 0.1, DYN_GP, model.theta, np.zeros(2), model.edd5["grass"], GP_GRID, table.reshape(-1, 4),
             np.array(table.shape[:4]), g.lo[TABLE_AXES], g.inv_step[TABLE_AXES], *dummy, w)
-    _, cov_latent, var_latent = propagate(*args)
-    _, cov_pred, var_pred = propagate(*args, 2e-3, 5e-3)
+    # called with the argument types the planner passes (noise floats, a start covariance), so this test runs the
+    # planner's compiled propagate instead of compiling two more specialisations of it
+    zero_cov = np.zeros((5, 5))
+    _, cov_latent, var_latent = propagate(*args, 0.0, 0.0, zero_cov)
+    _, cov_pred, var_pred = propagate(*args, 2e-3, 5e-3, zero_cov)
     np.testing.assert_allclose(var_pred - var_latent, np.tile([2e-3, 5e-3], (10, 1)), rtol=1e-9, atol=1e-15)
     assert cov_pred[1, 3, 3] == pytest.approx(cov_latent[1, 3, 3] + 2e-3)
     assert cov_pred[-1, 0, 0] > cov_latent[-1, 0, 0]  # the noise reaches the position
