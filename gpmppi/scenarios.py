@@ -9,7 +9,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from gpmppi.tasks import GoalTask, LaneTask, Task
+from gpmppi.tasks import GoalTask, LaneTask, Task, distance_to_polyline
 
 
 @dataclass(frozen=True)
@@ -100,8 +100,6 @@ def infeasibility(scenario: Scenario, robot_radius: float = 0.0) -> list[str]:
             if np.hypot(task.goal[0] - x, task.goal[1] - y) + task.tolerance <= r + robot_radius:
                 problems.append(f"goal ({task.goal[0]:g}, {task.goal[1]:g}) lies wholly inside obstacle {i}")
     else:
-        from gpmppi.evaluation.metrics import distance_to_polyline
-
         d = float(distance_to_polyline(scenario.start[None, :2], task.centerline, task.closed)[0])
         if d > task.half_width:
             problems.append(f"start is {d:.2f} m from the lane centre, outside the half-width {task.half_width:g} m")

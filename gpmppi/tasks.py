@@ -51,3 +51,27 @@ class GoalTask:
 
 
 Task = LaneTask | GoalTask
+
+
+def polyline_segments(centerline: np.ndarray, closed: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Segment start points (S, 2) and direction vectors (S, 2) of a polyline (closing it if `closed`)."""
+    c = np.asarray(centerline, dtype=np.float64)
+    ends = np.roll(c, -1, axis=0) if closed else c[1:]
+    starts = c if closed else c[:-1]
+    return starts, ends - starts
+
+
+def distance_to_polyline(points: np.ndarray, centerline: np.ndarray, closed: bool = True) -> np.ndarray:
+    """Euclidean distance (T,) from each point (T, 2) to the closest point of the polyline (segments, not vertices)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    starts, dirs = polyline_segments(centerline, closed)
+    len2 = np.einsum("sd,sd->s", dirs, dirs)
+    len2 = np.where(len2 > 0.0, len2, 1.0)  # a repeated vertex is a zero-length segment: its start is its point
+    out = np.empty(p.shape[0])
+    chunk = 2048  # bounds the (chunk, S, 2) temporary for long runs over finely sampled lanes
+    for i in range(0, p.shape[0], chunk):
+        rel = p[i : i + chunk, None, :] - starts[None, :, :]
+        t = np.clip(np.einsum("tsd,sd->ts", rel, dirs) / len2, 0.0, 1.0)
+        diff = rel - t[..., None] * dirs[None, :, :]
+        out[i : i + chunk] = np.sqrt(np.min(np.einsum("tsd,tsd->ts", diff, diff), axis=1))
+    return out

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpmppi.costs import (
+from gpmppi.mppi.costs import (
     collision_cost,
     deviation_cost,
     goal_cost,

@@ -49,7 +49,7 @@ import numpy as np
 HELPERS_CACHED = "@HELPERS_CACHED@"
 
 if sys.argv[1] == "helpers_first":
-    from gpmppi.costs import N_COST_WEIGHTS, lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
+    from gpmppi.mppi.costs import N_COST_WEIGHTS, lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
     from gpmppi.gp.grid_interp import grid_interp
     from gpmppi.models.dynamic_unicycle import nominal_step, jacobian
     from gpmppi.mppi.dynamics import advance, nominal_velocity_step, velocity_coefficients

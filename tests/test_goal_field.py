@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpmppi.costs import N_COST_WEIGHTS, W_GOAL_GEODESIC, goal_cost, goal_term
+from gpmppi.mppi.costs import N_COST_WEIGHTS, W_GOAL_GEODESIC, goal_cost, goal_term
 from gpmppi.mppi.goal_field import _STENCIL, GoalField, build_goal_field, goal_distance
 from gpmppi.scenarios import PAPER_OBSTACLES
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpmppi.costs import N_COST_WEIGHTS, TASK_LANE, W_SPEED, W_SPEED_ALONG, stage_cost
+from gpmppi.mppi.costs import N_COST_WEIGHTS, TASK_LANE, W_SPEED, W_SPEED_ALONG, stage_cost
 from gpmppi.mppi.lane import LaneLookup, build_lane_lookup, lane_query
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.mppi.synthetic import synthetic_model

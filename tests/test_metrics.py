@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from gpmppi.evaluation.metrics import (
-    distance_to_polyline,
     first_goal_index,
     goal_outcome,
     lane_exit_count,
@@ -16,6 +15,7 @@ from gpmppi.evaluation.metrics import (
     path_length,
 )
 from gpmppi.scenarios import circle_lane, square_lane
+from gpmppi.tasks import distance_to_polyline
 
 SQUARE = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
 

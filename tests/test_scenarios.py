@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gpmppi.evaluation.metrics import distance_to_polyline
 from gpmppi.scenarios import (
     ScenarioFileError,
     circle_lane,
@@ -20,7 +19,7 @@ from gpmppi.scenarios import (
     shipped_scene_files,
     square_lane,
 )
-from gpmppi.tasks import GoalTask, LaneTask
+from gpmppi.tasks import GoalTask, LaneTask, distance_to_polyline
 
 
 def test_paper_geometry() -> None:

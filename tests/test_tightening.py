@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.stats import chi2, norm
 
-from gpmppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.models.dynamic_unicycle import jacobian, nominal_step
+from gpmppi.mppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, propagate
 from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table
 from gpmppi.mppi.synthetic import synthetic_model

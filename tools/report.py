@@ -98,7 +98,7 @@ def write_tables(results: dict, meta: dict, out_dir: Path, models: list[str], te
 
 def _lane_axes(ax, task: LaneTask) -> None:
     """Centre line, and the lane edges as the level set {distance to the centre line = half-width}."""
-    from gpmppi.evaluation.metrics import distance_to_polyline
+    from gpmppi.tasks import distance_to_polyline
 
     c = task.centerline
     line = np.vstack([c, c[:1]]) if task.closed else c

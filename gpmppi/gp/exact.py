@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit, prange
 
 from gpmppi.gp.model_file import GPModel
-from gpmppi.mppi.flags import FASTMATH
+from gpmppi.kernel_flags import FASTMATH
 
 
 @njit(cache=True, inline="always", fastmath=FASTMATH)  # fastmath lets the O(n^2) triangular solve use SIMD

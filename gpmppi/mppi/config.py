@@ -11,7 +11,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from gpmppi.costs import N_COST_WEIGHTS
+from gpmppi.mppi.costs import N_COST_WEIGHTS
 
 __all__ = ["PlannerConfig"]
 

@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from gpmppi.costs import TASK_GOAL, TASK_LANE, W_EXIT_DISCOUNT, W_TERMINAL, goal_term, stage_cost
+from gpmppi.kernel_flags import FASTMATH, prefetch_row
+from gpmppi.mppi.costs import TASK_GOAL, TASK_LANE, W_EXIT_DISCOUNT, W_TERMINAL, goal_term, stage_cost
 from gpmppi.mppi.dynamics import (
     DYN_GP,
     GP_SIMPLEX,
@@ -21,7 +22,6 @@ from gpmppi.mppi.dynamics import (
     gp_residual,
     velocity_coefficients,
 )
-from gpmppi.mppi.flags import FASTMATH, prefetch_row
 from gpmppi.mppi.gp_table import simplex_corner, simplex_params
 from gpmppi.mppi.rng import noisy_command
 

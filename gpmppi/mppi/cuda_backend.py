@@ -17,8 +17,8 @@ import math
 import numpy as np
 from numba import cuda
 
-from gpmppi import costs as critic
 from gpmppi.gp.cuda_kernels import device_version
+from gpmppi.mppi import costs as critic
 from gpmppi.mppi import dynamics, gp_table, rng
 from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX, velocity_coefficients
 

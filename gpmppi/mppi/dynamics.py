@@ -19,10 +19,10 @@ import numpy as np
 from numba import njit
 
 from gpmppi.gp.exact import exact_tasks
+from gpmppi.kernel_flags import FASTMATH
 from gpmppi.models.dynamic_unicycle import jacobian
 from gpmppi.models.edd5 import edd5_velocity
 from gpmppi.models.lateral_slip import lateral_velocity
-from gpmppi.mppi.flags import FASTMATH
 from gpmppi.mppi.gp_table import interp4, interp4_simplex
 
 DYN_UNICYCLE = 0

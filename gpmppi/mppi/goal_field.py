@@ -28,7 +28,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from gpmppi.mppi.flags import FASTMATH
+from gpmppi.kernel_flags import FASTMATH
 from gpmppi.mppi.lane import grid_cell_at
 from gpmppi.mppi.recent import Recent
 

@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit, prange
 
 from gpmppi.gp.grid_interp import grid_cell
-from gpmppi.mppi.flags import FASTMATH, fmax, fmin
+from gpmppi.kernel_flags import FASTMATH, fmax, fmin
 
 TABLE_AXES = np.array([2, 3, 0, 1])  # collapsed table axes in terms of the GP input [v_ref, omega_ref, v, omega]
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, prange
 
-from gpmppi.mppi.flags import FASTMATH, fmax, fmin
+from gpmppi.kernel_flags import FASTMATH, fmax, fmin
 from gpmppi.mppi.recent import Recent
 
 # segment rows: [ax, ay, dx, dy, 1/|d|^2]

@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from gpmppi.costs import W_VARIANCE, ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.gp.model_file import GPModel
 from gpmppi.mppi import backends
 from gpmppi.mppi.config import PlannerConfig
+from gpmppi.mppi.costs import W_VARIANCE, ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.mppi.dynamics import (
     DYN_EDD5,
     DYN_GP,

@@ -35,7 +35,7 @@ import numpy as np
 from numba import njit
 from scipy.special import chdtri, ndtri
 
-from gpmppi.mppi.flags import FASTMATH
+from gpmppi.kernel_flags import FASTMATH
 from gpmppi.mppi.goal_field import goal_distance
 from gpmppi.mppi.lane import lane_query
 
