@@ -7,13 +7,20 @@ from numba import njit
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
-# fastmath without 'nnan'/'ninf': the kernels rely on inf/NaN checks (infinite costs, safe controls), and
-# without 'contract': with it LLVM fuses a multiply and an add into one FMA (one rounding instead of two)
-# wherever the instruction order lets it, and numba's order of a kernel's statements (inlined helpers, hoisting
-# out of parallel loops) depends on what the process compiled before, so seeded plans changed with the numba
-# cache's history (costs in the last bits, then the chaotic closed loop: EDD5 on the tile circle 169.6, 166.3
-# or 163.3 mm from three caches). Without it the planner is 5-9% slower (`gpmppi bench planner`).
-FASTMATH = {"nsz", "arcp", "afn", "reassoc"}
+# fastmath without 'nnan'/'ninf': the kernels rely on inf/NaN checks (infinite costs, safe controls). Only flags
+# that act on one operation at a time ('nsz', 'arcp', 'afn'), so that a kernel's results do not depend on how
+# numba happened to order its instructions. That order depends on what the process compiled before: numba names the
+# variables of inlined functions with process-wide counters (the rollout kernel's loop-body arguments are
+# `$simplex_corner_v288_..._0.2.870` in one process, `..._v286_..._0.2.790` in another), and the rollout kernel's
+# machine code then differs with the process's history (302 or 298 multiplies). Its results may not:
+# - 'contract' (dropped earlier) let LLVM fuse a multiply and an add into one FMA (one rounding instead of two)
+#   wherever that order lets it: EDD5 on the tile circle gave 169.6, 166.3 or 163.3 mm from three caches;
+# - 'reassoc' let it regroup sums and products by that order: a GP-MPPI closed loop (moving weights, delay
+#   prediction) changed from its seventh cycle when the delay predictor and a plan were compiled first. Without
+#   it the two processes' machine code still differs, but their commands are identical to the bit
+#   (`tests/test_determinism.py` covers both).
+# Cost: without 'contract' the planner was 5-9% slower; 'reassoc', see docs/benchmarks.md.
+FASTMATH = {"nsz", "arcp", "afn"}
 
 
 @njit(cache=True, inline="always")

@@ -1,4 +1,5 @@
-"""Seeded plans do not depend on what was compiled before the planner's kernels, nor on the numba cache's state.
+"""Seeded plans and closed loops do not depend on what was compiled before the planner's kernels, nor on the numba
+cache's state.
 
 Why separate processes: numba compiles a function once per process, and with `cache=True` it loads
 a function compiled by an earlier process from disk instead. A function the kernel calls but does
@@ -20,10 +21,19 @@ folders can show it. Four histories:
   kernels against them;
 - fully cached: `plan` in the first case's cache loads every kernel from disk.
 
-Each planning run does 10 seeded iterations of the EDD5, unicycle and GP models on the circle lane,
-feeding back the first step of the nominal trajectory, and prints every control sequence and cost
-as exact hex; all runs must print the same bytes. Compilation dominates the time, so the cases run
-side by side, each as soon as the cache it needs exists.
+Each run first drives a closed loop (GP-MPPI on the physics plant, terrain weights moving every cycle, the
+command latency predicted ahead), which in an empty cache compiles the kernels in the order the services do; a
+difference in the last bit grows there from cycle to cycle. It prints every cycle's command and weights. Then it
+does 10 seeded iterations of the EDD5, unicycle and GP models on the circle lane, feeding back the first step of
+the nominal trajectory, and prints every control sequence and cost. All as exact hex; all runs must print the
+same bytes.
+
+With the `reassoc` fastmath flag the closed loop differed from the seventh cycle on (the helpers compiled first
+against an empty cache): numba names the variables of inlined functions with process-wide counters and orders
+some of its passes by those names, so the IR that reaches LLVM is ordered differently after a different history,
+and `reassoc` lets LLVM regroup a floating-point sum by that order (see `gpmppi/kernel_flags.py`).
+
+Compilation dominates the time, so the cases run side by side, each as soon as the cache it needs exists.
 """
 
 from __future__ import annotations
@@ -40,13 +50,15 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 HELPERS_CACHED = "helpers compiled and cached"
-PLAN_LINES = 30  # 3 models x 10 iterations
+LOOP_S = 3.0  # [s] of closed loop: 30 planner cycles
+PLAN_LINES = 30 + 30  # the closed loop's cycles, then 3 models x 10 iterations
 
 SCRIPT = r"""
 import sys
 import numpy as np
 
 HELPERS_CACHED = "@HELPERS_CACHED@"
+LOOP_S = @LOOP_S@
 
 if sys.argv[1] == "helpers_first":
     from gpmppi.mppi.costs import N_COST_WEIGHTS, lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
@@ -102,12 +114,29 @@ if sys.argv[1] == "helpers_first":
         os.rename(sys.argv[2] + ".partial", sys.argv[2])
     print(HELPERS_CACHED, flush=True)
 
+from dataclasses import replace
+
+from gpmppi.evaluation.closed_loop import run_closed_loop
+from gpmppi.evaluation.runner import EvalSettings, Job, cached_gp_model, loop_config, make_planner, make_plant
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.scenarios import circle_lane
+from gpmppi.terrain import TerrainEstimator
+
+# first a closed loop, so that in an empty cache it compiles the kernels in its own order (the estimator's exact GP,
+# the delay predictor, the rollouts): GP-MPPI on the tile circle, weights moving every cycle, one cycle of command
+# latency predicted ahead; its small differences grow from cycle to cycle
+sc = circle_lane()
+settings = EvalSettings(latency_s=0.1, samples=256)
+job = Job(kind="tracking", scenario=sc, terrain="tile", dynamics="gp", seeds=(0,))
+cfg = replace(loop_config(settings, job), time_limit_s=LOOP_S)
+model = cached_gp_model(None)
+traj = run_closed_loop(make_planner(settings, "gp", "tile", 0), make_plant(settings, "tile", 0), sc.task, sc.start,
+                       model.n_terrains, cfg, estimator=TerrainEstimator(model))
+for k in range(traj.commands.shape[0]):
+    print("loop", k, traj.commands[k].tobytes().hex(), traj.weights[k].tobytes().hex())
 
 model = load_default_model()
-sc = circle_lane()
 w = np.array([0.5, 0.3, 0.2])
 for dyn in ("edd5", "unicycle", "gp"):
     p = Planner(PlannerConfig(dynamics=dyn, backend="cpu", samples=256, seed=7), model)
@@ -131,7 +160,8 @@ def start_case(mode: str, cache: Path, copy_helpers_cache_to: Path | None = None
     """One case of SCRIPT in a fresh process whose numba cache is `cache`: mode `plan` or `helpers_first`;
     `copy_helpers_cache_to` (helpers_first only): where to copy the cache once the helpers are compiled."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-    args = [sys.executable, "-c", SCRIPT.replace("@HELPERS_CACHED@", HELPERS_CACHED), mode]
+    script = SCRIPT.replace("@HELPERS_CACHED@", HELPERS_CACHED).replace("@LOOP_S@", repr(LOOP_S))
+    args = [sys.executable, "-c", script, mode]
     if copy_helpers_cache_to is not None:
         args.append(str(copy_helpers_cache_to))
     log = cache.with_name(f"{cache.name}-{mode}-{time.monotonic_ns()}.log")
@@ -159,6 +189,12 @@ def case_output(case: Case) -> str:
     return plans
 
 
+def same(out: str, reference: str, history: str) -> None:
+    """Fail naming the first line (a closed-loop cycle or a plan) where a history's output differs."""
+    for line, ref in zip(out.splitlines(), reference.splitlines(), strict=True):
+        assert line == ref, f"{history} changed the output from\n  {ref}\nto\n  {line}"
+
+
 @pytest.mark.slow  # three compilations of the planner's kernels, each in its own process
 @pytest.mark.timeout(2400)  # the compilations share the machine: on a loaded one they take long
 def test_plans_do_not_depend_on_compile_order_or_cache(tmp_path: Path) -> None:
@@ -172,9 +208,9 @@ def test_plans_do_not_depend_on_compile_order_or_cache(tmp_path: Path) -> None:
         cases.append(other_first := start_case("helpers_first", helpers_cached))
         out_fresh = case_output(fresh)
         cases.append(from_cache := start_case("plan", empty))
-        assert case_output(other_order) == out_fresh, "the helpers and delay predictor compiled first changed the plans"
-        assert case_output(other_first) == out_fresh, "kernels compiled against cached helpers changed the plans"
-        assert case_output(from_cache) == out_fresh, "kernels loaded from the cache changed the plans"
+        same(case_output(other_order), out_fresh, "the helpers and delay predictor compiled first")
+        same(case_output(other_first), out_fresh, "kernels compiled against cached helpers")
+        same(case_output(from_cache), out_fresh, "kernels loaded from the cache")
     finally:  # a failed or timed-out case leaves no compiling process behind
         for case in cases:
             if case.proc.poll() is None:
