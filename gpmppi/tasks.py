@@ -75,3 +75,32 @@ def distance_to_polyline(points: np.ndarray, centerline: np.ndarray, closed: boo
         diff = rel - t[..., None] * dirs[None, :, :]
         out[i : i + chunk] = np.sqrt(np.min(np.einsum("tsd,tsd->ts", diff, diff), axis=1))
     return out
+
+
+def polyline_length(centerline: np.ndarray, closed: bool = True) -> float:
+    """Length [m] of a polyline (with its closing segment if `closed`)."""
+    _, dirs = polyline_segments(centerline, closed)
+    return float(np.sum(np.linalg.norm(dirs, axis=1)))
+
+
+def progress_along_polyline(points: np.ndarray, centerline: np.ndarray, closed: bool = True) -> np.ndarray:
+    """Arc length (T,) [m] from the polyline's first point to the point of it closest to each point (T, 2).
+
+    Ties between equally close segments go to the earliest segment, so a point where an open lane's end meets its
+    start counts as the start.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    starts, dirs = polyline_segments(centerline, closed)
+    seg_len = np.linalg.norm(dirs, axis=1)
+    offset = np.concatenate([[0.0], np.cumsum(seg_len)[:-1]])
+    len2 = np.where(seg_len > 0.0, seg_len * seg_len, 1.0)
+    out = np.empty(p.shape[0])
+    chunk = 2048
+    for i in range(0, p.shape[0], chunk):
+        rel = p[i : i + chunk, None, :] - starts[None, :, :]
+        t = np.clip(np.einsum("tsd,sd->ts", rel, dirs) / len2, 0.0, 1.0)
+        diff = rel - t[..., None] * dirs[None, :, :]
+        best = np.argmin(np.einsum("tsd,tsd->ts", diff, diff), axis=1)
+        rows = np.arange(best.size)
+        out[i : i + chunk] = offset[best] + t[rows, best] * seg_len[best]
+    return out

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from gpmppi.evaluation.runner import EvalSettings, Job, run_job, summarize
-from gpmppi.scenarios import circle_lane, paper_obstacle_scene
+from gpmppi.scenarios import circle_lane, load_lane, paper_obstacle_scene, shipped_lane_files
 from tools.cli import app
 
 SHORT = EvalSettings(lane_distance_m=15.0, samples=512)
@@ -45,6 +45,23 @@ def test_avoidance_run_is_deterministic_per_seed() -> None:
     (b,), (tb,) = run_job(job, SHORT)
     np.testing.assert_array_equal(ta.true_states, tb.true_states)
     assert a.success == b.success and a.status == b.status
+
+
+@pytest.mark.slow  # a 40 m open lane with GP-MPPI and its estimator: ~400 planner cycles
+def test_open_lane_run_finishes_at_the_lane_end() -> None:
+    lane = load_lane(next(p for p in shipped_lane_files() if p.name == "lane_chicane.yaml"))
+    terrain = _terrain()
+    (s,), (traj,) = run_job(Job("tracking", lane, terrain, "gp", (0,), record=True), EvalSettings(samples=256))
+    assert traj.status == "finished" and s.success, traj.message
+    end = lane.task.centerline[-1]
+    assert np.linalg.norm(traj.positions[-1] - end) <= 0.5 + lane.task.half_width
+    assert traj.positions[-1, 0] >= end[0] - 0.5  # the last straight runs along +x
+    # waiting at the end used to pull the mean speed to ~0.5 m/s against the 1.5 m/s target
+    assert s.mean_speed_mps > 0.8, s
+    assert traj.terrains == [terrain] * len(traj.commands)
+    assert s.true_weight_mean is not None and 0.0 <= s.true_weight_mean <= 1.0
+    assert s.weight_switches_per_min is not None and s.weight_switches_per_min >= 0.0
+    assert 0.0 < s.v_ref_rate_mean <= s.v_ref_rate_p95 and 0.0 < s.omega_ref_rate_mean <= s.omega_ref_rate_p95
 
 
 @pytest.mark.slow  # the evaluation table end to end: three tasks, two models, two trials each

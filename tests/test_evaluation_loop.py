@@ -186,3 +186,68 @@ def test_plant_failure_ends_the_run_with_a_status() -> None:
     traj = run_closed_loop(CountingPlanner(), FailingPlant(), LANE, np.zeros(5), 2, ClosedLoopConfig(time_limit_s=1.0))
     assert traj.status == "plant_error" and "diverged" in traj.message
     assert len(traj.commands) == len(traj.times) - 1 == 3
+
+
+class StopAtPlanner:
+    """Straight ahead at 1 m/s until x reaches `stop_x`, then stands still (as a planner at a lane's end)."""
+
+    def __init__(self, stop_x: float) -> None:
+        self.stop_x = stop_x
+
+    def reset(self) -> None:
+        pass
+
+    def prepare(self, weights) -> None:
+        pass
+
+    def plan(self, state, task, weights=None, state_cov=None, delay_s: float = 0.0) -> Result:
+        v = 1.0 if state[0] < self.stop_x - 1e-9 else 0.0
+        return Result(np.array([v, 0.0]), np.full(3, 1.0), np.zeros((3, 5)))
+
+
+SHORT_LANE = LaneTask(np.array([[0.0, 0.0], [10.0, 0.0]]), half_width=1.0, closed=False)
+
+
+def test_open_lane_finishes_at_its_end_and_scores_the_driven_part_only() -> None:
+    from gpmppi.evaluation.runner import score
+
+    start = np.array([0.0, 0.1, 0.0, 0.0, 0.0])  # 100 mm beside the centre line, all along
+    cfg = ClosedLoopConfig(time_limit_s=20.0, lane_end_tolerance_m=0.45)  # not a whole cycle's way (0.1 m)
+    traj = run_closed_loop(StopAtPlanner(9.8), KinematicPlant(), SHORT_LANE, start, 2, cfg)
+    # 1 m/s: within 0.45 m of the end (x >= 9.55) after 96 cycles
+    assert traj.status == "finished" and len(traj.commands) == 96
+    assert traj.times[-1] == pytest.approx(9.6) and traj.positions[-1, 0] == pytest.approx(9.6)
+    s = score(traj, SHORT_LANE, 0, cfg)
+    assert s.success and s.mean_speed_mps == pytest.approx(1.0) and s.rmse_mm == pytest.approx(100.0)
+    assert s.v_ref_rate_mean == 0.0 and s.v_ref_rate_p95 == 0.0  # one steady command: no change
+    assert s.true_weight_mean is None and s.weight_switches_per_min is None  # not an adapting model
+
+    # the old rule: the run waits at x = 9.8 until the time limit, and its mean speed counts the wait
+    old = ClosedLoopConfig(time_limit_s=20.0, stop_at_lane_end=False)
+    waited = run_closed_loop(StopAtPlanner(9.8), KinematicPlant(), SHORT_LANE, start, 2, old)
+    assert waited.status == "time_limit" and waited.times[-1] == pytest.approx(20.0)
+    w = score(waited, SHORT_LANE, 0, old)
+    assert w.mean_speed_mps == pytest.approx(9.8 / 20.0) and not w.success
+    # stopping from 1 m/s in one cycle: one v_ref change of 10 m/s^2 among 199
+    assert w.v_ref_rate_mean == pytest.approx(10.0 / 199)
+
+
+def test_closed_lanes_and_lanes_ending_at_their_start_do_not_finish_early() -> None:
+    closed = LaneTask(SHORT_LANE.centerline, half_width=1.0, closed=True)
+    traj = run_closed_loop(StopAtPlanner(9.8), KinematicPlant(), closed, np.zeros(5), 2,
+                           ClosedLoopConfig(time_limit_s=12.0))
+    assert traj.status == "time_limit"
+    # an open U whose end (0, 0.5) lies beside its start: starting there is not arriving (less than half driven)
+    u_lane = LaneTask(np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 4.0], [0.0, 4.0], [0.0, 0.5]]), half_width=1.0,
+                      closed=False)
+    start = np.array([0.0, 0.3, 0.0, 0.0, 0.0])
+    from gpmppi.evaluation.metrics import lane_end_reached
+
+    assert lane_end_reached(start[None, :2], u_lane.centerline, 1.0)[0]
+    traj = run_closed_loop(StopAtPlanner(5.0), KinematicPlant(), u_lane, start, 2, ClosedLoopConfig(time_limit_s=3.0))
+    assert traj.status == "time_limit"
+
+
+def test_lane_end_tolerance_must_not_be_negative() -> None:
+    with pytest.raises(ValueError, match="lane_end_tolerance_m"):
+        ClosedLoopConfig(lane_end_tolerance_m=-0.1)

@@ -7,10 +7,15 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
-from gpmppi.evaluation.runner import RunScore, summarize
+from gpmppi.evaluation.closed_loop import ClosedLoopConfig, Trajectory
+from gpmppi.evaluation.runner import RunScore, score, summarize
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene
+from gpmppi.tasks import LaneTask
 from tools.report import markdown_table, write_figures, write_tables
+
+NAMES = ["asphalt", "grass", "tile"]
 
 
 def _cell(rmse: float, success: int, trials: int, ttg: float) -> dict:
@@ -67,3 +72,72 @@ def test_write_tables_and_figures(tmp_path: Path) -> None:
     names = {p.name for p in figs}
     assert names == {"trajectories_circle.png", "trajectories_avoidance.png", "terrain_weights.png", "rmse_bars.png"}
     assert all((tmp_path / n).read_bytes()[:4] == b"\x89PNG" for n in names)
+
+
+def _ramp_run(terrain: str) -> Trajectory:
+    """6 s on a straight lane: v_ref ramps at 2 m/s^2, omega_ref steps by 0.05 rad/s each cycle (0.5 rad/s^2); the
+    weights are uniform for 3 s (top: asphalt), then put 0.8 on grass."""
+    T = 60
+    k = np.arange(T)
+    times = np.arange(T + 1) * 0.1
+    x = np.concatenate([[0.0], np.cumsum(0.1 * 0.2 * k)])
+    states = np.zeros((T + 1, 5))
+    states[:, 0] = x
+    w = np.where(k[:, None] < 30, 1 / 3, np.array([0.1, 0.8, 0.1])[None, :])
+    return Trajectory(times=times, true_states=states, measured_states=states.copy(),
+                      commands=np.stack([0.2 * k, 0.05 * k], 1), weights=w, weights_ok=np.ones(T, bool),
+                      planner_ms=np.ones(T), tightened=[], terrains=[terrain] * T, status="distance")
+
+
+def test_score_of_a_hand_made_run_has_rates_and_weight_scores() -> None:
+    lane = LaneTask(np.array([[0.0, 0.0], [100.0, 0.0]]), half_width=1.0, closed=True)
+    adapting = ClosedLoopConfig(adapt_weights=True)
+    s = score(_ramp_run("grass"), lane, 0, adapting, NAMES)
+    assert s.v_ref_rate_mean == pytest.approx(2.0) and s.v_ref_rate_p95 == pytest.approx(2.0)
+    assert s.omega_ref_rate_mean == pytest.approx(0.5) and s.omega_ref_rate_p95 == pytest.approx(0.5)
+    assert s.true_weight_mean == pytest.approx(0.8)  # after 3 s: all 0.8 on grass
+    assert s.weight_switches_per_min == pytest.approx(10.0)  # one change in 0.1 min
+    sand = score(_ramp_run("sand"), lane, 0, adapting, NAMES)
+    assert sand.true_weight_mean is None and sand.weight_switches_per_min == pytest.approx(10.0)
+    fixed = score(_ramp_run("grass"), lane, 0, ClosedLoopConfig(adapt_weights=False), NAMES)
+    assert fixed.true_weight_mean is None and fixed.weight_switches_per_min is None
+    assert fixed.v_ref_rate_mean == pytest.approx(2.0)
+
+
+def _scored(true_w: float | None, switches: float | None, v_rate: float) -> RunScore:
+    return RunScore(seed=0, status="distance", rmse_mm=30.0, success=True, v_ref_rate_mean=v_rate,
+                    v_ref_rate_p95=2 * v_rate, omega_ref_rate_mean=0.5, omega_ref_rate_p95=1.0,
+                    true_weight_mean=true_w, weight_switches_per_min=switches)
+
+
+def test_summary_of_the_new_metrics_is_mean_and_spread_over_trials() -> None:
+    c = summarize([_scored(0.7, 2.0, 1.0), _scored(0.8, 4.0, 3.0), _scored(None, 6.0, float("nan"))])
+    assert c["v_ref_rate_mean"] == pytest.approx(2.0) and c["v_ref_rate_mean_std"] == pytest.approx(1.0)
+    assert c["v_ref_rate_p95"] == pytest.approx(4.0) and c["omega_ref_rate_p95"] == pytest.approx(1.0)
+    assert c["true_weight_mean"] == pytest.approx(0.75) and c["true_weight_mean_std"] == pytest.approx(0.05)
+    assert c["weight_switches_per_min"] == pytest.approx(4.0)
+    assert c["weight_switches_per_min_std"] == pytest.approx(np.std([2.0, 4.0, 6.0]))
+    none = summarize([_scored(None, None, 1.0)])
+    assert none["true_weight_mean"] is None and none["weight_switches_per_min_std"] is None
+
+
+def test_tables_show_the_new_columns(tmp_path: Path) -> None:
+    res = {"chicane": {"grass": {"gp": summarize([_scored(0.7, 2.0, 1.0), _scored(0.8, 4.0, 3.0)]),
+                                 "unicycle": summarize([_scored(None, None, 5.0)])}}}
+    write_tables(res, {"command": "gpmppi evaluate tracking"}, tmp_path, ["gp", "unicycle"], ["grass"])
+    md = (tmp_path / "results.md").read_text()
+    for col in ("mean speed [m/s]", "v_ref rate mean [m/s²]", "v_ref rate p95 [m/s²]", "ω_ref rate mean [rad/s²]",
+                "ω_ref rate p95 [rad/s²]", "true-terrain weight", "weight switches [/min]"):
+        assert f"| {col} |" in md, col
+    gp_row = next(line for line in md.splitlines() if line.startswith("| chicane | grass | gp |"))
+    cells = [c.strip() for c in gp_row.strip("|").split("|")]
+    assert cells[-6:] == ["2.00 ± 1.00", "4.00 ± 2.00", "0.50 ± 0.00", "1.00 ± 0.00", "0.750 ± 0.050", "3.0 ± 1.0"]
+    uni_row = next(line for line in md.splitlines() if line.startswith("| chicane | grass | unicycle |"))
+    assert [c.strip() for c in uni_row.strip("|").split("|")][-2:] == ["-", "-"]
+    rows = {r["model"]: r for r in csv.DictReader((tmp_path / "results.csv").open())}
+    assert float(rows["gp"]["true_weight_mean"]) == pytest.approx(0.75)
+    assert float(rows["gp"]["v_ref_rate_p95"]) == pytest.approx(4.0)
+    assert rows["unicycle"]["true_weight_mean"] == "" and rows["unicycle"]["weight_switches_per_min"] == ""
+    cell = json.loads((tmp_path / "results.json").read_text())["results"]["chicane"]["grass"]
+    assert cell["gp"]["weight_switches_per_min"] == pytest.approx(3.0) and cell["unicycle"]["true_weight_mean"] is None
+    assert cell["unicycle"]["omega_ref_rate_mean"] == pytest.approx(0.5)

@@ -6,16 +6,21 @@ import numpy as np
 import pytest
 
 from gpmppi.evaluation.metrics import (
+    command_rates,
     first_goal_index,
     goal_outcome,
+    lane_end_reached,
     lane_exit_count,
     lane_rmse_mm,
+    mean_p95,
     mean_std,
     obstacle_clearance,
     path_length,
+    true_weight_mean,
+    weight_switches_per_min,
 )
 from gpmppi.scenarios import circle_lane, square_lane
-from gpmppi.tasks import distance_to_polyline
+from gpmppi.tasks import distance_to_polyline, polyline_length, progress_along_polyline
 
 SQUARE = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
 
@@ -108,3 +113,108 @@ def test_mean_std_ignores_nan() -> None:
     m, s = mean_std([1.0, 3.0, float("nan")])
     assert (m, s) == (2.0, 1.0)
     assert all(np.isnan(mean_std([])))
+
+
+# --- the open lane's end --------------------------------------------------------------------------------------------
+
+ELL = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])  # open, 20 m long, ends at (10, 10) heading +y
+
+
+def test_progress_along_an_open_polyline() -> None:
+    assert polyline_length(ELL, closed=False) == pytest.approx(20.0)
+    assert polyline_length(ELL, closed=True) == pytest.approx(20.0 + np.sqrt(200.0))
+    pts = np.array([[-1.0, 0.5], [4.0, 0.3], [10.4, 3.0], [10.3, 12.0], [11.0, -1.0]])
+    # before the start clips to 0, past the end to the length; the corner's outside is the corner (10 m)
+    np.testing.assert_allclose(progress_along_polyline(pts, ELL, closed=False), [0.0, 4.0, 13.0, 20.0, 10.0])
+
+
+def test_lane_end_reached_within_tolerance_or_past_the_end_and_in_the_lane() -> None:
+    pts = np.array([
+        [10.0, 9.4],  # 0.6 m before the end along the lane: not yet
+        [10.2, 9.6],  # 0.4 m before it, 0.2 m off the centre line: there
+        [10.3, 10.5],  # past the end, 0.58 m from the end point (inside the half-width 1): there
+        [10.5, 11.0],  # past the end, 1.12 m from it: beyond the lane
+        [11.2, 9.8],  # beside the last segment, 1.2 m off the centre line: not in the lane
+        [0.0, 0.2],  # at the start
+    ])
+    assert lane_end_reached(pts, ELL, half_width=1.0, tolerance_m=0.5).tolist() == [
+        False, True, True, False, False, False]
+    # tolerance 0: only past the end counts
+    assert lane_end_reached(pts[:3], ELL, 1.0, 0.0).tolist() == [False, False, True]
+    assert lane_end_reached(np.zeros((0, 2)), ELL, 1.0).shape == (0,)
+
+
+# --- command smoothness --------------------------------------------------------------------------------------------
+
+
+def test_command_rates_and_their_mean_and_p95() -> None:
+    t = np.array([0.0, 0.1, 0.2, 0.3])
+    u = np.array([[0.0, 0.0], [0.1, -0.2], [0.3, 0.2], [0.3, 0.1]])
+    r = command_rates(t, u)
+    np.testing.assert_allclose(r, [[1.0, 2.0], [2.0, 4.0], [0.0, 1.0]])
+    # numpy's linear percentile of 3 values: rank 0.95 * 2 = 1.9, between the 2nd and 3rd smallest
+    assert mean_p95(r[:, 0]) == pytest.approx((1.0, 1.0 + 0.9 * (2.0 - 1.0)))
+    assert mean_p95(r[:, 1]) == pytest.approx((7.0 / 3.0, 2.0 + 0.9 * (4.0 - 2.0)))
+    # a trajectory's T+1 times: the commands' are the first T; uneven steps divide by their own dt
+    np.testing.assert_allclose(command_rates(np.array([0.0, 0.1, 0.3, 0.4]), u[:3])[:, 0], [1.0, 1.0])
+
+
+def test_command_rates_of_fewer_than_two_commands_are_empty_and_score_nan() -> None:
+    assert command_rates(np.array([0.0, 0.1]), np.array([[1.0, 0.5]])).shape == (0, 2)
+    assert command_rates(np.array([0.0]), np.zeros((0, 2))).shape == (0, 2)
+    assert all(np.isnan(mean_p95(np.zeros(0))))
+    with pytest.raises(ValueError):
+        command_rates(np.array([0.0, 0.0]), np.zeros((2, 2)))
+
+
+# --- terrain weights -----------------------------------------------------------------------------------------------
+
+NAMES = ["asphalt", "grass", "tile"]
+
+
+def _weights(true_col: list[float], on: list[str]) -> np.ndarray:
+    """Rows whose weight on the driven terrain is `true_col[k]`, the rest spread evenly over the others."""
+    w = np.zeros((len(on), 3))
+    for k, (x, name) in enumerate(zip(true_col, on, strict=True)):
+        w[k] = (1.0 - x) / 2.0
+        if name in NAMES:
+            w[k, NAMES.index(name)] = x
+    return w
+
+
+def test_true_weight_mean_is_time_averaged_after_settling_on_known_terrain() -> None:
+    times = np.arange(7.0)  # six 1 s cycles
+    driven = ["grass", "grass", "grass", "grass", "sand", "tile"]
+    w = _weights([0.1, 0.1, 0.2, 0.6, 0.5, 0.9], driven)
+    # after 3 s: cycle 3 (grass 0.6), cycle 4 on sand (left out), cycle 5 (tile 0.9)
+    assert true_weight_mean(times, w, driven, NAMES) == pytest.approx((0.6 + 0.9) / 2)
+    # settling after 2.5 s takes half of cycle 2 (grass 0.2)
+    assert true_weight_mean(times, w, driven, NAMES, settle_s=2.5) == pytest.approx((0.5 * 0.2 + 0.6 + 0.9) / 2.5)
+    # uneven cycles weigh by their duration: 1 s of 0.6, 3 s of 0.9
+    t2 = np.array([0.0, 3.0, 4.0, 7.0])
+    assert true_weight_mean(t2, _weights([0.0, 0.6, 0.9], ["tile"] * 3), ["tile"] * 3, NAMES) == pytest.approx(
+        (0.6 + 3 * 0.9) / 4)
+
+
+def test_true_weight_mean_is_none_without_anything_to_average() -> None:
+    short = np.arange(30) * 0.1  # 29 cycles, ending at 2.9 s: shorter than the 3 s settling
+    assert true_weight_mean(short, np.full((29, 3), 1 / 3), ["grass"] * 29, NAMES) is None
+    t = np.arange(61) * 0.1
+    assert true_weight_mean(t, np.full((60, 3), 1 / 3), ["sand"] * 60, NAMES) is None  # untrained terrain only
+    assert true_weight_mean(t, np.zeros((60, 0)), ["grass"] * 60, NAMES) is None  # no weights
+    assert true_weight_mean(np.zeros(1), np.zeros((0, 3)), [], NAMES) is None  # no cycles
+    with pytest.raises(ValueError):
+        true_weight_mean(t[:-1], np.full((60, 3), 1 / 3), ["grass"] * 60, NAMES)
+
+
+def test_weight_switches_per_minute_count_argmax_changes() -> None:
+    times = np.arange(7) * 5.0  # six 5 s cycles: half a minute
+    w = np.array([[0.6, 0.2, 0.2], [0.5, 0.4, 0.1], [0.3, 0.6, 0.1], [0.2, 0.7, 0.1], [0.8, 0.1, 0.1],
+                  [0.1, 0.1, 0.8]])
+    # top terrain 0, 0, 1, 1, 0, 2: three changes in 0.5 min
+    assert weight_switches_per_min(times, w) == pytest.approx(6.0)
+    ties = np.tile([0.5, 0.5, 0.0], (6, 1))  # a tie goes to the first every time: no change
+    assert weight_switches_per_min(times, ties) == 0.0
+    assert weight_switches_per_min(times[:2], w[:1]) == 0.0
+    assert weight_switches_per_min(np.zeros(1), np.zeros((0, 3))) is None
+    assert weight_switches_per_min(times, np.zeros((6, 0))) is None

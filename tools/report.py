@@ -22,12 +22,30 @@ MODEL_COLOURS = {"gp": "tab:blue", "edd5": "tab:orange", "unicycle": "tab:green"
 LANE_TASKS = ("circle", "square")
 
 
+# what the details table's less obvious columns are (docs/results.md says more)
+COLUMNS_NOTE = """
+Cells are the mean over a cell's trials, `±` their population spread. Rates are |Δv_ref| / dt and |Δω_ref| / dt
+between consecutive commands (mean and 95th percentile per trial). True-terrain weight: the time-averaged weight
+the estimate gave the terrain under the robot, after the first 3 s (`-` for a model without terrain weights or a
+terrain the model was not trained on). Weight switches: changes of the largest-weight terrain per minute of run.
+Open lanes end at their last point (status `finished`), so their RMSE and mean speed cover the driven part only.
+"""
+
+
 def _model_rank(model: str) -> int:
     return list(MODEL_LABELS).index(model) if model in MODEL_LABELS else len(MODEL_LABELS)
 
 
 def _fmt(x: float, digits: int = 1) -> str:
     return "-" if x is None or not math.isfinite(x) else f"{x:.{digits}f}"
+
+
+def _pm(c: dict, name: str, digits: int = 2) -> str:
+    """`mean ± spread` of a cell metric and its `<name>_std`; `-` where it has no value."""
+    m = c.get(name)
+    if m is None or not math.isfinite(m):
+        return "-"
+    return f"{m:.{digits}f} ± {_fmt(c.get(f'{name}_std'), digits)}"
 
 
 def _cell(results: dict, task: str, terrain: str, model: str) -> dict | None:
@@ -68,7 +86,9 @@ def write_tables(results: dict, meta: dict, out_dir: Path, models: list[str], te
     out_dir.mkdir(parents=True, exist_ok=True)
     md = markdown_table(results, models, terrains)
     details = ["", "| task | terrain | model | RMSE [mm] | success | lane exits | collisions | min clearance [m] "
-               "| planner [ms/step] |", "|---|---|---|---|---|---|---|---|---|"]
+               "| planner [ms/step] | mean speed [m/s] | v_ref rate mean [m/s²] | v_ref rate p95 [m/s²] "
+               "| ω_ref rate mean [rad/s²] | ω_ref rate p95 [rad/s²] | true-terrain weight | weight switches [/min] |",
+               "|" + "---|" * 16]
     rows = []
     for task, by_terrain in results.items():
         for terrain, by_model in by_terrain.items():
@@ -78,10 +98,13 @@ def write_tables(results: dict, meta: dict, out_dir: Path, models: list[str], te
                 details.append(
                     f"| {task} | {terrain} | {model} | {_fmt(c['rmse_mm'])} | {c['success']}/{c['trials']} "
                     f"| {c['lane_exits']} | {c['collisions']} | {_fmt(c['min_clearance_m'], 3)} "
-                    f"| {_fmt(c['planner_ms'])} |"
+                    f"| {_fmt(c['planner_ms'])} | {_fmt(c.get('mean_speed_mps'), 2)} "
+                    f"| {_pm(c, 'v_ref_rate_mean')} | {_pm(c, 'v_ref_rate_p95')} "
+                    f"| {_pm(c, 'omega_ref_rate_mean')} | {_pm(c, 'omega_ref_rate_p95')} "
+                    f"| {_pm(c, 'true_weight_mean', 3)} | {_pm(c, 'weight_switches_per_min', 1)} |"
                 )
     command = meta.get("command", "")
-    text = f"# Closed-loop evaluation\n\nCommand: `{command}`\n\n{md}" + "\n".join(details) + "\n"
+    text = f"# Closed-loop evaluation\n\nCommand: `{command}`\n\n{md}" + "\n".join(details) + "\n" + COLUMNS_NOTE
     paths = [out_dir / "results.md", out_dir / "results.csv", out_dir / "results.json"]
     _atomic_write(paths[0], text)
     if rows:

@@ -8,6 +8,11 @@ weights feed the next plan, and a command can reach the plant late (latency in s
 simulation's clock: states are stamped when measured, planning takes no simulated time, and the command latency
 is what the cycle compensates (`actuation_delay_s`). Nothing depends on wall-clock time, so a run is a pure
 function of its seeds (planner seed, plant seed).
+
+A run stops at the first of: the time limit, the distance limit, a goal task's goal or collision, and an open lane's
+end (`finished`: in the lane, within `lane_end_tolerance_m` of the last point along the lane or past it, after
+driving at least half the lane's length so a lane that ends where it starts does not finish at once). Closed lanes
+have no end: they stop on distance or time.
 """
 
 from __future__ import annotations
@@ -19,11 +24,11 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from gpmppi.evaluation.metrics import first_collision_index
+from gpmppi.evaluation.metrics import first_collision_index, lane_end_reached
 from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle, PlannerLike
-from gpmppi.tasks import GoalTask, LaneTask
+from gpmppi.tasks import GoalTask, LaneTask, polyline_length
 
-Status = Literal["goal", "collision", "distance", "time_limit", "planner_error", "plant_error"]
+Status = Literal["goal", "collision", "finished", "distance", "time_limit", "planner_error", "plant_error"]
 
 
 class PlantLike(Protocol):
@@ -49,6 +54,8 @@ class ClosedLoopConfig:
     distance_limit_m: float | None = None  # [m] stop after driving this far (lanes: 100 m)
     stop_at_goal: bool = True  # goal tasks: stop when the true position is within tolerance
     stop_on_collision: bool = True  # goal tasks: stop at the first overlap with an obstacle
+    stop_at_lane_end: bool = True  # open lanes: stop (`finished`) when the robot reaches the last point
+    lane_end_tolerance_m: float = 0.5  # [m] open lanes: how far before the last point, along the lane, counts as there
     robot_radius: float = 0.0  # [m] robot disc for collisions (0 = point robot, as the paper scores it)
     latency_s: float = 0.0  # [s] delay between a plan and its command reaching the plant
     compensate_latency: bool = True  # the planner plans from the state predicted `latency_s` ahead (as the service)
@@ -63,6 +70,8 @@ class ClosedLoopConfig:
             raise ValueError("planner_dt and time_limit_s must be > 0")
         if self.latency_s < 0:
             raise ValueError(f"latency must be >= 0 s, got {self.latency_s}")
+        if not self.lane_end_tolerance_m >= 0:
+            raise ValueError(f"lane_end_tolerance_m must be >= 0 m, got {self.lane_end_tolerance_m}")
 
     def cycle_config(self) -> CycleConfig:
         """The cycle as the service runs it, with this loop's latency as the delay from plan to plant."""
@@ -81,7 +90,7 @@ def latency_from_cycles(cycles: int, planner_dt: float = 0.1) -> float:
 class Trajectory:
     """What happened in one run, sampled at planner cycles (index k = time k * planner_dt)."""
 
-    times: np.ndarray  # (T+1,) [s]
+    times: np.ndarray  # (T+1,) [s]; commands, weights and terrains of cycle k hold from times[k] to times[k+1]
     true_states: np.ndarray  # (T+1, 5)
     measured_states: np.ndarray  # (T+1, 5) what the planner and estimator saw
     commands: np.ndarray  # (T, 2) planned command at cycle k
@@ -112,7 +121,7 @@ def run_closed_loop(
     initial_terrain: str | None = None,
     record_plans: bool = False,
 ) -> Trajectory:
-    """Drive `plant` with `planner` on `task` from `start` until goal, collision, distance or time limit."""
+    """Drive `plant` with `planner` on `task` from `start` until goal, collision, lane end, distance or time limit."""
     cfg = config or ClosedLoopConfig()
     dt = cfg.planner_dt
     eps = 1e-9
@@ -138,6 +147,9 @@ def run_closed_loop(
     status: Status = "time_limit"
     message = ""
     steps = int(np.ceil(cfg.time_limit_s / dt - eps))
+    # the open lane whose end stops the run (None: no lane end to reach)
+    end_lane = task if isinstance(task, LaneTask) and not task.closed and cfg.stop_at_lane_end else None
+    lane_length = polyline_length(end_lane.centerline, closed=False) if end_lane is not None else 0.0
     for k in range(steps):
         t = k * dt
         sim_now[0] = t
@@ -206,6 +218,14 @@ def run_closed_loop(
             if cfg.stop_at_goal and np.linalg.norm(true_state[:2] - task.goal) <= task.tolerance:
                 status = "goal"
                 break
+        if (
+            end_lane is not None
+            and driven >= 0.5 * lane_length
+            and lane_end_reached(true_state[None, :2], end_lane.centerline, end_lane.half_width,
+                                 cfg.lane_end_tolerance_m)[0]
+        ):
+            status = "finished"
+            break
         if cfg.distance_limit_m is not None and driven >= cfg.distance_limit_m:
             status = "distance"
             break
@@ -216,7 +236,7 @@ def run_closed_loop(
         true_states=np.asarray(trues),
         measured_states=np.asarray(meas),
         commands=np.asarray(cmds).reshape(m, 2),
-        weights=np.asarray(ws).reshape(m, -1),
+        weights=np.asarray(ws).reshape(m, n_terrains),
         weights_ok=np.asarray(oks, dtype=bool),
         planner_ms=np.asarray(pms),
         tightened=tights,

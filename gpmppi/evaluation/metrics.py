@@ -1,4 +1,5 @@
-"""Scores of closed-loop runs: lane RMSE, lane exits, obstacle clearance, success and time-to-goal.
+"""Scores of closed-loop runs: lane RMSE, lane exits, the open-lane end, obstacle clearance, success and
+time-to-goal, command smoothness and terrain-weight quality.
 
 Everything here is plain numpy on arrays (positions (T, 2), times (T,)), so it can be checked in
 closed form on hand-made trajectories.
@@ -10,7 +11,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gpmppi.tasks import distance_to_polyline
+from gpmppi.tasks import distance_to_polyline, polyline_length, progress_along_polyline
+
+# [s] terrain weights are scored after this much of a run: the estimator starts from uniform weights and needs a
+# history of transitions before its answer means anything
+WEIGHT_SETTLE_S = 3.0
 
 
 def lane_rmse_mm(points: np.ndarray, centerline: np.ndarray, closed: bool = True) -> float:
@@ -25,6 +30,24 @@ def lane_exit_count(points: np.ndarray, centerline: np.ndarray, half_width: floa
     if outside.size == 0:
         return 0
     return int(outside[0]) + int(np.count_nonzero(outside[1:] & ~outside[:-1]))
+
+
+def lane_end_reached(
+    points: np.ndarray, centerline: np.ndarray, half_width: float, tolerance_m: float = 0.5
+) -> np.ndarray:
+    """Whether each point (T, 2) has reached the end of an open lane: in the lane, its closest centre-line point
+    within `tolerance_m` [m] of the last point along the lane.
+
+    Past the end the closest point is the end point itself, so a robot that overshoots counts as arrived too (while
+    it is within `half_width` of the end); a robot beside the lane (farther than `half_width` from the centre line)
+    never counts.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if p.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    along = progress_along_polyline(p, centerline, closed=False)
+    inside = distance_to_polyline(p, centerline, closed=False) <= half_width
+    return inside & (along >= polyline_length(centerline, closed=False) - tolerance_m)
 
 
 def obstacle_clearance(points: np.ndarray, obstacles: np.ndarray, robot_radius: float = 0.0) -> np.ndarray:
@@ -100,3 +123,85 @@ def mean_std(values: np.ndarray | list[float]) -> tuple[float, float]:
     if v.size == 0:
         return float("nan"), float("nan")
     return float(v.mean()), float(v.std())
+
+
+# --- command smoothness and terrain weights ------------------------------------------------------------------------
+
+
+def command_rates(times: np.ndarray, commands: np.ndarray) -> np.ndarray:
+    """|change of each command component| / time between consecutive commands (T-1, C): for [v_ref, omega_ref]
+    in m/s^2 and rad/s^2.
+
+    `times` (T,) are the commands' times (a trajectory's times (T+1,) may be passed: the first T are used). Fewer
+    than 2 commands give an empty (0, C) array, whose `mean_p95` is (nan, nan).
+    """
+    u = np.asarray(commands, dtype=np.float64)
+    u = u[:, None] if u.ndim == 1 else u  # one command component given as (T,)
+    if u.ndim != 2:
+        raise ValueError(f"command_rates: commands must be (T, C), got shape {u.shape}")
+    t = np.asarray(times, dtype=np.float64).reshape(-1)[: u.shape[0]]
+    if t.size != u.shape[0]:
+        raise ValueError(f"command_rates: {u.shape[0]} commands but {t.size} times")
+    if u.shape[0] < 2:
+        return np.zeros((0, u.shape[1]))
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        raise ValueError("command_rates: command times must increase")
+    return np.abs(np.diff(u, axis=0)) / dt[:, None]
+
+
+def mean_p95(values: np.ndarray) -> tuple[float, float]:
+    """Mean and 95th percentile (numpy's linear interpolation) of `values`; (nan, nan) if there are none."""
+    v = np.asarray(values, dtype=np.float64).reshape(-1)
+    if v.size == 0:
+        return float("nan"), float("nan")
+    return float(v.mean()), float(np.percentile(v, 95))
+
+
+def true_weight_mean(
+    times: np.ndarray,
+    weights: np.ndarray,
+    driven: list[str],
+    terrain_names: list[str],
+    settle_s: float = WEIGHT_SETTLE_S,
+) -> float | None:
+    """Time-averaged weight the estimate gave the terrain actually under the robot, after the first `settle_s`.
+
+    `times` (T+1,) are the cycle boundaries: the weights `weights[k]` (T, M) (in `terrain_names` order) were used and
+    the robot drove on `driven[k]` from times[k] to times[k+1]. Time on a terrain the model does not know (not in
+    `terrain_names`, e.g. sand) is left out, as it has no "true" weight. None when there is nothing to average: no
+    weights, no time after `settle_s` (a run shorter than that), or all of it on unknown terrain.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    if w.ndim != 2 or w.shape[0] == 0 or w.shape[1] == 0:
+        return None
+    if t.size != w.shape[0] + 1 or len(driven) != w.shape[0]:
+        raise ValueError(f"true_weight_mean: {w.shape[0]} weight rows need {w.shape[0] + 1} times and as many "
+                         f"terrains, got {t.size} times and {len(driven)} terrains")
+    index = {name: i for i, name in enumerate(terrain_names)}
+    span = np.clip(t[1:] - np.maximum(t[:-1], t[0] + settle_s), 0.0, None)  # [s] of each cycle after settling
+    known = np.array([name in index for name in driven])
+    span = np.where(known, span, 0.0)
+    total = float(span.sum())
+    if total <= 0.0:
+        return None
+    true_w = np.array([w[k, index[name]] if name in index else 0.0 for k, name in enumerate(driven)])
+    return float(np.sum(true_w * span) / total)
+
+
+def weight_switches_per_min(times: np.ndarray, weights: np.ndarray) -> float | None:
+    """How often the terrain with the largest weight (argmax; ties go to the first) changes, per minute of run.
+
+    `times` (T+1,) are the cycle boundaries of the weights (T, M), so the run lasts times[-1] - times[0]. None when
+    there are no weights or the run has no duration.
+    """
+    w = np.asarray(weights, dtype=np.float64)
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    if w.ndim != 2 or w.shape[0] == 0 or w.shape[1] == 0 or t.size < 2:
+        return None
+    minutes = (float(t[-1]) - float(t[0])) / 60.0
+    if minutes <= 0.0:
+        return None
+    top = np.argmax(w, axis=1)
+    return float(np.count_nonzero(top[1:] != top[:-1])) / minutes

@@ -14,9 +14,19 @@ from typing import Literal
 import numpy as np
 
 from gpmppi.evaluation.closed_loop import ClosedLoopConfig, Trajectory, run_closed_loop
-from gpmppi.evaluation.metrics import goal_outcome, lane_exit_count, lane_rmse_mm, mean_std, path_length
+from gpmppi.evaluation.metrics import (
+    command_rates,
+    goal_outcome,
+    lane_exit_count,
+    lane_rmse_mm,
+    mean_p95,
+    mean_std,
+    path_length,
+    true_weight_mean,
+    weight_switches_per_min,
+)
 from gpmppi.scenarios import Scenario, infeasibility, random_obstacle_scene
-from gpmppi.tasks import GoalTask, LaneTask
+from gpmppi.tasks import GoalTask, LaneTask, polyline_length
 
 Dynamics = Literal["gp", "edd5", "unicycle"]
 PlantKind = Literal["physics", "residual-net"]
@@ -75,6 +85,13 @@ class RunScore:
     mean_speed_mps: float = float("nan")
     planner_ms_mean: float = float("nan")
     planner_ms_p95: float = float("nan")
+    v_ref_rate_mean: float = float("nan")  # [m/s^2] mean |change of v_ref| / dt between consecutive commands
+    v_ref_rate_p95: float = float("nan")  # [m/s^2] its 95th percentile
+    omega_ref_rate_mean: float = float("nan")  # [rad/s^2] mean |change of omega_ref| / dt
+    omega_ref_rate_p95: float = float("nan")  # [rad/s^2] its 95th percentile
+    true_weight_mean: float | None = None  # time-averaged weight of the terrain driven on, after the first 3 s
+    # (None: a model without terrain weights, a terrain the model does not know, or nothing after 3 s)
+    weight_switches_per_min: float | None = None  # changes of the top-weight terrain per minute (None: no weights)
     final_weights: list[float] = field(default_factory=list)
     message: str = ""
 
@@ -136,8 +153,11 @@ def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
     adapt = needs_estimator(settings, job)
     if isinstance(task, LaneTask):
         speed = max(task.speed_target, 0.25)
+        # an open lane ends (status `finished`) at its last point, which may come before the distance limit
+        target = settings.lane_distance_m if task.closed else min(
+            settings.lane_distance_m, polyline_length(task.centerline, closed=False))
         return ClosedLoopConfig(
-            time_limit_s=1.5 * settings.lane_distance_m / speed + 10.0,
+            time_limit_s=1.5 * target / speed + 10.0,
             distance_limit_m=settings.lane_distance_m,
             stop_on_collision=False,
             latency_s=settings.latency_s,
@@ -156,8 +176,16 @@ def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
     )
 
 
-def score(traj: Trajectory, task: LaneTask | GoalTask, seed: int, cfg: ClosedLoopConfig) -> RunScore:
-    """Score one trajectory (true states, at planner cycles)."""
+def score(
+    traj: Trajectory, task: LaneTask | GoalTask, seed: int, cfg: ClosedLoopConfig,
+    terrain_names: list[str] | None = None,
+) -> RunScore:
+    """Score one trajectory (true states, at planner cycles).
+
+    The run's scores cover what it drove: it stops at an open lane's end (`finished`), so RMSE and mean speed never
+    include waiting there. `terrain_names` are the model's terrains (the columns of the weights), for a model whose
+    weights are estimated (`cfg.adapt_weights`); otherwise the weight scores stay None.
+    """
     pos = traj.positions
     s = RunScore(seed=seed, status=traj.status, message=traj.message, distance_m=path_length(pos))
     if traj.times[-1] > 0:
@@ -167,10 +195,16 @@ def score(traj: Trajectory, task: LaneTask | GoalTask, seed: int, cfg: ClosedLoo
         s.planner_ms_p95 = float(np.percentile(traj.planner_ms, 95))
     if traj.weights.size:
         s.final_weights = [float(w) for w in traj.weights[-1]]
+    rates = command_rates(traj.times, traj.commands)
+    s.v_ref_rate_mean, s.v_ref_rate_p95 = mean_p95(rates[:, 0])
+    s.omega_ref_rate_mean, s.omega_ref_rate_p95 = mean_p95(rates[:, 1])
+    if cfg.adapt_weights and terrain_names is not None:
+        s.true_weight_mean = true_weight_mean(traj.times, traj.weights, traj.terrains, terrain_names)
+        s.weight_switches_per_min = weight_switches_per_min(traj.times, traj.weights)
     if isinstance(task, LaneTask):
         s.rmse_mm = lane_rmse_mm(pos, task.centerline, task.closed)
         s.lane_exits = lane_exit_count(pos, task.centerline, task.half_width, task.closed)
-        s.success = traj.status == "distance" and s.lane_exits == 0
+        s.success = traj.status in ("distance", "finished") and s.lane_exits == 0
     else:
         limit, radius = cfg.time_limit_s, cfg.robot_radius
         out = goal_outcome(traj.times, pos, task.goal, task.tolerance, task.obstacles, limit, radius)
@@ -205,12 +239,33 @@ def run_job(job: Job, settings: EvalSettings) -> tuple[list[RunScore], list[Traj
             model.n_terrains,
             cfg,
             estimator=estimator,
+            initial_terrain=job.terrain,  # the plant starts on it already; this names it in the trajectory
             record_plans=False,
         )
-        scores.append(score(traj, scenario.task, seed, cfg))
+        scores.append(score(traj, scenario.task, seed, cfg, list(model.terrains)))
         if job.record and not trajectories:
             trajectories.append(traj)
     return scores, trajectories
+
+
+# per-trial scores a cell reports as their mean over trials and, as `<name>_std`, their population spread
+SMOOTHNESS_AND_WEIGHT_METRICS = (
+    "v_ref_rate_mean", "v_ref_rate_p95", "omega_ref_rate_mean", "omega_ref_rate_p95", "true_weight_mean",
+    "weight_switches_per_min",
+)
+# of those, the ones with no value (None, not nan) where no trial has one: a model without terrain weights
+OPTIONAL_CELL_METRICS = ("true_weight_mean", "weight_switches_per_min")
+
+
+def _mean_and_std(runs: list[RunScore], names: tuple[str, ...]) -> dict:
+    out: dict = {}
+    for name in names:
+        values = [getattr(s, name) for s in runs if getattr(s, name) is not None]
+        m, sd = mean_std(values)
+        if name in OPTIONAL_CELL_METRICS and not values:
+            m = sd = None
+        out[name], out[f"{name}_std"] = m, sd
+    return out
 
 
 def summarize(scores: list[RunScore]) -> dict:
@@ -235,6 +290,7 @@ def summarize(scores: list[RunScore]) -> dict:
         "mean_speed_mps": mean_std([s.mean_speed_mps for s in runs])[0],
         "infeasible": len(scores) - len(runs),
         "final_weights_mean": [float(x) for x in np.mean(finals, axis=0)] if finals else [],
+        **_mean_and_std(runs, SMOOTHNESS_AND_WEIGHT_METRICS),
         "statuses": {st: sum(s.status == st for s in scores) for st in sorted({s.status for s in scores})},
     }
 
