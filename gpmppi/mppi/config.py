@@ -11,7 +11,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from gpmppi.mppi.costs import N_COST_WEIGHTS
+from gpmppi.mppi.bundles import CRITICS, CostBundle
 
 __all__ = ["PlannerConfig"]
 
@@ -127,11 +127,11 @@ class PlannerConfig(BaseModel):
                 raise ValueError("smoothing_window must not exceed the horizon")
         return self
 
-    def cost_weights(self) -> np.ndarray:
-        w = np.array([
-            self.w_variance, self.w_deviation, self.w_slip, self.w_lane_exit, self.w_speed,
-            self.w_collision, self.w_goal, self.w_terminal, self.lane_exit_discount, float(self.speed_along_lane),
-            float(self.goal_distance == "geodesic"),
-        ])
-        assert w.shape == (N_COST_WEIGHTS,)
-        return w
+    def critic_weights(self) -> dict[str, float]:
+        """The weight of each critic (`CRITICS`) by name, from the `w_<critic>` fields."""
+        return {name: float(getattr(self, f"w_{name}")) for name in CRITICS}
+
+    def cost_bundle(self) -> CostBundle:
+        """The kernels' cost input: the critic weights by name, the lane-exit discount and the two switches."""
+        return CostBundle.from_weights(self.critic_weights(), self.lane_exit_discount, self.speed_along_lane,
+                                       self.goal_distance == "geodesic")
