@@ -222,6 +222,7 @@ class SamplingBundle(_Bundle):
 # ------------------------------------------------------------------------------------------------- cost
 K_VARIANCE, K_DEVIATION, K_SLIP, K_LANE_EXIT, K_SPEED, K_COLLISION, K_GOAL, K_TERMINAL = range(8)
 K_EXIT_DISCOUNT, K_SPEED_ALONG_LANE, K_GOAL_GEODESIC = range(8, 11)
+N_COST_TERMS = 11
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -18,17 +18,9 @@ from numba import njit, prange
 from gpmppi.kernel_flags import FASTMATH, prefetch_row
 from gpmppi.mppi.bundles import (
     CRITICS,
-    K_COLLISION,
-    K_DEVIATION,
     K_EXIT_DISCOUNT,
-    K_GOAL,
     K_GOAL_GEODESIC,
-    K_LANE_EXIT,
-    K_SLIP,
-    K_SPEED,
-    K_SPEED_ALONG_LANE,
     K_TERMINAL,
-    K_VARIANCE,
     M_DIMS,
     M_DYN_MODE,
     M_EDD5,
@@ -70,7 +62,7 @@ from gpmppi.mppi.bundles import (
     T_TIGHTENED_HW,
     TASK_GOAL,
 )
-from gpmppi.mppi.costs import goal_term, stage_cost, stage_critics
+from gpmppi.mppi.costs import goal_term, stage_cost, stage_critics, weight_vector
 from gpmppi.mppi.dynamics import (
     DYN_GP,
     GP_SIMPLEX,
@@ -112,14 +104,14 @@ def _draw_commands(
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _add_costs(
-    n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray, total: np.ndarray, kind: int, cost: tuple,
+    n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray, total: np.ndarray, kind: int, cost_w: np.ndarray,
     geo: tuple, bounds: tuple, discount_k: float,
 ) -> None:
     """Add one step's stage cost to each sample's total: states `st` after the step, its commands and GP variances;
     `bounds` = (this step's tightened half-width, its inflated radii)."""
     tightened_hw, radii = bounds
     for j in range(n_in):
-        total[j] += stage_cost(kind, cost, geo, tightened_hw, radii, discount_k,
+        total[j] += stage_cost(kind, cost_w, geo, tightened_hw, radii, discount_k,
                                (st[j, 0], st[j, 1], st[j, 2], st[j, 3], st[j, 4]), (cmd[j, 0], cmd[j, 1]),
                                (res[j, 2], res[j, 3]))
 
@@ -168,17 +160,8 @@ def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out:
     eps_out = out[O_EPS]
     cost_out = out[O_COST]
     xy_out = out[O_XY]
-    w_variance = cost[K_VARIANCE]
-    w_deviation = cost[K_DEVIATION]
-    w_slip = cost[K_SLIP]
-    w_lane_exit = cost[K_LANE_EXIT]
-    w_speed = cost[K_SPEED]
-    w_collision = cost[K_COLLISION]
-    w_goal = cost[K_GOAL]
-    w_terminal = cost[K_TERMINAL]
-    discount = cost[K_EXIT_DISCOUNT]
-    along = cost[K_SPEED_ALONG_LANE]
-    geodesic = cost[K_GOAL_GEODESIC]
+    cost_w = weight_vector(cost)
+    discount = cost_w[K_EXIT_DISCOUNT]
     samples = eps_out.shape[0]
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
@@ -198,8 +181,6 @@ def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out:
         gp = (gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
               terrain_w)
         geo = (seg, cell_start, candidates, field, grid_origin, inv_cell, half_width, speed_target, goal, obstacles)
-        weights = (w_variance, w_deviation, w_slip, w_lane_exit, w_speed, w_collision, w_goal, w_terminal, discount,
-                   along, geodesic)  # the cost bundle's order (K_*)
         scratch = (np.empty(n_train), np.empty(n_tasks), np.empty(n_tasks))
         first = g * GROUP
         n_in = min(GROUP, samples - first)
@@ -247,7 +228,7 @@ def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out:
             if k + 1 < horizon:
                 _draw_commands(seed, counter0, horizon, k + 1, limits, first, n_in, eps_out, cmd_next)
             if k > 0:
-                _add_costs(n_in, st, cmd_prev, res, total, task_kind, weights, geo, (tightened_hw[k], radii[k]),
+                _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[k], radii[k]),
                            discount_k)
                 discount_k *= discount
             if dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX:
@@ -288,12 +269,13 @@ def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out:
                     xy_out[s, k + 1, 0] = px
                     xy_out[s, k + 1, 1] = py
             cmd_prev, cmd, cmd_next = cmd, cmd_next, cmd_prev
-        _add_costs(n_in, st, cmd_prev, res, total, task_kind, weights, geo, (tightened_hw[horizon], radii[horizon]),
+        _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[horizon], radii[horizon]),
                    discount_k)
         for j in range(n_in):
             t = total[j]
             if task_kind == TASK_GOAL:
-                t += goal_term(geodesic, field, grid_origin, inv_cell, goal, st[j, 0], st[j, 1], w_terminal)
+                t += goal_term(cost_w[K_GOAL_GEODESIC] > 0.0, field, grid_origin, inv_cell, goal, st[j, 0], st[j, 1],
+                               cost_w[K_TERMINAL])
             if not np.isfinite(t):
                 t = np.inf
             cost_out[first + j] = t
@@ -318,7 +300,8 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     dyn = (model[M_DYN_MODE], velocity_coefficients(model[M_THETA], model[M_LATERAL]), model[M_EDD5])
     gp = gp_inputs(model)
     scratch = gp_scratch(model)
-    discount = cost[K_EXIT_DISCOUNT]
+    cost_w = weight_vector(cost)
+    discount = cost_w[K_EXIT_DISCOUNT]
     x0 = sampling[S_X0]
     s = (x0[0], x0[1], x0[2], x0[3], x0[4])
     out = np.zeros(len(CRITICS))
@@ -327,11 +310,11 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
         u = (clip(nominal[k, 0], u_lo[0], u_hi[0]), clip(nominal[k, 1], u_lo[1], u_hi[1]))
         px, py, yaw, v, w, _mv, _mw, var_v, var_w = step_state(dyn, gp, scratch, dt, s, u)
         s = (px, py, yaw, v, w)
-        stage_critics(kind, cost, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, (var_v, var_w), out)
+        stage_critics(kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, (var_v, var_w), out)
         discount_k *= discount
     if kind == TASK_GOAL:
-        out[K_TERMINAL] += goal_term(cost[K_GOAL_GEODESIC], task[T_FIELD], task[T_ORIGIN], task[T_INV_CELL],
-                                     task[T_GOAL], s[0], s[1], cost[K_TERMINAL])
+        out[K_TERMINAL] += goal_term(cost_w[K_GOAL_GEODESIC] > 0.0, task[T_FIELD], task[T_ORIGIN], task[T_INV_CELL],
+                                     task[T_GOAL], s[0], s[1], cost_w[K_TERMINAL])
     return out
 
 

@@ -35,6 +35,7 @@ from gpmppi.mppi.bundles import (
     M_LO,
     M_TABLE,
     M_THETA,
+    N_COST_TERMS,
     O_COST,
     O_EPS,
     O_XY,
@@ -72,6 +73,7 @@ _interp4_simplex = device_version(gp_table.interp4_simplex)
 _advance = device_version(dynamics.advance)
 _stage_cost = device_version(critic.stage_cost)
 _goal_term = device_version(critic.goal_term)
+_fill_weight_vector = device_version(critic.fill_weight_vector)
 
 
 @cuda.jit(cache=True)
@@ -109,7 +111,9 @@ def _rollout_kernel(model, task, sampling, cost, out):
     dt = sampling[S_DT]
     seed = sampling[S_SEED]
     iteration = sampling[S_ITERATION]
-    discount = cost[K_EXIT_DISCOUNT]
+    cost_w = cuda.local.array(N_COST_TERMS, numba.float64)
+    _fill_weight_vector(cost, cost_w)
+    discount = cost_w[K_EXIT_DISCOUNT]
     # `dynamics.velocity_coefficients` in a thread's own memory (a device function cannot make an array)
     coef = cuda.local.array(8, numba.float64)
     coef[0] = theta[2] / theta[0]
@@ -150,12 +154,12 @@ def _rollout_kernel(model, task, sampling, cost, out):
         if s < n_xy:
             xy_out[s, k + 1, 0] = px
             xy_out[s, k + 1, 1] = py
-        total += _stage_cost(task_kind, cost, geo, tightened_hw[k + 1], radii[k + 1], discount_k,
+        total += _stage_cost(task_kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k,
                              (px, py, yaw, v, w), (u0, u1), (cv, cw))
         discount_k *= discount
     if task_kind == TASK_GOAL:
-        total += _goal_term(cost[K_GOAL_GEODESIC], field, grid_origin, inv_cell, goal, px, py,
-                            cost[K_TERMINAL])
+        total += _goal_term(cost_w[K_GOAL_GEODESIC] > 0.0, field, grid_origin, inv_cell, goal, px, py,
+                            cost_w[K_TERMINAL])
     if math.isnan(total) or math.isinf(total):
         total = math.inf
     cost_out[s] = total
