@@ -119,11 +119,12 @@ def goal_cost(x: float, y: float, goal: np.ndarray, weight: float) -> float:
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def goal_term(
-    geodesic: bool, field: np.ndarray, origin: np.ndarray, inv_cell: float, goal: np.ndarray, x: float, y: float,
+    cost_w: np.ndarray, field: np.ndarray, origin: np.ndarray, inv_cell: float, goal: np.ndarray, x: float, y: float,
     weight: float,
 ) -> float:
-    """Distance-to-goal term: around the obstacles (`field`) or in a straight line, times `weight`."""
-    if geodesic:
+    """Distance-to-goal term: around the obstacles (`field`) or in a straight line (by the switch in `cost_w`,
+    `weight_vector`), times `weight`."""
+    if cost_w[K_GOAL_GEODESIC] > 0.0:
         return weight * goal_distance(field, origin, inv_cell, x, y)
     return goal_cost(x, y, goal, weight)
 
@@ -182,7 +183,7 @@ def stage_cost(
         c += speed_cost(v_lane, speed_target, cost_w[K_SPEED])
     else:
         c += collision_cost(px, py, obstacles, radii, cost_w[K_COLLISION])
-        c += goal_term(cost_w[K_GOAL_GEODESIC] > 0.0, field, origin, inv_cell, goal, px, py, cost_w[K_GOAL])
+        c += goal_term(cost_w, field, origin, inv_cell, goal, px, py, cost_w[K_GOAL])
     return c
 
 
@@ -207,7 +208,7 @@ def stage_critics(
         out[K_SPEED] += speed_cost(v_lane, speed_target, cost_w[K_SPEED])
     else:
         out[K_COLLISION] += collision_cost(px, py, obstacles, radii, cost_w[K_COLLISION])
-        out[K_GOAL] += goal_term(cost_w[K_GOAL_GEODESIC] > 0.0, field, origin, inv_cell, goal, px, py, cost_w[K_GOAL])
+        out[K_GOAL] += goal_term(cost_w, field, origin, inv_cell, goal, px, py, cost_w[K_GOAL])
 
 
 assert len(CRITICS) == 8 and CRITICS[K_GOAL] == "goal"  # the K_* of the critics index CRITICS too

@@ -19,7 +19,6 @@ from gpmppi.kernel_flags import FASTMATH, prefetch_row
 from gpmppi.mppi.bundles import (
     CRITICS,
     K_EXIT_DISCOUNT,
-    K_GOAL_GEODESIC,
     K_TERMINAL,
     M_DIMS,
     M_DYN_MODE,
@@ -274,7 +273,7 @@ def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out:
         for j in range(n_in):
             t = total[j]
             if task_kind == TASK_GOAL:
-                t += goal_term(cost_w[K_GOAL_GEODESIC] > 0.0, field, grid_origin, inv_cell, goal, st[j, 0], st[j, 1],
+                t += goal_term(cost_w, field, grid_origin, inv_cell, goal, st[j, 0], st[j, 1],
                                cost_w[K_TERMINAL])
             if not np.isfinite(t):
                 t = np.inf
@@ -313,7 +312,7 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
         stage_critics(kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, (var_v, var_w), out)
         discount_k *= discount
     if kind == TASK_GOAL:
-        out[K_TERMINAL] += goal_term(cost_w[K_GOAL_GEODESIC] > 0.0, task[T_FIELD], task[T_ORIGIN], task[T_INV_CELL],
+        out[K_TERMINAL] += goal_term(cost_w, task[T_FIELD], task[T_ORIGIN], task[T_INV_CELL],
                                      task[T_GOAL], s[0], s[1], cost_w[K_TERMINAL])
     return out
 

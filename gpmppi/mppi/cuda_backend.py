@@ -24,7 +24,6 @@ from gpmppi.mppi import costs as critic
 from gpmppi.mppi import dynamics, gp_table, rng
 from gpmppi.mppi.bundles import (
     K_EXIT_DISCOUNT,
-    K_GOAL_GEODESIC,
     K_TERMINAL,
     M_DIMS,
     M_DYN_MODE,
@@ -158,7 +157,7 @@ def _rollout_kernel(model, task, sampling, cost, out):
                              (px, py, yaw, v, w), (u0, u1), (cv, cw))
         discount_k *= discount
     if task_kind == TASK_GOAL:
-        total += _goal_term(cost_w[K_GOAL_GEODESIC] > 0.0, field, grid_origin, inv_cell, goal, px, py,
+        total += _goal_term(cost_w, field, grid_origin, inv_cell, goal, px, py,
                             cost_w[K_TERMINAL])
     if math.isnan(total) or math.isinf(total):
         total = math.inf
