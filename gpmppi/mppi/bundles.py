@@ -75,6 +75,13 @@ class _Bundle:
 
     SPECS: ClassVar[dict[str, FieldSpec]]
 
+    def __new__(cls, *args: Any, **kwargs: Any) -> _Bundle:
+        # the dataclass's own error for positional arguments names no field; this one names them
+        if args:
+            given = ", ".join(list(cls.SPECS)[:len(args)])
+            raise TypeError(f"{cls.__name__} takes its fields by keyword only; given by position: {given}")
+        return super().__new__(cls)
+
     def args(self) -> tuple:
         cls = type(self).__name__
         return tuple(_checked(cls, name, spec, getattr(self, name)) for name, spec in self.SPECS.items())
