@@ -280,12 +280,13 @@ def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out:
             cost_out[first + j] = t
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath=FASTMATH)
 def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple) -> np.ndarray:
     """Each critic's cost (`CRITICS` order) of the sampling bundle's nominal sequence, clipped to its limits.
 
-    Serial, one rollout with the model's own step (`step_state`, as the propagation): the kernels add the
-    critics of a step into one cost, this keeps them apart; their sum is the kernels' cost of that sequence.
+    Serial, one rollout with the model's own step (`step_state`), compiled with the kernels' flags (without them
+    the float32 cos/sin and table reads round differently and the sum strayed 5e-9 from the kernel's cost): the
+    kernels add the critics of a step into one cost, this keeps them apart; their sum is the kernels' cost.
     """
     kind = task[T_KIND]
     tightened_hw = task[T_TIGHTENED_HW]
