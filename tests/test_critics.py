@@ -38,7 +38,9 @@ def test_critic_costs_sum_to_the_plan_cost(model, variant: str, task_name: str) 
     for _ in range(3):
         r = p.plan(x, scenario.task, W)
         assert list(r.critic_costs) == list(CRITICS)
-        assert sum(r.critic_costs.values()) == pytest.approx(r.cost, rel=1e-10, abs=1e-10)
+        # the serial evaluation reads the float32 GP table in its own order, so the grid GP's rollout differs in
+        # the float32 roundings (~1e-9 of the cost); a critic missing or counted twice is off by far more
+        assert sum(r.critic_costs.values()) == pytest.approx(r.cost, rel=1e-8, abs=1e-10)
         unused = GOAL_ONLY if task_name == "lane" else LANE_ONLY
         assert all(r.critic_costs[name] == 0.0 for name in unused)
         assert r.critic_costs["variance"] > 0.0 if variant.startswith("gp") else r.critic_costs["variance"] == 0.0
@@ -76,7 +78,7 @@ def test_a_zero_weight_silences_its_own_critic_only(model, task_name: str) -> No
         # and the kernel's total drops by exactly that critic's share
         _, total, _ = backends.rollouts("cpu", bundle, task, sampling, cost, 1, 0)
         _, total_full, _ = backends.rollouts("cpu", bundle, task, sampling, p._cost, 1, 0)
-        assert total_full[0] - total[0] == pytest.approx(full[name], rel=1e-9, abs=1e-9)
+        assert total_full[0] - total[0] == pytest.approx(full[name], abs=1e-8 * total_full[0])
 
 
 def test_weights_reach_their_critics_by_name(model) -> None:  # noqa: ANN001
