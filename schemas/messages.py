@@ -147,6 +147,11 @@ class Plan(Message):
     terrain_weights: list[float] = Field(default_factory=list)
     weights_stale: bool = Field(False, description="the terrain weights planned with are older than the limit")
     timings_ms: dict[str, float] = Field(default_factory=dict)
+    critic_costs: dict[str, float] = Field(
+        default_factory=dict,
+        description="each critic's cost of the nominal sequence, by critic name (variance, deviation, slip, "
+        "lane_exit, speed, collision, goal, terminal); they sum to the nominal sequence's cost [cost]",
+    )
 
 
 class Heartbeat(Message):

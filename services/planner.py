@@ -135,6 +135,7 @@ def plan_message(
         terrain_weights=np.asarray(result.weights, dtype=np.float64).tolist(),
         weights_stale=weights_stale,
         timings_ms={k: float(v) for k, v in {**result.timings_ms, **(extra_timings_ms or {})}.items()},
+        critic_costs={k: float(v) for k, v in result.critic_costs.items()},
     )
     plan.header.stamp_ns = stamp_ns
     return plan

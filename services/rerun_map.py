@@ -316,6 +316,8 @@ class RerunMapper:
             if finite.size:
                 self._scalar("plots/cost/min", t, float(finite.min()))
                 self._scalar("plots/cost/median", t, float(np.median(finite)))
+        for name, value in msg.critic_costs.items():
+            self._scalar(f"plots/critics/{name}", t, value, name)
         self._timings(msg, t)
 
     def _tightened(self, msg: Plan, states: np.ndarray, t: int) -> None:

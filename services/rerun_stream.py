@@ -35,6 +35,7 @@ def blueprint() -> rrb.Blueprint:
                     plot("plots/planner", "planner [ms] (start-up excluded)"),
                     plot("plots/tightening", "lane half-width / inflation [m]"),
                     plot("plots/cost", "rollout cost"),
+                    plot("plots/critics", "critic costs of the plan"),
                     grid_columns=2,
                 ),
                 column_shares=[1, 1],

@@ -26,26 +26,20 @@ import numba.cuda.dispatcher as cuda_dispatcher
 
 cuda_dispatcher.get_current_device = lambda: types.SimpleNamespace(compute_capability=(8, 0))
 from gpmppi.gp import cuda_kernels
-from gpmppi.mppi import backends, cuda_backend
-from gpmppi.mppi.dynamics import velocity_coefficients
+from gpmppi.mppi import cuda_backend
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene
 
 captured = []
-cuda_backend.cuda_rollouts = lambda args, eps, costs, xy: captured.append((args, eps, costs, xy))
+cuda_backend.cuda_rollouts = lambda *bundles: captured.append(bundles)
 model = synthetic_model(nodes=4, n_train=20)
 for scenario in (circle_lane(), paper_obstacle_scene()):
     planner = Planner(PlannerConfig(backend="cpu", samples=8, horizon=4), model)
     planner.backend = "cuda"  # the rollouts go to the captured call above
     planner.plan(scenario.start, scenario.task, np.array([0.5, 0.3, 0.2]))
-for args, eps, costs, xy in captured:
-    (x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, theta, lateral, edd5_p, gp_mode, table, dims,
-     lo, inv_step, _sx, _il, _os, _al, _ch, _tw, *task, cost_w) = args
-    values = (x0, nominal, noise_std, u_lo, u_hi, dt, np.int64(seed), np.int64(iteration), dyn_mode,
-              velocity_coefficients(theta, lateral),
-              edd5_p, gp_mode, table, dims, lo, inv_step, *task, cost_w, eps, costs, xy)
-    ptx, _ = cuda.compile_ptx(cuda_backend._rollout_kernel.py_func, tuple(typeof(v) for v in values), cc=(8, 0))
+for bundles in captured:  # the five bundles' tuples, as the kernel takes them
+    ptx, _ = cuda.compile_ptx(cuda_backend._rollout_kernel.py_func, tuple(typeof(b) for b in bundles), cc=(8, 0))
     assert ".entry" in ptx
 x = np.zeros((3, 4))
 mean = np.zeros((3, 6))

@@ -9,7 +9,7 @@ import pytest
 from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
 from gpmppi.evaluation.metrics import lane_rmse_mm
 from gpmppi.gp.model_file import load_default_model
-from gpmppi.mppi.dynamics import DYN_GP, DYN_UNICYCLE, predict_ahead, propagate
+from gpmppi.mppi.dynamics import predict_ahead, propagate
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.plant.physics import PhysicsPlant
 from gpmppi.plant.terrains import load_terrains
@@ -17,11 +17,10 @@ from gpmppi.scenarios import circle_lane
 from gpmppi.terrain import TerrainEstimator
 
 
-def _arrays(planner: Planner, w: np.ndarray) -> tuple:
-    """The model arrays `predict_ahead` / `propagate` take after `dyn_mode`, as the planner passes them."""
-    edd5_p, _ = planner._terrain_setup(w)
-    return (planner._theta, planner._lateral, edd5_p, planner._gp_mode, planner._table, planner._table_dims,
-            planner._grid_lo, planner._grid_inv, *planner._ex, w)
+def _model(planner: Planner, w: np.ndarray) -> tuple:
+    """The model bundle's tuple `predict_ahead` / `propagate` take, as the planner passes it."""
+    model, _ = planner._terrain_setup(w)
+    return model.args()
 
 
 def test_unicycle_prediction_follows_the_arc_of_the_held_command() -> None:
@@ -29,7 +28,7 @@ def test_unicycle_prediction_follows_the_arc_of_the_held_command() -> None:
     w = np.full(3, 1 / 3)
     v, om, d = 1.2, 0.8, 0.25
     x0 = np.array([1.0, -2.0, 0.3, 0.0, 0.0])
-    x, cov = predict_ahead(x0, np.eye(5) * 1e-4, np.array([v, om]), d, 0.1, DYN_UNICYCLE, *_arrays(planner, w))
+    x, cov = predict_ahead(_model(planner, w), x0, np.eye(5) * 1e-4, np.array([v, om]), d, 0.1)
     yaw = 0.3 + om * d
     arc = [1.0 + v / om * (np.sin(yaw) - np.sin(0.3)), -2.0 - v / om * (np.cos(yaw) - np.cos(0.3))]
     # explicit Euler over 10 ms substeps: within v * omega * h * d / 2 ~ 1.2 mm of the exact arc
@@ -41,13 +40,13 @@ def test_unicycle_prediction_follows_the_arc_of_the_held_command() -> None:
 def test_gp_prediction_of_one_substep_is_one_propagation_step() -> None:
     planner = Planner(PlannerConfig(), load_default_model())
     w = np.array([0.6, 0.3, 0.1])
-    args = _arrays(planner, w)
+    model = _model(planner, w)
     x0 = np.array([0.5, 0.2, -0.4, 0.9, 0.3])
     u = np.array([1.1, -0.2])
     cov0 = np.diag([1e-4, 2e-4, 1e-5, 3e-4, 1e-4])
     dt = 0.01  # one substep, the whole residual: exactly `propagate`'s step
-    x, cov = predict_ahead(x0, cov0, u, dt, dt, DYN_GP, *args)
-    states, covs, _ = propagate(x0, u[None, :], dt, DYN_GP, *args, 0.0, 0.0, cov0)
+    x, cov = predict_ahead(model, x0, cov0, u, dt, dt)
+    states, covs, _ = propagate(model, x0, u[None, :], dt, 0.0, 0.0, cov0)
     np.testing.assert_allclose(x, states[1], rtol=0, atol=1e-12)
     np.testing.assert_allclose(cov, covs[1], rtol=0, atol=1e-15)
 
@@ -55,20 +54,20 @@ def test_gp_prediction_of_one_substep_is_one_propagation_step() -> None:
 def test_gp_prediction_spreads_the_step_residual_over_the_delay() -> None:
     planner = Planner(PlannerConfig(), load_default_model())
     w = np.array([0.0, 1.0, 0.0])
-    args = _arrays(planner, w)
+    model = _model(planner, w)
     x0 = np.array([0.0, 0.0, 0.0, 1.0, 0.5])
     u = np.array([1.0, 0.5])
     # over one whole planner step the ten substeps add the step's residual (as one Euler step adds it) to within
     # the residual's change along the way; the pose integrates the velocities finer than one Euler step
-    x, cov = predict_ahead(x0, np.zeros((5, 5)), u, 0.1, 0.1, DYN_GP, *args)
-    states, covs, _ = propagate(x0, u[None, :], 0.1, DYN_GP, *args, 0.0, 0.0, np.zeros((5, 5)))
+    x, cov = predict_ahead(model, x0, np.zeros((5, 5)), u, 0.1, 0.1)
+    states, covs, _ = propagate(model, x0, u[None, :], 0.1, 0.0, 0.0, np.zeros((5, 5)))
     assert abs(x[3] - states[1, 3]) < 0.02 and abs(x[4] - states[1, 4]) < 0.02
     assert np.linalg.norm(x[:2] - states[1, :2]) < 0.01
     # the velocity variance added is the step's, less what the velocity's own decay (J[3, 3] = 1 - a h) takes off
     # the part added early (one propagation step adds it all after the Jacobian), and it reaches the position
     assert 0.6 * covs[1, 3, 3] < cov[3, 3] < covs[1, 3, 3] and cov[0, 0] > 0.0
     # half the delay, about half the variance (less decay)
-    _, half = predict_ahead(x0, np.zeros((5, 5)), u, 0.05, 0.1, DYN_GP, *args)
+    _, half = predict_ahead(model, x0, np.zeros((5, 5)), u, 0.05, 0.1)
     assert 0.5 * cov[3, 3] < half[3, 3] < 0.65 * cov[3, 3]
 
 
@@ -83,13 +82,13 @@ def test_planner_plans_from_the_predicted_state_with_the_last_command() -> None:
     np.testing.assert_array_equal(a.controls, b.controls)
     # with a delay: the plan starts where the last command takes the robot by then
     w = np.full(3, 1 / 3)
-    expected, _ = predict_ahead(x0, p._default_state_cov, a.control, 0.08, 0.1, DYN_GP, *_arrays(p, w))
+    expected, _ = predict_ahead(_model(p, w), x0, p._default_state_cov, a.control, 0.08, 0.1)
     r = p.plan(x0, task, delay_s=0.08)
     np.testing.assert_allclose(r.states[0], expected, atol=1e-12)
     assert r.states[0][1] > x0[1] + 0.05  # it moved ahead along the lane (+y at this point), ~0.8 m/s * 80 ms
     # after a reset there is no last command: the state's own velocities are held
     p.reset()
-    held, _ = predict_ahead(x0, p._default_state_cov, x0[3:5].copy(), 0.08, 0.1, DYN_GP, *_arrays(p, w))
+    held, _ = predict_ahead(_model(p, w), x0, p._default_state_cov, x0[3:5].copy(), 0.08, 0.1)
     np.testing.assert_allclose(p.plan(x0, task, delay_s=0.08).states[0], held, atol=1e-12)
 
 

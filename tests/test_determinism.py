@@ -61,7 +61,8 @@ HELPERS_CACHED = "@HELPERS_CACHED@"
 LOOP_S = @LOOP_S@
 
 if sys.argv[1] == "helpers_first":
-    from gpmppi.mppi.costs import N_COST_WEIGHTS, lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
+    from gpmppi.mppi.bundles import N_COST_TERMS
+    from gpmppi.mppi.costs import lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
     from gpmppi.gp.grid_interp import grid_interp
     from gpmppi.models.dynamic_unicycle import nominal_step, jacobian
     from gpmppi.mppi.dynamics import advance, nominal_velocity_step, velocity_coefficients
@@ -74,7 +75,7 @@ if sys.argv[1] == "helpers_first":
     u = np.array([1.0, 0.2])
     coef = velocity_coefficients(theta, np.array([-0.05, -0.02]))
     nominal_velocity_step(coef, 0.5, 0.1, 1.0, 0.2, 0.1)
-    advance(2, 0.1, coef, np.ones(5), 0.0, 0.0, 0.1, 0.5, 0.1, 1.0, 0.2, 0.01, 0.02)
+    advance(2, 0.1, coef, np.ones(5), (0.0, 0.0, 0.1, 0.5, 0.1), (1.0, 0.2), 0.01, 0.02)
     nominal_step(theta, x, u, 0.1)
     jacobian(theta, x, u, 0.1)
     table = np.ones((81, 4), dtype=np.float32)
@@ -92,20 +93,20 @@ if sys.argv[1] == "helpers_first":
     lane = build_lane_lookup(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]), False, 1.0)
     lane_query(lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell, 0.5, 0.1,
                0.5)
-    stage_cost(0, np.ones(N_COST_WEIGHTS), lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin,
-               lane.inv_cell, 1.0, 0.8, 1.0, np.zeros(2), np.zeros((0, 3)), np.zeros(0), 1.0, 0.5, 0.1, 0.3, 0.5,
-               0.1, 1.0, 0.2, 0.01, 0.02)
+    geo = (lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell, 1.0, 1.0,
+           np.zeros(2), np.zeros((0, 3)))
+    stage_cost(0, np.ones(N_COST_TERMS), geo, 0.8, np.zeros(0), 1.0, (0.5, 0.1, 0.3, 0.5, 0.1), (1.0, 0.2),
+               (0.01, 0.02))
     # the delay predictor (its own kernel over the same helpers) compiled first: with the 'contract' fastmath flag
     # this history alone changed the rollout kernel's last bits
     from gpmppi.gp.model_file import load_default_model
-    from gpmppi.mppi.dynamics import DYN_UNICYCLE, predict_ahead
+    from gpmppi.mppi.dynamics import predict_ahead
     from gpmppi.mppi.planner import Planner, PlannerConfig
 
     pl = Planner(PlannerConfig(dynamics="unicycle"), load_default_model())
     tw = np.full(3, 1.0 / 3.0)
-    edd5_p, _ = pl._terrain_setup(tw)
-    predict_ahead(np.zeros(5), np.eye(5), np.array([1.0, 0.5]), 0.25, 0.1, DYN_UNICYCLE, pl._theta, pl._lateral,
-                  edd5_p, pl._gp_mode, pl._table, pl._table_dims, pl._grid_lo, pl._grid_inv, *pl._ex, tw)
+    bundle, _ = pl._terrain_setup(tw)
+    predict_ahead(bundle.args(), np.zeros(5), np.eye(5), np.array([1.0, 0.5]), 0.25, 0.1)
     if len(sys.argv) > 2:  # a copy of the cache as it is now: the helpers compiled, no planner kernel yet
         import os
         import shutil

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpmppi.mppi.costs import N_COST_WEIGHTS, W_GOAL_GEODESIC, goal_cost, goal_term
+from gpmppi.mppi.bundles import K_GOAL_GEODESIC, N_COST_TERMS
+from gpmppi.mppi.costs import goal_cost, goal_term
 from gpmppi.mppi.goal_field import _STENCIL, GoalField, build_goal_field, goal_distance
 from gpmppi.scenarios import PAPER_OBSTACLES
 
@@ -89,9 +90,9 @@ def test_enclosed_goal_and_far_queries_stay_finite() -> None:
 def test_goal_term_selects_straight_line_or_field() -> None:
     goal = np.array([7.0, 5.0])
     g = build_goal_field(goal, PAPER_OBSTACLES, np.zeros((1, 2)))
-    w = np.zeros(N_COST_WEIGHTS)
+    w = np.zeros(N_COST_TERMS)
     pocket = (5.3, 4.2)
     straight = goal_cost(*pocket, goal, 2.0)
     assert goal_term(w, g.field, g.origin, g.inv_cell, goal, *pocket, 2.0) == pytest.approx(straight)
-    w[W_GOAL_GEODESIC] = 1.0
+    w[K_GOAL_GEODESIC] = 1.0
     assert goal_term(w, g.field, g.origin, g.inv_cell, goal, *pocket, 2.0) == pytest.approx(2.0 * _d(g, *pocket))

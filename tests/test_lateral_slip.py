@@ -85,7 +85,7 @@ def test_rollout_step_is_the_model_step_with_the_slide() -> None:
         u = rng.uniform([0, -2], [2, 2])
         mv, mw = rng.uniform(-0.1, 0.1, 2)
         ref = nominal_step(THETA, x, u, 0.1, mv, mw, *lat)
-        got = np.array(advance(DYN_GP, 0.1, coef, np.ones(5), *x, *u, mv, mw))
+        got = np.array(advance(DYN_GP, 0.1, coef, np.ones(5), tuple(x), tuple(u), mv, mw))
         np.testing.assert_allclose(got, ref, rtol=1e-6, atol=1e-6)  # rollouts take cos/sin in float32
         plain = nominal_step(THETA, x, u, 0.1, mv, mw)
         vm, wm = 0.5 * (x[3] + ref[3]), 0.5 * (x[4] + ref[4])
@@ -104,10 +104,11 @@ def test_planner_blends_the_slide_by_the_terrain_weights() -> None:
     np.testing.assert_allclose(p._lateral, sum(w[i] * lat[t] for i, t in enumerate(model.terrains)))
     # the planned states follow the model step with those coefficients
     x0 = np.array([0.0, 0.0, 0.3, 1.2, 0.8])
-    states, _, _ = p._propagate(x0, np.tile([1.2, 1.0], (8, 1)), p._edd5[0], w, np.zeros((5, 5)))
+    states, _, _ = p._propagate(x0, np.tile([1.2, 1.0], (8, 1)), p._terrain_setup(w)[0], np.zeros((5, 5)))
     plain = Planner(PlannerConfig(samples=16, horizon=8, backend="cpu"), synthetic_model())
     plain.prepare(w)
-    states0, _, _ = plain._propagate(x0, np.tile([1.2, 1.0], (8, 1)), plain._edd5[0], w, np.zeros((5, 5)))
+    states0, _, _ = plain._propagate(x0, np.tile([1.2, 1.0], (8, 1)), plain._terrain_setup(w)[0],
+                                      np.zeros((5, 5)))
     assert np.linalg.norm(states[-1, :2] - states0[-1, :2]) > 0.01
     np.testing.assert_allclose(states[:, 2:], states0[:, 2:], atol=1e-12)  # heading and velocities unchanged
     edd5 = Planner(PlannerConfig(samples=16, horizon=8, backend="cpu", dynamics="edd5"), model)

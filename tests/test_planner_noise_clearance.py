@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gpmppi.mppi.bundles import ModelBundle
 from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, propagate
 from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table
 from gpmppi.mppi.planner import Planner, PlannerConfig
@@ -19,10 +20,11 @@ def test_propagation_adds_the_likelihood_noise_to_the_latent_variance() -> None:
     table = collapse_table(np.ascontiguousarray(g.table, dtype=np.float32), w)
     controls = np.tile([1.0, 0.5], (10, 1))
     x0 = np.array([0.0, 0.0, 0.0, 0.8, 0.1])
-    m2 = 2 * len(model.terrains)
-    dummy = (np.zeros((m2, 1, 4)), np.ones((m2, 4)), np.zeros(m2), np.zeros((m2, 1)), np.ones((m2, 1, 1)))
-    args = (x0, controls, 0.1, DYN_GP, model.theta, np.zeros(2), model.edd5["grass"], GP_GRID, table.reshape(-1, 4),
-            np.array(table.shape[:4]), g.lo[TABLE_AXES], g.inv_step[TABLE_AXES], *dummy, w)
+    bundle = ModelBundle(dyn_mode=DYN_GP, theta=model.theta, lateral=np.zeros(2), edd5=model.edd5["grass"],
+                         gp_mode=GP_GRID, table=table.reshape(-1, 4), dims=np.array(table.shape[:4], dtype=np.int64),
+                         lo=g.lo[TABLE_AXES], inv_step=g.inv_step[TABLE_AXES],
+                         **ModelBundle.no_exact(2 * len(model.terrains)), terrain_w=w)
+    args = (bundle.args(), x0, controls, 0.1)
     # called with the argument types the planner passes (noise floats, a start covariance), so this test runs the
     # planner's compiled propagate instead of compiling two more specialisations of it
     zero_cov = np.zeros((5, 5))

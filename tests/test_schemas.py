@@ -54,6 +54,7 @@ EXAMPLES = [
         tightened=[1.5],
         samples=[[[0.0, 0.0], [1.0, 1.0]]],
         timings_ms={"total": 3.0},
+        critic_costs={"deviation": 2.5, "variance": 0.125},
     ),
     Heartbeat(service="planner", rate_hz=10.0, received=5, rejected=1, published=4, last_error="x"),
     EStop(engaged=True, reason="button"),

@@ -7,6 +7,7 @@ import pytest
 from scipy.stats import chi2, norm
 
 from gpmppi.models.dynamic_unicycle import jacobian, nominal_step
+from gpmppi.mppi.bundles import ModelBundle
 from gpmppi.mppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, propagate
 from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table
@@ -86,11 +87,11 @@ def test_propagation_matches_finite_difference_jacobians() -> None:
     rng = np.random.default_rng(3)
     controls = np.column_stack([rng.uniform(0.5, 2.0, 15), rng.uniform(-2, 2, 15)])
     x0 = np.array([1.0, -2.0, 0.4, 0.8, 0.3])
-    m2 = 2 * len(model.terrains)
-    dummy = (np.zeros((m2, 1, 4)), np.ones((m2, 4)), np.zeros(m2), np.zeros((m2, 1)), np.ones((m2, 1, 1)))
-    states, covs, step_var = propagate(x0, controls, 0.1, DYN_GP, model.theta, np.zeros(2), model.edd5["grass"],
-                                       GP_GRID, table.reshape(-1, 4), np.array(table.shape[:4]), g.lo[TABLE_AXES],
-                                       g.inv_step[TABLE_AXES], *dummy, w)
+    bundle = ModelBundle(dyn_mode=DYN_GP, theta=model.theta, lateral=np.zeros(2), edd5=model.edd5["grass"],
+                         gp_mode=GP_GRID, table=table.reshape(-1, 4), dims=np.array(table.shape[:4], dtype=np.int64),
+                         lo=g.lo[TABLE_AXES], inv_step=g.inv_step[TABLE_AXES],
+                         **ModelBundle.no_exact(2 * len(model.terrains)), terrain_w=w)
+    states, covs, step_var = propagate(bundle.args(), x0, controls, 0.1)
     sigma = np.zeros((5, 5))
     for k in range(15):
         # the step's GP residual mean: what the mean step added to the nominal velocities

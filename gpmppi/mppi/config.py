@@ -11,7 +11,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from gpmppi.mppi.costs import N_COST_WEIGHTS
+from gpmppi.mppi.bundles import CRITICS, CostBundle
 
 __all__ = ["PlannerConfig"]
 
@@ -27,8 +27,8 @@ class PlannerConfig(BaseModel):
     gp_mode: Literal["grid", "exact"] = Field("grid", description="GP evaluation: interpolated grid table or exact GP")
     grid_interpolation: Literal["simplex", "multilinear"] = Field(
         "simplex",
-        description="Grid GP interpolation: simplex (5 nodes, ~3x faster on tables larger than the caches) or "
-        "multilinear (16 nodes, as gpmppi.gp.grid_interp); both exact at the nodes and second-order accurate",
+        description="Grid GP interpolation: simplex (5 table nodes per lookup) or multilinear (16 nodes, as "
+        "gpmppi.gp.grid_interp); both exact at the nodes and second-order accurate (docs/planner_config.md)",
     )
     backend: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="Kernels: numba CPU, numba CUDA (grid GP only), or auto (CUDA when numba finds a GPU)"
@@ -42,9 +42,7 @@ class PlannerConfig(BaseModel):
     )
     lane_noise_std: tuple[float, float] | None = Field(
         (0.5, 0.7),
-        description="Control noise std for lane tasks [m/s, rad/s] (None = noise_std). Lanes want steady commands: at "
-        "(1, 1) the averaged command jittered and cost 30-40% of the tracking error; goals among obstacles want "
-        "exploration: at (0.5, 0.7) more rollouts got caught in front of obstacles",
+        description="Control noise std for lane tasks [m/s, rad/s] (None = noise_std)",
     )
     v_limits: tuple[float, float] = Field((0.0, 2.0), description="Commanded linear speed limits [m/s]")
     omega_limits: tuple[float, float] = Field((-pi, pi), description="Commanded yaw-rate limits [rad/s]")
@@ -62,16 +60,13 @@ class PlannerConfig(BaseModel):
     robot_radius: float = Field(0.0, ge=0, description="Added to every obstacle radius [m]")
     step_clearance: bool = Field(
         True,
-        description="Grow each (inflated) obstacle radius r to sqrt(r^2 + (v_max dt / 2)^2): collisions are checked "
-        "only at the rollout steps, and with this radius the straight path between two steps (at most v_max dt "
-        "long) cannot cut into the circle r either",
+        description="Grow each (inflated) obstacle radius r to sqrt(r^2 + (v_max dt / 2)^2) [m], so that the straight "
+        "path between two rollout steps (at most v_max dt long) cannot cut into the circle r",
     )
     state_std: tuple[float, float, float, float, float] = Field(
         (0.005, 0.005, 0.003, 0.008, 0.01),
         description="Std of the state estimate [x m, y m, yaw rad, v m/s, omega rad/s]: the start covariance of the "
-        "propagation (GP model) when `plan` gets no covariance. The planner starts from the estimate, not the true "
-        "state; with a zero start covariance the first steps were not inflated at all and the robot grazed obstacles "
-        "by the estimate's error (mm)",
+        "propagation (GP model) when `plan` gets no covariance",
     )
     seed: int = Field(0, ge=0, lt=2**63, description="Seed of the sampling noise (identical seeds, identical plans)")
     edd5_terrain: str | None = Field(
@@ -80,31 +75,45 @@ class PlannerConfig(BaseModel):
     initial_control: tuple[float, float] = Field((0.0, 0.0), description="Sequence at start and appended on shift")
     sample_output: int = Field(32, ge=0, description="How many rollouts' XY to return for display")
     lane_cell: float = Field(0.1, gt=0, description="Cell of the lane nearest-segment lookup grid [m]")
-    # lane weights: with r the lane half-width (1.75-2.75 m), 300 (d / r)^2 prices a 5 cm deviation like a 0.15 m/s
-    # speed shortfall under w_speed = 2; at (2, 1) tracking error was free next to speed (70-150 mm RMSE)
+    # the critics' weights, `w_<critic>` for each name of `CRITICS` (how the defaults were chosen:
+    # docs/planner_config.md)
     w_variance: float = Field(
-        1.0, ge=0, description="Weight of the GP variance cost (every step); 10 made GP-MPPI ~15% slower to goals"
+        1.0, ge=0, description="Weight of the GP variance critic, sum of var_v + var_w over the steps [cost / (m/s)^2]"
     )
-    w_deviation: float = Field(300.0, ge=0, description="Weight of the normalised lane deviation (d / r)^2")
-    w_slip: float = Field(0.1, ge=0, description="Weight of the command-vs-velocity gap (slip)")
-    w_lane_exit: float = Field(1000.0, ge=0, description="Weight of leaving the tightened lane (times discount^k)")
-    lane_exit_discount: float = Field(0.9, gt=0, le=1, description="Discount per step of the lane-exit indicator")
-    w_speed: float = Field(2.0, ge=0, description="Weight of (v_lane - speed_target)^2")
+    w_deviation: float = Field(300.0, ge=0, description="Weight of the lane deviation critic (d / r)^2 per step [cost]")
+    w_slip: float = Field(
+        0.1, ge=0,
+        description="Weight of the slip critic (v_ref - v)^2 + (omega_ref - omega)^2 per step [cost / (m/s)^2]",
+    )
+    w_lane_exit: float = Field(
+        1000.0, ge=0,
+        description="Weight of the lane-exit critic: outside the tightened lane at step k costs weight * discount^k "
+        "[cost]",
+    )
+    lane_exit_discount: float = Field(
+        0.9, gt=0, le=1, description="Discount per step of the lane-exit critic (dimensionless)"
+    )
+    w_speed: float = Field(
+        2.0, ge=0, description="Weight of the speed critic (v_lane - speed_target)^2 per step [cost / (m/s)^2]"
+    )
     speed_along_lane: bool = Field(
         True,
-        description="Speed term on the speed along the lane (v cos of the heading error; the centre line's point "
-        "order is the driving direction) instead of the speed magnitude as in the paper, which rewards speed in any "
-        "direction (the robot looped through square corners instead of slowing into them)",
+        description="Speed critic on the speed along the lane (v cos of the heading error; the centre line's point "
+        "order is the driving direction) instead of the speed magnitude as in the paper",
     )
-    w_collision: float = Field(1000.0, ge=0, description="Weight of being inside an inflated obstacle")
+    w_collision: float = Field(
+        1000.0, ge=0, description="Weight of the collision critic: inside an inflated obstacle at a step [cost]"
+    )
     goal_distance: Literal["geodesic", "euclidean"] = Field(
         "geodesic",
-        description="Distance of the goal terms: the shortest path around the obstacles (no local minima in "
-        "pockets between circles) or the straight line as in the paper (rollouts were drawn into such pockets)",
+        description="Distance of the goal critics: the shortest path around the obstacles or the straight line as "
+        "in the paper",
     )
     goal_cell: float = Field(0.1, gt=0, description="Cell of the geodesic goal-distance grid [m]")
-    w_goal: float = Field(1.0, ge=0, description="Weight of the distance to the goal at every step")
-    w_terminal: float = Field(10.0, ge=0, description="Weight of the distance to the goal at the horizon's end")
+    w_goal: float = Field(1.0, ge=0, description="Weight of the goal critic: distance to the goal per step [cost / m]")
+    w_terminal: float = Field(
+        10.0, ge=0, description="Weight of the terminal critic: distance to the goal at the horizon's end [cost / m]"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> PlannerConfig:
@@ -127,11 +136,11 @@ class PlannerConfig(BaseModel):
                 raise ValueError("smoothing_window must not exceed the horizon")
         return self
 
-    def cost_weights(self) -> np.ndarray:
-        w = np.array([
-            self.w_variance, self.w_deviation, self.w_slip, self.w_lane_exit, self.w_speed,
-            self.w_collision, self.w_goal, self.w_terminal, self.lane_exit_discount, float(self.speed_along_lane),
-            float(self.goal_distance == "geodesic"),
-        ])
-        assert w.shape == (N_COST_WEIGHTS,)
-        return w
+    def critic_weights(self) -> dict[str, float]:
+        """The weight of each critic (`CRITICS`) by name, from the `w_<critic>` fields."""
+        return {name: float(getattr(self, f"w_{name}")) for name in CRITICS}
+
+    def cost_bundle(self) -> CostBundle:
+        """The kernels' cost input: the critic weights by name, the lane-exit discount and the two switches."""
+        return CostBundle.from_weights(self.critic_weights(), self.lane_exit_discount, self.speed_along_lane,
+                                       self.goal_distance == "geodesic")

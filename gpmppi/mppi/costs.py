@@ -36,26 +36,31 @@ from numba import njit
 from scipy.special import chdtri, ndtri
 
 from gpmppi.kernel_flags import FASTMATH
+from gpmppi.mppi.bundles import (
+    CRITICS,
+    K_COLLISION,
+    K_DEVIATION,
+    K_EXIT_DISCOUNT,
+    K_GOAL,
+    K_GOAL_GEODESIC,
+    K_LANE_EXIT,
+    K_SLIP,
+    K_SPEED,
+    K_SPEED_ALONG_LANE,
+    K_TERMINAL,
+    K_VARIANCE,
+    N_COST_TERMS,
+    TASK_GOAL,
+    TASK_LANE,
+)
 from gpmppi.mppi.goal_field import goal_distance
 from gpmppi.mppi.lane import lane_query
 
-# indices into the cost-weight vector handed to the kernels
-W_VARIANCE = 0
-W_DEVIATION = 1
-W_SLIP = 2
-W_LANE_EXIT = 3
-W_SPEED = 4
-W_COLLISION = 5
-W_GOAL = 6
-W_TERMINAL = 7
-W_EXIT_DISCOUNT = 8
-W_SPEED_ALONG = 9  # 1: the speed term uses the speed along the lane, 0: the speed magnitude
-W_GOAL_GEODESIC = 10  # 1: goal terms use the distance around the obstacles (the task's field), 0: straight line
-N_COST_WEIGHTS = 11
-
-# task kinds of the rollout kernels
-TASK_LANE = 0
-TASK_GOAL = 1
+__all__ = [
+    "CRITICS", "TASK_GOAL", "TASK_LANE", "ChanceQuantiles", "collision_cost", "deviation_cost", "goal_cost",
+    "goal_term", "inflate_obstacles", "lane_exit_cost", "slip_cost", "speed_cost", "stage_cost", "stage_critics",
+    "tighten_lane", "variance_cost", "weight_vector", "fill_weight_vector", "xy_lambda_max",
+]
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -114,39 +119,99 @@ def goal_cost(x: float, y: float, goal: np.ndarray, weight: float) -> float:
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def goal_term(
-    cost_w: np.ndarray, field: np.ndarray, grid_origin: np.ndarray, inv_cell: float, goal: np.ndarray, x: float,
-    y: float, weight: float,
+    cost_w: np.ndarray, field: np.ndarray, origin: np.ndarray, inv_cell: float, goal: np.ndarray, x: float, y: float,
+    weight: float,
 ) -> float:
-    """Distance-to-goal term: around the obstacles (`field`) or in a straight line, times `weight`."""
-    if cost_w[W_GOAL_GEODESIC] > 0.0:
-        return weight * goal_distance(field, grid_origin, inv_cell, x, y)
+    """Distance-to-goal term: around the obstacles (`field`) or in a straight line (by the switch in `cost_w`,
+    `weight_vector`), times `weight`."""
+    if cost_w[K_GOAL_GEODESIC] > 0.0:
+        return weight * goal_distance(field, origin, inv_cell, x, y)
     return goal_cost(x, y, goal, weight)
+
+
+@njit(cache=True, inline="always")
+def fill_weight_vector(cost: tuple, w: np.ndarray) -> None:
+    """Write the cost bundle's tuple (`CostBundle.args()`) into `w` (`N_COST_TERMS`,) by the same `K_*` (switches
+    1.0 on, 0.0 off): the vector the kernels read (`weight_vector`)."""
+    w[K_VARIANCE] = cost[K_VARIANCE]
+    w[K_DEVIATION] = cost[K_DEVIATION]
+    w[K_SLIP] = cost[K_SLIP]
+    w[K_LANE_EXIT] = cost[K_LANE_EXIT]
+    w[K_SPEED] = cost[K_SPEED]
+    w[K_COLLISION] = cost[K_COLLISION]
+    w[K_GOAL] = cost[K_GOAL]
+    w[K_TERMINAL] = cost[K_TERMINAL]
+    w[K_EXIT_DISCOUNT] = cost[K_EXIT_DISCOUNT]
+    w[K_SPEED_ALONG_LANE] = 1.0 if cost[K_SPEED_ALONG_LANE] else 0.0
+    w[K_GOAL_GEODESIC] = 1.0 if cost[K_GOAL_GEODESIC] else 0.0
+
+
+@njit(cache=True, inline="always")
+def weight_vector(cost: tuple) -> np.ndarray:
+    """The cost bundle's tuple as the float64 vector the kernels read, built once per call, before any loop.
+
+    Why a vector and not the tuple's scalars: under fastmath reassociation LLVM orders the operands of the
+    cost sums by where their values come from, and weights read from memory inside the loops (as before
+    the bundles) keep the kernels' rounding, so seeded plans are unchanged."""
+    w = np.empty(N_COST_TERMS)
+    fill_weight_vector(cost, w)
+    return w
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def stage_cost(
-    task_kind: int, cost_w: np.ndarray, seg: np.ndarray, cell_start: np.ndarray, candidates: np.ndarray,
-    field: np.ndarray, grid_origin: np.ndarray, inv_cell: float, half_width: float, tightened_hw: float,
-    speed_target: float, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray, discount_k: float,
-    px: float, py: float, yaw: float, v: float, w: float, u0: float, u1: float, var_v: float, var_w: float,
+    kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple,
+    u: tuple, var: tuple,
 ) -> float:
-    """Cost of one rollout step: the state after it, its command (u0, u1) and GP variances.
+    """Cost of one rollout step, the sum of the stage critics (`stage_critics`, in `CRITICS` order).
 
-    Lane: `field` is the lane lookup's, `tightened_hw` this step's tightened half-width (the lane
-    distance is exact near it); goal: `field` is the goal field, `radii` (K,) this step's inflated radii.
+    `cost_w` the cost bundle as the kernels hold it (`weight_vector`); `geo` the task's geometry (seg,
+    cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles: `TaskBundle`
+    fields); `tightened_hw` this
+    step's tightened half-width (the lane distance is exact near it), `radii` (K,) this step's inflated
+    radii; `s` the state after the step (x, y, yaw, v, omega), `u` its command, `var` its GP variances.
     """
-    c = variance_cost(var_v, var_w, cost_w[W_VARIANCE])
-    if task_kind == TASK_LANE:
-        d, tx, ty = lane_query(seg, cell_start, candidates, field, grid_origin, inv_cell, px, py, tightened_hw)
-        c += deviation_cost(d, half_width, cost_w[W_DEVIATION])
-        c += slip_cost(v, w, u0, u1, cost_w[W_SLIP])
-        c += lane_exit_cost(d, tightened_hw, discount_k, cost_w[W_LANE_EXIT])
-        v_lane = v * (math.cos(yaw) * tx + math.sin(yaw) * ty) if cost_w[W_SPEED_ALONG] > 0.0 else v
-        c += speed_cost(v_lane, speed_target, cost_w[W_SPEED])
+    seg, cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles = geo
+    px, py, yaw, v, w = s
+    c = variance_cost(var[0], var[1], cost_w[K_VARIANCE])
+    if kind == TASK_LANE:
+        d, tx, ty = lane_query(seg, cell_start, candidates, field, origin, inv_cell, px, py, tightened_hw)
+        c += deviation_cost(d, half_width, cost_w[K_DEVIATION])
+        c += slip_cost(v, w, u[0], u[1], cost_w[K_SLIP])
+        c += lane_exit_cost(d, tightened_hw, discount_k, cost_w[K_LANE_EXIT])
+        v_lane = v * (math.cos(yaw) * tx + math.sin(yaw) * ty) if cost_w[K_SPEED_ALONG_LANE] > 0.0 else v
+        c += speed_cost(v_lane, speed_target, cost_w[K_SPEED])
     else:
-        c += collision_cost(px, py, obstacles, radii, cost_w[W_COLLISION])
-        c += goal_term(cost_w, field, grid_origin, inv_cell, goal, px, py, cost_w[W_GOAL])
+        c += collision_cost(px, py, obstacles, radii, cost_w[K_COLLISION])
+        c += goal_term(cost_w, field, origin, inv_cell, goal, px, py, cost_w[K_GOAL])
     return c
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def stage_critics(
+    kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple,
+    u: tuple, var: tuple, out: np.ndarray,
+) -> None:
+    """Add each stage critic's cost of one step to `out` (`CRITICS` order; arguments as `stage_cost`).
+
+    The same terms as `stage_cost`, kept apart: the rollout kernels need only their sum, the plan reports each.
+    """
+    seg, cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles = geo
+    px, py, yaw, v, w = s
+    out[K_VARIANCE] += variance_cost(var[0], var[1], cost_w[K_VARIANCE])
+    if kind == TASK_LANE:
+        d, tx, ty = lane_query(seg, cell_start, candidates, field, origin, inv_cell, px, py, tightened_hw)
+        out[K_DEVIATION] += deviation_cost(d, half_width, cost_w[K_DEVIATION])
+        out[K_SLIP] += slip_cost(v, w, u[0], u[1], cost_w[K_SLIP])
+        out[K_LANE_EXIT] += lane_exit_cost(d, tightened_hw, discount_k, cost_w[K_LANE_EXIT])
+        v_lane = v * (math.cos(yaw) * tx + math.sin(yaw) * ty) if cost_w[K_SPEED_ALONG_LANE] > 0.0 else v
+        out[K_SPEED] += speed_cost(v_lane, speed_target, cost_w[K_SPEED])
+    else:
+        out[K_COLLISION] += collision_cost(px, py, obstacles, radii, cost_w[K_COLLISION])
+        out[K_GOAL] += goal_term(cost_w, field, origin, inv_cell, goal, px, py, cost_w[K_GOAL])
+
+
+assert len(CRITICS) == 8 and CRITICS[K_GOAL] == "goal"  # the K_* of the critics index CRITICS too
 
 
 @dataclass(frozen=True)

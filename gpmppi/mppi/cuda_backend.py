@@ -1,7 +1,8 @@
 """CUDA backend: one thread per sample runs the whole horizon (noise, model, grid GP, costs) in one launch.
 
 Every equation is the CPU kernel's own (`cpu_backend.rollout_kernel`): the device functions here are
-compiled from the CPU functions' Python (`gpmppi.gp.cuda_kernels.device_version`), and the same
+compiled from the CPU functions' Python (`gpmppi.gp.cuda_kernels.device_version`), it takes the same five bundles (their
+`.args()` tuples), and the same
 counter-based noise is drawn, so both backends agree to rounding. The exact GP runs on the CPU
 backend only (`Planner` refuses `backend="cuda"` with `gp_mode="exact"`).
 
@@ -14,13 +15,53 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import cuda
 
 from gpmppi.gp.cuda_kernels import device_version
 from gpmppi.mppi import costs as critic
 from gpmppi.mppi import dynamics, gp_table, rng
-from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX, velocity_coefficients
+from gpmppi.mppi.bundles import (
+    K_EXIT_DISCOUNT,
+    K_TERMINAL,
+    M_DIMS,
+    M_DYN_MODE,
+    M_EDD5,
+    M_GP_MODE,
+    M_INV_STEP,
+    M_LATERAL,
+    M_LO,
+    M_TABLE,
+    M_THETA,
+    N_COST_TERMS,
+    O_COST,
+    O_EPS,
+    O_XY,
+    S_DT,
+    S_ITERATION,
+    S_NOISE_STD,
+    S_NOMINAL,
+    S_SEED,
+    S_U_HI,
+    S_U_LO,
+    S_X0,
+    T_CANDIDATES,
+    T_CELL_START,
+    T_FIELD,
+    T_GOAL,
+    T_HALF_WIDTH,
+    T_INV_CELL,
+    T_KIND,
+    T_OBSTACLES,
+    T_ORIGIN,
+    T_RADII,
+    T_SEG,
+    T_SPEED_TARGET,
+    T_TIGHTENED_HW,
+    TASK_GOAL,
+)
+from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX
 
 THREADS_PER_BLOCK = 128
 
@@ -31,18 +72,57 @@ _interp4_simplex = device_version(gp_table.interp4_simplex)
 _advance = device_version(dynamics.advance)
 _stage_cost = device_version(critic.stage_cost)
 _goal_term = device_version(critic.goal_term)
+_fill_weight_vector = device_version(critic.fill_weight_vector)
 
 
 @cuda.jit(cache=True)
-def _rollout_kernel(
-    x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, coef, edd5_p, gp_mode, table, dims, lo,
-    inv_step, task_kind, seg, cell_start, candidates, field, grid_origin, inv_cell, half_width, tightened_hw,
-    speed_target, goal, obstacles, radii, cost_w, eps_out, cost_out, xy_out,
-):
+def _rollout_kernel(model, task, sampling, cost, out):
     s = cuda.grid(1)
+    eps_out = out[O_EPS]
+    cost_out = out[O_COST]
+    xy_out = out[O_XY]
     samples = eps_out.shape[0]
     if s >= samples:
         return
+    dyn_mode = model[M_DYN_MODE]
+    theta = model[M_THETA]
+    lateral = model[M_LATERAL]
+    edd5_p = model[M_EDD5]
+    gp_mode = model[M_GP_MODE]
+    table = model[M_TABLE]
+    dims = model[M_DIMS]
+    lo = model[M_LO]
+    inv_step = model[M_INV_STEP]
+    task_kind = task[T_KIND]
+    field = task[T_FIELD]
+    grid_origin = task[T_ORIGIN]
+    inv_cell = task[T_INV_CELL]
+    tightened_hw = task[T_TIGHTENED_HW]
+    goal = task[T_GOAL]
+    radii = task[T_RADII]
+    geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], field, grid_origin, inv_cell, task[T_HALF_WIDTH],
+           task[T_SPEED_TARGET], goal, task[T_OBSTACLES])
+    x0 = sampling[S_X0]
+    nominal = sampling[S_NOMINAL]
+    noise_std = sampling[S_NOISE_STD]
+    u_lo = sampling[S_U_LO]
+    u_hi = sampling[S_U_HI]
+    dt = sampling[S_DT]
+    seed = sampling[S_SEED]
+    iteration = sampling[S_ITERATION]
+    cost_w = cuda.local.array(N_COST_TERMS, numba.float64)
+    _fill_weight_vector(cost, cost_w)
+    discount = cost_w[K_EXIT_DISCOUNT]
+    # `dynamics.velocity_coefficients` in a thread's own memory (a device function cannot make an array)
+    coef = cuda.local.array(8, numba.float64)
+    coef[0] = theta[2] / theta[0]
+    coef[1] = theta[3] / theta[0]
+    coef[2] = 1.0 / theta[0]
+    coef[3] = theta[4] / theta[1]
+    coef[4] = theta[5] / theta[1]
+    coef[5] = 1.0 / theta[1]
+    coef[6] = lateral[0]
+    coef[7] = lateral[1]
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
     px = x0[0]
@@ -55,7 +135,6 @@ def _rollout_kernel(
         xy_out[s, 0, 1] = py
     total = 0.0
     discount_k = 1.0
-    discount = cost_w[critic.W_EXIT_DISCOUNT]
     base = (iteration * samples + s) * horizon
     for k in range(horizon):
         u0, u1 = _noisy_command(seed, base + k, nominal, k, noise_std, u_lo, u_hi)
@@ -70,42 +149,38 @@ def _rollout_kernel(
                 mv, mw, cv, cw = _interp4_simplex(table, dims, lo, inv_step, v, w, u0, u1)
             else:
                 mv, mw, cv, cw = _interp4(table, dims, lo, inv_step, v, w, u0, u1)
-        px, py, yaw, v, w = _advance(dyn_mode, dt, coef, edd5_p, px, py, yaw, v, w, u0, u1, mv, mw)
+        px, py, yaw, v, w = _advance(dyn_mode, dt, coef, edd5_p, (px, py, yaw, v, w), (u0, u1), mv, mw)
         if s < n_xy:
             xy_out[s, k + 1, 0] = px
             xy_out[s, k + 1, 1] = py
-        total += _stage_cost(task_kind, cost_w, seg, cell_start, candidates, field, grid_origin, inv_cell, half_width,
-                             tightened_hw[k + 1], speed_target, goal, obstacles, radii[k + 1], discount_k, px, py,
-                             yaw, v, w, u0, u1, cv, cw)
+        total += _stage_cost(task_kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k,
+                             (px, py, yaw, v, w), (u0, u1), (cv, cw))
         discount_k *= discount
-    if task_kind == critic.TASK_GOAL:
-        total += _goal_term(cost_w, field, grid_origin, inv_cell, goal, px, py, cost_w[critic.W_TERMINAL])
+    if task_kind == TASK_GOAL:
+        total += _goal_term(cost_w, field, grid_origin, inv_cell, goal, px, py,
+                            cost_w[K_TERMINAL])
     if math.isnan(total) or math.isinf(total):
         total = math.inf
     cost_out[s] = total
 
 
-def cuda_rollouts(args: tuple, eps: np.ndarray, costs: np.ndarray, xy: np.ndarray) -> None:
-    """Run the kernel with the CPU kernel's argument tuple (see `backends.rollouts`); fill eps, costs, xy."""
-    (x0, nominal, noise_std, u_lo, u_hi, dt, seed, iteration, dyn_mode, theta, lateral, edd5_p, gp_mode, table, dims,
-     lo, inv_step, _sx, _il, _os, _al, _ch, _tw, task_kind, seg, cell_start, candidates, field, grid_origin, inv_cell,
-     half_width, tightened_hw, speed_target, goal, obstacles, radii, cost_w) = args
-    if dyn_mode == DYN_GP and gp_mode == GP_EXACT:
+def _to_device(args: tuple) -> tuple:
+    """A bundle's tuple with its arrays copied to the device (scalars as they are)."""
+    return tuple(cuda.to_device(a) if isinstance(a, np.ndarray) else a for a in args)
+
+
+def cuda_rollouts(model: tuple, task: tuple, sampling: tuple, cost: tuple, out: tuple) -> None:
+    """Run the kernel on the bundles' tuples (`.args()`, as the CPU kernel takes them); fill out's arrays."""
+    if model[M_DYN_MODE] == DYN_GP and model[M_GP_MODE] == GP_EXACT:
         raise ValueError("the CUDA backend evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
-    dev = cuda.to_device
-    d_eps = cuda.device_array(eps.shape, dtype=eps.dtype)
-    d_costs = cuda.device_array(costs.shape, dtype=costs.dtype)
-    d_xy = cuda.device_array(xy.shape if xy.size else (0, nominal.shape[0] + 1, 2), dtype=xy.dtype)
+    eps, costs, xy = out[O_EPS], out[O_COST], out[O_XY]
+    d_out = (cuda.device_array(eps.shape, dtype=eps.dtype), cuda.device_array(costs.shape, dtype=costs.dtype),
+             cuda.device_array(xy.shape if xy.size else (0, eps.shape[1] + 1, 2), dtype=xy.dtype))
     blocks = (eps.shape[0] + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
     # (under the simulator numpy runs the uint64 hash and warns about its intended wrap-around)
-    _rollout_kernel[blocks, THREADS_PER_BLOCK](
-        dev(x0), dev(nominal), dev(noise_std), dev(u_lo), dev(u_hi), dt, np.int64(seed), np.int64(iteration),
-        dyn_mode, dev(velocity_coefficients(theta, lateral)), dev(edd5_p), gp_mode, dev(table), dev(dims), dev(lo),
-        dev(inv_step), task_kind, dev(seg), dev(cell_start), dev(candidates), dev(field), dev(grid_origin), inv_cell,
-        half_width, dev(tightened_hw), speed_target, dev(goal), dev(obstacles), dev(radii), dev(cost_w), d_eps,
-        d_costs, d_xy,
-    )
-    d_eps.copy_to_host(eps)
-    d_costs.copy_to_host(costs)
+    _rollout_kernel[blocks, THREADS_PER_BLOCK](_to_device(model), _to_device(task), _to_device(sampling), cost,
+                                               d_out)
+    d_out[O_EPS].copy_to_host(eps)
+    d_out[O_COST].copy_to_host(costs)
     if xy.size:
-        d_xy.copy_to_host(xy)
+        d_out[O_XY].copy_to_host(xy)

@@ -23,6 +23,23 @@ from gpmppi.kernel_flags import FASTMATH
 from gpmppi.models.dynamic_unicycle import jacobian
 from gpmppi.models.edd5 import edd5_velocity
 from gpmppi.models.lateral_slip import lateral_velocity
+from gpmppi.mppi.bundles import (
+    M_DIMS,
+    M_DYN_MODE,
+    M_EDD5,
+    M_EX_ALPHA,
+    M_EX_CHOL,
+    M_EX_INV_LS,
+    M_EX_OUTPUTSCALE,
+    M_EX_SCALED_X,
+    M_GP_MODE,
+    M_INV_STEP,
+    M_LATERAL,
+    M_LO,
+    M_TABLE,
+    M_TERRAIN_W,
+    M_THETA,
+)
 from gpmppi.mppi.gp_table import interp4, interp4_simplex
 
 DYN_UNICYCLE = 0
@@ -35,19 +52,19 @@ GP_SIMPLEX = 2  # grid table, simplex interpolation (5 nodes)
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def gp_residual(
-    gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
-    ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
-    ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_mean: np.ndarray, gp_var: np.ndarray,
-    v_ref: float, w_ref: float, v: float, w: float,
+    gp: tuple, scratch: tuple, v_ref: float, w_ref: float, v: float, w: float
 ) -> tuple[float, float, float, float]:
     """Ensemble residual (mean_v, mean_w, var_v, var_w) at GP input [v_ref, w_ref, v, w].
 
-    Grid mode: `table`, `lo`, `inv_step` are in the collapsed table's axis order (`TABLE_AXES`).
+    `gp` = `gp_inputs(...)` of the model bundle's fields; `scratch` = (work (n,), mean (2M,), var (2M,)) for the
+    exact GP. Grid mode: `table`, `lo`, `inv_step` are in the collapsed table's axis order (`TABLE_AXES`).
     """
+    gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol, terrain_w = gp
     if gp_mode == GP_SIMPLEX:
         return interp4_simplex(table, dims, lo, inv_step, v, w, v_ref, w_ref)
     if gp_mode == GP_GRID:
         return interp4(table, dims, lo, inv_step, v, w, v_ref, w_ref)
+    work, gp_mean, gp_var = scratch
     exact_tasks(v_ref, w_ref, v, w, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol, work, gp_mean, gp_var,
                 True)
     mv = 0.0
@@ -61,6 +78,20 @@ def gp_residual(
         cv += wt * wt * gp_var[2 * t]
         cw += wt * wt * gp_var[2 * t + 1]
     return mv, mw, cv, cw
+
+
+@njit(cache=True, inline="always")
+def gp_inputs(model: tuple) -> tuple:
+    """The GP fields of a model bundle's tuple, as `gp_residual` takes them (called once, before any loop)."""
+    return (model[M_GP_MODE], model[M_TABLE], model[M_DIMS], model[M_LO], model[M_INV_STEP], model[M_EX_SCALED_X],
+            model[M_EX_INV_LS], model[M_EX_OUTPUTSCALE], model[M_EX_ALPHA], model[M_EX_CHOL], model[M_TERRAIN_W])
+
+
+@njit(cache=True, inline="always")
+def gp_scratch(model: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Work arrays of the exact GP for one thread: (n,) and the (2M,) means and variances."""
+    alpha = model[M_EX_ALPHA]
+    return np.empty(alpha.shape[1]), np.empty(alpha.shape[0]), np.empty(alpha.shape[0])
 
 
 @njit(cache=True, inline="always")
@@ -90,13 +121,12 @@ def _cos_sin(yaw: float) -> tuple[float, float]:
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def advance(
-    dyn_mode: int, dt: float, coef: np.ndarray, edd5_p: np.ndarray, px: float, py: float, yaw: float, v: float,
-    w: float, u0: float, u1: float, mv: float, mw: float,
+    dyn_mode: int, dt: float, coef: np.ndarray, edd5_p: np.ndarray, s: tuple, u: tuple, mv: float, mw: float,
 ) -> tuple[float, float, float, float, float]:
-    """Next state (5 scalars) of the chosen model; GP model: (mv, mw) is the step's residual mean.
-
-    `coef` = `velocity_coefficients(theta)`.
-    """
+    """Next state (5 scalars) of the chosen model from state `s` (5 scalars) under command `u` (2); GP model:
+    (mv, mw) is the step's residual mean. `coef` = `velocity_coefficients(theta, lateral)`."""
+    px, py, yaw, v, w = s
+    u0, u1 = u
     if dyn_mode == DYN_GP:
         v1, w1 = nominal_velocity_step(coef, v, w, u0, u1, dt)
         v1 += mv
@@ -107,41 +137,36 @@ def advance(
         vm = 0.5 * (v + v1)
         wm = 0.5 * (w + w1)
         vy = lateral_velocity(coef[6], coef[7], vm, wm)
-        c, s = _cos_sin(yaw + 0.5 * wm * dt)
-        return px + (vm * c - vy * s) * dt, py + (vm * s + vy * c) * dt, yaw + wm * dt, v1, w1
-    c, s = _cos_sin(yaw)
+        c, s_ = _cos_sin(yaw + 0.5 * wm * dt)
+        return px + (vm * c - vy * s_) * dt, py + (vm * s_ + vy * c) * dt, yaw + wm * dt, v1, w1
+    c, s_ = _cos_sin(yaw)
     if dyn_mode == DYN_EDD5:
         v1, w1 = edd5_velocity(edd5_p, u0, u1)
     else:
         v1 = u0
         w1 = u1
     # kinematic models: velocities follow the command at once, then the pose advances
-    return px + v1 * c * dt, py + v1 * s * dt, yaw + w1 * dt, v1, w1
+    return px + v1 * c * dt, py + v1 * s_ * dt, yaw + w1 * dt, v1, w1
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def step_state(
-    dyn_mode: int, dt: float, coef: np.ndarray, edd5_p: np.ndarray,
-    gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
-    ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
-    ex_chol: np.ndarray, terrain_w: np.ndarray, work: np.ndarray, gp_mean: np.ndarray, gp_var: np.ndarray,
-    px: float, py: float, yaw: float, v: float, w: float, u0: float, u1: float, residual_scale: float = 1.0,
+    dyn: tuple, gp: tuple, scratch: tuple, dt: float, s: tuple, u: tuple, residual_scale: float = 1.0,
 ) -> tuple[float, float, float, float, float, float, float, float, float]:
     """Next state (5 scalars) of the chosen model, the residual means it added (mean_v, mean_w) and the step's
-    residual variances (var_v, var_w). `residual_scale` < 1 adds that share of the residual mean (a step
-    shorter than the GP's)."""
+    residual variances (var_v, var_w). `dyn` = (dyn_mode, coef, edd5_p), `gp` and `scratch` as `gp_residual`;
+    `s` the state (5 scalars), `u` the command (2). `residual_scale` < 1 adds that share of the residual mean
+    (a step shorter than the GP's)."""
+    dyn_mode, coef, edd5_p = dyn
     mv = 0.0
     mw = 0.0
     cv = 0.0
     cw = 0.0
     if dyn_mode == DYN_GP:
-        mv, mw, cv, cw = gp_residual(
-            gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
-            terrain_w, work, gp_mean, gp_var, u0, u1, v, w,
-        )
+        mv, mw, cv, cw = gp_residual(gp, scratch, u[0], u[1], s[3], s[4])
         mv *= residual_scale
         mw *= residual_scale
-    px, py, yaw, v, w = advance(dyn_mode, dt, coef, edd5_p, px, py, yaw, v, w, u0, u1, mv, mw)
+    px, py, yaw, v, w = advance(dyn_mode, dt, coef, edd5_p, s, u, mv, mw)
     return px, py, yaw, v, w, mv, mw, cv, cw
 
 
@@ -165,13 +190,11 @@ def _sandwich(a: np.ndarray, b: np.ndarray, tmp: np.ndarray, out: np.ndarray) ->
 
 @njit(cache=True)
 def propagate(
-    x0: np.ndarray, controls: np.ndarray, dt: float, dyn_mode: int, theta: np.ndarray, lateral: np.ndarray,
-    edd5_p: np.ndarray, gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray,
-    ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
-    ex_chol: np.ndarray, terrain_w: np.ndarray, noise_v: float = 0.0, noise_w: float = 0.0,
+    model: tuple, x0: np.ndarray, controls: np.ndarray, dt: float, noise_v: float = 0.0, noise_w: float = 0.0,
     cov0: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Mean states (N+1, 5), covariances (N+1, 5, 5) and step variances (N, 2) along `controls`.
+    """Mean states (N+1, 5), covariances (N+1, 5, 5) and step variances (N, 2) along `controls` by the model of
+    `model` (`ModelBundle.args()`).
 
     `cov0` (5, 5) is the covariance of the start state (the state estimate's), zero when None.
 
@@ -182,6 +205,12 @@ def propagate(
     residual. Other models carry no uncertainty, so their covariances stay zero. The returned step
     variances are the predictive ones too.
     """
+    dyn_mode = model[M_DYN_MODE]
+    theta = model[M_THETA]
+    lateral = model[M_LATERAL]
+    dyn = (dyn_mode, velocity_coefficients(theta, lateral), model[M_EDD5])
+    gp = gp_inputs(model)
+    scratch = gp_scratch(model)
     n = controls.shape[0]
     states = np.zeros((n + 1, 5))
     covs = np.zeros((n + 1, 5, 5))
@@ -189,18 +218,10 @@ def propagate(
     states[0] = x0
     if cov0 is not None and dyn_mode == DYN_GP:
         covs[0] = cov0
-    work = np.empty(ex_alpha.shape[1])
-    gp_mean = np.empty(ex_alpha.shape[0])
-    gp_var = np.empty(ex_alpha.shape[0])
     tmp = np.empty((5, 5))
-    coef = velocity_coefficients(theta, lateral)
     for k in range(n):
         x = states[k]
-        r = step_state(
-            dyn_mode, dt, coef, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale,
-            ex_alpha, ex_chol, terrain_w, work, gp_mean, gp_var, x[0], x[1], x[2], x[3], x[4],
-            controls[k, 0], controls[k, 1],
-        )
+        r = step_state(dyn, gp, scratch, dt, (x[0], x[1], x[2], x[3], x[4]), (controls[k, 0], controls[k, 1]))
         for i in range(5):
             states[k + 1, i] = r[i]
         if dyn_mode == DYN_GP:
@@ -215,35 +236,32 @@ def propagate(
 
 @njit(cache=True)
 def predict_ahead(
-    x0: np.ndarray, cov0: np.ndarray, control: np.ndarray, delay: float, dt: float, dyn_mode: int, theta: np.ndarray,
-    lateral: np.ndarray, edd5_p: np.ndarray, gp_mode: int, table: np.ndarray, dims: np.ndarray, lo: np.ndarray,
-    inv_step: np.ndarray,
-    ex_scaled_x: np.ndarray, ex_inv_ls: np.ndarray, ex_outputscale: np.ndarray, ex_alpha: np.ndarray,
-    ex_chol: np.ndarray, terrain_w: np.ndarray, noise_v: float = 0.0, noise_w: float = 0.0,
+    model: tuple, x0: np.ndarray, cov0: np.ndarray, control: np.ndarray, delay: float, dt: float,
+    noise_v: float = 0.0, noise_w: float = 0.0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean state and covariance `delay` seconds after `x0` under the constant `control`, by the chosen model.
+    """Mean state and covariance `delay` seconds after `x0` under the constant `control`, by the model of `model`
+    (`ModelBundle.args()`).
 
     Substeps of at most 10 ms. The GP residual is a change over one planner step `dt`, so a substep of h adds
     h/dt of its mean and of its variance (the residual spread evenly over the step); `noise_v`, `noise_w` as in
     `propagate`. Models without a GP leave the covariance as it is.
     """
+    dyn_mode = model[M_DYN_MODE]
+    theta = model[M_THETA]
+    lateral = model[M_LATERAL]
+    dyn = (dyn_mode, velocity_coefficients(theta, lateral), model[M_EDD5])
+    gp = gp_inputs(model)
+    scratch = gp_scratch(model)
     n = max(1, int(math.ceil(delay / 0.01)))
     h = delay / n
     frac = h / dt
     x = x0.copy()
     cov = cov0.copy()
-    work = np.empty(ex_alpha.shape[1])
-    gp_mean = np.empty(ex_alpha.shape[0])
-    gp_var = np.empty(ex_alpha.shape[0])
     tmp = np.empty((5, 5))
     nxt = np.empty((5, 5))
-    coef = velocity_coefficients(theta, lateral)
+    u = (control[0], control[1])
     for _ in range(n):
-        r = step_state(
-            dyn_mode, h, coef, edd5_p, gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale,
-            ex_alpha, ex_chol, terrain_w, work, gp_mean, gp_var, x[0], x[1], x[2], x[3], x[4], control[0],
-            control[1], frac,
-        )
+        r = step_state(dyn, gp, scratch, h, (x[0], x[1], x[2], x[3], x[4]), u, frac)
         if dyn_mode == DYN_GP:
             jac = jacobian(theta, x, control, h, r[5], r[6], lateral[0], lateral[1])
             _sandwich(jac, cov, tmp, nxt)

@@ -152,17 +152,16 @@ def cell32(
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def simplex_corner(
-    lo0: np.float32, lo1: np.float32, lo2: np.float32, lo3: np.float32, inv0: np.float32, inv1: np.float32,
-    inv2: np.float32, inv3: np.float32, top0: np.float32, top1: np.float32, top2: np.float32, top3: np.float32,
-    last0: np.int32, last1: np.int32, last2: np.int32, last3: np.int32, s0: np.int32, s1: np.int32, s2: np.int32,
-    a0: float, a1: float, a2: float, a3: float,
+    grid: tuple, a0: float, a1: float, a2: float, a3: float
 ) -> tuple[np.int32, np.int32, np.int32, np.int32, np.int32, np.float32, np.float32, np.float32, np.float32,
            np.float32]:
     """First node, the 4 strides to the next vertices, and the 5 barycentric weights of the point's Kuhn simplex.
 
-    Scalars only (the grid's parameters as single-precision scalars, `simplex_params`), no arrays, no
+    `grid`: the grid's parameters as single-precision scalars (`simplex_params`); scalars only, no arrays, no
     branches: a loop over a group of samples calling it compiles to vector code.
     """
+    (lo0, lo1, lo2, lo3, inv0, inv1, inv2, inv3, top0, top1, top2, top3, last0, last1, last2, last3, s0, s1,
+     s2) = grid
     i0, f0 = cell32(a0, lo0, inv0, top0, last0)
     i1, f1 = cell32(a1, lo1, inv1, top1, last1)
     i2, f2 = cell32(a2, lo2, inv2, top2, last2)
@@ -202,11 +201,7 @@ def simplex_nodes(
     dims: np.ndarray, lo: np.ndarray, inv_step: np.ndarray, a0: float, a1: float, a2: float, a3: float
 ) -> tuple[int, int, int, int, int, float, float, float, float, float]:
     """The 5 node indices and barycentric weights of the Kuhn simplex holding the point (see `interp4_simplex`)."""
-    (lo0, lo1, lo2, lo3, inv0, inv1, inv2, inv3, top0, top1, top2, top3, last0, last1, last2, last3, s0, s1,
-     s2) = simplex_params(dims, lo, inv_step)
-    n0, t0, t1, t2, t3, w0, w1, w2, w3, w4 = simplex_corner(
-        lo0, lo1, lo2, lo3, inv0, inv1, inv2, inv3, top0, top1, top2, top3, last0, last1, last2, last3, s0, s1, s2,
-        a0, a1, a2, a3)
+    n0, t0, t1, t2, t3, w0, w1, w2, w3, w4 = simplex_corner(simplex_params(dims, lo, inv_step), a0, a1, a2, a3)
     n1 = n0 + t0
     n2 = n1 + t1
     n3 = n2 + t2

@@ -18,8 +18,9 @@ import numpy as np
 
 from gpmppi.gp.model_file import GPModel
 from gpmppi.mppi import backends
+from gpmppi.mppi.bundles import ModelBundle, SamplingBundle, TaskBundle
 from gpmppi.mppi.config import PlannerConfig
-from gpmppi.mppi.costs import W_VARIANCE, ChanceQuantiles, inflate_obstacles, tighten_lane
+from gpmppi.mppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.mppi.dynamics import (
     DYN_EDD5,
     DYN_GP,
@@ -53,6 +54,8 @@ class PlanResult:
     weights: np.ndarray  # (M,) terrain weights used
     timings_ms: dict[str, float]
     flags: dict[str, int] = field(default_factory=dict)  # clamps and safe fallbacks of this iteration
+    # each critic's share of `cost` (`CRITICS` names); they sum to `cost`
+    critic_costs: dict[str, float] = field(default_factory=dict)
 
 
 class Planner:
@@ -78,35 +81,35 @@ class Planner:
         self._noise = np.asarray(model.noise, dtype=np.float64).reshape(-1)
         self._edd5 = np.stack([np.asarray(model.edd5[t], dtype=np.float64) for t in model.terrains])
         self._quant = ChanceQuantiles.for_probability(c.p_x)
-        self._cost_w = c.cost_weights()
+        self._cost = c.cost_bundle()
         self._u_lo = np.array([c.v_limits[0], c.omega_limits[0]])
         self._u_hi = np.array([c.v_limits[1], c.omega_limits[1]])
         self._std = np.array(c.noise_std, dtype=np.float64)
         self._default_state_cov = np.diag(np.square(np.asarray(c.state_std, dtype=np.float64)))
         self._lane_std = np.array(c.noise_std if c.lane_noise_std is None else c.lane_noise_std, dtype=np.float64)
         self._table_full: np.ndarray | None = None
-        self._table = np.zeros((16, 4), dtype=np.float32)
-        self._table_dims = np.full(4, 2, dtype=np.int64)
-        self._grid_lo = np.zeros(4)
-        self._grid_inv = np.ones(4)
+        # the model bundle's grid fields (the table itself collapsed per weights) and exact-GP fields
+        self._grid = ModelBundle.no_grid()
         if self._dyn == DYN_GP and self._gp_mode != GP_EXACT:
             g = model.grid()
             self._table_full = rollout_order(g.table)
-            self._table_dims = np.array(g.table.shape[:4], dtype=np.int64)[TABLE_AXES]
-            self._grid_lo = np.ascontiguousarray(np.asarray(g.lo, dtype=np.float64)[TABLE_AXES])
-            self._grid_inv = np.ascontiguousarray(np.asarray(g.inv_step, dtype=np.float64)[TABLE_AXES])
+            self._grid = {
+                "table": self._grid["table"],
+                "dims": np.array(g.table.shape[:4], dtype=np.int64)[TABLE_AXES],
+                "lo": np.ascontiguousarray(np.asarray(g.lo, dtype=np.float64)[TABLE_AXES]),
+                "inv_step": np.ascontiguousarray(np.asarray(g.inv_step, dtype=np.float64)[TABLE_AXES]),
+            }
         if self._dyn == DYN_GP and self._gp_mode == GP_EXACT:
             inv_ls = 1.0 / model.lengthscale
-            self._ex = (
-                np.ascontiguousarray(model.train_x[None, :, :] * inv_ls[:, None, :]),
-                np.ascontiguousarray(inv_ls),
-                np.ascontiguousarray(model.outputscale),
-                np.ascontiguousarray(model.alpha),
-                np.ascontiguousarray(model.chol),
-            )
+            self._ex = {
+                "ex_scaled_x": np.ascontiguousarray(model.train_x[None, :, :] * inv_ls[:, None, :], dtype=np.float64),
+                "ex_inv_ls": np.ascontiguousarray(inv_ls, dtype=np.float64),
+                "ex_outputscale": np.ascontiguousarray(model.outputscale, dtype=np.float64),
+                "ex_alpha": np.ascontiguousarray(model.alpha, dtype=np.float64),
+                "ex_chol": np.ascontiguousarray(model.chol, dtype=np.float64),
+            }
         else:
-            self._ex = (np.zeros((2 * m, 1, 4)), np.ones((2 * m, 4)), np.zeros(2 * m), np.zeros((2 * m, 1)),
-                        np.ones((2 * m, 1, 1)))
+            self._ex = ModelBundle.no_exact(2 * m)
         self._table_weights: np.ndarray | None = None
         self._lateral_full = model.lateral_matrix()
         self._lateral = np.zeros(2)
@@ -189,19 +192,22 @@ class Planner:
         reach = c.horizon * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
         return cached_goal_field(task.goal, circles, x[None, :2], margin=min(reach, 10.0), cell=c.goal_cell)
 
-    def _terrain_setup(self, w: np.ndarray) -> tuple[np.ndarray, float]:
-        """Collapse the grid table when the weights changed; pick the EDD5 terrain. Returns (edd5_p, ms)."""
+    def _terrain_setup(self, w: np.ndarray) -> tuple[ModelBundle, float]:
+        """Collapse the grid table when the weights changed; pick the EDD5 terrain. Returns (the model, ms)."""
         t0 = time.perf_counter()
         if self._table_full is not None and (self._table_weights is None or not np.array_equal(w, self._table_weights)):
             # predictive variance = latent + likelihood noise: the rollouts' variance cost and the propagated
             # covariance both read it from the table
-            self._table = collapse_table(self._table_full, w, self._noise_var(w), ordered=True).reshape(-1, 4)
+            table = collapse_table(self._table_full, w, self._noise_var(w), ordered=True).reshape(-1, 4)
+            self._grid = {**self._grid, "table": table}
             self._table_weights = w.copy()
         # the sideways slide is linear in its coefficients, so the ensemble's is the weighted sum (GP model only)
         self._lateral = w @ self._lateral_full if self._dyn == DYN_GP else np.zeros(2)
         name = self.config.edd5_terrain
         idx = self.model.terrains.index(name) if name is not None else int(np.argmax(w))
-        return self._edd5[idx], (time.perf_counter() - t0) * 1e3
+        bundle = ModelBundle(dyn_mode=self._dyn, theta=self._theta, lateral=self._lateral, edd5=self._edd5[idx],
+                             gp_mode=self._gp_mode, **self._grid, **self._ex, terrain_w=w)
+        return bundle, (time.perf_counter() - t0) * 1e3
 
     def _noise_var(self, w: np.ndarray) -> tuple[float, float]:
         """Ensemble likelihood noise (sum_i w_i^2 noise_i for v and omega); zero for the models without a GP.
@@ -214,15 +220,11 @@ class Planner:
         w2 = w * w
         return float(w2 @ self._noise[0::2]), float(w2 @ self._noise[1::2])
 
-    def _propagate(
-        self, x: np.ndarray, controls: np.ndarray, edd5_p: np.ndarray, w: np.ndarray, cov0: np.ndarray
-    ) -> tuple:
-        return propagate(x, controls, self.config.dt, self._dyn, self._theta, self._lateral, edd5_p, self._gp_mode,
-                         self._table, self._table_dims, self._grid_lo, self._grid_inv, *self._ex, w,
-                         *self._exact_noise_var(w), cov0)
+    def _propagate(self, x: np.ndarray, controls: np.ndarray, model: ModelBundle, cov0: np.ndarray) -> tuple:
+        return propagate(model.args(), x, controls, self.config.dt, *self._exact_noise_var(model.terrain_w), cov0)
 
     def _predict_ahead(
-        self, x: np.ndarray, cov0: np.ndarray, delay_s: float, edd5_p: np.ndarray, w: np.ndarray
+        self, x: np.ndarray, cov0: np.ndarray, delay_s: float, model: ModelBundle
     ) -> tuple[np.ndarray, np.ndarray]:
         """The state (and covariance) when this plan's command takes effect, `delay_s` after the measurement.
 
@@ -238,9 +240,8 @@ class Planner:
                 "a state that old is stale: drop it"
             )
         held = self._last_control if self._last_control is not None else np.clip(x[3:5], self._u_lo, self._u_hi)
-        return predict_ahead(x, cov0, np.ascontiguousarray(held, dtype=np.float64), float(delay_s), c.dt, self._dyn,
-                             self._theta, self._lateral, edd5_p, self._gp_mode, self._table, self._table_dims,
-                             self._grid_lo, self._grid_inv, *self._ex, w, *self._exact_noise_var(w))
+        return predict_ahead(model.args(), x, cov0, np.ascontiguousarray(held, dtype=np.float64), float(delay_s),
+                             c.dt, *self._exact_noise_var(model.terrain_w))
 
     def _state_covariance(self, state_cov: np.ndarray | None) -> np.ndarray:
         if state_cov is None:
@@ -288,34 +289,27 @@ class Planner:
         t_start = time.perf_counter()
         x, w = self._check_inputs(state, task, weights)
         cov0 = self._state_covariance(state_cov)
-        edd5_p, collapse_ms = self._terrain_setup(w)
+        model, collapse_ms = self._terrain_setup(w)
         if delay_s != 0.0:
-            x, cov0 = self._predict_ahead(x, cov0, delay_s, edd5_p, w)
+            x, cov0 = self._predict_ahead(x, cov0, delay_s, model)
         t0 = time.perf_counter()
         nominal = self._nominal
-        prev_states, prev_covs, _ = self._propagate(x, nominal, edd5_p, w, cov0)
+        prev_states, prev_covs, _ = self._propagate(x, nominal, model, cov0)
         bounds, clamped_before = self._bounds(task, prev_states, prev_covs)
         t1 = time.perf_counter()
 
         is_lane = isinstance(task, LaneTask)
         if is_lane:
             lane = self._lane_lookup(task)
-            task_arrays = backends.TaskArrays.for_lane(lane, float(task.half_width), bounds, float(task.speed_target))
+            task_bundle = TaskBundle.for_lane(lane, float(task.half_width), bounds, float(task.speed_target))
         else:
-            task_arrays = backends.TaskArrays.for_goal(task.goal, task.obstacles, bounds, self._goal_field(task, x))
-        model_arrays = backends.ModelArrays(
-            self._dyn, self._theta, self._lateral, edd5_p, self._gp_mode, self._table, self._table_dims, self._grid_lo,
-            self._grid_inv, self._ex, w,
-        )
+            task_bundle = TaskBundle.for_goal(task.goal, task.obstacles, bounds, self._goal_field(task, x))
         n_xy = min(c.sample_output, c.samples)
-        noise_std = self._lane_std if is_lane else self._std
-        eps, costs, xy = backends.rollouts(
-            self.backend, x, nominal, noise_std, self._u_lo, self._u_hi, c.dt, c.seed, self._iteration,
-            model_arrays, task_arrays, self._cost_w, c.samples, n_xy,
-        )
+        sampling = self._sampling(x, nominal, self._lane_std if is_lane else self._std)
+        eps, costs, xy = backends.rollouts(self.backend, model, task_bundle, sampling, self._cost, c.samples, n_xy)
         # exact GP: the kernels' variance cost is latent; the noise adds the same to every rollout (the update
         # is unchanged), added here so that costs are those of the predictive variance in every mode
-        noise_cost = c.horizon * self._cost_w[W_VARIANCE] * sum(self._exact_noise_var(w))
+        noise_cost = c.horizon * self._cost.variance * sum(self._exact_noise_var(w))
         costs = costs + noise_cost
         t2 = time.perf_counter()
 
@@ -324,13 +318,13 @@ class Planner:
         new_u = self._shape_sequence(new_u)
         t3 = time.perf_counter()
 
-        states, covs, _ = self._propagate(x, new_u, edd5_p, w, cov0)
+        states, covs, _ = self._propagate(x, new_u, model, cov0)
         out_bounds, clamped_after = self._bounds(task, states, covs)
-        _, nominal_cost, _ = backends.rollouts(
-            "cpu", x, new_u, np.zeros(2), self._u_lo, self._u_hi, c.dt, c.seed, self._iteration,
-            model_arrays, task_arrays, self._cost_w, 1, 0,
-        )
+        nominal_sampling = self._sampling(x, new_u, np.zeros(2))
+        _, nominal_cost, _ = backends.rollouts("cpu", model, task_bundle, nominal_sampling, self._cost, 1, 0)
         nominal_cost = nominal_cost + noise_cost
+        critic_costs = backends.critic_costs(model, task_bundle, nominal_sampling, self._cost)
+        critic_costs["variance"] += noise_cost
         t4 = time.perf_counter()
 
         control = new_u[0].copy()
@@ -370,7 +364,13 @@ class Planner:
                 "nominal": (t4 - t3) * 1e3,
             },
             flags=flags,
+            critic_costs=critic_costs,
         )
+
+    def _sampling(self, x: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray) -> SamplingBundle:
+        c = self.config
+        return SamplingBundle(x0=x, nominal=nominal, noise_std=noise_std, u_lo=self._u_lo, u_hi=self._u_hi, dt=c.dt,
+                              seed=c.seed, iteration=self._iteration)
 
     def _shape_sequence(self, u: np.ndarray) -> np.ndarray:
         """Optional smoothing, then acceleration limits from the last applied control, then control limits."""

@@ -1,0 +1,297 @@
+"""The rollout kernels' inputs as five bundles: model, task, sampling, cost weights, outputs.
+
+Each bundle is a frozen, keyword-only dataclass; `.args()` checks every field against the bundle's
+`SPECS` (dtype, number of dimensions, C-contiguous, writeable where the kernels write) and returns
+the fixed-size tuple the kernels take. The kernels read a tuple's fields by the index constants
+below (`M_*`, `T_*`, `S_*`, `K_*`, `O_*`), once, at their top: the order is defined here only.
+`tests/test_bundles.py` pins names, order and numba types, so a reordered field cannot compile
+silently into a kernel that reads the wrong array.
+
+The arrays a mode does not use (a grid table for the exact GP, the lane lookup for a goal task)
+still have to be arrays of the right type, so that one compiled kernel serves every mode; they are
+built here, by the classmethods, and nowhere else.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar, NamedTuple
+
+import numpy as np
+
+from gpmppi.mppi.goal_field import GoalField
+from gpmppi.mppi.lane import LaneLookup
+
+__all__ = [
+    "CRITICS", "TASK_GOAL", "TASK_LANE", "CostBundle", "FieldSpec", "ModelBundle", "Outputs", "SamplingBundle",
+    "TaskBundle",
+]
+
+# task kinds of the rollout kernels
+TASK_LANE = 0
+TASK_GOAL = 1
+
+# the cost terms, each with its own weight (`gpmppi.mppi.costs` has one function per term)
+CRITICS = ("variance", "deviation", "slip", "lane_exit", "speed", "collision", "goal", "terminal")
+
+
+class FieldSpec(NamedTuple):
+    """What a bundle field must be: a numpy dtype and ndim (0 = a scalar of that kind), written by the kernels."""
+
+    dtype: str
+    ndim: int
+    written: bool = False
+
+
+_SCALAR_TYPES = {"int64": (int, np.integer), "float64": (float, int, np.floating, np.integer), "bool": (bool, np.bool_)}
+_SCALAR_CAST = {"int64": np.int64, "float64": float, "bool": bool}
+
+
+def _checked(bundle: str, name: str, spec: FieldSpec, value: Any) -> Any:
+    """`value` as the kernels take it, or a ValueError naming the field and what it should be."""
+    if spec.ndim == 0:
+        kinds = _SCALAR_TYPES[spec.dtype]
+        # bools are ints to Python: an int field must not take one (nor a float field)
+        if isinstance(value, np.ndarray) or not isinstance(value, kinds) or (
+                spec.dtype != "bool" and isinstance(value, (bool, np.bool_))):
+            raise ValueError(f"{bundle}.{name} must be a {spec.dtype} scalar, got {type(value).__name__}")
+        return _SCALAR_CAST[spec.dtype](value)
+    if not isinstance(value, np.ndarray):
+        raise ValueError(f"{bundle}.{name} must be a numpy array ({spec.dtype}, {spec.ndim}-D), got "
+                         f"{type(value).__name__}")
+    if value.dtype != spec.dtype or value.ndim != spec.ndim:
+        raise ValueError(f"{bundle}.{name} must be {spec.dtype} with {spec.ndim} dimensions, got {value.dtype} "
+                         f"with shape {value.shape}")
+    if not value.flags.c_contiguous:
+        raise ValueError(f"{bundle}.{name} must be C-contiguous (np.ascontiguousarray)")
+    if spec.written and not value.flags.writeable:
+        raise ValueError(f"{bundle}.{name} is written by the kernels but is read-only")
+    return value
+
+
+class _Bundle:
+    """`.args()`: the fields in declaration order, each checked against `SPECS`."""
+
+    SPECS: ClassVar[dict[str, FieldSpec]]
+
+    def __new__(cls, *args: Any, **kwargs: Any) -> _Bundle:
+        # the dataclass's own error for positional arguments names no field; this one names them
+        if args:
+            given = ", ".join(list(cls.SPECS)[:len(args)])
+            raise TypeError(f"{cls.__name__} takes its fields by keyword only; given by position: {given}")
+        return super().__new__(cls)
+
+    def args(self) -> tuple:
+        cls = type(self).__name__
+        return tuple(_checked(cls, name, spec, getattr(self, name)) for name, spec in self.SPECS.items())
+
+    @classmethod
+    def _check_specs(cls) -> None:
+        names = tuple(f.name for f in fields(cls))
+        if names != tuple(cls.SPECS):
+            raise TypeError(f"{cls.__name__}: SPECS {tuple(cls.SPECS)} do not list the fields {names} in order")
+
+
+# ------------------------------------------------------------------------------------------------ model
+M_DYN_MODE, M_THETA, M_LATERAL, M_EDD5, M_GP_MODE, M_TABLE, M_DIMS, M_LO, M_INV_STEP = range(9)
+M_EX_SCALED_X, M_EX_INV_LS, M_EX_OUTPUTSCALE, M_EX_ALPHA, M_EX_CHOL, M_TERRAIN_W = range(9, 15)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelBundle(_Bundle):
+    """The rollout model: dynamics choice and parameters, and the GP residual (grid table or exact GP)."""
+
+    dyn_mode: int  # `dynamics.DYN_*`
+    theta: np.ndarray  # (6,) nominal dynamic unicycle parameters
+    lateral: np.ndarray  # (2,) terrain-weighted lateral slip coefficients (`gpmppi.models.lateral_slip`)
+    edd5: np.ndarray  # (5,) EDD5 parameters of the chosen terrain
+    gp_mode: int  # `dynamics.GP_*`
+    table: np.ndarray  # (nodes, 4) float32 collapsed GP table, axes in `gp_table.TABLE_AXES` order
+    dims: np.ndarray  # (4,) int64 grid nodes per axis
+    lo: np.ndarray  # (4,) grid lower corner, same order
+    inv_step: np.ndarray  # (4,) 1 / grid step, same order
+    ex_scaled_x: np.ndarray  # (2M, n, 4) exact GP: training inputs / lengthscales
+    ex_inv_ls: np.ndarray  # (2M, 4) exact GP: 1 / lengthscales
+    ex_outputscale: np.ndarray  # (2M,) exact GP: output scales
+    ex_alpha: np.ndarray  # (2M, n) exact GP: K^-1 y
+    ex_chol: np.ndarray  # (2M, n, n) exact GP: Cholesky factors of K
+    terrain_w: np.ndarray  # (M,) terrain weights
+
+    SPECS: ClassVar[dict[str, FieldSpec]] = {
+        "dyn_mode": FieldSpec("int64", 0), "theta": FieldSpec("float64", 1), "lateral": FieldSpec("float64", 1),
+        "edd5": FieldSpec("float64", 1), "gp_mode": FieldSpec("int64", 0), "table": FieldSpec("float32", 2),
+        "dims": FieldSpec("int64", 1), "lo": FieldSpec("float64", 1), "inv_step": FieldSpec("float64", 1),
+        "ex_scaled_x": FieldSpec("float64", 3), "ex_inv_ls": FieldSpec("float64", 2),
+        "ex_outputscale": FieldSpec("float64", 1), "ex_alpha": FieldSpec("float64", 2),
+        "ex_chol": FieldSpec("float64", 3), "terrain_w": FieldSpec("float64", 1),
+    }
+
+    @classmethod
+    def no_grid(cls) -> dict[str, np.ndarray]:
+        """The grid fields of a model that reads no grid table (a 2^4-node table of zeros)."""
+        return {"table": np.zeros((16, 4), dtype=np.float32), "dims": np.full(4, 2, dtype=np.int64),
+                "lo": np.zeros(4), "inv_step": np.ones(4)}
+
+    @classmethod
+    def no_exact(cls, n_tasks: int) -> dict[str, np.ndarray]:
+        """The exact-GP fields of a model that evaluates no exact GP (`n_tasks` = 2M, one training point each)."""
+        return {"ex_scaled_x": np.zeros((n_tasks, 1, 4)), "ex_inv_ls": np.ones((n_tasks, 4)),
+                "ex_outputscale": np.zeros(n_tasks), "ex_alpha": np.zeros((n_tasks, 1)),
+                "ex_chol": np.ones((n_tasks, 1, 1))}
+
+
+# ------------------------------------------------------------------------------------------------- task
+T_KIND, T_SEG, T_CELL_START, T_CANDIDATES, T_FIELD, T_ORIGIN, T_INV_CELL = range(7)
+T_HALF_WIDTH, T_TIGHTENED_HW, T_SPEED_TARGET, T_GOAL, T_OBSTACLES, T_RADII = range(7, 13)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TaskBundle(_Bundle):
+    """The task: a lane (lookup grid, half-widths, speed target) or a goal among obstacles (distance field, circles).
+
+    `field`, `origin`, `inv_cell` are the lane lookup's grid for a lane and the goal-distance field's for a goal.
+    """
+
+    kind: int  # TASK_LANE or TASK_GOAL
+    seg: np.ndarray  # (n, 5) lane segments
+    cell_start: np.ndarray  # lane lookup: start of each cell's candidates (int64)
+    candidates: np.ndarray  # lane lookup: candidate segments per cell (int32)
+    field: np.ndarray  # (rows, cols, 3) lane distance and direction, or (rows, cols, 1+) goal distance [m]
+    origin: np.ndarray  # (2,) the field grid's corner [m]
+    inv_cell: float  # 1 / the field grid's cell [1/m]
+    half_width: float  # lane half-width r [m]
+    tightened_hw: np.ndarray  # (N+1,) tightened lane half-width per step [m]
+    speed_target: float  # lane speed target [m/s]
+    goal: np.ndarray  # (2,) goal position [m]
+    obstacles: np.ndarray  # (K, 3) circles [x, y, r] [m]
+    radii: np.ndarray  # (N+1, K) inflated obstacle radii per step [m]
+
+    SPECS: ClassVar[dict[str, FieldSpec]] = {
+        "kind": FieldSpec("int64", 0), "seg": FieldSpec("float64", 2), "cell_start": FieldSpec("int64", 1),
+        "candidates": FieldSpec("int32", 1), "field": FieldSpec("float64", 3), "origin": FieldSpec("float64", 1),
+        "inv_cell": FieldSpec("float64", 0), "half_width": FieldSpec("float64", 0),
+        "tightened_hw": FieldSpec("float64", 1), "speed_target": FieldSpec("float64", 0),
+        "goal": FieldSpec("float64", 1), "obstacles": FieldSpec("float64", 2), "radii": FieldSpec("float64", 2),
+    }
+
+    @classmethod
+    def for_lane(cls, lane: LaneLookup, half_width: float, tightened: np.ndarray, speed: float) -> TaskBundle:
+        """A lane task; the goal fields are empty (no obstacles)."""
+        return cls(kind=TASK_LANE, seg=lane.segments, cell_start=lane.cell_start, candidates=lane.candidates,
+                   field=lane.field, origin=lane.origin, inv_cell=float(lane.inv_cell), half_width=float(half_width),
+                   tightened_hw=np.ascontiguousarray(tightened, dtype=np.float64), speed_target=float(speed),
+                   goal=np.zeros(2), obstacles=np.zeros((0, 3)), radii=np.zeros((tightened.shape[0], 0)))
+
+    @classmethod
+    def for_goal(
+        cls, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray, goal_field: GoalField | None
+    ) -> TaskBundle:
+        """A goal task; `goal_field` None: no geodesic field (the cost bundle must then select the straight line)."""
+        no_seg = np.zeros((1, 5))
+        no_seg[0, 4] = 1.0
+        field, origin, inv_cell = (
+            (np.zeros((1, 1, 3)), np.zeros(2), 1.0) if goal_field is None
+            else (goal_field.field, goal_field.origin, goal_field.inv_cell)
+        )
+        return cls(kind=TASK_GOAL, seg=no_seg, cell_start=np.zeros(2, dtype=np.int64),
+                   candidates=np.zeros(0, dtype=np.int32), field=field, origin=origin, inv_cell=float(inv_cell),
+                   half_width=1.0, tightened_hw=np.ones(radii.shape[0]), speed_target=0.0,
+                   goal=np.ascontiguousarray(goal, dtype=np.float64),
+                   obstacles=np.ascontiguousarray(obstacles, dtype=np.float64),
+                   radii=np.ascontiguousarray(radii, dtype=np.float64))
+
+
+# --------------------------------------------------------------------------------------------- sampling
+S_X0, S_NOMINAL, S_NOISE_STD, S_U_LO, S_U_HI, S_DT, S_SEED, S_ITERATION = range(8)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SamplingBundle(_Bundle):
+    """Where the rollouts start and how their commands are drawn: nominal + noise, clipped to the limits."""
+
+    x0: np.ndarray  # (5,) start state [x m, y m, yaw rad, v m/s, omega rad/s]
+    nominal: np.ndarray  # (N, 2) nominal sequence [v_ref m/s, omega_ref rad/s]
+    noise_std: np.ndarray  # (2,) control noise std [m/s, rad/s]
+    u_lo: np.ndarray  # (2,) lower control limits
+    u_hi: np.ndarray  # (2,) upper control limits
+    dt: float  # rollout step [s]
+    seed: int  # noise seed
+    iteration: int  # planner iteration (part of the noise counter)
+
+    SPECS: ClassVar[dict[str, FieldSpec]] = {
+        "x0": FieldSpec("float64", 1), "nominal": FieldSpec("float64", 2), "noise_std": FieldSpec("float64", 1),
+        "u_lo": FieldSpec("float64", 1), "u_hi": FieldSpec("float64", 1), "dt": FieldSpec("float64", 0),
+        "seed": FieldSpec("int64", 0), "iteration": FieldSpec("int64", 0),
+    }
+
+
+# ------------------------------------------------------------------------------------------------- cost
+K_VARIANCE, K_DEVIATION, K_SLIP, K_LANE_EXIT, K_SPEED, K_COLLISION, K_GOAL, K_TERMINAL = range(8)
+K_EXIT_DISCOUNT, K_SPEED_ALONG_LANE, K_GOAL_GEODESIC = range(8, 11)
+N_COST_TERMS = 11
+
+
+@dataclass(frozen=True, kw_only=True)
+class CostBundle(_Bundle):
+    """The weight of each critic (by name, `CRITICS`), the lane-exit discount and the two switches."""
+
+    variance: float
+    deviation: float
+    slip: float
+    lane_exit: float
+    speed: float
+    collision: float
+    goal: float
+    terminal: float
+    exit_discount: float  # per-step discount of the lane-exit indicator
+    speed_along_lane: bool  # speed critic on the speed along the lane (else the speed magnitude)
+    goal_geodesic: bool  # goal critics on the distance around the obstacles (else the straight line)
+
+    SPECS: ClassVar[dict[str, FieldSpec]] = {
+        **{name: FieldSpec("float64", 0) for name in CRITICS}, "exit_discount": FieldSpec("float64", 0),
+        "speed_along_lane": FieldSpec("bool", 0), "goal_geodesic": FieldSpec("bool", 0),
+    }
+
+    @classmethod
+    def from_weights(
+        cls, weights: Mapping[str, float], exit_discount: float, speed_along_lane: bool, goal_geodesic: bool
+    ) -> CostBundle:
+        """Weights by critic name; every critic of `CRITICS` must have one, and no other name may appear."""
+        unknown = sorted(set(weights) - set(CRITICS))
+        missing = [name for name in CRITICS if name not in weights]
+        if unknown or missing:
+            raise ValueError(f"critic weights: unknown {unknown}, missing {missing}; the critics are {list(CRITICS)}")
+        return cls(**{name: float(weights[name]) for name in CRITICS}, exit_discount=float(exit_discount),
+                   speed_along_lane=bool(speed_along_lane), goal_geodesic=bool(goal_geodesic))
+
+    def weights(self) -> dict[str, float]:
+        """The weight of each critic, by name."""
+        return {name: getattr(self, name) for name in CRITICS}
+
+
+# ---------------------------------------------------------------------------------------------- outputs
+O_EPS, O_COST, O_XY = range(3)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Outputs(_Bundle):
+    """What the rollout kernels write: per sample the applied perturbation, the total cost, and some XY."""
+
+    eps_out: np.ndarray  # (S, N, 2) float32 clipped command minus nominal
+    cost_out: np.ndarray  # (S,) total cost
+    xy_out: np.ndarray  # (n_xy, N+1, 2) XY of the first n_xy rollouts [m]
+
+    SPECS: ClassVar[dict[str, FieldSpec]] = {
+        "eps_out": FieldSpec("float32", 3, written=True), "cost_out": FieldSpec("float64", 1, written=True),
+        "xy_out": FieldSpec("float64", 3, written=True),
+    }
+
+    @classmethod
+    def allocate(cls, samples: int, horizon: int, n_xy: int) -> Outputs:
+        return cls(eps_out=np.empty((samples, horizon, 2), dtype=np.float32), cost_out=np.empty(samples),
+                   xy_out=np.empty((n_xy, horizon + 1, 2)))
+
+
+for _cls in (ModelBundle, TaskBundle, SamplingBundle, CostBundle, Outputs):
+    _cls._check_specs()

@@ -1,0 +1,113 @@
+"""The kernels' five input bundles: field names, order, numba types and index constants are pinned here, so a
+reordered field cannot compile silently into a kernel that reads the wrong array; bad fields are refused by name."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numba import typeof
+
+from gpmppi.mppi import bundles
+from gpmppi.mppi.bundles import CRITICS, CostBundle, ModelBundle, Outputs, SamplingBundle, TaskBundle
+from gpmppi.mppi.lane import build_lane_lookup
+
+A1, A2, A3 = "array(float64, 1d, C)", "array(float64, 2d, C)", "array(float64, 3d, C)"
+
+# bundle, index-constant prefix, fields in order with their numba types
+PINNED = {
+    ModelBundle: ("M", [
+        ("dyn_mode", "int64"), ("theta", A1), ("lateral", A1), ("edd5", A1), ("gp_mode", "int64"),
+        ("table", "array(float32, 2d, C)"), ("dims", "array(int64, 1d, C)"), ("lo", A1), ("inv_step", A1),
+        ("ex_scaled_x", A3), ("ex_inv_ls", A2), ("ex_outputscale", A1), ("ex_alpha", A2), ("ex_chol", A3),
+        ("terrain_w", A1),
+    ]),
+    TaskBundle: ("T", [
+        ("kind", "int64"), ("seg", A2), ("cell_start", "array(int64, 1d, C)"), ("candidates", "array(int32, 1d, C)"),
+        ("field", A3), ("origin", A1), ("inv_cell", "float64"), ("half_width", "float64"), ("tightened_hw", A1),
+        ("speed_target", "float64"), ("goal", A1), ("obstacles", A2), ("radii", A2),
+    ]),
+    SamplingBundle: ("S", [
+        ("x0", A1), ("nominal", A2), ("noise_std", A1), ("u_lo", A1), ("u_hi", A1), ("dt", "float64"),
+        ("seed", "int64"), ("iteration", "int64"),
+    ]),
+    CostBundle: ("K", [
+        *((name, "float64") for name in CRITICS), ("exit_discount", "float64"), ("speed_along_lane", "bool"),
+        ("goal_geodesic", "bool"),
+    ]),
+    Outputs: ("O", [("eps_out", "array(float32, 3d, C)"), ("cost_out", A1), ("xy_out", A3)]),
+}
+# the index constants whose name is not the field's own
+CONSTANT_NAMES = {"origin": "T_ORIGIN", "eps_out": "O_EPS", "cost_out": "O_COST", "xy_out": "O_XY",
+                  "speed_along_lane": "K_SPEED_ALONG_LANE"}
+
+
+def model_bundle(**changes: object) -> ModelBundle:
+    fields = dict(dyn_mode=2, theta=np.ones(6), lateral=np.zeros(2), edd5=np.ones(5), gp_mode=2,
+                  **ModelBundle.no_grid(), **ModelBundle.no_exact(6), terrain_w=np.full(3, 1 / 3))
+    return ModelBundle(**{**fields, **changes})
+
+
+def examples() -> dict[type, object]:
+    lane = build_lane_lookup(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]), False, 1.0)
+    return {
+        ModelBundle: model_bundle(),
+        TaskBundle: TaskBundle.for_lane(lane, 1.0, np.ones(5), 1.5),
+        SamplingBundle: SamplingBundle(x0=np.zeros(5), nominal=np.zeros((4, 2)), noise_std=np.ones(2),
+                                       u_lo=np.zeros(2), u_hi=np.ones(2), dt=0.1, seed=3, iteration=2),
+        CostBundle: CostBundle.from_weights({name: 1.0 for name in CRITICS}, 0.9, True, False),
+        Outputs: Outputs.allocate(8, 4, 2),
+    }
+
+
+@pytest.mark.parametrize("cls", list(PINNED), ids=lambda c: c.__name__)
+def test_fields_order_types_and_index_constants_are_pinned(cls: type) -> None:
+    prefix, pinned = PINNED[cls]
+    names = [name for name, _ in pinned]
+    assert list(cls.SPECS) == names
+    args = examples()[cls].args()
+    assert [str(t) for t in typeof(args).types] == [t for _, t in pinned]
+    for index, name in enumerate(names):
+        constant = CONSTANT_NAMES.get(name, f"{prefix}_{name.upper()}")
+        assert getattr(bundles, constant) == index, constant
+
+
+def test_the_goal_task_has_the_lane_tasks_types() -> None:
+    # one compiled kernel serves both tasks: the dummies have the real fields' types
+    goal = TaskBundle.for_goal(np.array([5.0, 1.0]), np.array([[1.0, 1.0, 0.5]]), np.ones((5, 1)), None)
+    assert typeof(goal.args()) == typeof(examples()[TaskBundle].args())
+
+
+def test_swapped_fields_are_refused_naming_the_field() -> None:
+    good = model_bundle()
+    with pytest.raises(ValueError, match=r"ModelBundle\.dims must be int64"):
+        model_bundle(dims=good.lo, lo=good.dims).args()
+    with pytest.raises(ValueError, match=r"ModelBundle\.theta must be a numpy array \(float64, 1-D\), got int"):
+        model_bundle(gp_mode=good.theta, theta=2).args()
+    with pytest.raises(ValueError, match=r"SamplingBundle\.seed must be a int64 scalar, got float"):
+        SamplingBundle(**{**vars(examples()[SamplingBundle]), "seed": 0.1, "dt": 3}).args()
+    with pytest.raises(ValueError, match=r"CostBundle\.exit_discount must be a float64 scalar, got bool"):
+        CostBundle(**{**vars(examples()[CostBundle]), "speed_along_lane": 0.9, "exit_discount": True}).args()
+
+
+def test_non_contiguous_read_only_and_positional_fields_are_refused_naming_the_field() -> None:
+    with pytest.raises(ValueError, match=r"ModelBundle\.theta must be C-contiguous"):
+        model_bundle(theta=np.ones(12)[::2]).args()
+    out = examples()[Outputs]
+    frozen = out.cost_out.copy()
+    frozen.flags.writeable = False
+    with pytest.raises(ValueError, match=r"Outputs\.cost_out is written by the kernels but is read-only"):
+        Outputs(eps_out=out.eps_out, cost_out=frozen, xy_out=out.xy_out).args()
+    read_only = np.ones(6)
+    read_only.flags.writeable = False
+    assert model_bundle(theta=read_only).args()[bundles.M_THETA] is read_only  # inputs may be read-only
+    with pytest.raises(TypeError, match="given by position: eps_out, cost_out"):
+        Outputs(out.eps_out, out.cost_out, xy_out=out.xy_out)  # type: ignore[misc]
+
+
+def test_cost_bundle_takes_weights_by_critic_name() -> None:
+    weights = {name: float(i + 1) for i, name in enumerate(CRITICS)}
+    cost = CostBundle.from_weights(weights, 0.8, False, True)
+    assert cost.weights() == weights and cost.slip == 3.0 and cost.terminal == 8.0
+    with pytest.raises(ValueError, match=r"unknown \['slippage'\], missing \['slip'\]"):
+        CostBundle.from_weights({**{k: v for k, v in weights.items() if k != "slip"}, "slippage": 1.0}, 0.8, False,
+                                True)
