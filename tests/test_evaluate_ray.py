@@ -30,7 +30,7 @@ from gpmppi.evaluation.runner import EvalSettings, Job, run_job_for_report, summ
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene, square_lane
 from tools.cli import app
 from tools.evaluate import _jobs
-from tools.evaluate_ray import RayBackendError, connect, run_jobs
+from tools.evaluate_ray import RayBackendError, connect, local_copy, run_jobs
 
 LOOPBACK_ENV = {
     # Ray treats this machine as a single local node: node IP, and so every server's bind address, is loopback
@@ -140,6 +140,9 @@ def test_ray_tasks_give_the_local_runs_scores_seed_by_seed(ray_head: str, local_
 
         assert ray.util.get_node_ip_address() == "127.0.0.1"  # this driver, too, stays on loopback
         assert ray.cluster_resources().get("CPU") == 2
+        # a task sees writable arrays, as a local worker does (read-only ones make numba compile anew, for minutes)
+        writable = ray.remote(lambda job: bool(local_copy(job).scenario.task.obstacles.flags.writeable))
+        assert ray.get(writable.remote(_jobs_small()[-1])), "the job's arrays reach the task read-only"
         remote = list(run_jobs(ray, _jobs_small(), SETTINGS))
     finally:
         ray.shutdown()
@@ -160,7 +163,7 @@ def test_cli_with_ray_reports_the_local_cells(ray_head: str, local_results: list
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 0, res.output
     out = json.loads(res.stdout.strip().splitlines()[-1])
-    assert "closed-loop runs" in res.output and "8/8" in res.output  # the progress bar reached every trial
+    assert "8/8" in res.output  # the progress bar counted every trial
     for job, scores, _ in local_results:
         if job.kind != "tracking":
             continue

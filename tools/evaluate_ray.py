@@ -10,6 +10,7 @@ kernel cache (`gpmppi warm` on each node: numba compiles the kernels in every pr
 
 from __future__ import annotations
 
+import copy
 import logging
 import socket
 from collections.abc import Iterator
@@ -112,10 +113,17 @@ def connect(address: str) -> Any:
     return ray
 
 
+def local_copy(job: Job) -> Job:
+    """`job` as a local worker gets it: Ray hands a task its arguments' numpy arrays read-only (zero-copy from the
+    object store), and numba compiles a kernel anew, for minutes in every worker, for read-only array types that
+    `gpmppi warm` and the local runs never compiled; a copy has writable arrays."""
+    return copy.deepcopy(job)
+
+
 def _job_task(job: Job, settings: EvalSettings, threads: int) -> tuple:
     """One job in a Ray worker: the local pool's initializer, then its job function."""
     init_worker(threads)
-    return run_job_for_report(job, settings)
+    return run_job_for_report(local_copy(job), settings)
 
 
 def run_jobs(ray: Any, jobs: list[Job], settings: EvalSettings, cpus_per_job: int = 1) -> Iterator[tuple]:
