@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import os
 import socket
 from collections.abc import Iterator
 from typing import Any
@@ -19,9 +20,9 @@ from typing import Any
 from gpmppi.evaluation.runner import EvalSettings, Job, init_worker, run_job_for_report
 
 INSTALL_HINT = "pip install -e '.[ray]' (or pip install 'ray>=2.40')"
-# how long the reachability probes may take, each (a refused connection answers at once; a dropped one waits)
+# Ray's own connect retries for minutes where no Ray cluster answers; the probes before it bound that. Each may
+# take this long (a refused connection answers at once, a dropped one waits; the GCS handshake retries ~3 times)
 PROBE_TIMEOUT_S = 5.0
-# Ray's own connect retries for minutes on an address where no Ray cluster answers: the probes bound that
 
 
 class RayBackendError(RuntimeError):
@@ -56,6 +57,8 @@ def _split_host_port(address: str) -> tuple[str, int] | None:
 
 def resolve_address(address: str) -> str:
     """The HOST:PORT Ray will connect to for `address` (`auto`: RAY_ADDRESS, else the cluster this node joined)."""
+    if address == "auto" and os.environ.get("RAY_ADDRESS", "").startswith("ray://"):
+        address = os.environ["RAY_ADDRESS"]
     if address.startswith("ray://"):
         return address
     try:
@@ -83,7 +86,7 @@ def probe(address: str, resolved: str) -> None:
         where = address if address == resolved else f"{address} ({resolved})"
         raise _not_found(where, e.strerror or type(e).__name__) from e
     if resolved.startswith("ray://"):
-        return  # a Ray Client server, not a GCS: ray.init's own handshake times out there
+        return  # a Ray Client server, not a GCS: ray.init's own handshake decides there
     try:
         from ray._raylet import InnerGcsClient
 
