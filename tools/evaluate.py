@@ -62,7 +62,13 @@ GpModelOpt = Annotated[Path | None, typer.Option("--gp-model", help="GP model fi
 QuickOpt = Annotated[bool, typer.Option("--quick", help="Reduced run: one terrain, few trials, 25 m of lane.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object {results: {task: {terrain: {model}}}}.")]
 OutOpt = Annotated[Path | None, typer.Option("--output", "-o", help="Write table, CSV, JSON and figures here.")]
-WorkersOpt = Annotated[int, typer.Option("--workers", "-j", min=1, help="Worker processes.")]
+WorkersOpt = Annotated[int, typer.Option("--workers", "-j", min=1, help="Worker processes (without --ray).")]
+RayOpt = Annotated[
+    str | None,
+    typer.Option("--ray", metavar="auto|ADDRESS",
+                 help="Run the trials as Ray tasks on an existing Ray cluster: auto (the cluster this machine is "
+                      "part of, or RAY_ADDRESS) or the head's HOST:PORT. Needs the ray extra."),
+]
 SamplesOpt = Annotated[int, typer.Option("--samples", min=16, help="MPPI samples per step.")]
 DistanceOpt = Annotated[float | None, typer.Option("--distance", min=1.0, help="Lane distance in m (100).")]
 LatencyOpt = Annotated[float, typer.Option("--latency", min=0.0, help="Command latency in seconds.")]
@@ -219,13 +225,24 @@ def _jobs(
     return jobs
 
 
-def _execute(jobs: list[Job], settings: EvalSettings, workers: int, quiet: bool) -> tuple[dict, dict, float]:
-    """Run all jobs (in spawn workers if workers > 1); results[task][terrain][model], figure paths, seconds."""
+def _execute(
+    jobs: list[Job], settings: EvalSettings, workers: int, quiet: bool, ray_address: str | None = None,
+) -> tuple[dict, dict, float]:
+    """Run all jobs: on a Ray cluster (`ray_address`), in spawn workers (workers > 1) or here; results[task][terrain]
+    [model], figure paths, seconds."""
     scores: dict = {}
     paths: dict = {}
     total = sum(len(j.seeds) for j in jobs)
     console = Console(stderr=True, quiet=quiet)
     t0 = time.perf_counter()
+    ray = None
+    if ray_address is not None:
+        from tools.evaluate_ray import RayBackendError, connect
+
+        try:
+            ray = connect(ray_address)
+        except RayBackendError as e:
+            _fail(str(e))
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                TimeRemainingColumn())
     with Progress(*columns, console=console, transient=False) as progress:
@@ -237,7 +254,15 @@ def _execute(jobs: list[Job], settings: EvalSettings, workers: int, quiet: bool)
                 paths.setdefault(job.label, {}).setdefault(job.terrain, {})[job.dynamics] = record
             progress.update(bar, advance=len(job.seeds), description=f"{job.label} {job.terrain} {job.dynamics}")
 
-        if workers == 1:
+        if ray is not None:
+            from tools.evaluate_ray import run_jobs
+
+            try:
+                for result in run_jobs(ray, jobs, settings):
+                    collect(*result)
+            finally:
+                ray.shutdown()  # disconnects this driver; the cluster keeps running
+        elif workers == 1:
             for job in jobs:
                 collect(*run_job_for_report(job, settings))
         else:
@@ -311,6 +336,7 @@ def _run(
     lane_file: list[Path] | None, gp_model: Path | None, quick: bool, as_json: bool, out: Path | None,
     workers: int, samples: int, distance: float | None, latency: float, latency_cycles: int, compensate: bool,
     noise: bool, random_scenes: bool, switch: list[str] | None, overrides: list[str] | None,
+    ray_address: str | None = None,
 ) -> None:
     settings = _settings(plant, plant_file, terrain_file, gp_model, samples, distance, quick, latency,
                          latency_cycles, compensate, noise, overrides)
@@ -327,7 +353,7 @@ def _run(
     lane_trials = trials if (trials and kind == "tracking") else (1 if quick else 3)
     jobs = _jobs(lanes, scenes, terrains, models, lane_trials, goal_trials, seed, _parse_switches(switch),
                  random_scenes)
-    results, paths, seconds = _execute(jobs, settings, workers, quiet=False)
+    results, paths, seconds = _execute(jobs, settings, workers, quiet=False, ray_address=ray_address)
     _finish(results, paths, {**lanes, **scenes}, seconds, settings, terrains, models, out, as_json)
 
 
@@ -343,13 +369,13 @@ def register(app: typer.Typer) -> None:
             quick: QuickOpt = False, as_json: JsonOpt = False, out: OutOpt = None, workers: WorkersOpt = 2,
             samples: SamplesOpt = 1024, distance: DistanceOpt = None, latency: LatencyOpt = 0.0,
             latency_cycles: LatencyCyclesOpt = 0, compensate: CompensateOpt = True, noise: NoiseOpt = True,
-            random_scenes: RandomOpt = False, switch: SwitchOpt = None, set_: SetOpt = None,
+            random_scenes: RandomOpt = False, switch: SwitchOpt = None, set_: SetOpt = None, ray: RayOpt = None,
         ) -> None:
             if kind == "table" and out is None:
                 out = Path("evaluation")
             _run(kind, terrain, model, trials, seed, plant, plant_file, terrain_file, scene_file, lane_file,
                  gp_model, quick, as_json, out, workers, samples, distance, latency, latency_cycles, compensate,
-                 noise, random_scenes, switch, set_)
+                 noise, random_scenes, switch, set_, ray)
 
         command.__doc__ = doc
         return command
