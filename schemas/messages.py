@@ -152,6 +152,12 @@ class Plan(Message):
         description="each critic's cost of the nominal sequence, by critic name (variance, deviation, slip, "
         "lane_exit, speed, collision, goal, terminal); they sum to the nominal sequence's cost [cost]",
     )
+    effective_samples: float | None = Field(
+        None,
+        description="effective sample size of the update, 1 / sum of the squared normalised rollout weights: "
+        "1 when one rollout decides it, the sample count when all weigh the same, 0 when none was finite; "
+        "None in recordings made before it was reported [samples]",
+    )
 
 
 class Heartbeat(Message):

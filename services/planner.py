@@ -136,6 +136,7 @@ def plan_message(
         weights_stale=weights_stale,
         timings_ms={k: float(v) for k, v in {**result.timings_ms, **(extra_timings_ms or {})}.items()},
         critic_costs={k: float(v) for k, v in result.critic_costs.items()},
+        effective_samples=float(result.effective_samples),
     )
     plan.header.stamp_ns = stamp_ns
     return plan

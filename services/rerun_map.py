@@ -318,6 +318,8 @@ class RerunMapper:
                 self._scalar("plots/cost/median", t, float(np.median(finite)))
         for name, value in msg.critic_costs.items():
             self._scalar(f"plots/critics/{name}", t, value, name)
+        if msg.effective_samples is not None:
+            self._scalar("plots/samples/effective", t, msg.effective_samples, "effective samples")
         self._timings(msg, t)
 
     def _tightened(self, msg: Plan, states: np.ndarray, t: int) -> None:

@@ -36,6 +36,7 @@ def blueprint() -> rrb.Blueprint:
                     plot("plots/tightening", "lane half-width / inflation [m]"),
                     plot("plots/cost", "rollout cost"),
                     plot("plots/critics", "critic costs of the plan"),
+                    plot("plots/samples", "effective samples of the update"),
                     grid_columns=2,
                 ),
                 column_shares=[1, 1],

@@ -90,7 +90,8 @@ def test_replay_to_rerun_writes_the_map_and_time_series(tmp_path: Path) -> None:
     assert rows["/map/robot"] == n_states
     assert rows["/plots/v/cmd"] == n_states and rows["/plots/v/base"] == 240
     for entity in ("/map/plan/nominal", "/map/plan/covariance", "/map/lane/tightened", "/plots/cost/min",
-                   "/plots/tightening/last", "/plots/critics/deviation", "/plots/critics/terminal"):  # fmt: skip
+                   "/plots/tightening/last", "/plots/critics/deviation", "/plots/critics/terminal",
+                   "/plots/samples/effective"):  # fmt: skip
         assert rows[entity] == n_states, entity
     assert rows["/plots/terrain/asphalt"] == rows["/plots/terrain/tile"] == 84  # 7 Hz
     assert rows["/map/plan/rollouts"] == n_states // 2  # samples_every = 2

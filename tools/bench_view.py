@@ -67,6 +67,7 @@ def synthetic_log(path: Path, duration_s: float, robot: str = "jackal", samples:
             timings_ms={"total": 6.0 + rng.gamma(2, 0.5), "rollouts": 4.0, "update": 0.2, "state_to_cmd": 15.0},
             critic_costs={"variance": 0.5, "deviation": 20.0 + rng.gamma(2.0, 2.0), "slip": 1.0, "lane_exit": 0.0,
                           "speed": 5.0, "collision": 0.0, "goal": 0.0, "terminal": 0.0},
+            effective_samples=float(rng.uniform(1.0, samples)),
         )  # fmt: skip
         plan.header.stamp_ns, plan.header.seq = t, i
         st.header.seq = cmd.header.seq = i

@@ -55,3 +55,11 @@ def critic_costs(model: ModelBundle, task: TaskBundle, sampling: SamplingBundle,
     """Each critic's cost of the sampling bundle's nominal sequence, by name (serial, on the CPU)."""
     values = nominal_critic_costs(model.args(), task.args(), sampling.args(), cost.args())
     return {name: float(v) for name, v in zip(CRITICS, values, strict=True)}
+
+
+def effective_sample_size(weights: np.ndarray) -> float:
+    """Kish's effective sample size 1 / sum(w^2) of normalised weights (sum 1), as `softmax_update` returns them;
+    0 for all-zero weights (every cost infinite)."""
+    w = np.asarray(weights, dtype=np.float64)
+    sq = float(np.dot(w, w))
+    return 1.0 / sq if sq > 0.0 else 0.0

@@ -56,6 +56,9 @@ class PlanResult:
     flags: dict[str, int] = field(default_factory=dict)  # clamps and safe fallbacks of this iteration
     # each critic's share of `cost` (`CRITICS` names); they sum to `cost`
     critic_costs: dict[str, float] = field(default_factory=dict)
+    # Kish's effective sample size of the update, 1 / sum(w_s^2) over the normalised softmax weights: 1 when one
+    # rollout decides the update, `samples` when all weigh the same; 0 when every rollout's cost was infinite
+    effective_samples: float = 0.0
 
 
 class Planner:
@@ -313,7 +316,8 @@ class Planner:
         costs = costs + noise_cost
         t2 = time.perf_counter()
 
-        new_u, _sample_w = backends.softmax_update(nominal, eps, costs, c.temperature)
+        new_u, sample_w = backends.softmax_update(nominal, eps, costs, c.temperature)
+        effective_samples = backends.effective_sample_size(sample_w)
         flags: dict[str, int] = {"all_costs_infinite": int(not np.any(np.isfinite(costs)))}
         new_u = self._shape_sequence(new_u)
         t3 = time.perf_counter()
@@ -365,6 +369,7 @@ class Planner:
             },
             flags=flags,
             critic_costs=critic_costs,
+            effective_samples=effective_samples,
         )
 
     def _sampling(self, x: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray) -> SamplingBundle:
