@@ -13,9 +13,9 @@ folders can show it. Four histories:
 
 - empty cache: `plan` compiles the planner's kernels and everything they call fresh;
 - helpers first, in an empty cache: `helpers_first` compiles the kernels' helper functions on their own
-  (dynamics, GP lookup, noise, costs, lane, grid interpolation) and the delay predictor (its own kernel over
-  the same helpers) before it plans. With the 'contract' fastmath flag this order alone changed the kernels'
-  last bits;
+  (dynamics, GP lookup, noise, costs, lane, grid interpolation), the delay predictor (its own kernel over
+  the same helpers) and then the rollout kernel (one unicycle plan) before its closed loop. With the
+  'contract' fastmath flag this order alone changed the kernels' last bits;
 - helpers cached: the same process copies its cache folder once the helpers are compiled (so that copy holds
   the helpers and no kernel); `helpers_first` in that copy loads the helpers from disk and compiles the
   kernels against them;
@@ -28,8 +28,8 @@ does 10 seeded iterations of the EDD5, unicycle and GP models on the circle lane
 the nominal trajectory, and prints every control sequence and cost. All as exact hex; all runs must print the
 same bytes.
 
-With the `reassoc` fastmath flag the closed loop differed from the seventh cycle on (the helpers compiled first
-against an empty cache): numba names the variables of inlined functions with process-wide counters and orders
+With the `reassoc` fastmath flag a closed loop differed from its seventh cycle on when the delay predictor and
+a plan had been compiled first: numba names the variables of inlined functions with process-wide counters and orders
 some of its passes by those names, so the IR that reaches LLVM is ordered differently after a different history,
 and `reassoc` lets LLVM regroup a floating-point sum by that order (see `gpmppi/kernel_flags.py`).
 
@@ -114,6 +114,11 @@ if sys.argv[1] == "helpers_first":
         shutil.copytree(os.environ["NUMBA_CACHE_DIR"], sys.argv[2] + ".partial")
         os.rename(sys.argv[2] + ".partial", sys.argv[2])
     print(HELPERS_CACHED, flush=True)
+    # and one plan, so that the rollout kernel is compiled before the closed loop's estimator and plant: with the
+    # 'reassoc' fastmath flag this history changed the closed loop from its seventh cycle
+    from gpmppi.scenarios import circle_lane
+
+    pl.plan(circle_lane().start.copy(), circle_lane().task, tw)
 
 from dataclasses import replace
 
