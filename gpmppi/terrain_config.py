@@ -1,0 +1,49 @@
+"""Settings of the terrain-weight estimator (gpmppi.terrain): which method and its parameters.
+
+Apart from the estimators so a service can validate its settings without importing the solver (cvxpy).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class EstimatorConfig(BaseModel):
+    """The terrain-weight estimator's settings: which method and its parameters."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    method: Literal["paper", "bayes"] = Field(
+        "bayes", description="'paper': the convex least-squares mixture over the last `history` steps with an L1 "
+        "price on moving the weights; 'bayes': the recursive Bayesian filter over terrains with the GP's predictive "
+        "variances (BayesTerrainEstimator)")
+    history: int = Field(20, ge=1, description="paper: steps H in the weight problem; bayes: steps kept for the "
+                         "reported fit residual only")
+    gamma: float = Field(0.1, ge=0, description="paper: L1 price of moving the weights between solves (in units of "
+                         "the noise-normalised mean squared residual per step)")
+    min_history: int = Field(3, ge=1, description="steps observed before the first estimate (before: the starting "
+                             "weights, ok False)")
+    switch_prob: float = Field(0.002, gt=0, lt=1, description="bayes: prior probability per step that the ground "
+                               "under the robot changes (bounds how sure the filter gets, so how fast it follows a "
+                               "change)")
+    temperature: float = Field(3.0, gt=0, description="bayes: each step's log-likelihood is divided by this (> 1: "
+                               "trust a step less, for residuals correlated over steps or heavier-tailed than the "
+                               "GP's noise)")
+    extra_noise_std: tuple[float, float] = Field(
+        (0.02, 0.04), description="bayes: residual std (v [m/s], omega [rad/s]) added to the GP's predictive spread "
+        "(what the GP's noise leaves out on closed-loop steps); with adapt_noise the starting value of its online fit")
+    adapt_noise: bool = Field(True, description="bayes: fit the extra residual spread online")
+    command_change_gain: bool = Field(True, description="bayes: fit online and remove the part of the residual that "
+                                      "follows the change of command since the previous step (motor setpoint lag)")
+    calibration_steps: float = Field(100.0, ge=2, description="bayes: steps over which the online fits forget")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> EstimatorConfig:
+        if self.min_history > self.history:
+            raise ValueError(f"min_history ({self.min_history}) must be <= history ({self.history})")
+        if any(not (np.isfinite(s) and s >= 0) for s in self.extra_noise_std):
+            raise ValueError(f"extra_noise_std must be two finite numbers >= 0, got {list(self.extra_noise_std)}")
+        return self

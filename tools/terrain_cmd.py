@@ -1,0 +1,174 @@
+"""`gpmppi evaluate terrain-separability`: can the trained terrains be told apart where the robot drives?
+
+Drives GP-MPPI closed loops on the physics plant (the evaluation's own runner), records each run's measured
+transitions, then measures on them how far apart the terrains' GP predictions are against the predictive spread,
+the log-likelihood ratio of the true terrain against each other over sliding windows, and the confusion of the
+argmax-likelihood terrain (`gpmppi.evaluation.terrain_ident`), and replays terrain estimators (the paper's convex
+problem, the Bayesian filter, variants given by --estimator) on the same recorded transitions, scoring them with the
+evaluation's `true_weight_mean` and `weight_switches_per_min`.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+import yaml
+from rich.console import Console
+
+SCENARIOS = ("circle", "square", "avoidance")
+DEFAULT_ESTIMATORS = (
+    "paper",
+    "paper:history=50",
+    "paper:gamma=0",
+    "paper:gamma=1",
+    "bayes",
+)
+
+
+def _scenario(name: str):
+    from gpmppi.scenarios import circle_lane, paper_obstacle_scene, square_lane
+
+    return {"circle": circle_lane, "square": square_lane, "avoidance": paper_obstacle_scene}[name]()
+
+
+def _record(scenario: str, terrain: str, seed: int, distance: float, switches: tuple, estimator: str) -> dict:
+    from gpmppi.evaluation.runner import EvalSettings, Job, run_job
+
+    sc = _scenario(scenario)
+    kind = "avoidance" if scenario == "avoidance" else "tracking"
+    settings = EvalSettings(lane_distance_m=distance, terrain_estimator=_estimator_fields(estimator))
+    job = Job(kind, sc, terrain, "gp", (seed,), True, switches, scenario)  # type: ignore[arg-type]
+    scores, trajs = run_job(job, settings)
+    tr = trajs[0]
+    return {"times": tr.times, "states": tr.measured_states, "commands": tr.commands, "weights": tr.weights,
+            "terrains": np.asarray(tr.terrains), "rmse_mm": scores[0].rmse_mm,
+            "true_weight_mean": np.nan if scores[0].true_weight_mean is None else scores[0].true_weight_mean,
+            "weight_switches_per_min": scores[0].weight_switches_per_min}
+
+
+def estimator_settings(items: list[str]) -> tuple[tuple[str, object], ...]:
+    """KEY=VALUE items (EstimatorConfig fields) -> validated ((key, value), ...); ValueError naming what is wrong."""
+    from pydantic import ValidationError
+
+    from gpmppi.terrain import EstimatorConfig
+
+    out: dict[str, object] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in EstimatorConfig.model_fields:
+            raise ValueError(f"{item!r}: expected KEY=VALUE, KEY one of {sorted(EstimatorConfig.model_fields)}")
+        parsed = yaml.safe_load(value)
+        out[key] = tuple(parsed) if isinstance(parsed, list) else parsed
+    try:
+        EstimatorConfig(**out)
+    except ValidationError as e:
+        err = e.errors()[0]
+        raise ValueError(f"{'.'.join(str(x) for x in err['loc']) or 'settings'}: {err['msg']}") from None
+    return tuple(out.items())
+
+
+def _estimator_fields(spec: str) -> tuple[tuple[str, object], ...]:
+    """'bayes:switch_prob=0.01,temperature=2' -> (("method", "bayes"), ("switch_prob", 0.01), ...)."""
+    method, _, rest = spec.partition(":")
+    try:
+        return estimator_settings([f"method={method}"] + [i for i in rest.split(",") if i])
+    except ValueError as e:
+        raise typer.BadParameter(f"--estimator {spec!r}: {e}") from None
+
+
+def _replay_scores(model, rec: dict, spec: str) -> dict:
+    from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
+    from gpmppi.evaluation.terrain_ident import replay
+    from gpmppi.terrain import EstimatorConfig, make_estimator
+
+    est = make_estimator(model, EstimatorConfig(**dict(_estimator_fields(spec))))
+    w = replay(est, rec["states"], rec["commands"])
+    terrains = [str(t) for t in rec["terrains"]]
+    return {"true_weight_mean": true_weight_mean(rec["times"], w, terrains, list(model.terrains)),
+            "weight_switches_per_min": weight_switches_per_min(rec["times"], w)}
+
+
+def _fmt(x) -> str:
+    return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.2f}"
+
+
+def register(ev: typer.Typer) -> None:
+    """Add `gpmppi evaluate terrain-separability` to the evaluate group."""
+
+    @ev.command("terrain-separability")
+    def separability_cmd(
+        terrain: Annotated[list[str] | None, typer.Option("--terrain", "-t", help="Terrain(s) (repeat).")] = None,
+        scenario: Annotated[list[str] | None, typer.Option("--scenario", help="circle, square, avoidance.")] = None,
+        seed: Annotated[int, typer.Option("--seed", help="Planner and plant seed.")] = 0,
+        distance: Annotated[float, typer.Option("--distance", min=1.0, help="Lane distance in m.")] = 40.0,
+        record_dir: Annotated[Path, typer.Option("--record-dir", help="Recordings (reused when present).")] = Path(
+            "terrain_runs"),
+        estimator: Annotated[list[str] | None, typer.Option(
+            "--estimator", help="Estimators to replay: METHOD[:KEY=VALUE,...] (repeat).")] = None,
+        drive_with: Annotated[str, typer.Option(
+            "--drive-with", help="Estimator the recorded closed loops run with.")] = "paper",
+        window: Annotated[list[int] | None, typer.Option("--window", help="Window lengths in steps (repeat).")] = None,
+        out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the JSON result here.")] = None,
+    ) -> None:
+        """Record closed loops, measure terrain separability on them and replay estimators (see the module doc)."""
+        from gpmppi.evaluation.runner import cached_gp_model
+        from gpmppi.evaluation.terrain_ident import separability, transitions
+
+        console = Console(stderr=True)
+        model = cached_gp_model(None)
+        names = list(model.terrains)
+        terrains = terrain or names
+        scenarios = scenario or list(SCENARIOS)
+        for s in scenarios:
+            if s not in SCENARIOS:
+                raise typer.BadParameter(f"--scenario {s!r}: one of {SCENARIOS}")
+        windows = tuple(window or (1, 10, 20, 50, 100))
+        specs = list(estimator or DEFAULT_ESTIMATORS)
+        record_dir.mkdir(parents=True, exist_ok=True)
+        recs: dict[str, dict] = {}
+        t0 = time.perf_counter()
+        for s in scenarios:
+            for t in terrains:
+                f = record_dir / f"{s}_{t}_seed{seed}_{distance:g}m_{drive_with.replace(':', '_')}.npz"
+                if not f.is_file():
+                    console.print(f"recording {s} on {t} ...")
+                    np.savez(f, **_record(s, t, seed, distance, (), drive_with))
+                recs[f"{s}/{t}"] = dict(np.load(f))
+        result: dict = {"command": "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "runs": {}}
+        parts = []
+        for key, rec in recs.items():
+            terr = [str(x) for x in rec["terrains"]]
+            parts.append((key, transitions(model, rec["states"], rec["commands"], terr)))
+            result["runs"][key] = {
+                "steps": len(terr), "closed_loop": {k: float(rec[k]) for k in (
+                    "rmse_mm", "true_weight_mean", "weight_switches_per_min")},
+                "replay": {spec: _replay_scores(model, rec, spec) for spec in specs},
+            }
+        # pooled over runs: a run's windows never straddle into the next (its terrain label carries the run)
+        for s_name in sorted({k.split("/")[0] for k in recs} | {"all"}):
+            sel = [tr for k, tr in parts if s_name == "all" or k.startswith(s_name + "/")]
+            pooled = sel[0]
+            if len(sel) > 1:
+                from gpmppi.evaluation.terrain_ident import Transitions
+
+                pooled = Transitions(np.concatenate([p.y for p in sel]), np.concatenate([p.mean for p in sel]),
+                                     np.concatenate([p.var for p in sel]), sum((p.terrain for p in sel), []),
+                                     np.concatenate([np.full(len(p.terrain), i) for i, p in enumerate(sel)]))
+            result.setdefault("separability", {})[s_name] = separability(pooled, names, windows)
+        result["wall_time_s"] = round(time.perf_counter() - t0, 1)
+        text = json.dumps(result, indent=1, default=float)
+        if out is not None:
+            out.write_text(text)
+        print(text)
+        for key, run in result["runs"].items():
+            row = "  ".join(f"{spec}: {_fmt(r['true_weight_mean'])}/{_fmt(r['weight_switches_per_min'])}"
+                            for spec, r in run["replay"].items())
+            console.print(f"{key}: closed loop {_fmt(run['closed_loop']['true_weight_mean'])}/"
+                          f"{_fmt(run['closed_loop']['weight_switches_per_min'])}; replay {row}")
