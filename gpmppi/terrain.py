@@ -159,7 +159,9 @@ class BayesTerrainEstimator:
 
     - `s_i^2` = the GP's latent variance + its likelihood noise + an extra spread shared by all terrains: the GP's
       noise was fitted on training drives and is 2-4x too small for closed-loop steps (measurement noise on both ends
-      of a step, the motors' states), and a likelihood that overconfident throws the posterior about on every step;
+      of a step, the motors' states), and a likelihood that overconfident throws the posterior about on every step.
+      With `variance: shared` (the default) every terrain is scored against the weighted mean of these spreads, so
+      the terrains are told apart by their means, not by their training noise;
     - `g du`: the part of the residual explained by the change of command since the previous step (the motor drivers'
       setpoint lag: the GP's inputs do not carry the previous command, and MPPI's commands change every tick).
 
@@ -198,11 +200,13 @@ class BayesTerrainEstimator:
             raise ValueError(f"weights must lie on the simplex, got {w.tolist()}")
         self._weights = w / w.sum()
         self._posterior = self._weights.copy()
+        self._leader: int | None = None  # the terrain on top of the last published weights (None: none published)
         self._u_prev: np.ndarray | None = None
         # exponentially forgotten sums of the calibration: du^2, du * e, and the spread beyond the GP's
         self._s_dd = np.zeros(2)
         self._s_de = np.zeros(2)
         self._extra_var = np.square(np.asarray(self.config.extra_noise_std, dtype=np.float64))
+        self._sum_spread = np.zeros(2)
         self._calibrated = 0.0  # effective number of steps in the calibration sums
 
     @property
@@ -240,12 +244,17 @@ class BayesTerrainEstimator:
         mean = mean[0].reshape(self._m, 2)
         gp_var = latent[0].reshape(self._m, 2) + self._noise
         # score with the calibration of the steps before this one, then update it with this one
-        y_c = y - self._gain() * du
-        var = gp_var + self._extra_var
-        r = y_c[None, :] - mean
-        loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
         h = self.config.switch_prob
         prior = (1.0 - h) * self._posterior + h / self._m
+        y_c = y - self._gain() * du
+        var = gp_var + self._extra_var
+        if self.config.variance == "shared":
+            # every terrain scored against the same spread: the likelihood-noise differences fitted on training drives
+            # do not carry over to closed-loop steps, and as a signature they mislead (smooth driving on tile, whose
+            # GP noise is twice asphalt's, then reads as asphalt on the log-determinant alone)
+            var = np.broadcast_to(prior @ var, var.shape)
+        r = y_c[None, :] - mean
+        loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
         log_post = np.log(prior) + loglik
         p = np.exp(log_post - log_post.max())
         self._calibrate(y, du, prior, mean, gp_var)
@@ -266,19 +275,36 @@ class BayesTerrainEstimator:
         # the configured extra spread is the prior: it weighs as much as calibration_steps / 10 steps
         prior_n = 0.1 * self.config.calibration_steps
         prior_var = np.square(np.asarray(self.config.extra_noise_std, dtype=np.float64))
-        if self._seen == 0:
-            self._sum_spread = np.zeros(2)
         self._sum_spread = lam * self._sum_spread + spread
         est = (prior_n * prior_var + self._sum_spread) / (prior_n + self._calibrated)
         self._extra_var = np.maximum(est, 0.0)
 
+    def _published(self, p: np.ndarray) -> np.ndarray:
+        """The posterior with hysteresis on which terrain leads.
+
+        Where two terrains explain the steps about equally their posteriors wander about each other, and the top
+        terrain would change on every small wander. The terrain that led the last published weights keeps the lead
+        until another's posterior exceeds its own by `hysteresis`; until then the two are published at their mean,
+        the leader 1e-6 above (the sum and every other weight unchanged).
+        """
+        leader = self._leader
+        challenger = int(np.argmax(p))
+        w = p.copy()
+        if leader is not None and challenger != leader and p[challenger] - p[leader] <= self.config.hysteresis:
+            mid = 0.5 * (p[challenger] + p[leader])
+            w[leader], w[challenger] = mid + 1e-6, mid - 1e-6
+        else:
+            leader = challenger
+        self._leader = leader
+        return w
+
     def estimate(self) -> TerrainEstimate:
-        """The posterior over terrains (after `min_history` steps; before, the starting weights)."""
+        """The posterior over terrains (after `min_history` steps; before, the starting weights), with hysteresis."""
         if self._seen < self.min_history:
             return TerrainEstimate(self.weights, False, float("nan"),
                                    f"history too short ({self._seen} of {self.min_history} steps); keeping previous "
                                    "weights")
-        self._weights = self._posterior.copy()
+        self._weights = self._published(self._posterior)
         fit = float(sum(np.sum((y - self._weights @ mean) ** 2) for y, mean in self._rows))
         return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps")
 

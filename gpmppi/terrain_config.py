@@ -35,6 +35,12 @@ class EstimatorConfig(BaseModel):
     extra_noise_std: tuple[float, float] = Field(
         (0.02, 0.04), description="bayes: residual std (v [m/s], omega [rad/s]) added to the GP's predictive spread "
         "(what the GP's noise leaves out on closed-loop steps); with adapt_noise the starting value of its online fit")
+    variance: Literal["shared", "per_terrain"] = Field(
+        "shared", description="bayes: score every terrain against the same predictive spread (the weighted mean of "
+        "the terrains'), or each against its own")
+    hysteresis: float = Field(
+        0.1, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
+        "the current top terrain's by this much (0: none)")
     adapt_noise: bool = Field(True, description="bayes: fit the extra residual spread online")
     command_change_gain: bool = Field(True, description="bayes: fit online and remove the part of the residual that "
                                       "follows the change of command since the previous step (motor setpoint lag)")

@@ -85,14 +85,15 @@ def _estimator_fields(spec: str) -> tuple[tuple[str, object], ...]:
 
 def _replay_scores(model, rec: dict, spec: str) -> dict:
     from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
-    from gpmppi.evaluation.terrain_ident import replay
+    from gpmppi.evaluation.terrain_ident import replay, top_changes
     from gpmppi.terrain import EstimatorConfig, make_estimator
 
     est = make_estimator(model, EstimatorConfig(**dict(_estimator_fields(spec))))
     w = replay(est, rec["states"], rec["commands"])
     terrains = [str(t) for t in rec["terrains"]]
     return {"true_weight_mean": true_weight_mean(rec["times"], w, terrains, list(model.terrains)),
-            "weight_switches_per_min": weight_switches_per_min(rec["times"], w)}
+            "weight_switches_per_min": weight_switches_per_min(rec["times"], w),
+            "top_changes_after_3s": top_changes(rec["times"], w)}
 
 
 def _fmt(x) -> str:
@@ -116,10 +117,20 @@ def register(ev: typer.Typer) -> None:
             "--drive-with", help="Estimator the recorded closed loops run with.")] = "paper",
         window: Annotated[list[int] | None, typer.Option("--window", help="Window lengths in steps (repeat).")] = None,
         out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the JSON result here.")] = None,
+        md: Annotated[Path | None, typer.Option("--markdown", help="Write Markdown tables here.")] = None,
+        switch: Annotated[list[str] | None, typer.Option(
+            "--switch", help="Switch the plant's terrain mid-run: TIME:TERRAIN (repeat).")] = None,
     ) -> None:
         """Record closed loops, measure terrain separability on them and replay estimators (see the module doc)."""
         from gpmppi.evaluation.runner import cached_gp_model
-        from gpmppi.evaluation.terrain_ident import separability, transitions
+        from gpmppi.evaluation.terrain_ident import (
+            Transitions,
+            calibrated,
+            separability,
+            switch_response,
+            top_changes,
+            transitions,
+        )
 
         console = Console(stderr=True)
         model = cached_gp_model(None)
@@ -131,44 +142,101 @@ def register(ev: typer.Typer) -> None:
                 raise typer.BadParameter(f"--scenario {s!r}: one of {SCENARIOS}")
         windows = tuple(window or (1, 10, 20, 50, 100))
         specs = list(estimator or DEFAULT_ESTIMATORS)
+        switches = tuple((float(t), name) for t, _, name in (item.partition(":") for item in switch or []))
+        tag = "".join(f"_to{name}at{t:g}" for t, name in switches)
         record_dir.mkdir(parents=True, exist_ok=True)
         recs: dict[str, dict] = {}
         t0 = time.perf_counter()
         for s in scenarios:
             for t in terrains:
-                f = record_dir / f"{s}_{t}_seed{seed}_{distance:g}m_{drive_with.replace(':', '_')}.npz"
+                f = record_dir / f"{s}_{t}{tag}_seed{seed}_{distance:g}m_{drive_with.replace(':', '_')}.npz"
                 if not f.is_file():
                     console.print(f"recording {s} on {t} ...")
-                    np.savez(f, **_record(s, t, seed, distance, (), drive_with))
+                    np.savez(f, **_record(s, t, seed, distance, switches, drive_with))
                 recs[f"{s}/{t}"] = dict(np.load(f))
         result: dict = {"command": "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "runs": {}}
         parts = []
         for key, rec in recs.items():
             terr = [str(x) for x in rec["terrains"]]
-            parts.append((key, transitions(model, rec["states"], rec["commands"], terr)))
+            tr = transitions(model, rec["states"], rec["commands"], terr)
+            du = np.diff(rec["commands"], axis=0, prepend=rec["commands"][:1])
+            known = [t in names for t in terr]
+            parts.append((key, tr, du, all(known)))
             result["runs"][key] = {
                 "steps": len(terr), "closed_loop": {k: float(rec[k]) for k in (
                     "rmse_mm", "true_weight_mean", "weight_switches_per_min")},
+                "switch_response": switch_response(rec["times"], rec["weights"], terr, names),
+                "closed_loop_top_changes_after_3s": top_changes(rec["times"], rec["weights"]),
                 "replay": {spec: _replay_scores(model, rec, spec) for spec in specs},
             }
-        # pooled over runs: a run's windows never straddle into the next (its terrain label carries the run)
+        # pooled over runs: a run's windows never straddle into the next (its terrain label carries the run); runs
+        # on a terrain the model does not know are left out
         for s_name in sorted({k.split("/")[0] for k in recs} | {"all"}):
-            sel = [tr for k, tr in parts if s_name == "all" or k.startswith(s_name + "/")]
-            pooled = sel[0]
-            if len(sel) > 1:
-                from gpmppi.evaluation.terrain_ident import Transitions
-
-                pooled = Transitions(np.concatenate([p.y for p in sel]), np.concatenate([p.mean for p in sel]),
-                                     np.concatenate([p.var for p in sel]), sum((p.terrain for p in sel), []),
-                                     np.concatenate([np.full(len(p.terrain), i) for i, p in enumerate(sel)]))
+            sel = [(tr, du) for k, tr, du, ok in parts if ok and (s_name == "all" or k.startswith(s_name + "/"))]
+            if not sel:
+                continue
+            pooled = Transitions(np.concatenate([p.y for p, _ in sel]), np.concatenate([p.mean for p, _ in sel]),
+                                 np.concatenate([p.var for p, _ in sel]), sum((p.terrain for p, _ in sel), []),
+                                 np.concatenate([np.full(len(p.terrain), i) for i, (p, _) in enumerate(sel)]))
+            du_all = np.concatenate([du for _, du in sel])
             result.setdefault("separability", {})[s_name] = separability(pooled, names, windows)
+            result.setdefault("separability_calibrated", {})[s_name] = separability(
+                calibrated(pooled, du_all, names), names, windows)
         result["wall_time_s"] = round(time.perf_counter() - t0, 1)
         text = json.dumps(result, indent=1, default=float)
         if out is not None:
             out.write_text(text)
+        if md is not None:
+            md.write_text(markdown(json.loads(text), names))
         print(text)
         for key, run in result["runs"].items():
             row = "  ".join(f"{spec}: {_fmt(r['true_weight_mean'])}/{_fmt(r['weight_switches_per_min'])}"
                             for spec, r in run["replay"].items())
             console.print(f"{key}: closed loop {_fmt(run['closed_loop']['true_weight_mean'])}/"
                           f"{_fmt(run['closed_loop']['weight_switches_per_min'])}; replay {row}")
+
+
+def markdown(result: dict, names: list[str]) -> str:
+    """The result as Markdown tables: runs (closed loop and replays), calibration, pairs, confusion matrices."""
+    lines = [f"`{result['command']}`", ""]
+    specs = list(next(iter(result["runs"].values()))["replay"]) if result["runs"] else []
+    lines += ["Cells: true-terrain weight / weight switches per minute (top-terrain changes after the first 3 s).", "",
+              "| run | steps | closed loop: RMSE [mm] / true weight / switches [/min] | "
+              + " | ".join(f"replay `{s}`" for s in specs) + " |",
+              "|---|---|---|" + "---|" * len(specs)]
+    for key, run in result["runs"].items():
+        cl = run["closed_loop"]
+        cells = [f"{_fmt(r['true_weight_mean'])} / {_fmt(r['weight_switches_per_min'])} "
+                 f"({r.get('top_changes_after_3s', '-')})" for r in run["replay"].values()]
+        lines.append(f"| {key} | {run['steps']} | {_fmt(cl['rmse_mm'])} / {_fmt(cl['true_weight_mean'])} / "
+                     f"{_fmt(cl['weight_switches_per_min'])} ({run.get('closed_loop_top_changes_after_3s', '-')}) | "
+                     + " | ".join(cells) + " |")
+        for sw in run.get("switch_response", []):
+            lines.append(f"|  switch at {sw['at_s']:.1f} s {sw['from']} -> {sw['to']}: weight > 0.5 after "
+                         f"{_fmt(sw['seconds'])} s | | | " + " | " * len(specs))
+    scopes = [(f"{scope}, GP variance as trained", sep) for scope, sep in result["separability"].items()]
+    scopes += [(f"{scope}, calibrated (command-change part removed, spread fitted)", sep)
+               for scope, sep in result.get("separability_calibrated", {}).items()]
+    for scope, sep in scopes:
+        lines += ["", f"**{scope}**", "", "| true terrain | steps | mean z² v / ω | residual std v, ω | GP predictive "
+                  "std v, ω |", "|---|---|---|---|---|"]
+        for t, c in sep["calibration"].items():
+            lines.append(f"| {t} | {c['steps']} | {c['z2_v']:.1f} / {c['z2_omega']:.1f} | "
+                         f"{c['residual_std'][0]:.3f}, {c['residual_std'][1]:.3f} | "
+                         f"{c['predicted_std'][0]:.3f}, {c['predicted_std'][1]:.3f} |")
+        wins = sorted({int(w) for p in sep["pairs"].values() for w in p["true_wins_fraction"]})
+        lines += ["", "| true vs other | median d' v / ω | LLR per step mean ± std [nats] | "
+                  + " | ".join(f"true wins, W={w}" for w in wins) + " |", "|---|---|---|" + "---|" * len(wins)]
+        for pair, p in sep["pairs"].items():
+            frac = p["true_wins_fraction"]
+            cells = [_fmt(frac.get(str(w), frac.get(w))) for w in wins]
+            name = pair.replace("|", " vs ")
+            lines.append(f"| {name} | {p['dprime_v_median']:.2f} / {p['dprime_omega_median']:.2f} | "
+                         f"{p['llr_per_step_mean']:+.2f} ± {p['llr_per_step_std']:.2f} | " + " | ".join(cells) + " |")
+        for label, key in (("log-likelihood (GP mean and variance)", "confusion_loglik"),
+                           ("squared error (the paper's fit, no variance)", "confusion_sq_error")):
+            lines += ["", f"Confusion, argmax {label}; rows true, columns chosen ({', '.join(names)}):", ""]
+            for w, mat in sep[key].items():
+                rows = "; ".join(f"{names[i]}: {row}" for i, row in enumerate(mat))
+                lines.append(f"- W={w}: {rows}")
+    return "\n".join(lines) + "\n"

@@ -176,3 +176,55 @@ def replay(estimator, states: np.ndarray, commands: np.ndarray) -> np.ndarray:
         estimator.observe(x[k - 1], u[k - 1], x[k])
         rows.append(np.asarray(estimator.estimate().weights, dtype=np.float64))
     return np.asarray(rows)
+
+
+def switch_response(times: np.ndarray, weights: np.ndarray, terrains: list[str], names: list[str],
+                    level: float = 0.5) -> list[dict]:
+    """Per change of the ground in a run: how long until the new terrain's weight first exceeds `level`.
+
+    `times` (T+1,), `weights` (T, M) and `terrains` (T,) as in a `Trajectory`. `seconds` is None when it never did
+    (before the next change or the run's end) or the new terrain is not one of `names`.
+    """
+    out = []
+    t = np.asarray(times, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    changes = [k for k in range(1, len(terrains)) if terrains[k] != terrains[k - 1]]
+    for n, k in enumerate(changes):
+        new = terrains[k]
+        end = changes[n + 1] if n + 1 < len(changes) else len(terrains)
+        seconds = None
+        if new in names:
+            above = np.nonzero(w[k:end, names.index(new)] > level)[0]
+            seconds = float(t[k + above[0]] - t[k]) if above.size else None
+        out.append({"at_s": float(t[k]), "from": terrains[k - 1], "to": new, "seconds": seconds})
+    return out
+
+
+def calibrated(tr: Transitions, command_change: np.ndarray, names: list[str]) -> Transitions:
+    """The steps with the noise model made honest, knowing the true terrain (the best case for telling them apart).
+
+    Per output: the part of the residual that follows the change of command since the previous step (`command_change`
+    (n, 2); least squares on the true terrain's residual) is removed, and every terrain's predictive variance is
+    replaced by the terrains' mean plus the spread that the true terrain's prediction leaves unexplained, so that
+    the mean z² under the true terrain is 1 and the terrains differ only in their means.
+    """
+    index = np.array([names.index(t) for t in tr.terrain])
+    rows = np.arange(len(index))
+    e = tr.y - tr.mean[rows, index]
+    du = np.asarray(command_change, dtype=np.float64)
+    gain = np.sum(du * e, axis=0) / np.maximum(np.sum(du * du, axis=0), 1e-12)
+    y = tr.y - gain * du
+    shared = tr.var.mean(axis=1)  # (n, 2)
+    extra = np.maximum(np.mean((e - gain * du) ** 2, axis=0) - np.mean(shared, axis=0), 0.0)
+    var = np.broadcast_to((shared + extra)[:, None, :], tr.var.shape).copy()
+    return Transitions(y, tr.mean, var, tr.terrain, tr.segment)
+
+
+def top_changes(times: np.ndarray, weights: np.ndarray, after_s: float = 3.0) -> int:
+    """How many times the top-weight terrain changes at cycles starting at or after `after_s` (the settling time
+    `true_weight_mean` leaves out; `weight_switches_per_min` counts from the start, so the first change from the
+    uniform start, where the tie goes to the first terrain, counts there)."""
+    t = np.asarray(times, dtype=np.float64)[:-1]
+    top = np.argmax(np.asarray(weights, dtype=np.float64), axis=1)
+    changed = np.nonzero(top[1:] != top[:-1])[0] + 1
+    return int(np.count_nonzero(t[changed] >= t[0] + after_s))
