@@ -31,7 +31,7 @@ import numpy as np
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
-from gpmppi.terrain_config import EstimatorConfig
+from gpmppi.terrain_config import EstimatorConfig, terrain_command_gains
 
 __all__ = ["BayesTerrainEstimator", "EstimatorConfig", "TerrainEstimate", "TerrainEstimator", "make_estimator"]
 
@@ -155,20 +155,25 @@ class BayesTerrainEstimator:
     """A recursive Bayesian filter over which trained terrain is under the robot, using the GP's variances.
 
     Each step's measured velocity residual `y` is scored under every terrain i by its exact GP prediction:
-    `l_i = log N(y - g du; m_i, s_i^2)` (v and omega together), divided by `temperature`, where
+    `l_i = log N(y; m_i + g_i du, s_i^2)` (v and omega together), divided by `temperature`, where
 
+    - `g_i du`: the part of the residual that follows the change of command `du` since the previous step. The GP's
+      inputs do not carry the previous command, yet the motor drivers' setpoint lag makes the next velocity depend
+      on it, and MPPI's commands change every tick: on closed-loop steps this part is most of the residual (its
+      correlation with `du` is -0.8 to -0.9 on tile and grass), and it differs by terrain (wheels spin up on tile).
+      `command_change: per_terrain` takes `g_i` from per-terrain gains fitted offline on each training terrain's
+      excitation drives (`command_gains`; shipped: gpmppi/data/terrain_command_gains.yaml, written by `gpmppi
+      evaluate terrain-gains`); `online` fits one gain shared by all terrains as it goes; `off` drops the term;
     - `s_i^2` = the GP's latent variance + its likelihood noise + an extra spread shared by all terrains: the GP's
       noise was fitted on training drives and is 2-4x too small for closed-loop steps (measurement noise on both ends
-      of a step, the motors' states), and a likelihood that overconfident throws the posterior about on every step.
-      With `variance: shared` (the default) every terrain is scored against the weighted mean of these spreads, so
-      the terrains are told apart by their means, not by their training noise;
-    - `g du`: the part of the residual explained by the change of command since the previous step (the motor drivers'
-      setpoint lag: the GP's inputs do not carry the previous command, and MPPI's commands change every tick).
+      of a step), and a likelihood that overconfident throws the posterior about on every step. The extra spread is
+      fitted online on the residual of the weighted prediction (exponential forgetting over `calibration_steps`,
+      starting from `extra_noise_std`); it does not depend on which terrain is true. With `variance: shared` (the
+      default) every terrain is scored against the weighted mean of the spreads, so the terrains are told apart by
+      what they predict, not by their training noise.
 
-    Both `g` (per output) and the extra spread are fitted online on the residual of the current weighted prediction,
-    with exponential forgetting over `calibration_steps`; neither depends on which terrain is true. The weights are
-    the posterior of a hidden terrain that changes with probability `switch_prob` per step (a hidden Markov model's
-    forward filter):
+    The weights are the posterior of a hidden terrain that changes with probability `switch_prob` per step (a
+    hidden Markov model's forward filter), published with hysteresis on which terrain leads (`_published`):
 
         prior_i = (1 - switch_prob) w_i + switch_prob / M,     w_i <- prior_i exp(l_i) / sum_j prior_j exp(l_j)
 
@@ -188,7 +193,9 @@ class BayesTerrainEstimator:
         self._m = len(model.terrains)
         self._predictor = ExactPredictor(model)
         self._noise = np.asarray(model.noise, dtype=np.float64).reshape(self._m, 2)
-        self._rows: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=config.history)  # (y (2,), means (M, 2))
+        self._rows: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=config.history)  # (y (2,), predictions (M, 2))
+        self._terrain_gains = terrain_command_gains(config, list(model.terrains)) if (
+            config.command_change == "per_terrain") else np.zeros((self._m, 2))
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:
@@ -215,12 +222,10 @@ class BayesTerrainEstimator:
 
     @property
     def calibration(self) -> tuple[np.ndarray, np.ndarray]:
-        """(gain g (2,) on the command change [1, 1], extra residual std (2,) [m/s, rad/s]) fitted so far."""
+        """(online gain (2,) on the command change [s^0], extra residual std (2,) [m/s, rad/s]) fitted so far."""
         return self._gain(), np.sqrt(self._extra_var)
 
     def _gain(self) -> np.ndarray:
-        if not self.config.command_change_gain:
-            return np.zeros(2)
         return np.where(self._s_dd > 1e-9, self._s_de / np.maximum(self._s_dd, 1e-9), 0.0)
 
     def __len__(self) -> int:
@@ -246,31 +251,41 @@ class BayesTerrainEstimator:
         # score with the calibration of the steps before this one, then update it with this one
         h = self.config.switch_prob
         prior = (1.0 - h) * self._posterior + h / self._m
-        y_c = y - self._gain() * du
+        pred = mean + self._command_part(du)
         var = gp_var + self._extra_var
         if self.config.variance == "shared":
             # every terrain scored against the same spread: the likelihood-noise differences fitted on training drives
             # do not carry over to closed-loop steps, and as a signature they mislead (smooth driving on tile, whose
             # GP noise is twice asphalt's, then reads as asphalt on the log-determinant alone)
             var = np.broadcast_to(prior @ var, var.shape)
-        r = y_c[None, :] - mean
+        r = y[None, :] - pred
         loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
         log_post = np.log(prior) + loglik
         p = np.exp(log_post - log_post.max())
-        self._calibrate(y, du, prior, mean, gp_var)
+        self._calibrate(y, du, prior, mean, pred, gp_var)
         self._posterior = p / p.sum()
-        self._rows.append((y_c, mean))
+        self._rows.append((y, pred))
         self._seen += 1
 
-    def _calibrate(self, y: np.ndarray, du: np.ndarray, w: np.ndarray, mean: np.ndarray, gp_var: np.ndarray) -> None:
-        """Update the command-change gain and the extra spread on the residual of the weighted prediction."""
+    def _command_part(self, du: np.ndarray) -> np.ndarray:
+        """(M, 2) the residual each terrain expects from the change of command `du` since the previous step."""
+        if self.config.command_change == "per_terrain":
+            return self._terrain_gains * du[None, :]
+        if self.config.command_change == "online":
+            return np.broadcast_to(self._gain() * du, (self._m, 2))
+        return np.zeros((self._m, 2))
+
+    def _calibrate(
+        self, y: np.ndarray, du: np.ndarray, w: np.ndarray, mean: np.ndarray, pred: np.ndarray, gp_var: np.ndarray
+    ) -> None:
+        """Update the online command-change gain and the extra spread on the residual of the weighted prediction."""
         lam = 1.0 - 1.0 / self.config.calibration_steps
         e = y - w @ mean
         self._s_dd = lam * self._s_dd + du * du
         self._s_de = lam * self._s_de + du * e
         if not self.config.adapt_noise:
             return
-        spread = (e - self._gain() * du) ** 2 - w @ gp_var  # what the GP's variance leaves unexplained
+        spread = (y - w @ pred) ** 2 - w @ gp_var  # what the GP's variance leaves unexplained
         self._calibrated = lam * self._calibrated + 1.0
         # the configured extra spread is the prior: it weighs as much as calibration_steps / 10 steps
         prior_n = 0.1 * self.config.calibration_steps
@@ -305,7 +320,7 @@ class BayesTerrainEstimator:
                                    f"history too short ({self._seen} of {self.min_history} steps); keeping previous "
                                    "weights")
         self._weights = self._published(self._posterior)
-        fit = float(sum(np.sum((y - self._weights @ mean) ** 2) for y, mean in self._rows))
+        fit = float(sum(np.sum((y - self._weights @ pred) ** 2) for y, pred in self._rows))
         return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps")
 
 

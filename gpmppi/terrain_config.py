@@ -5,10 +5,14 @@ Apart from the estimators so a service can validate its settings without importi
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+SHIPPED_COMMAND_GAINS = Path(__file__).resolve().parent / "data" / "terrain_command_gains.yaml"
 
 
 class EstimatorConfig(BaseModel):
@@ -26,7 +30,7 @@ class EstimatorConfig(BaseModel):
                          "the noise-normalised mean squared residual per step)")
     min_history: int = Field(3, ge=1, description="steps observed before the first estimate (before: the starting "
                              "weights, ok False)")
-    switch_prob: float = Field(0.002, gt=0, lt=1, description="bayes: prior probability per step that the ground "
+    switch_prob: float = Field(0.01, gt=0, lt=1, description="bayes: prior probability per step that the ground "
                                "under the robot changes (bounds how sure the filter gets, so how fast it follows a "
                                "change)")
     temperature: float = Field(3.0, gt=0, description="bayes: each step's log-likelihood is divided by this (> 1: "
@@ -42,8 +46,13 @@ class EstimatorConfig(BaseModel):
         0.1, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
         "the current top terrain's by this much (0: none)")
     adapt_noise: bool = Field(True, description="bayes: fit the extra residual spread online")
-    command_change_gain: bool = Field(True, description="bayes: fit online and remove the part of the residual that "
-                                      "follows the change of command since the previous step (motor setpoint lag)")
+    command_change: Literal["per_terrain", "online", "off"] = Field(
+        "per_terrain", description="bayes: how each terrain's prediction takes in the change of command since the "
+        "previous step (motor setpoint lag): per-terrain gains fitted offline (`command_gains`), one gain fitted "
+        "online for all terrains, or not at all")
+    command_gains: dict[str, tuple[float, float]] | None = Field(
+        None, description="bayes, command_change per_terrain: per terrain the residual per unit change of command "
+        "(v [m/s per m/s], omega [rad/s per rad/s]); None: the shipped gains (gpmppi/data/terrain_command_gains.yaml)")
     calibration_steps: float = Field(100.0, ge=2, description="bayes: steps over which the online fits forget")
 
     @model_validator(mode="after")
@@ -53,3 +62,25 @@ class EstimatorConfig(BaseModel):
         if any(not (np.isfinite(s) and s >= 0) for s in self.extra_noise_std):
             raise ValueError(f"extra_noise_std must be two finite numbers >= 0, got {list(self.extra_noise_std)}")
         return self
+
+
+def load_command_gains(path: Path | str = SHIPPED_COMMAND_GAINS) -> dict[str, tuple[float, float]]:
+    """Per-terrain command-change gains from a YAML file (`gains: {terrain: [g_v, g_omega]}`)."""
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+        gains = {str(k): (float(v[0]), float(v[1])) for k, v in data["gains"].items()}
+    except (OSError, KeyError, TypeError, IndexError, ValueError, yaml.YAMLError) as e:
+        raise ValueError(f"command gains file {path}: expected 'gains: {{terrain: [g_v, g_omega]}}' ({e})") from e
+    if not all(np.isfinite(g).all() for g in gains.values()):
+        raise ValueError(f"command gains file {path}: gains must be finite")
+    return gains
+
+
+def terrain_command_gains(config: EstimatorConfig, terrains: list[str]) -> np.ndarray:
+    """(M, 2) the gains of `terrains` (the model's, in order) from `config.command_gains` or the shipped file."""
+    gains = config.command_gains if config.command_gains is not None else load_command_gains()
+    missing = [t for t in terrains if t not in gains]
+    if missing:
+        raise ValueError(f"command_gains: no gain for terrain(s) {missing} (have {sorted(gains)}); fit them with "
+                         "`gpmppi evaluate terrain-gains`, or set command_change: online")
+    return np.array([gains[t] for t in terrains], dtype=np.float64)

@@ -19,7 +19,8 @@ from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.terrain import BayesTerrainEstimator, EstimatorConfig, TerrainEstimator, make_estimator
 
-BAYES = EstimatorConfig(method="bayes")
+# the synthetic steps have no command-change part (the physics plant's motor lag): no gains for it
+BAYES = EstimatorConfig(method="bayes", command_change="off")
 
 
 @lru_cache(maxsize=1)
@@ -27,19 +28,23 @@ def _model() -> GPModel:
     return synthetic_model()
 
 
-def _history(model: GPModel, terrain: int, steps: int, seed: int, noise: float):
-    """Synthetic (state, command, next state) on one terrain: exact nominal step + its GP mean + noise."""
+def _history(model: GPModel, terrain: int, steps: int, seed: int, noise: float, gain: tuple[float, float] = (0, 0)):
+    """Synthetic (state, command, next state) on one terrain: exact nominal step + its GP mean + noise (+ `gain`
+    times the change of command since the previous step)."""
     pred = ExactPredictor(model)
     rng = np.random.default_rng(seed)
     rows = []
+    u_prev = None
     for _ in range(steps):
         x = np.array([0.0, 0.0, 0.0, rng.uniform(0, 2), rng.uniform(-2, 2)])
         u = np.array([rng.uniform(0, 2), rng.uniform(-2, 2)])
+        du = np.zeros(2) if u_prev is None else u - u_prev
+        u_prev = u
         v1, w1 = velocity_step_exact(model.theta, x[3:4], x[4:5], u[0:1], u[1:2], model.dt)
         mean, _ = pred.predict(np.array([[u[0], u[1], x[3], x[4]]]), with_var=False)
         x1 = x.copy()
-        x1[3] = v1[0] + mean[0, 2 * terrain] + noise * rng.normal()
-        x1[4] = w1[0] + mean[0, 2 * terrain + 1] + noise * rng.normal()
+        x1[3] = v1[0] + mean[0, 2 * terrain] + gain[0] * du[0] + noise * rng.normal()
+        x1[4] = w1[0] + mean[0, 2 * terrain + 1] + gain[1] * du[1] + noise * rng.normal()
         rows.append((x, u, x1))
     return rows
 
@@ -55,6 +60,33 @@ def test_identifies_each_terrain_from_noisy_synthetic_steps(terrain: int) -> Non
     assert e.ok, e.message
     assert e.weights[terrain] > 0.95
     assert e.weights.sum() == pytest.approx(1.0) and np.all(e.weights >= 0)
+
+
+def test_per_terrain_command_gains_tell_apart_terrains_whose_means_agree() -> None:
+    model = _model()
+    twin = replace(model, alpha=model.alpha.copy(), chol=model.chol.copy(), lengthscale=model.lengthscale.copy(),
+                   outputscale=model.outputscale.copy(), noise=model.noise.copy(), _grid=None)
+    for a in (twin.alpha, twin.chol, twin.lengthscale, twin.outputscale, twin.noise):
+        a[4:6] = a[2:4]  # tile's GP is grass's: only the response to command changes differs
+    gains = {"asphalt": (-0.01, -0.01), "grass": (-0.04, -0.02), "tile": (-0.07, -0.04)}
+    cfg = EstimatorConfig(command_change="per_terrain", command_gains=gains)
+    noise = float(np.sqrt(model.noise.mean()))
+    for terrain in (1, 2):
+        est = make_estimator(twin, cfg)
+        for row in _history(twin, terrain, 60, seed=9, noise=noise, gain=gains[twin.terrains[terrain]]):
+            est.observe(*row)
+        assert est.estimate().weights[terrain] > 0.9
+    blind = make_estimator(twin, BAYES)  # without the gains the two are one terrain to the filter
+    for row in _history(twin, 2, 60, seed=9, noise=noise, gain=gains["tile"]):
+        blind.observe(*row)
+    w = blind.estimate().weights
+    assert abs(w[1] - w[2]) < 1e-5
+
+
+def test_missing_command_gains_fail_naming_the_terrain() -> None:
+    cfg = EstimatorConfig(command_gains={"asphalt": (0.0, 0.0)})
+    with pytest.raises(ValueError, match=r"command_gains: no gain for terrain\(s\) \['grass', 'tile'\]"):
+        make_estimator(_model(), cfg)
 
 
 def test_follows_a_change_of_terrain_within_twenty_steps() -> None:
@@ -131,7 +163,8 @@ def test_short_history_keeps_the_starting_weights() -> None:
     ("fields", "named"),
     [({"method": "lstsq"}, "method"), ({"switch_prob": 0.0}, "switch_prob"), ({"temperature": -1}, "temperature"),
      ({"history": 5, "min_history": 6}, "min_history"), ({"extra_noise_std": (0.01, -1.0)}, "extra_noise_std"),
-     ({"gamma": -0.1}, "gamma"), ({"forgetting": 0.9}, "forgetting")],
+     ({"gamma": -0.1}, "gamma"), ({"forgetting": 0.9}, "forgetting"), ({"command_change": "yes"}, "command_change"),
+     ({"hysteresis": 1.0}, "hysteresis"), ({"variance": "own"}, "variance")],
 )
 def test_bad_settings_fail_naming_the_setting(fields: dict, named: str) -> None:
     with pytest.raises(ValidationError, match=named):

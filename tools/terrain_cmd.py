@@ -29,6 +29,7 @@ DEFAULT_ESTIMATORS = (
     "paper:gamma=0",
     "paper:gamma=1",
     "bayes",
+    "bayes:command_change=online",
 )
 
 
@@ -101,7 +102,40 @@ def _fmt(x) -> str:
 
 
 def register(ev: typer.Typer) -> None:
-    """Add `gpmppi evaluate terrain-separability` to the evaluate group."""
+    """Add `gpmppi evaluate terrain-separability` and `terrain-gains` to the evaluate group."""
+
+    @ev.command("terrain-gains")
+    def gains_cmd(
+        distance: Annotated[float, typer.Option("--distance", min=10.0, help="Excitation distance per terrain in m.")
+                            ] = 400.0,
+        seed: Annotated[int, typer.Option("--seed", help="Excitation and plant seed.")] = 5,
+        out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the YAML here.")] = None,
+    ) -> None:
+        """Fit the terrain estimator's per-terrain command-change gains on excitation drives of the physics plant.
+
+        Drives each terrain of the GP model with the training data's excitation commands (not a controller), and
+        fits per output the least-squares gain of that terrain's GP residual on the change of command since the
+        previous step (`gpmppi.evaluation.terrain_ident.fit_command_gain`).
+        """
+        from gpmppi.evaluation.runner import cached_gp_model, cached_terrain_set
+        from gpmppi.evaluation.terrain_ident import fit_command_gain
+        from gpmppi.plant.excitation import drive
+        from gpmppi.plant.physics import PhysicsPlant
+
+        model = cached_gp_model(None)
+        gains = {}
+        for terrain in model.terrains:
+            run = drive(PhysicsPlant(cached_terrain_set(None), terrain, seed=seed), terrain, distance, seed=seed)
+            # command[k] is applied over [t_k, t_k+1): the last one has no next state
+            g = fit_command_gain(model, run.state, run.command[:-1], terrain)
+            gains[terrain] = [round(float(x), 4) for x in g]
+        command = "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        text = ("# Per-terrain command-change gains of the terrain estimator (gpmppi/terrain.py, command_change:\n"
+                "# per_terrain): the GP residual per unit change of command since the previous step, [v, omega].\n"
+                f"# Written by: {command}\n" + yaml.safe_dump({"version": 1, "gains": gains}, sort_keys=False))
+        if out is not None:
+            out.write_text(text)
+        print(text, end="")
 
     @ev.command("terrain-separability")
     def separability_cmd(

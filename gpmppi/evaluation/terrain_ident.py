@@ -228,3 +228,16 @@ def top_changes(times: np.ndarray, weights: np.ndarray, after_s: float = 3.0) ->
     top = np.argmax(np.asarray(weights, dtype=np.float64), axis=1)
     changed = np.nonzero(top[1:] != top[:-1])[0] + 1
     return int(np.count_nonzero(t[changed] >= t[0] + after_s))
+
+
+def fit_command_gain(model: GPModel, states: np.ndarray, commands: np.ndarray, terrain: str) -> np.ndarray:
+    """(2,) least-squares gain of `terrain`'s GP residual on the change of command since the previous step.
+
+    `states` (T+1, 5) measured, `commands` (T, 2) applied between them, all on `terrain`: the gain per output of
+    `y - m_terrain` on `du_k = u_k - u_{k-1}` (the first step's du is 0).
+    """
+    u = np.asarray(commands, dtype=np.float64)
+    tr = transitions(model, states, u, [terrain] * u.shape[0])
+    e = tr.y - tr.mean[:, list(model.terrains).index(terrain)]
+    du = np.diff(u, axis=0, prepend=u[:1])
+    return np.sum(du * e, axis=0) / np.maximum(np.sum(du * du, axis=0), 1e-12)
