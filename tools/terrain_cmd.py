@@ -213,7 +213,7 @@ def register(ev: typer.Typer) -> None:
                                  np.concatenate([p.var for p, _ in sel]), sum((p.terrain for p, _ in sel), []),
                                  np.concatenate([np.full(len(p.terrain), i) for i, (p, _) in enumerate(sel)]))
             du_all = np.concatenate([du for _, du in sel])
-            result.setdefault("separability", {})[s_name] = separability(pooled, names, windows)
+            result.setdefault("separability", {})[s_name] = separability(pooled, names, windows, du_all)
             result.setdefault("separability_calibrated", {})[s_name] = separability(
                 calibrated(pooled, du_all, names), names, windows)
         result["wall_time_s"] = round(time.perf_counter() - t0, 1)
@@ -253,11 +253,17 @@ def markdown(result: dict, names: list[str]) -> str:
                for scope, sep in result.get("separability_calibrated", {}).items()]
     for scope, sep in scopes:
         lines += ["", f"**{scope}**", "", "| true terrain | steps | mean z² v / ω | residual std v, ω | GP predictive "
-                  "std v, ω |", "|---|---|---|---|---|"]
+                  "std v, ω | corr. with command change v, ω | gain on it v, ω | residual std without it v, ω |",
+                  "|---|---|---|---|---|---|---|---|"]
         for t, c in sep["calibration"].items():
+            extra = "| | |"
+            if "command_change_gain" in c:
+                extra = " | ".join(f"{c[k][0]:+.3f}, {c[k][1]:+.3f}" if k != "residual_std_after_gain" else
+                                   f"{c[k][0]:.3f}, {c[k][1]:.3f}"
+                                   for k in ("command_change_corr", "command_change_gain", "residual_std_after_gain"))
             lines.append(f"| {t} | {c['steps']} | {c['z2_v']:.1f} / {c['z2_omega']:.1f} | "
                          f"{c['residual_std'][0]:.3f}, {c['residual_std'][1]:.3f} | "
-                         f"{c['predicted_std'][0]:.3f}, {c['predicted_std'][1]:.3f} |")
+                         f"{c['predicted_std'][0]:.3f}, {c['predicted_std'][1]:.3f} | {extra} |")
         wins = sorted({int(w) for p in sep["pairs"].values() for w in p["true_wins_fraction"]})
         lines += ["", "| true vs other | median d' v / ω | LLR per step mean ± std [nats] | "
                   + " | ".join(f"true wins, W={w}" for w in wins) + " |", "|---|---|---|" + "---|" * len(wins)]

@@ -118,8 +118,15 @@ def confusion(
     return out
 
 
-def separability(tr: Transitions, names: list[str], windows: tuple[int, ...] = (1, 10, 20, 50, 100)) -> dict:
-    """The numbers of the module docstring, per (true terrain, other terrain) pair and per window length."""
+def separability(
+    tr: Transitions, names: list[str], windows: tuple[int, ...] = (1, 10, 20, 50, 100),
+    command_change: np.ndarray | None = None,
+) -> dict:
+    """The numbers of the module docstring, per (true terrain, other terrain) pair and per window length.
+
+    With `command_change` (n, 2), the change of command since the previous step, the calibration of each terrain
+    also holds the correlation of its residual with it and the least-squares gain on it.
+    """
     ll = step_loglik(tr)
     noise = np.asarray([tr.var[:, :, 0].min(), tr.var[:, :, 1].min()])  # stands in for the paper's unit
     index = {n: i for i, n in enumerate(names)}
@@ -137,6 +144,13 @@ def separability(tr: Transitions, names: list[str], windows: tuple[int, ...] = (
                           "z2_omega": float(np.mean(z[:, 1] ** 2)),
                           "residual_std": [float(s) for s in np.std(tr.y[on] - tr.mean[on, i], axis=0)],
                           "predicted_std": [float(s) for s in np.sqrt(np.mean(tr.var[on, i], axis=0))]}
+        if command_change is not None:
+            e = tr.y[on] - tr.mean[on, i]
+            du = np.asarray(command_change, dtype=np.float64)[on]
+            gain = np.sum(du * e, axis=0) / np.maximum(np.sum(du * du, axis=0), 1e-12)
+            calibration[t]["command_change_corr"] = [float(np.corrcoef(du[:, k], e[:, k])[0, 1]) for k in range(2)]
+            calibration[t]["command_change_gain"] = [float(g) for g in gain]
+            calibration[t]["residual_std_after_gain"] = [float(x) for x in np.std(e - gain * du, axis=0)]
         for j, other in enumerate(names):
             if j == i:
                 continue
