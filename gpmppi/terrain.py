@@ -163,7 +163,7 @@ class BayesTerrainEstimator:
       correlation with `du` is -0.8 to -0.9 on tile and grass), and it differs by terrain (wheels spin up on tile).
       `command_change: per_terrain` takes `g_i` from per-terrain gains fitted offline on each training terrain's
       excitation drives (`command_gains`; shipped: gpmppi/data/terrain_command_gains.yaml, written by `gpmppi
-      evaluate terrain-gains`); `online` fits one gain shared by all terrains as it goes; `off` drops the term;
+      evaluate terrain-gains`); `online` fits one gain shared by all terrains as it goes; `none` drops the term;
     - `s_i^2` = the GP's latent variance + its likelihood noise + an extra spread shared by all terrains: the GP's
       noise was fitted on training drives and is 2-4x too small for closed-loop steps (measurement noise on both ends
       of a step), and a likelihood that overconfident throws the posterior about on every step. The extra spread is

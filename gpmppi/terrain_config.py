@@ -46,7 +46,7 @@ class EstimatorConfig(BaseModel):
         0.1, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
         "the current top terrain's by this much (0: none)")
     adapt_noise: bool = Field(True, description="bayes: fit the extra residual spread online")
-    command_change: Literal["per_terrain", "online", "off"] = Field(
+    command_change: Literal["per_terrain", "online", "none"] = Field(
         "per_terrain", description="bayes: how each terrain's prediction takes in the change of command since the "
         "previous step (motor setpoint lag): per-terrain gains fitted offline (`command_gains`), one gain fitted "
         "online for all terrains, or not at all")

@@ -20,7 +20,7 @@ from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.terrain import BayesTerrainEstimator, EstimatorConfig, TerrainEstimator, make_estimator
 
 # the synthetic steps have no command-change part (the physics plant's motor lag): no gains for it
-BAYES = EstimatorConfig(method="bayes", command_change="off")
+BAYES = EstimatorConfig(method="bayes", command_change="none")
 
 
 @lru_cache(maxsize=1)
