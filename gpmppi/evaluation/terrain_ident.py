@@ -214,24 +214,32 @@ def switch_response(times: np.ndarray, weights: np.ndarray, terrains: list[str],
     return out
 
 
-def calibrated(tr: Transitions, command_change: np.ndarray, names: list[str]) -> Transitions:
+def calibrated(
+    tr: Transitions, command_change: np.ndarray, names: list[str], gains: np.ndarray | None = None
+) -> Transitions:
     """The steps with the noise model made honest, knowing the true terrain (the best case for telling them apart).
 
-    Per output: the part of the residual that follows the change of command since the previous step (`command_change`
-    (n, 2); least squares on the true terrain's residual) is removed, and every terrain's predictive variance is
-    replaced by the terrains' mean plus the spread that the true terrain's prediction leaves unexplained, so that
-    the mean z² under the true terrain is 1 and the terrains differ only in their means.
+    The part of the residual that follows the change of command since the previous step (`command_change` (n, 2))
+    goes into the predictions: with `gains` (M, 2) each terrain's own (`m_i + g_i du`, as the Bayesian estimator
+    predicts), otherwise one gain per output fitted by least squares on the true terrain's residual and removed
+    from the residual. Every terrain's predictive variance is then replaced by the terrains' mean plus the spread
+    the true terrain's prediction leaves unexplained, so that the mean z² under the true terrain is about 1 and the
+    terrains differ only in what they predict.
     """
     index = np.array([names.index(t) for t in tr.terrain])
     rows = np.arange(len(index))
-    e = tr.y - tr.mean[rows, index]
     du = np.asarray(command_change, dtype=np.float64)
-    gain = np.sum(du * e, axis=0) / np.maximum(np.sum(du * du, axis=0), 1e-12)
-    y = tr.y - gain * du
+    if gains is not None:
+        y, mean = tr.y, tr.mean + np.asarray(gains, dtype=np.float64)[None] * du[:, None, :]
+    else:
+        e = tr.y - tr.mean[rows, index]
+        gain = np.sum(du * e, axis=0) / np.maximum(np.sum(du * du, axis=0), 1e-12)
+        y, mean = tr.y - gain * du, tr.mean
+    e = y - mean[rows, index]
     shared = tr.var.mean(axis=1)  # (n, 2)
-    extra = np.maximum(np.mean((e - gain * du) ** 2, axis=0) - np.mean(shared, axis=0), 0.0)
+    extra = np.maximum(np.mean(e ** 2, axis=0) - np.mean(shared, axis=0), 0.0)
     var = np.broadcast_to((shared + extra)[:, None, :], tr.var.shape).copy()
-    return Transitions(y, tr.mean, var, tr.terrain, tr.segment)
+    return Transitions(y, mean, var, tr.terrain, tr.segment)
 
 
 def top_changes(times: np.ndarray, weights: np.ndarray, after_s: float = 3.0) -> int:
