@@ -263,7 +263,7 @@ def markdown(result: dict, names: list[str]) -> str:
                   "std v, ω | corr. with command change v, ω | gain on it v, ω | residual std without it v, ω |",
                   "|---|---|---|---|---|---|---|---|"]
         for t, c in sep["calibration"].items():
-            extra = "| | |"
+            extra = " | | "
             if "command_change_gain" in c:
                 extra = " | ".join(f"{c[k][0]:+.3f}, {c[k][1]:+.3f}" if k != "residual_std_after_gain" else
                                    f"{c[k][0]:.3f}, {c[k][1]:.3f}"
