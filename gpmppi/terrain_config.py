@@ -43,7 +43,7 @@ class EstimatorConfig(BaseModel):
         "shared", description="bayes: score every terrain against the same predictive spread (the weighted mean of "
         "the terrains'), or each against its own")
     hysteresis: float = Field(
-        0.1, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
+        0.2, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
         "the current top terrain's by this much (0: none)")
     adapt_noise: bool = Field(True, description="bayes: fit the extra residual spread online")
     command_change: Literal["per_terrain", "online", "none"] = Field(

@@ -253,7 +253,7 @@ def markdown(result: dict, names: list[str]) -> str:
         for sw in run.get("switch_response", []):
             lines.append(f"|  switch at {sw['at_s']:.1f} s {sw['from']} -> {sw['to']}: weight > 0.5 after "
                          f"{_fmt(sw['seconds'])} s | | | " + " | " * len(specs))
-    scopes = [(f"{scope}, GP variance as trained", sep) for scope, sep in result["separability"].items()]
+    scopes = [(f"{scope}, GP variance as trained", sep) for scope, sep in result.get("separability", {}).items()]
     scopes += [(f"{scope}, calibrated (one command-change gain for all terrains removed, spread fitted)", sep)
                for scope, sep in result.get("separability_calibrated", {}).items()]
     scopes += [(f"{scope}, each terrain's shipped command-change gain in its prediction, spread fitted", sep)
