@@ -31,6 +31,9 @@ import numpy as np
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
+from gpmppi.terrain_config import EstimatorConfig, terrain_command_gains
+
+__all__ = ["BayesTerrainEstimator", "EstimatorConfig", "TerrainEstimate", "TerrainEstimator", "make_estimator"]
 
 
 @dataclass
@@ -146,3 +149,184 @@ class TerrainEstimator:
         self._weights = w
         fit = float(np.sum((y_v - f_v @ w) ** 2) + np.sum((y_w - f_w @ w) ** 2))
         return TerrainEstimate(w.copy(), True, fit, f"solved over {n} steps ({status})")
+
+
+class BayesTerrainEstimator:
+    """A recursive Bayesian filter over which trained terrain is under the robot, using the GP's variances.
+
+    Each step's measured velocity residual `y` is scored under every terrain i by its exact GP prediction:
+    `l_i = log N(y; m_i + g_i du, s_i^2)` (v and omega together), divided by `temperature`, where
+
+    - `g_i du`: the part of the residual that follows the change of command `du` since the previous step. The GP's
+      inputs do not carry the previous command, yet the motor drivers' setpoint lag makes the next velocity depend
+      on it, and MPPI's commands change every tick: on closed-loop steps this part is most of the residual (its
+      correlation with `du` is -0.8 to -0.9 on tile and grass), and it differs by terrain (wheels spin up on tile).
+      `command_change: per_terrain` takes `g_i` from per-terrain gains fitted offline on each training terrain's
+      excitation drives (`command_gains`; shipped: gpmppi/data/terrain_command_gains.yaml, written by `gpmppi
+      evaluate terrain-gains`); `online` fits one gain shared by all terrains as it goes; `none` drops the term;
+    - `s_i^2` = the GP's latent variance + its likelihood noise + an extra spread shared by all terrains: the GP's
+      noise was fitted on training drives and is 2-4x too small for closed-loop steps (measurement noise on both ends
+      of a step), and a likelihood that overconfident throws the posterior about on every step. The extra spread is
+      fitted online on the residual of the weighted prediction (exponential forgetting over `calibration_steps`,
+      starting from `extra_noise_std`); it does not depend on which terrain is true. With `variance: shared` (the
+      default) every terrain is scored against the weighted mean of the spreads, so the terrains are told apart by
+      what they predict, not by their training noise.
+
+    The weights are the posterior of a hidden terrain that changes with probability `switch_prob` per step (a
+    hidden Markov model's forward filter), published with hysteresis on which terrain leads (`_published`):
+
+        prior_i = (1 - switch_prob) w_i + switch_prob / M,     w_i <- prior_i exp(l_i) / sum_j prior_j exp(l_j)
+
+    Why this and not the least-squares mixture: the terrains' mean residuals are close and collinear on the states a
+    controller visits, so a least-squares fit over a short window throws its weight from one vertex of the simplex
+    to another on noise, and a fit without the predictive variances mistakes the noisier terrain's data for another
+    terrain's; the filter weighs each step by how far apart the predictions are against their spread, accumulates
+    evidence for as long as the ground stays, and `switch_prob` bounds how sure it gets, so how long a change of
+    terrain takes to show (about log(M / switch_prob) nats of evidence).
+    """
+
+    def __init__(self, model: GPModel, config: EstimatorConfig) -> None:
+        self.model = model
+        self.config = config
+        self.history = config.history
+        self.min_history = config.min_history
+        self._m = len(model.terrains)
+        self._predictor = ExactPredictor(model)
+        self._noise = np.asarray(model.noise, dtype=np.float64).reshape(self._m, 2)
+        self._rows: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=config.history)  # (y (2,), predictions (M, 2))
+        self._terrain_gains = terrain_command_gains(config, list(model.terrains)) if (
+            config.command_change == "per_terrain") else np.zeros((self._m, 2))
+        self.reset()
+
+    def reset(self, weights: np.ndarray | None = None) -> None:
+        """Forget the evidence and the online calibration; start from `weights` (default uniform)."""
+        self._rows.clear()
+        self._seen = 0
+        w = np.full(self._m, 1.0 / self._m) if weights is None else _vector("weights", weights, self._m)
+        if np.any(w < 0) or abs(w.sum() - 1.0) > 1e-6:
+            raise ValueError(f"weights must lie on the simplex, got {w.tolist()}")
+        self._weights = w / w.sum()
+        self._posterior = self._weights.copy()
+        self._leader: int | None = None  # the terrain on top of the last published weights (None: none published)
+        self._u_prev: np.ndarray | None = None
+        # exponentially forgotten sums of the calibration: du^2, du * e, and the spread beyond the GP's
+        self._s_dd = np.zeros(2)
+        self._s_de = np.zeros(2)
+        self._extra_var = np.square(np.asarray(self.config.extra_noise_std, dtype=np.float64))
+        self._sum_spread = np.zeros(2)
+        self._calibrated = 0.0  # effective number of steps in the calibration sums
+
+    @property
+    def weights(self) -> np.ndarray:
+        return self._weights.copy()
+
+    @property
+    def calibration(self) -> tuple[np.ndarray, np.ndarray]:
+        """(online gain (2,) on the command change [s^0], extra residual std (2,) [m/s, rad/s]) fitted so far."""
+        return self._gain(), np.sqrt(self._extra_var)
+
+    def _gain(self) -> np.ndarray:
+        return np.where(self._s_dd > 1e-9, self._s_de / np.maximum(self._s_dd, 1e-9), 0.0)
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def observe(self, state: np.ndarray, command: np.ndarray, next_state: np.ndarray) -> None:
+        """Add one step (as `TerrainEstimator.observe`) and update the posterior with it.
+
+        Steps are taken as consecutive: the command change is against the previous step's command.
+        """
+        x = _vector("state", state, 5)
+        u = _vector("command", command, 2)
+        x1 = _vector("next_state", next_state, 5)
+        v_nom, w_nom = velocity_step_exact(
+            self.model.theta, x[3:4].copy(), x[4:5].copy(), u[0:1].copy(), u[1:2].copy(), self.model.dt
+        )
+        mean, latent = self._predictor.predict(np.array([[u[0], u[1], x[3], x[4]]]), with_var=True)
+        y = np.array([x1[3] - v_nom[0], x1[4] - w_nom[0]])
+        du = np.zeros(2) if self._u_prev is None else u - self._u_prev
+        self._u_prev = u
+        mean = mean[0].reshape(self._m, 2)
+        gp_var = latent[0].reshape(self._m, 2) + self._noise
+        # score with the calibration of the steps before this one, then update it with this one
+        h = self.config.switch_prob
+        prior = (1.0 - h) * self._posterior + h / self._m
+        pred = mean + self._command_part(du)
+        var = gp_var + self._extra_var
+        if self.config.variance == "shared":
+            # every terrain scored against the same spread: the likelihood-noise differences fitted on training drives
+            # do not carry over to closed-loop steps, and as a signature they mislead (smooth driving on tile, whose
+            # GP noise is twice asphalt's, then reads as asphalt on the log-determinant alone)
+            var = np.broadcast_to(prior @ var, var.shape)
+        r = y[None, :] - pred
+        loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
+        log_post = np.log(prior) + loglik
+        p = np.exp(log_post - log_post.max())
+        self._calibrate(y, du, prior, mean, pred, gp_var)
+        self._posterior = p / p.sum()
+        self._rows.append((y, pred))
+        self._seen += 1
+
+    def _command_part(self, du: np.ndarray) -> np.ndarray:
+        """(M, 2) the residual each terrain expects from the change of command `du` since the previous step."""
+        if self.config.command_change == "per_terrain":
+            return self._terrain_gains * du[None, :]
+        if self.config.command_change == "online":
+            return np.broadcast_to(self._gain() * du, (self._m, 2))
+        return np.zeros((self._m, 2))
+
+    def _calibrate(
+        self, y: np.ndarray, du: np.ndarray, w: np.ndarray, mean: np.ndarray, pred: np.ndarray, gp_var: np.ndarray
+    ) -> None:
+        """Update the online command-change gain and the extra spread on the residual of the weighted prediction."""
+        lam = 1.0 - 1.0 / self.config.calibration_steps
+        e = y - w @ mean
+        self._s_dd = lam * self._s_dd + du * du
+        self._s_de = lam * self._s_de + du * e
+        if not self.config.adapt_noise:
+            return
+        spread = (y - w @ pred) ** 2 - w @ gp_var  # what the GP's variance leaves unexplained
+        self._calibrated = lam * self._calibrated + 1.0
+        # the configured extra spread is the prior: it weighs as much as calibration_steps / 10 steps
+        prior_n = 0.1 * self.config.calibration_steps
+        prior_var = np.square(np.asarray(self.config.extra_noise_std, dtype=np.float64))
+        self._sum_spread = lam * self._sum_spread + spread
+        est = (prior_n * prior_var + self._sum_spread) / (prior_n + self._calibrated)
+        self._extra_var = np.maximum(est, 0.0)
+
+    def _published(self, p: np.ndarray) -> np.ndarray:
+        """The posterior with hysteresis on which terrain leads.
+
+        Where two terrains explain the steps about equally their posteriors wander about each other, and the top
+        terrain would change on every small wander. The terrain that led the last published weights keeps the lead
+        until another's posterior exceeds its own by `hysteresis`; until then the two are published at their mean,
+        the leader 1e-6 above (the sum and every other weight unchanged).
+        """
+        leader = self._leader
+        challenger = int(np.argmax(p))
+        w = p.copy()
+        if leader is not None and challenger != leader and p[challenger] - p[leader] <= self.config.hysteresis:
+            mid = 0.5 * (p[challenger] + p[leader])
+            w[leader], w[challenger] = mid + 1e-6, mid - 1e-6
+        else:
+            leader = challenger
+        self._leader = leader
+        return w
+
+    def estimate(self) -> TerrainEstimate:
+        """The posterior over terrains (after `min_history` steps; before, the starting weights), with hysteresis."""
+        if self._seen < self.min_history:
+            return TerrainEstimate(self.weights, False, float("nan"),
+                                   f"history too short ({self._seen} of {self.min_history} steps); keeping previous "
+                                   "weights")
+        self._weights = self._published(self._posterior)
+        fit = float(sum(np.sum((y - self._weights @ pred) ** 2) for y, pred in self._rows))
+        return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps")
+
+
+def make_estimator(model: GPModel, config: EstimatorConfig | None = None) -> TerrainEstimator | BayesTerrainEstimator:
+    """The estimator `config.method` names, built for `model`."""
+    cfg = config or EstimatorConfig()
+    if cfg.method == "paper":
+        return TerrainEstimator(model, history=cfg.history, gamma=cfg.gamma, min_history=cfg.min_history)
+    return BayesTerrainEstimator(model, cfg)

@@ -12,22 +12,22 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydantic import Field
 
+from gpmppi.terrain_config import EstimatorConfig
 from schemas import State, TerrainWeights
 from services.convert import state_to_array
 from services.node import Node, NodeSettings
 
 if TYPE_CHECKING:
     from gpmppi.gp.model_file import GPModel
-    from gpmppi.terrain import TerrainEstimator
+    from gpmppi.terrain import BayesTerrainEstimator, TerrainEstimator
 
 
 class Settings(NodeSettings):
     service: str = Field("terrain", description="service name")
     model_file: str | None = Field(None, description="GP model file (None: the shipped model)")
-    history: int = Field(20, ge=1, description="steps H kept for the weight problem")
-    gamma: float = Field(
-        0.1, ge=0, description="L1 weight on changes of the weights between solves (in units of the fit: the mean "
-        "squared velocity residual per step divided by the model's noise variance)"
+    estimator: EstimatorConfig = Field(
+        default_factory=EstimatorConfig, description="the estimator: method ('bayes', the default, or the paper's "
+        "convex problem 'paper') and its parameters (gpmppi.terrain_config.EstimatorConfig)"
     )
     dt: float = Field(0.1, gt=0, description="expected time between states (the GP model's step) [s]")
     dt_tolerance: float = Field(0.5, gt=0, description="skip pairs whose spacing differs from dt by more (fraction)")
@@ -43,7 +43,7 @@ def run(settings: Settings) -> int:
 
     model = load_default_model() if settings.model_file is None else GPModel.load(settings.model_file)
     terrains = list(model.terrains)
-    estimator: TerrainEstimator | None = None
+    estimator: TerrainEstimator | BayesTerrainEstimator | None = None
     with Node(settings) as node:
         out = node.publisher("terrain_weights")
         states = node.subscribe("state", newest_only=False, capacity=64)
@@ -67,7 +67,8 @@ def run(settings: Settings) -> int:
                 continue
             if estimator is None:
                 # up at once with the prior (uniform weights, solver_ok False: what the planner uses without us,
-                # and what a short history gives), then the slow part of the start: cvxpy and the problem
+                # and what a short history gives), then the slow part of the start: cvxpy and the problem (the paper's
+                # method) or the GP predictor
                 out.put(_weights_message(terrains, np.full(len(terrains), 1 / len(terrains)), False, 0.0, pending))
                 node.cycle()
                 estimator = _estimator(model, settings)
@@ -104,10 +105,10 @@ def run(settings: Settings) -> int:
     return 0
 
 
-def _estimator(model: GPModel, settings: Settings) -> TerrainEstimator:
-    from gpmppi.terrain import TerrainEstimator
+def _estimator(model: GPModel, settings: Settings) -> TerrainEstimator | BayesTerrainEstimator:
+    from gpmppi.terrain import make_estimator
 
-    return TerrainEstimator(model, history=settings.history, gamma=settings.gamma)
+    return make_estimator(model, settings.estimator)
 
 
 def _weights_message(

@@ -37,6 +37,7 @@ from gpmppi.scenarios import (
     paper_obstacle_scene,
     square_lane,
 )
+from tools import terrain_cmd
 from tools.choices import ModelName
 
 
@@ -81,6 +82,14 @@ RandomOpt = Annotated[bool, typer.Option("--random-scenes", help="Avoidance: a r
 SetOpt = Annotated[
     list[str] | None,
     typer.Option("--set", help="Planner setting for every model, KEY=VALUE (a PlannerConfig field; repeat)."),
+]
+EstimatorOpt = Annotated[
+    list[str] | None,
+    typer.Option("--estimator", help="Terrain estimator setting, KEY=VALUE (an EstimatorConfig field, e.g. "
+                 "method=bayes; repeat)."),
+]
+OracleOpt = Annotated[
+    bool, typer.Option("--oracle-weights", help="GP-MPPI gets the true terrain's weights instead of estimating them.")
 ]
 SwitchOpt = Annotated[
     list[str] | None, typer.Option("--switch", help="Switch the plant's terrain mid-run: TIME:TERRAIN (repeat).")
@@ -153,7 +162,7 @@ def _parse_overrides(items: list[str] | None) -> tuple[tuple[str, object], ...]:
 def _settings(
     plant: PlantName, plant_file: Path | None, terrain_file: Path | None, gp_model: Path | None, samples: int,
     distance: float | None, quick: bool, latency: float, latency_cycles: int, compensate: bool, noise: bool,
-    overrides: list[str] | None,
+    overrides: list[str] | None, estimator: list[str] | None = None, oracle: bool = False,
 ) -> EvalSettings:
     if plant is PlantName.residual_net and plant_file is None:
         _fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
@@ -170,6 +179,10 @@ def _settings(
             _fail(f"--gp-model {gp_model}: {e}")
     lane_m = distance if distance is not None else (25.0 if quick else 100.0)
     planner_overrides = _parse_overrides(overrides)
+    try:
+        estimator_fields = terrain_cmd.estimator_settings(estimator or [])
+    except ValueError as e:
+        _fail(f"--estimator: {e}")
     return EvalSettings(
         plant=plant.value,  # type: ignore[arg-type]
         plant_file=str(plant_file) if plant_file else None,
@@ -181,6 +194,8 @@ def _settings(
         compensate_latency=compensate,
         sensor_noise=noise,
         planner_overrides=planner_overrides,
+        terrain_estimator=estimator_fields,
+        oracle_weights=oracle,
     )
 
 
@@ -336,10 +351,10 @@ def _run(
     lane_file: list[Path] | None, gp_model: Path | None, quick: bool, as_json: bool, out: Path | None,
     workers: int, samples: int, distance: float | None, latency: float, latency_cycles: int, compensate: bool,
     noise: bool, random_scenes: bool, switch: list[str] | None, overrides: list[str] | None,
-    ray_address: str | None = None,
+    estimator: list[str] | None = None, oracle: bool = False, ray_address: str | None = None,
 ) -> None:
     settings = _settings(plant, plant_file, terrain_file, gp_model, samples, distance, quick, latency,
-                         latency_cycles, compensate, noise, overrides)
+                         latency_cycles, compensate, noise, overrides, estimator, oracle)
     terrains = terrain or _default_terrains(settings)
     if quick and not terrain:
         terrains = terrains[:1]
@@ -369,13 +384,14 @@ def register(app: typer.Typer) -> None:
             quick: QuickOpt = False, as_json: JsonOpt = False, out: OutOpt = None, workers: WorkersOpt = 2,
             samples: SamplesOpt = 1024, distance: DistanceOpt = None, latency: LatencyOpt = 0.0,
             latency_cycles: LatencyCyclesOpt = 0, compensate: CompensateOpt = True, noise: NoiseOpt = True,
-            random_scenes: RandomOpt = False, switch: SwitchOpt = None, set_: SetOpt = None, ray: RayOpt = None,
+            random_scenes: RandomOpt = False, switch: SwitchOpt = None, set_: SetOpt = None,
+            estimator: EstimatorOpt = None, oracle: OracleOpt = False, ray: RayOpt = None,
         ) -> None:
             if kind == "table" and out is None:
                 out = Path("evaluation")
             _run(kind, terrain, model, trials, seed, plant, plant_file, terrain_file, scene_file, lane_file,
                  gp_model, quick, as_json, out, workers, samples, distance, latency, latency_cycles, compensate,
-                 noise, random_scenes, switch, set_, ray)
+                 noise, random_scenes, switch, set_, estimator, oracle, ray)
 
         command.__doc__ = doc
         return command
@@ -383,5 +399,6 @@ def register(app: typer.Typer) -> None:
     ev.command("tracking")(make("tracking", "Lane tracking (circle and square, or --lane-file): RMSE, lane exits."))
     ev.command("avoidance")(make("avoidance", "Obstacle avoidance (the paper's scene or --scene-file): success."))
     ev.command("table")(make("table", "The whole grid (terrains x models x {circle, square, avoidance}) into -o DIR."))
+    terrain_cmd.register(ev)
     app.add_typer(ev, name="evaluate")
 

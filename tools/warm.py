@@ -81,13 +81,13 @@ def _warm_sim(log: Callable[[str], None]) -> None:
 
 def _warm_terrain(log: Callable[[str], None]) -> None:
     from gpmppi.gp.model_file import GPModel, load_default_model
-    from gpmppi.terrain import TerrainEstimator
+    from gpmppi.terrain import make_estimator
     from services.terrain import Settings
 
     t = time.perf_counter()
     settings = Settings()
     model = load_default_model() if settings.model_file is None else GPModel.load(settings.model_file)
-    estimator = TerrainEstimator(model, history=settings.history, gamma=settings.gamma)
+    estimator = make_estimator(model, settings.estimator)
     x = np.array([0.0, 0.0, 0.0, 1.0, 0.1])
     for k in range(estimator.min_history + 1):
         nxt = x + np.array([0.1, 0.0, 0.01, 0.01 * (k % 2), 0.0])

@@ -53,6 +53,8 @@ class EvalSettings:
     compensate_latency: bool = True  # planners plan for the state their command meets (`ClosedLoopConfig`)
     robot_radius: float = 0.0  # collision radius of the robot (0 = point, as the paper scores)
     planner_overrides: tuple[tuple[str, object], ...] = ()  # extra PlannerConfig fields, same for every model
+    terrain_estimator: tuple[tuple[str, object], ...] = ()  # EstimatorConfig fields (gpmppi.terrain), e.g. method
+    oracle_weights: bool = False  # GP-MPPI gets the true terrain's one-hot weights (uniform on an unknown terrain)
 
 
 @dataclass(frozen=True)
@@ -141,6 +143,41 @@ def make_planner(settings: EvalSettings, dynamics: Dynamics, terrain: str, seed:
     return Planner(PlannerConfig(**fields), model)
 
 
+class OracleEstimator:
+    """Stands in for the terrain estimator with the truth: one-hot weights of the terrain under the plant now.
+
+    On a terrain the model was not trained on (sand) it gives uniform weights, as there is no true weight.
+    """
+
+    def __init__(self, plant, terrain_names: list[str]) -> None:
+        self.plant = plant
+        self.names = list(terrain_names)
+
+    def observe(self, state: np.ndarray, command: np.ndarray, next_state: np.ndarray) -> None:
+        pass
+
+    def estimate(self):
+        from gpmppi.terrain import TerrainEstimate
+
+        m = len(self.names)
+        terrain = getattr(self.plant, "terrain", None)
+        if terrain in self.names:
+            w = np.zeros(m)
+            w[self.names.index(terrain)] = 1.0
+            return TerrainEstimate(w, True, 0.0, f"oracle: the plant is on {terrain}")
+        return TerrainEstimate(np.full(m, 1.0 / m), True, 0.0, f"oracle: {terrain!r} is not a model terrain")
+
+
+def make_terrain_estimator(settings: EvalSettings, plant):
+    """The terrain estimator of this evaluation (`settings.terrain_estimator`), or the oracle."""
+    model = cached_gp_model(settings.gp_model)
+    if settings.oracle_weights:
+        return OracleEstimator(plant, list(model.terrains))
+    from gpmppi.terrain import EstimatorConfig, make_estimator
+
+    return make_estimator(model, EstimatorConfig(**dict(settings.terrain_estimator)))
+
+
 def needs_estimator(settings: EvalSettings, job: Job) -> bool:
     """GP-MPPI always adapts its weights; EDD5 does on a terrain it has no parameters for (it takes the top weight)."""
     if job.dynamics == "gp":
@@ -225,12 +262,10 @@ def run_job(job: Job, settings: EvalSettings) -> tuple[list[RunScore], list[Traj
         if problems:
             scores.append(RunScore(seed=seed, status="infeasible", message="; ".join(problems)))
             continue
-        if cfg.adapt_weights:
-            from gpmppi.terrain import TerrainEstimator
-
-            estimator = TerrainEstimator(model)
         planner = make_planner(settings, job.dynamics, job.terrain, seed)
         plant = make_plant(settings, job.terrain, seed)
+        if cfg.adapt_weights:
+            estimator = make_terrain_estimator(settings, plant)
         traj = run_closed_loop(
             planner,
             plant,

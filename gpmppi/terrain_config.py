@@ -1,0 +1,86 @@
+"""Settings of the terrain-weight estimator (gpmppi.terrain): which method and its parameters.
+
+Apart from the estimators so a service can validate its settings without importing the solver (cvxpy).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+SHIPPED_COMMAND_GAINS = Path(__file__).resolve().parent / "data" / "terrain_command_gains.yaml"
+
+
+class EstimatorConfig(BaseModel):
+    """The terrain-weight estimator's settings: which method and its parameters."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    method: Literal["paper", "bayes"] = Field(
+        "bayes", description="'paper': the convex least-squares mixture over the last `history` steps with an L1 "
+        "price on moving the weights; 'bayes': the recursive Bayesian filter over terrains with the GP's predictive "
+        "variances (BayesTerrainEstimator)")
+    history: int = Field(20, ge=1, description="paper: steps H in the weight problem; bayes: steps kept for the "
+                         "reported fit residual only")
+    gamma: float = Field(0.1, ge=0, description="paper: L1 price of moving the weights between solves (in units of "
+                         "the noise-normalised mean squared residual per step)")
+    min_history: int = Field(3, ge=1, description="steps observed before the first estimate (before: the starting "
+                             "weights, ok False)")
+    switch_prob: float = Field(0.01, gt=0, lt=1, description="bayes: prior probability per step that the ground "
+                               "under the robot changes (bounds how sure the filter gets, so how fast it follows a "
+                               "change)")
+    temperature: float = Field(3.0, gt=0, description="bayes: each step's log-likelihood is divided by this (> 1: "
+                               "trust a step less, for residuals correlated over steps or heavier-tailed than the "
+                               "GP's noise)")
+    extra_noise_std: tuple[float, float] = Field(
+        (0.02, 0.04), description="bayes: residual std (v [m/s], omega [rad/s]) added to the GP's predictive spread "
+        "(what the GP's noise leaves out on closed-loop steps); with adapt_noise the starting value of its online fit")
+    variance: Literal["shared", "per_terrain"] = Field(
+        "shared", description="bayes: score every terrain against the same predictive spread (the weighted mean of "
+        "the terrains'), or each against its own")
+    hysteresis: float = Field(
+        0.2, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
+        "the current top terrain's by this much (0: none)")
+    adapt_noise: bool = Field(True, description="bayes: fit the extra residual spread online")
+    command_change: Literal["per_terrain", "online", "none"] = Field(
+        "per_terrain", description="bayes: how each terrain's prediction takes in the change of command since the "
+        "previous step (motor setpoint lag): per-terrain gains fitted offline (`command_gains`), one gain fitted "
+        "online for all terrains, or not at all")
+    command_gains: dict[str, tuple[float, float]] | None = Field(
+        None, description="bayes, command_change per_terrain: per terrain the residual per unit change of command "
+        "(v [m/s per m/s], omega [rad/s per rad/s]); None: the shipped gains (gpmppi/data/terrain_command_gains.yaml)")
+    calibration_steps: float = Field(100.0, ge=2, description="bayes: steps over which the online fits forget")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> EstimatorConfig:
+        if self.min_history > self.history:
+            raise ValueError(f"min_history ({self.min_history}) must be <= history ({self.history})")
+        if any(not (np.isfinite(s) and s >= 0) for s in self.extra_noise_std):
+            raise ValueError(f"extra_noise_std must be two finite numbers >= 0, got {list(self.extra_noise_std)}")
+        return self
+
+
+def load_command_gains(path: Path | str = SHIPPED_COMMAND_GAINS) -> dict[str, tuple[float, float]]:
+    """Per-terrain command-change gains from a YAML file (`gains: {terrain: [g_v, g_omega]}`)."""
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+        gains = {str(k): (float(v[0]), float(v[1])) for k, v in data["gains"].items()}
+    except (OSError, KeyError, TypeError, IndexError, ValueError, yaml.YAMLError) as e:
+        raise ValueError(f"command gains file {path}: expected 'gains: {{terrain: [g_v, g_omega]}}' ({e})") from e
+    if not all(np.isfinite(g).all() for g in gains.values()):
+        raise ValueError(f"command gains file {path}: gains must be finite")
+    return gains
+
+
+def terrain_command_gains(config: EstimatorConfig, terrains: list[str]) -> np.ndarray:
+    """(M, 2) the gains of `terrains` (the model's, in order) from `config.command_gains` or the shipped file."""
+    gains = config.command_gains if config.command_gains is not None else load_command_gains()
+    missing = [t for t in terrains if t not in gains]
+    if missing:
+        raise ValueError(f"command_gains: no gain for terrain(s) {missing} (have {sorted(gains)}); fit them with "
+                         "`gpmppi evaluate terrain-gains`, or set command_change: online")
+    return np.array([gains[t] for t in terrains], dtype=np.float64)

@@ -1,0 +1,201 @@
+"""The Bayesian terrain filter: it identifies the terrain from synthetic histories and from the physics plant's
+transitions on each training terrain, follows a change, splits weight steadily between terrains it cannot tell
+apart, is deterministic, and bad settings fail naming the setting."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from functools import lru_cache
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
+from gpmppi.evaluation.terrain_ident import replay
+from gpmppi.gp.exact import ExactPredictor
+from gpmppi.gp.model_file import GPModel, load_default_model
+from gpmppi.models.dynamic_unicycle import velocity_step_exact
+from gpmppi.mppi.synthetic import synthetic_model
+from gpmppi.terrain import BayesTerrainEstimator, EstimatorConfig, TerrainEstimator, make_estimator
+
+# the synthetic steps have no command-change part (the physics plant's motor lag): no gains for it
+BAYES = EstimatorConfig(method="bayes", command_change="none")
+
+
+@lru_cache(maxsize=1)
+def _model() -> GPModel:
+    return synthetic_model()
+
+
+def _history(model: GPModel, terrain: int, steps: int, seed: int, noise: float, gain: tuple[float, float] = (0, 0)):
+    """Synthetic (state, command, next state) on one terrain: exact nominal step + its GP mean + noise (+ `gain`
+    times the change of command since the previous step)."""
+    pred = ExactPredictor(model)
+    rng = np.random.default_rng(seed)
+    rows = []
+    u_prev = None
+    for _ in range(steps):
+        x = np.array([0.0, 0.0, 0.0, rng.uniform(0, 2), rng.uniform(-2, 2)])
+        u = np.array([rng.uniform(0, 2), rng.uniform(-2, 2)])
+        du = np.zeros(2) if u_prev is None else u - u_prev
+        u_prev = u
+        v1, w1 = velocity_step_exact(model.theta, x[3:4], x[4:5], u[0:1], u[1:2], model.dt)
+        mean, _ = pred.predict(np.array([[u[0], u[1], x[3], x[4]]]), with_var=False)
+        x1 = x.copy()
+        x1[3] = v1[0] + mean[0, 2 * terrain] + gain[0] * du[0] + noise * rng.normal()
+        x1[4] = w1[0] + mean[0, 2 * terrain + 1] + gain[1] * du[1] + noise * rng.normal()
+        rows.append((x, u, x1))
+    return rows
+
+
+@pytest.mark.parametrize("terrain", [0, 1, 2])
+def test_identifies_each_terrain_from_noisy_synthetic_steps(terrain: int) -> None:
+    model = _model()
+    est = make_estimator(model, BAYES)
+    assert isinstance(est, BayesTerrainEstimator)
+    for row in _history(model, terrain, 30, seed=terrain, noise=float(np.sqrt(model.noise.mean()))):
+        est.observe(*row)
+    e = est.estimate()
+    assert e.ok, e.message
+    assert e.weights[terrain] > 0.95
+    assert e.weights.sum() == pytest.approx(1.0) and np.all(e.weights >= 0)
+
+
+def test_per_terrain_command_gains_tell_apart_terrains_whose_means_agree() -> None:
+    model = _model()
+    twin = replace(model, alpha=model.alpha.copy(), chol=model.chol.copy(), lengthscale=model.lengthscale.copy(),
+                   outputscale=model.outputscale.copy(), noise=model.noise.copy(), _grid=None)
+    for a in (twin.alpha, twin.chol, twin.lengthscale, twin.outputscale, twin.noise):
+        a[4:6] = a[2:4]  # tile's GP is grass's: only the response to command changes differs
+    gains = {"asphalt": (-0.01, -0.01), "grass": (-0.04, -0.02), "tile": (-0.07, -0.04)}
+    cfg = EstimatorConfig(command_change="per_terrain", command_gains=gains)
+    noise = float(np.sqrt(model.noise.mean()))
+    for terrain in (1, 2):
+        est = make_estimator(twin, cfg)
+        for row in _history(twin, terrain, 60, seed=9, noise=noise, gain=gains[twin.terrains[terrain]]):
+            est.observe(*row)
+        assert est.estimate().weights[terrain] > 0.9
+    blind = make_estimator(twin, BAYES)  # without the gains the two are one terrain to the filter
+    for row in _history(twin, 2, 60, seed=9, noise=noise, gain=gains["tile"]):
+        blind.observe(*row)
+    w = blind.estimate().weights
+    assert abs(w[1] - w[2]) < 1e-5
+
+
+def test_missing_command_gains_fail_naming_the_terrain() -> None:
+    cfg = EstimatorConfig(command_gains={"asphalt": (0.0, 0.0)})
+    with pytest.raises(ValueError, match=r"command_gains: no gain for terrain\(s\) \['grass', 'tile'\]"):
+        make_estimator(_model(), cfg)
+
+
+def test_follows_a_change_of_terrain_within_twenty_steps() -> None:
+    model = _model()
+    est = make_estimator(model, BAYES)
+    noise = float(np.sqrt(model.noise.mean()))
+    for row in _history(model, 0, 100, seed=3, noise=noise):
+        est.observe(*row)
+    assert est.estimate().weights[0] > 0.95
+    after = []
+    for row in _history(model, 2, 20, seed=4, noise=noise):
+        est.observe(*row)
+        after.append(est.estimate().weights[2])
+    assert max(after) > 0.5
+    assert int(np.argmax(np.asarray(after) > 0.5)) < 20
+
+
+def test_terrains_it_cannot_tell_apart_share_the_weight_steadily() -> None:
+    model = _model()
+    # a model whose third terrain is a copy of the second: no step can tell them apart
+    twin = replace(model, alpha=model.alpha.copy(), chol=model.chol.copy(), lengthscale=model.lengthscale.copy(),
+                   outputscale=model.outputscale.copy(), noise=model.noise.copy(), _grid=None)
+    for a in (twin.alpha, twin.chol, twin.lengthscale, twin.outputscale, twin.noise):
+        a[4:6] = a[2:4]
+    est = make_estimator(twin, BAYES)
+    weights = []
+    for row in _history(twin, 1, 60, seed=5, noise=float(np.sqrt(model.noise.mean()))):
+        est.observe(*row)
+        weights.append(est.estimate().weights)
+    w = np.asarray(weights)[10:]
+    np.testing.assert_allclose(w[:, 1], w[:, 2], atol=1e-5)  # equal but for the leader's 1e-6 edge
+    assert np.all(w[:, 1] + w[:, 2] > 0.95)
+    assert len(set(np.argmax(w, axis=1))) == 1  # and the top terrain stays put
+
+
+def test_hysteresis_keeps_the_leader_until_a_challenger_is_clearly_ahead() -> None:
+    model = _model()
+    est = make_estimator(model, BAYES.model_copy(update={"hysteresis": 0.3}))
+    est._leader = 0
+    held = est._published(np.array([0.35, 0.45, 0.2]))
+    assert np.argmax(held) == 0 and held.sum() == pytest.approx(1.0) and held[2] == 0.2
+    np.testing.assert_allclose(held[:2], [0.4, 0.4], atol=1e-5)
+    taken = est._published(np.array([0.2, 0.6, 0.2]))  # 0.4 ahead: the lead changes, the posterior is published
+    np.testing.assert_array_equal(taken, [0.2, 0.6, 0.2])
+    assert est._leader == 1
+
+
+def test_same_steps_give_the_same_weights() -> None:
+    model = _model()
+    rows = _history(model, 1, 40, seed=6, noise=0.02)
+    runs = []
+    for _ in range(2):
+        est = make_estimator(model, BAYES)
+        out = []
+        for row in rows:
+            est.observe(*row)
+            out.append(est.estimate().weights)
+        runs.append(np.asarray(out))
+    np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_short_history_keeps_the_starting_weights() -> None:
+    model = _model()
+    est = make_estimator(model, BAYES.model_copy(update={"min_history": 3}))
+    est.reset(np.array([0.2, 0.3, 0.5]))
+    for row in _history(model, 0, 2, seed=7, noise=0.0):
+        est.observe(*row)
+    e = est.estimate()
+    assert not e.ok and "too short" in e.message
+    np.testing.assert_array_equal(e.weights, [0.2, 0.3, 0.5])
+
+
+@pytest.mark.parametrize(
+    ("fields", "named"),
+    [({"method": "lstsq"}, "method"), ({"switch_prob": 0.0}, "switch_prob"), ({"temperature": -1}, "temperature"),
+     ({"history": 5, "min_history": 6}, "min_history"), ({"extra_noise_std": (0.01, -1.0)}, "extra_noise_std"),
+     ({"gamma": -0.1}, "gamma"), ({"forgetting": 0.9}, "forgetting"), ({"command_change": "yes"}, "command_change"),
+     ({"hysteresis": 1.0}, "hysteresis"), ({"variance": "own"}, "variance")],
+)
+def test_bad_settings_fail_naming_the_setting(fields: dict, named: str) -> None:
+    with pytest.raises(ValidationError, match=named):
+        EstimatorConfig(**fields)
+
+
+def test_the_paper_method_stays_available() -> None:
+    est = make_estimator(_model(), EstimatorConfig(method="paper", history=30, gamma=0.5))
+    assert isinstance(est, TerrainEstimator) and est.history == 30 and est.gamma == 0.5
+
+
+@lru_cache(maxsize=3)
+def _closed_loop_steps(terrain: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
+    """A GP-MPPI closed loop on the physics plant (the evaluation's runner, 20 m of the circle lane, 256 samples):
+    its times, measured states, commands and terrains."""
+    from gpmppi.evaluation.runner import EvalSettings, Job, run_job
+    from gpmppi.scenarios import circle_lane
+
+    settings = EvalSettings(samples=256, lane_distance_m=20.0)
+    _, trajs = run_job(Job("tracking", circle_lane(), terrain, "gp", (3,), record=True, label="circle"), settings)
+    tr = trajs[0]
+    return tr.times, tr.measured_states, tr.commands, tuple(tr.terrains)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("terrain", ["tile", "asphalt", "grass"])
+def test_recorded_physics_plant_transitions_identify_the_training_terrain(terrain: str) -> None:
+    model = load_default_model()
+    times, states, cmds, driven = _closed_loop_steps(terrain)
+    weights = replay(make_estimator(model), states, cmds)
+    assert true_weight_mean(times, weights, list(driven), list(model.terrains)) >= 0.8
+    assert weight_switches_per_min(times, weights) <= 6.0  # a 20 m run lasts ~15 s: at most one change of mind
+    again = replay(make_estimator(model), states, cmds)
+    np.testing.assert_array_equal(weights, again)  # the same steps give the same weights

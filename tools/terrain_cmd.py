@@ -1,0 +1,289 @@
+"""`gpmppi evaluate terrain-separability`: can the trained terrains be told apart where the robot drives?
+
+Drives GP-MPPI closed loops on the physics plant (the evaluation's own runner), records each run's measured
+transitions, then measures on them how far apart the terrains' GP predictions are against the predictive spread,
+the log-likelihood ratio of the true terrain against each other over sliding windows, and the confusion of the
+argmax-likelihood terrain (`gpmppi.evaluation.terrain_ident`), and replays terrain estimators (the paper's convex
+problem, the Bayesian filter, variants given by --estimator) on the same recorded transitions, scoring them with the
+evaluation's `true_weight_mean` and `weight_switches_per_min`.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+import yaml
+from rich.console import Console
+
+SCENARIOS = ("circle", "square", "avoidance")
+DEFAULT_ESTIMATORS = (
+    "paper",
+    "paper:history=50",
+    "paper:gamma=0",
+    "paper:gamma=1",
+    "bayes",
+    "bayes:command_change=online",
+)
+
+
+def _scenario(name: str):
+    from gpmppi.scenarios import circle_lane, paper_obstacle_scene, square_lane
+
+    return {"circle": circle_lane, "square": square_lane, "avoidance": paper_obstacle_scene}[name]()
+
+
+def _record(scenario: str, terrain: str, seed: int, distance: float, switches: tuple, estimator: str) -> dict:
+    from gpmppi.evaluation.runner import EvalSettings, Job, run_job
+
+    sc = _scenario(scenario)
+    kind = "avoidance" if scenario == "avoidance" else "tracking"
+    settings = EvalSettings(lane_distance_m=distance, terrain_estimator=_estimator_fields(estimator))
+    job = Job(kind, sc, terrain, "gp", (seed,), True, switches, scenario)  # type: ignore[arg-type]
+    scores, trajs = run_job(job, settings)
+    tr = trajs[0]
+    return {"times": tr.times, "states": tr.measured_states, "commands": tr.commands, "weights": tr.weights,
+            "terrains": np.asarray(tr.terrains), "rmse_mm": scores[0].rmse_mm,
+            "true_weight_mean": np.nan if scores[0].true_weight_mean is None else scores[0].true_weight_mean,
+            "weight_switches_per_min": scores[0].weight_switches_per_min}
+
+
+def estimator_settings(items: list[str]) -> tuple[tuple[str, object], ...]:
+    """KEY=VALUE items (EstimatorConfig fields) -> validated ((key, value), ...); ValueError naming what is wrong."""
+    from pydantic import ValidationError
+
+    from gpmppi.terrain import EstimatorConfig
+
+    out: dict[str, object] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or key not in EstimatorConfig.model_fields:
+            raise ValueError(f"{item!r}: expected KEY=VALUE, KEY one of {sorted(EstimatorConfig.model_fields)}")
+        parsed = yaml.safe_load(value)
+        out[key] = tuple(parsed) if isinstance(parsed, list) else parsed
+    try:
+        EstimatorConfig(**out)
+    except ValidationError as e:
+        err = e.errors()[0]
+        raise ValueError(f"{'.'.join(str(x) for x in err['loc']) or 'settings'}: {err['msg']}") from None
+    return tuple(out.items())
+
+
+def _estimator_fields(spec: str) -> tuple[tuple[str, object], ...]:
+    """'bayes:switch_prob=0.01,temperature=2' -> (("method", "bayes"), ("switch_prob", 0.01), ...)."""
+    method, _, rest = spec.partition(":")
+    try:
+        return estimator_settings([f"method={method}"] + [i for i in rest.split(",") if i])
+    except ValueError as e:
+        raise typer.BadParameter(f"--estimator {spec!r}: {e}") from None
+
+
+def _replay_scores(model, rec: dict, spec: str) -> dict:
+    from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
+    from gpmppi.evaluation.terrain_ident import replay, top_changes
+    from gpmppi.terrain import EstimatorConfig, make_estimator
+
+    est = make_estimator(model, EstimatorConfig(**dict(_estimator_fields(spec))))
+    w = replay(est, rec["states"], rec["commands"])
+    terrains = [str(t) for t in rec["terrains"]]
+    return {"true_weight_mean": true_weight_mean(rec["times"], w, terrains, list(model.terrains)),
+            "weight_switches_per_min": weight_switches_per_min(rec["times"], w),
+            "top_changes_after_3s": top_changes(rec["times"], w)}
+
+
+def _fmt(x) -> str:
+    return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.2f}"
+
+
+def register(ev: typer.Typer) -> None:
+    """Add `gpmppi evaluate terrain-separability` and `terrain-gains` to the evaluate group."""
+
+    @ev.command("terrain-gains")
+    def gains_cmd(
+        distance: Annotated[float, typer.Option("--distance", min=10.0, help="Excitation distance per terrain in m.")
+                            ] = 400.0,
+        seed: Annotated[int, typer.Option("--seed", help="Excitation and plant seed.")] = 5,
+        out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the YAML here.")] = None,
+    ) -> None:
+        """Fit the terrain estimator's per-terrain command-change gains on excitation drives of the physics plant.
+
+        Drives each terrain of the GP model with the training data's excitation commands (not a controller), and
+        fits per output the least-squares gain of that terrain's GP residual on the change of command since the
+        previous step (`gpmppi.evaluation.terrain_ident.fit_command_gain`).
+        """
+        from gpmppi.evaluation.runner import cached_gp_model, cached_terrain_set
+        from gpmppi.evaluation.terrain_ident import fit_command_gain
+        from gpmppi.plant.excitation import drive
+        from gpmppi.plant.physics import PhysicsPlant
+
+        model = cached_gp_model(None)
+        gains = {}
+        for terrain in model.terrains:
+            run = drive(PhysicsPlant(cached_terrain_set(None), terrain, seed=seed), terrain, distance, seed=seed)
+            # command[k] is applied over [t_k, t_k+1): the last one has no next state
+            g = fit_command_gain(model, run.state, run.command[:-1], terrain)
+            gains[terrain] = [round(float(x), 4) for x in g]
+        command = "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        text = ("# Per-terrain command-change gains of the terrain estimator (gpmppi/terrain.py, command_change:\n"
+                "# per_terrain): the GP residual per unit change of command since the previous step, [v, omega].\n"
+                f"# Written by: {command}\n" + yaml.safe_dump({"version": 1, "gains": gains}, sort_keys=False))
+        if out is not None:
+            out.write_text(text)
+        print(text, end="")
+
+    @ev.command("terrain-separability")
+    def separability_cmd(
+        terrain: Annotated[list[str] | None, typer.Option("--terrain", "-t", help="Terrain(s) (repeat).")] = None,
+        scenario: Annotated[list[str] | None, typer.Option("--scenario", help="circle, square, avoidance.")] = None,
+        seed: Annotated[int, typer.Option("--seed", help="Planner and plant seed.")] = 0,
+        distance: Annotated[float, typer.Option("--distance", min=1.0, help="Lane distance in m.")] = 40.0,
+        record_dir: Annotated[Path, typer.Option("--record-dir", help="Recordings (reused when present).")] = Path(
+            "terrain_runs"),
+        estimator: Annotated[list[str] | None, typer.Option(
+            "--estimator", help="Estimators to replay: METHOD[:KEY=VALUE,...] (repeat).")] = None,
+        drive_with: Annotated[str, typer.Option(
+            "--drive-with", help="Estimator the recorded closed loops run with.")] = "paper",
+        window: Annotated[list[int] | None, typer.Option("--window", help="Window lengths in steps (repeat).")] = None,
+        out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the JSON result here.")] = None,
+        md: Annotated[Path | None, typer.Option("--markdown", help="Write Markdown tables here.")] = None,
+        switch: Annotated[list[str] | None, typer.Option(
+            "--switch", help="Switch the plant's terrain mid-run: TIME:TERRAIN (repeat).")] = None,
+    ) -> None:
+        """Record closed loops, measure terrain separability on them and replay estimators (see the module doc)."""
+        from gpmppi.evaluation.runner import cached_gp_model
+        from gpmppi.evaluation.terrain_ident import (
+            Transitions,
+            calibrated,
+            separability,
+            switch_response,
+            top_changes,
+            transitions,
+        )
+
+        console = Console(stderr=True)
+        model = cached_gp_model(None)
+        names = list(model.terrains)
+        terrains = terrain or names
+        scenarios = scenario or list(SCENARIOS)
+        for s in scenarios:
+            if s not in SCENARIOS:
+                raise typer.BadParameter(f"--scenario {s!r}: one of {SCENARIOS}")
+        windows = tuple(window or (1, 10, 20, 50, 100))
+        specs = list(estimator or DEFAULT_ESTIMATORS)
+        switches = tuple((float(t), name) for t, _, name in (item.partition(":") for item in switch or []))
+        tag = "".join(f"_to{name}at{t:g}" for t, name in switches)
+        record_dir.mkdir(parents=True, exist_ok=True)
+        recs: dict[str, dict] = {}
+        t0 = time.perf_counter()
+        for s in scenarios:
+            for t in terrains:
+                f = record_dir / f"{s}_{t}{tag}_seed{seed}_{distance:g}m_{drive_with.replace(':', '_')}.npz"
+                if not f.is_file():
+                    console.print(f"recording {s} on {t} ...")
+                    np.savez(f, **_record(s, t, seed, distance, switches, drive_with))
+                recs[f"{s}/{t}"] = dict(np.load(f))
+        from gpmppi.terrain_config import EstimatorConfig, terrain_command_gains
+
+        gains = terrain_command_gains(EstimatorConfig(), names)
+        result: dict = {"command": "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "runs": {}}
+        parts = []
+        for key, rec in recs.items():
+            terr = [str(x) for x in rec["terrains"]]
+            tr = transitions(model, rec["states"], rec["commands"], terr)
+            du = np.diff(rec["commands"], axis=0, prepend=rec["commands"][:1])
+            known = [t in names for t in terr]
+            parts.append((key, tr, du, all(known)))
+            result["runs"][key] = {
+                "steps": len(terr), "closed_loop": {k: float(rec[k]) for k in (
+                    "rmse_mm", "true_weight_mean", "weight_switches_per_min")},
+                "switch_response": switch_response(rec["times"], rec["weights"], terr, names),
+                "closed_loop_top_changes_after_3s": top_changes(rec["times"], rec["weights"]),
+                "replay": {spec: _replay_scores(model, rec, spec) for spec in specs},
+            }
+        # pooled over runs: a run's windows never straddle into the next (its terrain label carries the run); runs
+        # on a terrain the model does not know are left out
+        for s_name in sorted({k.split("/")[0] for k in recs} | {"all"}):
+            sel = [(tr, du) for k, tr, du, ok in parts if ok and (s_name == "all" or k.startswith(s_name + "/"))]
+            if not sel:
+                continue
+            pooled = Transitions(np.concatenate([p.y for p, _ in sel]), np.concatenate([p.mean for p, _ in sel]),
+                                 np.concatenate([p.var for p, _ in sel]), sum((p.terrain for p, _ in sel), []),
+                                 np.concatenate([np.full(len(p.terrain), i) for i, (p, _) in enumerate(sel)]))
+            du_all = np.concatenate([du for _, du in sel])
+            result.setdefault("separability", {})[s_name] = separability(pooled, names, windows, du_all)
+            result.setdefault("separability_calibrated", {})[s_name] = separability(
+                calibrated(pooled, du_all, names), names, windows)
+            result.setdefault("separability_terrain_gains", {})[s_name] = separability(
+                calibrated(pooled, du_all, names, gains), names, windows)
+        result["wall_time_s"] = round(time.perf_counter() - t0, 1)
+        text = json.dumps(result, indent=1, default=float)
+        if out is not None:
+            out.write_text(text)
+        if md is not None:
+            md.write_text(markdown(json.loads(text), names))
+        print(text)
+        for key, run in result["runs"].items():
+            row = "  ".join(f"{spec}: {_fmt(r['true_weight_mean'])}/{_fmt(r['weight_switches_per_min'])}"
+                            for spec, r in run["replay"].items())
+            console.print(f"{key}: closed loop {_fmt(run['closed_loop']['true_weight_mean'])}/"
+                          f"{_fmt(run['closed_loop']['weight_switches_per_min'])}; replay {row}")
+
+
+def markdown(result: dict, names: list[str]) -> str:
+    """The result as Markdown tables: runs (closed loop and replays), calibration, pairs, confusion matrices."""
+    lines = [f"`{result['command']}`", ""]
+    specs = list(next(iter(result["runs"].values()))["replay"]) if result["runs"] else []
+    lines += ["Cells: true-terrain weight / weight switches per minute (top-terrain changes after the first 3 s).", "",
+              "| run | steps | closed loop: RMSE [mm] / true weight / switches [/min] | "
+              + " | ".join(f"replay `{s}`" for s in specs) + " |",
+              "|---|---|---|" + "---|" * len(specs)]
+    for key, run in result["runs"].items():
+        cl = run["closed_loop"]
+        cells = [f"{_fmt(r['true_weight_mean'])} / {_fmt(r['weight_switches_per_min'])} "
+                 f"({r.get('top_changes_after_3s', '-')})" for r in run["replay"].values()]
+        lines.append(f"| {key} | {run['steps']} | {_fmt(cl['rmse_mm'])} / {_fmt(cl['true_weight_mean'])} / "
+                     f"{_fmt(cl['weight_switches_per_min'])} ({run.get('closed_loop_top_changes_after_3s', '-')}) | "
+                     + " | ".join(cells) + " |")
+        for sw in run.get("switch_response", []):
+            lines.append(f"|  switch at {sw['at_s']:.1f} s {sw['from']} -> {sw['to']}: weight > 0.5 after "
+                         f"{_fmt(sw['seconds'])} s | | | " + " | " * len(specs))
+    scopes = [(f"{scope}, GP variance as trained", sep) for scope, sep in result.get("separability", {}).items()]
+    scopes += [(f"{scope}, calibrated (one command-change gain for all terrains removed, spread fitted)", sep)
+               for scope, sep in result.get("separability_calibrated", {}).items()]
+    scopes += [(f"{scope}, each terrain's shipped command-change gain in its prediction, spread fitted", sep)
+               for scope, sep in result.get("separability_terrain_gains", {}).items()]
+    for scope, sep in scopes:
+        lines += ["", f"**{scope}**", "", "| true terrain | steps | mean z² v / ω | residual std v, ω | GP predictive "
+                  "std v, ω | corr. with command change v, ω | gain on it v, ω | residual std without it v, ω |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for t, c in sep["calibration"].items():
+            extra = " | | "
+            if "command_change_gain" in c:
+                extra = " | ".join(f"{c[k][0]:+.3f}, {c[k][1]:+.3f}" if k != "residual_std_after_gain" else
+                                   f"{c[k][0]:.3f}, {c[k][1]:.3f}"
+                                   for k in ("command_change_corr", "command_change_gain", "residual_std_after_gain"))
+            lines.append(f"| {t} | {c['steps']} | {c['z2_v']:.1f} / {c['z2_omega']:.1f} | "
+                         f"{c['residual_std'][0]:.3f}, {c['residual_std'][1]:.3f} | "
+                         f"{c['predicted_std'][0]:.3f}, {c['predicted_std'][1]:.3f} | {extra} |")
+        wins = sorted({int(w) for p in sep["pairs"].values() for w in p["true_wins_fraction"]})
+        lines += ["", "| true vs other | median d' v / ω | LLR per step mean ± std [nats] | "
+                  + " | ".join(f"true wins, W={w}" for w in wins) + " |", "|---|---|---|" + "---|" * len(wins)]
+        for pair, p in sep["pairs"].items():
+            frac = p["true_wins_fraction"]
+            cells = [_fmt(frac.get(str(w), frac.get(w))) for w in wins]
+            name = pair.replace("|", " vs ")
+            lines.append(f"| {name} | {p['dprime_v_median']:.2f} / {p['dprime_omega_median']:.2f} | "
+                         f"{p['llr_per_step_mean']:+.2f} ± {p['llr_per_step_std']:.2f} | " + " | ".join(cells) + " |")
+        for label, key in (("log-likelihood (GP mean and variance)", "confusion_loglik"),
+                           ("squared error (the paper's fit, no variance)", "confusion_sq_error")):
+            lines += ["", f"Confusion, argmax {label}; rows true, columns chosen ({', '.join(names)}):", ""]
+            for w, mat in sep[key].items():
+                rows = "; ".join(f"{names[i]}: {row}" for i, row in enumerate(mat))
+                lines.append(f"- W={w}: {rows}")
+    return "\n".join(lines) + "\n"
