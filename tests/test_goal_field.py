@@ -96,3 +96,33 @@ def test_goal_term_selects_straight_line_or_field() -> None:
     assert goal_term(w, g.field, g.origin, g.inv_cell, goal, *pocket, 2.0) == pytest.approx(straight)
     w[K_GOAL_GEODESIC] = 1.0
     assert goal_term(w, g.field, g.origin, g.inv_cell, goal, *pocket, 2.0) == pytest.approx(2.0 * _d(g, *pocket))
+
+
+def test_a_planners_plans_do_not_depend_on_fields_other_planners_built() -> None:
+    """A fresh planner plans the same whatever another planner of the process planned the same scene from before
+    (the shared field cache once kept the first caller's extent, so plans depended on the process's history)."""
+    from gpmppi.mppi import goal_field
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.mppi.recent import Recent
+    from gpmppi.mppi.synthetic import synthetic_model
+    from gpmppi.scenarios import paper_obstacle_scene
+
+    sc = paper_obstacle_scene()
+    cfg = PlannerConfig(dynamics="unicycle", backend="cpu", samples=64, seed=2)
+    model = synthetic_model()
+
+    def plans() -> list[bytes]:
+        p, x, out = Planner(cfg, model), sc.start.copy(), []
+        for _ in range(3):
+            r = p.plan(x, sc.task, None)
+            out.append(r.controls.tobytes() + np.float64(r.cost).tobytes())
+            x = r.states[1].copy()
+        return out
+
+    goal_field._FIELDS = Recent()  # as in a fresh process
+    alone = plans()
+    goal_field._FIELDS = Recent()
+    elsewhere = sc.start.copy()
+    elsewhere[:2] += np.array([-6.0, 4.0])  # another planner first plans the scene from far off
+    Planner(cfg, model).plan(elsewhere, sc.task, None)
+    assert plans() == alone

@@ -158,11 +158,12 @@ _FIELDS: Recent[GoalField] = Recent()
 def cached_goal_field(
     goal: np.ndarray, circles: np.ndarray, extent_points: np.ndarray, margin: float, cell: float = 0.1
 ) -> GoalField:
-    """`build_goal_field`, remembered for the last few scenes (keyed by goal, circles, margin and cell only:
-    the extent points of the first call stand)."""
+    """`build_goal_field`, remembered for the last few (scene, extent) pairs: keyed by goal, circles, extent points,
+    margin and cell, so that a field is the same whatever was built before it in this process."""
     g = np.ascontiguousarray(goal, dtype=np.float64)
     c = np.ascontiguousarray(circles, dtype=np.float64).reshape(-1, 3)
-    key = (g.tobytes(), c.shape, c.tobytes(), float(margin), float(cell))
+    e = np.ascontiguousarray(extent_points, dtype=np.float64).reshape(-1, 2)
+    key = (g.tobytes(), c.shape, c.tobytes(), e.tobytes(), float(margin), float(cell))
     return _FIELDS.get(key, lambda: build_goal_field(g, c, extent_points, margin, cell))
 
 

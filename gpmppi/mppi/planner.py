@@ -127,6 +127,9 @@ class Planner:
                                 (c.horizon, 1))
         self._last_control: np.ndarray | None = None
         self._iteration = 0
+        # the scene whose goal field this planner uses, and the position it first planned that scene from
+        self._goal_scene: bytes | None = None
+        self._goal_extent = np.zeros((1, 2))
 
     # ---------------------------------------------------------------- inputs
     def _check_inputs(self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None) -> tuple:
@@ -185,7 +188,9 @@ class Planner:
         """The geodesic goal field of the task's scene (built once per scene; None for straight-line distance).
 
         Circles are the obstacles grown by the robot radius; the grid covers the scene and the robot's
-        position when the scene was first seen, plus the distance a horizon can drive.
+        position when this planner first planned the scene (since its last `reset`), plus the distance a horizon
+        can drive. That position is part of the shared cache's key: a field another planner of the process built
+        from elsewhere covers another grid, and its interpolated distances (so the plans) differ in the last bits.
         """
         c = self.config
         if c.goal_distance != "geodesic":
@@ -193,7 +198,10 @@ class Planner:
         circles = task.obstacles.copy()
         circles[:, 2] += c.robot_radius
         reach = c.horizon * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
-        return cached_goal_field(task.goal, circles, x[None, :2], margin=min(reach, 10.0), cell=c.goal_cell)
+        scene = task.goal.tobytes() + circles.tobytes()
+        if scene != self._goal_scene:
+            self._goal_scene, self._goal_extent = scene, x[None, :2].copy()
+        return cached_goal_field(task.goal, circles, self._goal_extent, margin=min(reach, 10.0), cell=c.goal_cell)
 
     def _terrain_setup(self, w: np.ndarray) -> tuple[ModelBundle, float]:
         """Collapse the grid table when the weights changed; pick the EDD5 terrain. Returns (the model, ms)."""
