@@ -495,7 +495,7 @@ def test_ros2_identity_shares_the_router_but_cannot_command_the_base(tmp_path: P
             time.sleep(0.01)
         assert wait_for(lambda: (egress.put(cmd_vel, b"egress"), b"egress" in at_base.payloads())[1], 10.0)
         assert wait_for(lambda: (base_driver.put(odom, b"odom"), b"odom" in at_ingress.payloads())[1], 10.0)
-        assert wait_for(lambda: bool(graph), 5.0)
+        assert wait_for(lambda: bool(graph), 10.0)
         time.sleep(0.3)
         assert b"teleop" not in at_base.payloads() and at_egress.got == []
     finally:
