@@ -488,14 +488,21 @@ def test_ros2_identity_shares_the_router_but_cannot_command_the_base(tmp_path: P
         at_base, at_ingress, at_egress = Inbox(base_driver, cmd_vel), Inbox(ingress, odom), Inbox(egress, f"{P}/cmd")
         graph: list[str] = []
         base_driver.liveliness().declare_subscriber("@ros2_lv/**", lambda x: graph.append(str(x.key_expr)))
-        teleop.liveliness().declare_token("@ros2_lv/0/teleop/NN/%/%/teleop")  # the ROS graph still works
+        tokens = [teleop.liveliness().declare_token("@ros2_lv/0/teleop/NN/%/%/teleop")]  # the ROS graph still works
         for _ in range(10):
             teleop.put(cmd_vel, b"teleop")  # only egress commands the base
             teleop.put(f"{P}/cmd", _cmd(2.0))  # and no ROS node puts on gpmppi keys
             time.sleep(0.01)
         assert wait_for(lambda: (egress.put(cmd_vel, b"egress"), b"egress" in at_base.payloads())[1], 10.0)
         assert wait_for(lambda: (base_driver.put(odom, b"odom"), b"odom" in at_ingress.payloads())[1], 10.0)
-        assert wait_for(lambda: bool(graph), 10.0)
+        # a token declared before the subscription reached the router is not replayed to it: declare another
+        # (same node, next id) until one is seen
+        def seen() -> bool:
+            if not graph:
+                tokens.append(teleop.liveliness().declare_token(f"@ros2_lv/0/teleop/N{len(tokens)}/%/%/teleop"))
+            return bool(graph)
+
+        assert wait_for(seen, 10.0)
         time.sleep(0.3)
         assert b"teleop" not in at_base.payloads() and at_egress.got == []
     finally:
