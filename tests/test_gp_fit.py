@@ -205,3 +205,34 @@ def test_paper_data_fit_matches_the_papers_own(jackal: Path, seed: int) -> None:
             assert f.rmse_gp[o] <= f.rmse_nominal[o], where
             assert f.rmse_gp[o] <= 1.05 * rmse, where
             assert f.nll[o] <= nll + 0.1, where
+
+
+@pytest.mark.parametrize(
+    ("test_terrains", "message"),
+    [(["Tile"], "no residual columns for ['sand']"),
+     (["Sand", "Tile"], "terrains ['tile'] were not trained")],
+)
+def test_test_file_with_other_terrains_is_refused(tmp_path: Path, theta_file: Path, test_terrains: list[str],
+                                                   message: str) -> None:
+    rng = np.random.default_rng(4)
+    x = rng.uniform(LO, HI, (30, 4))
+    train = _write_csv(tmp_path / "train.csv", x, {"Sand": rng.normal(0, 0.01, (30, 2))})
+    test = _write_csv(tmp_path / "test.csv", x, {t: rng.normal(0, 0.01, (30, 2)) for t in test_terrains})
+    out = tmp_path / "m.npz"
+    result = runner.invoke(app, ["train", str(train), "--theta", str(theta_file), "--test-data", str(test),
+                                 "--iters", "5", "-o", str(out)])
+    text = " ".join(result.output.split())
+    assert result.exit_code == 2 and message in text and "test.csv" in text, result.output
+    assert not out.exists()
+
+
+def test_test_file_missing_an_input_column_is_refused(tmp_path: Path, theta_file: Path) -> None:
+    rng = np.random.default_rng(5)
+    x = rng.uniform(LO, HI, (30, 4))
+    train = _write_csv(tmp_path / "train.csv", x, {"Sand": rng.normal(0, 0.01, (30, 2))})
+    test = tmp_path / "test.csv"
+    np.savetxt(test, np.column_stack([x[:, :3], rng.normal(0, 0.01, (30, 2))]), delimiter=",", comments="",
+               header="cmd_lin,cmd_ang,curr_lin,Sand_Lin_Error,Sand_Ang_Error")
+    result = runner.invoke(app, ["train", str(train), "--theta", str(theta_file), "--test-data", str(test),
+                                 "-o", str(tmp_path / "m.npz")])
+    assert result.exit_code == 2 and "missing input column 'curr_ang'" in " ".join(result.output.split())

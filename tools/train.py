@@ -322,8 +322,15 @@ def register(app: typer.Typer) -> None:
                 cols = read_csv_columns(test_data)
                 tx, tres = csv_inputs(cols, test_data), csv_residuals(cols, test_data)
                 missing = [t for t in sets if t not in tres]
-                if missing:
-                    raise DataError(f"{test_data}: no residual columns for terrains {missing}")
+                extra = [] if terrain else sorted(t for t in tres if t not in sets)
+                if missing or extra:
+                    raise DataError(
+                        f"{test_data}: its terrains {sorted(tres)} differ from the training data's {sorted(sets)}: "
+                        + (f"no residual columns for {missing}" if missing else "")
+                        + ("; " if missing and extra else "")
+                        + (f"terrains {extra} were not trained (pass --terrain to choose those to train and test)"
+                           if extra else "")
+                    )
                 test_sets = {t: Transitions(tx, tres[t]) for t in sets}
             hold = holdout if holdout is not None else (0.0 if test_sets is not None else 0.2)
             model, report = train_model(
