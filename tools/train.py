@@ -295,7 +295,8 @@ def register(app: typer.Typer) -> None:
         test_data: Annotated[Path | None, typer.Option(help="residual CSV to report the fit on")] = None,
         holdout: Annotated[float | None, typer.Option(
             help="fraction held out of training for the fit report and its warnings "
-                 "(default: 0.2; 0 with --test-data, which is then the held-out set)")] = None,
+                 "(default: 0.2; 0 with --test-data, which is then the held-out set, and with --hyperparameters)")
+        ] = None,
         points: Annotated[int, typer.Option(help="number of shared GP training inputs")] = 300,
         iters: Annotated[int, typer.Option(help="Adam iterations of the hyperparameter fit")] = 200,
         seed: Annotated[int, typer.Option(help="seed of k-means, the holdout split and the fit")] = 0,
@@ -332,7 +333,8 @@ def register(app: typer.Typer) -> None:
                            if extra else "")
                     )
                 test_sets = {t: Transitions(tx, tres[t]) for t in sets}
-            hold = holdout if holdout is not None else (0.0 if test_sets is not None else 0.2)
+            # given hyperparameters (the paper's procedure) condition on all the data, as the paper did
+            hold = holdout if holdout is not None else (0.0 if test_sets is not None or hyperparameters else 0.2)
             model, report = train_model(
                 sets, th, ed, dt=dt, points=points, iters=iters, seed=seed,
                 hyperparameters=_load_json(hyperparameters, "hyperparameter"), holdout=hold, test_sets=test_sets,
