@@ -16,6 +16,7 @@ kernels are not in numba's cache yet, the log says so before compiling them, wit
 
 from __future__ import annotations
 
+import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -105,6 +106,15 @@ def load_model(model_file: str | None) -> GPModel:
     return load_default_model() if model_file is None else GPModel.load(model_file)
 
 
+def log_model_fit(log: logging.Logger | logging.LoggerAdapter, model: GPModel, model_file: str | None) -> int:
+    """Repeat the model file's training warnings (a task whose GP was worse than the nominal model on held-out
+    data) in the start-up log; the number of warnings."""
+    lines = model.fit_warnings()
+    for line in lines:
+        log.warning("model %s: %s", model_file or "(shipped default)", line)
+    return len(lines)
+
+
 def plan_message(
     result: PlanResult, stamp_ns: int, task: LaneTask | GoalTask, n_samples: int,
     extra_timings_ms: dict[str, float] | None = None, weights_stale: bool = False,
@@ -159,6 +169,7 @@ def run(settings: Settings) -> int:
         model = loading.result()
     startup["planner_import_and_model_s"] = time.monotonic() - t
     with Node(settings) as node:
+        log_model_fit(node.log, model, settings.model_file)
         # subscribed before the warm-up: the newest state is waiting when it is done (no wait for the next one);
         # the heartbeat, which tells the launcher the planner is up, starts with the loop
         state_sub = StateSubscription(node, node.key("state"), State, newest_only=True, capacity=1024)

@@ -269,8 +269,14 @@ def print_report(report, console: Console) -> None:
             table.add_row(f.terrain, name, str(f.n_eval), f"{f.rmse_nominal[o]:.4f}", f"{f.rmse_gp[o]:.4f}",
                           f"{f.nll[o]:.3f}")
     console.print(table)
+    if report.clipped:
+        console.print(f"{report.clipped} training targets clipped as outliers (beyond 5 robust standard deviations)")
+    if not report.held_out:
+        console.print("no held-out data: these are training-set figures and cannot show overfitting "
+                      "(use --holdout or --test-data)")
     if report.final_loss is not None:
-        console.print(f"final negative marginal log likelihood per task (normalized targets): {report.final_loss:.4f}")
+        console.print(f"negative log posterior per point of the chosen fit (targets scaled to unit RMS): "
+                      f"{report.final_loss:.4f}")
 
 
 def register(app: typer.Typer) -> None:
@@ -288,7 +294,9 @@ def register(app: typer.Typer) -> None:
         edd5: Annotated[Path | None, typer.Option(help="EDD5 parameters per terrain JSON (edd5.json layout)")] = None,
         test_data: Annotated[Path | None, typer.Option(help="residual CSV to report the fit on")] = None,
         holdout: Annotated[float | None, typer.Option(
-            help="fraction held out for the fit report (default: 0.2 for logs, 0 for CSV)")] = None,
+            help="fraction held out of training for the fit report and its warnings "
+                 "(default: 0.2; 0 with --test-data, which is then the held-out set, and with --hyperparameters)")
+        ] = None,
         points: Annotated[int, typer.Option(help="number of shared GP training inputs")] = 300,
         iters: Annotated[int, typer.Option(help="Adam iterations of the hyperparameter fit")] = 200,
         seed: Annotated[int, typer.Option(help="seed of k-means, the holdout split and the fit")] = 0,
@@ -315,10 +323,18 @@ def register(app: typer.Typer) -> None:
                 cols = read_csv_columns(test_data)
                 tx, tres = csv_inputs(cols, test_data), csv_residuals(cols, test_data)
                 missing = [t for t in sets if t not in tres]
-                if missing:
-                    raise DataError(f"{test_data}: no residual columns for terrains {missing}")
+                extra = [] if terrain else sorted(t for t in tres if t not in sets)
+                if missing or extra:
+                    raise DataError(
+                        f"{test_data}: its terrains {sorted(tres)} differ from the training data's {sorted(sets)}: "
+                        + (f"no residual columns for {missing}" if missing else "")
+                        + ("; " if missing and extra else "")
+                        + (f"terrains {extra} were not trained (pass --terrain to choose those to train and test)"
+                           if extra else "")
+                    )
                 test_sets = {t: Transitions(tx, tres[t]) for t in sets}
-            hold = holdout if holdout is not None else (0.0 if data.suffix.lower() == ".csv" else 0.2)
+            # given hyperparameters (the paper's procedure) condition on all the data, as the paper did
+            hold = holdout if holdout is not None else (0.0 if test_sets is not None or hyperparameters else 0.2)
             model, report = train_model(
                 sets, th, ed, dt=dt, points=points, iters=iters, seed=seed,
                 hyperparameters=_load_json(hyperparameters, "hyperparameter"), holdout=hold, test_sets=test_sets,
@@ -334,6 +350,8 @@ def register(app: typer.Typer) -> None:
             raise typer.Exit(code=2) from None
         model.save(output)
         print_report(report, console)
+        for line in model.fit_warnings():
+            Console(stderr=True, soft_wrap=True).print(f"[yellow]warning:[/yellow] {line}", highlight=False)
         console.print(
             f"wrote {output}: terrains {model.terrains}, {len(model.train_x)} training inputs, "
             f"theta {np.array2string(model.theta, precision=4)}"

@@ -63,6 +63,8 @@ class GPModel:
     dt: float = 0.1
     # per terrain (a, b) of `gpmppi.models.lateral_slip` (absent: zeros, the unicycle's no sideways slide)
     lateral_slip: dict[str, np.ndarray] | None = None
+    # the training fit report (`gpmppi.gp.train.FitReport.to_metadata`), when the trainer recorded one
+    fit_report: dict | None = field(default=None, compare=False)
     _grid: GridTable | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -115,7 +117,17 @@ class GPModel:
             "tasks": list(self.tasks),
             "inputs": list(INPUT_NAMES),
             "dt": float(self.dt),
+            **({} if self.fit_report is None else {"fit": self.fit_report}),
         }
+
+    def fit_warnings(self) -> list[str]:
+        """One line per task whose GP was worse than the nominal model on held-out data when it was trained."""
+        rows = (self.fit_report or {}).get("gp_worse_than_nominal", [])
+        return [
+            f"GP for {r['terrain']} {r['output']} is worse than the nominal model on {r['eval_set']} at training: "
+            f"one-step RMSE {r['rmse_gp']:.4f} with the GP vs {r['rmse_nominal']:.4f} without"
+            for r in rows
+        ]
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the model atomically (temp file in the same folder, then rename)."""
@@ -194,7 +206,7 @@ class GPModel:
                 edd5={t: edd5[i].copy() for i, t in enumerate(terrains)},
                 domain_lo=arr["domain_lo"], domain_hi=arr["domain_hi"], train_x=arr["train_x"],
                 lengthscale=arr["lengthscale"], outputscale=arr["outputscale"], noise=arr["noise"],
-                chol=arr["chol"], alpha=arr["alpha"], dt=meta["dt"],
+                chol=arr["chol"], alpha=arr["alpha"], dt=meta["dt"], fit_report=meta.get("fit"),
                 lateral_slip=None if lateral is None else {t: lateral[i].copy() for i, t in enumerate(terrains)},
             )
             if grid_arr:
@@ -265,9 +277,22 @@ def _parse_metadata(raw: np.ndarray, where: str) -> dict:
     for key, kind in (("terrains", list), ("tasks", list), ("dt", (int, float))):
         if not isinstance(meta.get(key), kind):
             raise ModelFileError(f"{where}: metadata field {key!r} is missing or has the wrong type")
+    if "fit" in meta and not _fit_report_ok(meta["fit"]):
+        raise ModelFileError(f"{where}: metadata field 'fit' is malformed (expected the trainer's fit report)")
     if list(meta.get("inputs", INPUT_NAMES)) != list(INPUT_NAMES):
         raise ModelFileError(f"{where}: model inputs {meta.get('inputs')} differ from {list(INPUT_NAMES)}")
     return meta
+
+
+def _fit_report_ok(fit: object) -> bool:
+    if not isinstance(fit, dict) or not isinstance(fit.get("gp_worse_than_nominal", []), list):
+        return False
+    text, num = ("terrain", "output", "eval_set"), ("rmse_gp", "rmse_nominal")
+    return all(
+        isinstance(r, dict) and all(isinstance(r.get(k), str) for k in text)
+        and all(isinstance(r.get(k), (int, float)) for k in num)
+        for r in fit.get("gp_worse_than_nominal", [])
+    )
 
 
 def _shape(name: str, a: np.ndarray, expected: tuple[int, ...], where: str) -> None:

@@ -24,6 +24,7 @@ from scipy.linalg import cho_solve
 from sklearn.cluster import KMeans
 from sklearn.neighbors import NearestNeighbors
 
+from gpmppi.gp.fit import Hyperparameters, clip_outliers, fit_hyperparameters
 from gpmppi.gp.grid import predict_dense
 from gpmppi.gp.model_file import GPModel, task_names
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
@@ -43,15 +44,6 @@ class Transitions:
 
 
 @dataclass
-class Hyperparameters:
-    """Per-task kernel hyperparameters in model task order."""
-
-    lengthscale: np.ndarray  # (T, 4)
-    outputscale: np.ndarray  # (T,)
-    noise: np.ndarray  # (T,)
-
-
-@dataclass
 class TerrainFit:
     terrain: str
     n_eval: int
@@ -65,6 +57,32 @@ class FitReport:
     eval_set: str  # "held-out" / "test data" / "training data"
     terrains: list[TerrainFit] = field(default_factory=list)
     final_loss: float | None = None
+    held_out: bool = False  # evaluated on data the model was not conditioned on
+    clipped: int = 0  # training targets clipped as outliers (`fit.clip_outliers`)
+    hyperparameters: str = "fitted"  # or "given"
+
+    def gp_worse_than_nominal(self) -> list[dict]:
+        """Tasks whose GP predicts worse than the nominal model alone on held-out data (none when not held out)."""
+        if not self.held_out:
+            return []
+        return [
+            {"terrain": f.terrain, "output": out, "rmse_nominal": f.rmse_nominal[o], "rmse_gp": f.rmse_gp[o],
+             "eval_set": self.eval_set, "steps": f.n_eval}
+            for f in self.terrains for o, out in enumerate(("v", "omega")) if f.rmse_gp[o] > f.rmse_nominal[o]
+        ]
+
+    def to_metadata(self) -> dict:
+        """The report as the model file's `fit` metadata (JSON types only)."""
+        return {
+            "eval_set": self.eval_set, "held_out": self.held_out, "hyperparameters": self.hyperparameters,
+            "clipped_targets": self.clipped,
+            "tasks": [
+                {"terrain": f.terrain, "output": out, "steps": f.n_eval, "rmse_nominal": f.rmse_nominal[o],
+                 "rmse_gp": f.rmse_gp[o], "nll": f.nll[o]}
+                for f in self.terrains for o, out in enumerate(("v", "omega"))
+            ],
+            "gp_worse_than_nominal": self.gp_worse_than_nominal(),
+        }
 
 
 def residual_targets(theta: np.ndarray, x: np.ndarray, next_vw: np.ndarray, dt: float) -> np.ndarray:
@@ -197,68 +215,6 @@ def select_training_data(
     return centres * scale, np.concatenate(ys, axis=0)
 
 
-def fit_hyperparameters(
-    train_x: np.ndarray, train_y: np.ndarray, iters: int, seed: int, lr: float = 0.05
-) -> tuple[Hyperparameters, float]:
-    """Maximize each task's exact marginal likelihood with Adam (GPyTorch, float64, seeded)."""
-    import gpytorch
-    import torch
-
-    torch.manual_seed(seed)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # small batched matrices: thread overhead dominates (measured ~2.5x faster)
-    try:
-        return _fit(gpytorch, torch, train_x, train_y, iters, lr)
-    finally:
-        torch.set_num_threads(threads)
-
-
-def _fit(gpytorch, torch, train_x: np.ndarray, train_y: np.ndarray, iters: int, lr: float) -> tuple[
-    Hyperparameters, float
-]:
-    n_tasks = train_y.shape[0]
-    batch = torch.Size([n_tasks])
-    y_scale = np.maximum(np.sqrt((train_y**2).mean(1)), 1e-9)  # zero-mean GP: scale by RMS, not std
-    x_t = torch.as_tensor(train_x, dtype=torch.float64).expand(n_tasks, *train_x.shape).contiguous()
-    y_t = torch.as_tensor(train_y / y_scale[:, None], dtype=torch.float64)
-
-    class BatchGP(gpytorch.models.ExactGP):
-        def __init__(self) -> None:
-            lik = gpytorch.likelihoods.GaussianLikelihood(
-                batch_shape=batch, noise_constraint=gpytorch.constraints.GreaterThan(1e-6)
-            )
-            super().__init__(x_t, y_t, lik)
-            self.mean_module = gpytorch.means.ZeroMean(batch_shape=batch)
-            self.covar_module = gpytorch.kernels.ScaleKernel(
-                gpytorch.kernels.RBFKernel(ard_num_dims=4, batch_shape=batch), batch_shape=batch
-            )
-
-        def forward(self, x: torch.Tensor) -> gpytorch.distributions.MultivariateNormal:
-            return gpytorch.distributions.MultivariateNormal(self.mean_module(x), self.covar_module(x))
-
-    model = BatchGP().double()
-    span = np.maximum(train_x.std(0), 1e-3)
-    model.covar_module.base_kernel.lengthscale = torch.as_tensor(np.tile(span, (n_tasks, 1, 1)))
-    model.covar_module.outputscale = torch.ones(n_tasks, dtype=torch.float64)
-    model.likelihood.noise = torch.full((n_tasks, 1), 0.1, dtype=torch.float64)
-    model.train()
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    mll = gpytorch.mlls.ExactMarginalLogLikelihood(model.likelihood, model)
-    loss_value = float("nan")
-    for _ in range(iters):
-        opt.zero_grad()
-        loss = -mll(model(x_t), y_t).sum()
-        loss.backward()
-        opt.step()
-        loss_value = float(loss.detach()) / n_tasks
-    hp = Hyperparameters(
-        lengthscale=model.covar_module.base_kernel.lengthscale.detach().numpy().reshape(n_tasks, 4).copy(),
-        outputscale=model.covar_module.outputscale.detach().numpy().reshape(n_tasks) * y_scale**2,
-        noise=model.likelihood.noise.detach().numpy().reshape(n_tasks) * y_scale**2,
-    )
-    return hp, loss_value
-
-
 def factorize(train_x: np.ndarray, train_y: np.ndarray, hp: Hyperparameters) -> tuple[np.ndarray, np.ndarray]:
     """Lower Cholesky factors of K + noise I and alpha = (K + noise I)^-1 y, per task (float64)."""
     n_tasks, n = train_y.shape
@@ -356,11 +312,13 @@ def train_model(
     tasks = task_names(terrains)
     train_sets, held = split_holdout(sets, 0.0 if test_sets is not None else holdout, seed)
     train_x, train_y = select_training_data(train_sets, points, seed)
-    loss = None
-    if hyperparameters is not None:
+    loss, clipped = None, 0
+    if hyperparameters is not None:  # the paper's procedure: its hyperparameters, its targets as they are
         hp = hyperparameters_from_json(hyperparameters, tasks)
     else:
-        hp, loss = fit_hyperparameters(train_x, train_y, iters, seed)
+        train_y, clipped = clip_outliers(train_y)
+        hp, diag = fit_hyperparameters(train_x, train_y, iters, seed)
+        loss = diag.final_loss
     chol, alpha = factorize(train_x, train_y, hp)
     lo, hi = domain_box(np.concatenate([s.x for s in train_sets.values()]))
     model = GPModel(
@@ -377,5 +335,8 @@ def train_model(
         report = evaluate_fit(model, held, f"held-out {holdout:.0%}")
     else:
         report = evaluate_fit(model, train_sets, "training data (no held-out set)")
-    report.final_loss = loss
+    report.held_out = test_sets is not None or holdout > 0
+    report.final_loss, report.clipped = loss, clipped
+    report.hyperparameters = "given" if hyperparameters is not None else "fitted"
+    model.fit_report = report.to_metadata()
     return model, report
