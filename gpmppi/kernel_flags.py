@@ -67,3 +67,28 @@ def prefetch_row(typingctx, table, row):  # noqa: ANN001, ANN201 - numba intrins
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@intrinsic
+def fetch_add(typingctx, counter, amount):  # noqa: ANN001, ANN201 - numba intrinsic: typing context and numba types
+    """Atomically add `amount` to `counter[0]` (a 1-D int64 array) and return the value before the add.
+
+    The CPU rollout workers take their next sample group from one shared counter with it, so the groups are
+    spread over the threads as they free up (a thread slowed by another process takes fewer) without a lock
+    or a round trip through Python. Which thread runs a group never changes what the group computes.
+    """
+    if not (isinstance(counter, types.Array) and counter.ndim == 1 and counter.dtype == types.int64
+            and isinstance(amount, types.Integer)):
+        return None
+    sig = types.int64(counter, amount)
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        zero = context.get_constant(types.intp, 0)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [zero], wraparound=False)
+        val = context.cast(builder, args[1], signature.args[1], types.int64)
+        return builder.atomic_rmw("add", ptr, val, "seq_cst")
+
+    return sig, codegen
+
