@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from llvmlite import ir
 from numba import njit
-from numba.core import cgutils, types
+from numba.core import cgutils, cpu, types
+from numba.core.options import TargetOptions
 from numba.extending import intrinsic
 
 # fastmath without 'nnan'/'ninf': the kernels rely on inf/NaN checks (infinite costs, safe controls). Only flags
@@ -92,3 +95,20 @@ def fetch_add(typingctx, counter, amount):  # noqa: ANN001, ANN201 - numba intri
 
     return sig, codegen
 
+
+
+# numba's own flag that puts `noalias` on a function's pointer arguments (so on every array's data): its
+# `parallel=True` lowering sets it on the loop bodies it outlines when it proves their arrays distinct, and without
+# it LLVM vectorises no loop that writes one array and reads another (it cannot rule out that they overlap). numba
+# does not let `njit` set it, so the option is mapped here, once, for the kernels' phases (`phase`), whose callers
+# pass distinct buffers.
+if not hasattr(cpu.CPUTargetOptions, "noalias"):
+    cpu.CPUTargetOptions.noalias = TargetOptions.Mapping("noalias")
+
+
+def phase(func: Callable) -> Callable:
+    """Compile one phase of a rollout kernel: fastmath as the kernels, no reference counting (a phase allocates
+    nothing, and the counts of the arrays passed per call cost more than the work), and `noalias` on its arrays.
+
+    A phase must never be given the same array twice where one of them is written."""
+    return njit(cache=True, fastmath=FASTMATH, _nrt=False, noalias=True)(func)

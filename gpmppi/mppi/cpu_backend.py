@@ -21,7 +21,7 @@ import numba
 import numpy as np
 from numba import njit
 
-from gpmppi.kernel_flags import FASTMATH, fetch_add, prefetch_row
+from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row
 from gpmppi.mppi.bundles import (
     CRITICS,
     K_EXIT_DISCOUNT,
@@ -83,7 +83,7 @@ __all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", 
 GROUP = 32
 
 
-@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+@phase
 def _draw_commands(
     seed: int, counter0: int, horizon: int, k: int, limits: tuple, first: int, n_in: int, eps_out: np.ndarray,
     cmd: np.ndarray,
@@ -102,7 +102,7 @@ def _draw_commands(
         cmd[1, j] = u1
 
 
-@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+@phase
 def _add_costs(
     n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray, total: np.ndarray, kind: int, cost_w: np.ndarray,
     geo: tuple, bounds: tuple, discount_k: float,
@@ -116,7 +116,7 @@ def _add_costs(
                                (res[2, j], res[3, j]))
 
 
-@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+@phase
 def _request_rows(
     grid: tuple, table: np.ndarray, n_in: int, st: np.ndarray, cmd: np.ndarray, nodes: np.ndarray, node_w: np.ndarray,
 ) -> None:
@@ -140,7 +140,7 @@ def _request_rows(
             prefetch_row(table, nodes[q, j])
 
 
-@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+@phase
 def _read_rows(n_in: int, flat: np.ndarray, nodes: np.ndarray, node_w: np.ndarray, res: np.ndarray) -> None:
     """Each sample's GP residual [mean_v, mean_w, var_v, var_w]: its five table rows, weighted."""
     for j in range(n_in):
@@ -164,7 +164,7 @@ def _read_rows(n_in: int, flat: np.ndarray, nodes: np.ndarray, node_w: np.ndarra
         res[3, j] = c3
 
 
-@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+@phase
 def _gp_residuals(gp: tuple, scratch: tuple, n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray) -> None:
     """Each sample's GP residual by `gp_residual` (multilinear grid or exact GP)."""
     for j in range(n_in):
@@ -172,7 +172,7 @@ def _gp_residuals(gp: tuple, scratch: tuple, n_in: int, st: np.ndarray, cmd: np.
                                                                  st[4, j])
 
 
-@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+@phase
 def _advance_group(
     dyn: tuple, dt: float, n_in: int, first: int, k: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray,
     xy_out: np.ndarray,
