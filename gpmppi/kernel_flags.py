@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 from llvmlite import ir
 from numba import njit
-from numba.core import cgutils, types
+from numba.core import cgutils, cpu, types
+from numba.core.options import TargetOptions
 from numba.extending import intrinsic
 
 # fastmath without 'nnan'/'ninf': the kernels rely on inf/NaN checks (infinite costs, safe controls). Only flags
@@ -67,3 +70,45 @@ def prefetch_row(typingctx, table, row):  # noqa: ANN001, ANN201 - numba intrins
         return context.get_dummy_value()
 
     return sig, codegen
+
+
+@intrinsic
+def fetch_add(typingctx, counter, amount):  # noqa: ANN001, ANN201 - numba intrinsic: typing context and numba types
+    """Atomically add `amount` to `counter[0]` (a 1-D int64 array) and return the value before the add.
+
+    The CPU rollout workers take their next sample group from one shared counter with it, so the groups are
+    spread over the threads as they free up (a thread slowed by another process takes fewer) without a lock
+    or a round trip through Python. Which thread runs a group never changes what the group computes.
+    """
+    if not (isinstance(counter, types.Array) and counter.ndim == 1 and counter.dtype == types.int64
+            and isinstance(amount, types.Integer)):
+        return None
+    sig = types.int64(counter, amount)
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        zero = context.get_constant(types.intp, 0)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [zero], wraparound=False)
+        val = context.cast(builder, args[1], signature.args[1], types.int64)
+        return builder.atomic_rmw("add", ptr, val, "seq_cst")
+
+    return sig, codegen
+
+
+
+# numba's own flag that puts `noalias` on a function's pointer arguments (so on every array's data): its
+# `parallel=True` lowering sets it on the loop bodies it outlines when it proves their arrays distinct, and without
+# it LLVM vectorises no loop that writes one array and reads another (it cannot rule out that they overlap). numba
+# does not let `njit` set it, so the option is mapped here, once, for the kernels' phases (`phase`), whose callers
+# pass distinct buffers.
+if not hasattr(cpu.CPUTargetOptions, "noalias"):
+    cpu.CPUTargetOptions.noalias = TargetOptions.Mapping("noalias")
+
+
+def phase(func: Callable) -> Callable:
+    """Compile one phase of a rollout kernel: fastmath as the kernels, no reference counting (a phase allocates
+    nothing, and the counts of the arrays passed per call cost more than the work), and `noalias` on its arrays.
+
+    A phase must never be given the same array twice where one of them is written."""
+    return njit(cache=True, fastmath=FASTMATH, _nrt=False, noalias=True)(func)

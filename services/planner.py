@@ -259,26 +259,19 @@ class Outputs:
 
 
 def warm_up(node: Node, planner: Planner, scenario: Scenario) -> None:
-    """Compile or load the kernels before going live; say so first when they have to be compiled (minutes on a
-    small machine, once per configuration and source version), and afterwards how long it took."""
+    """Compile or load the kernels before going live (`kernel_cache.warm_up`: a notice first when they have to be
+    compiled, afterwards how long it took)."""
     from gpmppi.mppi import kernel_cache
 
     c = planner.config
-    label = f"{c.dynamics}/{c.gp_mode}" if c.dynamics == "gp" else c.dynamics
-    label = f"{label} on {planner.backend}"
-    if not kernel_cache.is_cached(label):
-        estimate, source = kernel_cache.compile_estimate_s(label)
-        node.log.info("compiling planner kernels for %s (not cached yet in %s; about %.0f s, %s; once)",
-                      label, kernel_cache.cache_folder(), estimate, source)
-    before = kernel_cache.cache_counts()
-    t = time.monotonic()
-    planner.plan(np.asarray(scenario.start, dtype=np.float64), scenario.task, delay_s=0.01)  # delay: its predictor too
-    planner.reset()
-    seconds = time.monotonic() - t
-    use = kernel_cache.kernels_used(before, kernel_cache.cache_counts())
-    if use.compiled:
-        node.log.info("compiled planner kernels for %s in %.1f s (%d kernels)", label, seconds, len(use.compiled))
-    kernel_cache.record(label, use, seconds if use.compiled else None)
+    start = np.asarray(scenario.start, dtype=np.float64)
+
+    def plan_once() -> None:
+        planner.plan(start, scenario.task, delay_s=0.01)  # with a delay: its predictor is compiled too
+        planner.reset()
+
+    kernel_cache.warm_up(kernel_cache.planner_label(c.dynamics, c.gp_mode, planner.backend), plan_once,
+                         node.log.info)
 
 
 class CycleReport:

@@ -68,3 +68,41 @@ def test_cuda_simulator_matches_cpu_backend(sim_results: dict) -> None:
             np.testing.assert_allclose(gpu["controls"], cpu["controls"], rtol=0, atol=1e-5, err_msg=case)
             np.testing.assert_allclose(gpu["xy"], cpu["xy"], rtol=0, atol=1e-6, err_msg=case)
             assert np.isfinite(gpu["cost"])
+
+
+UPLOADS = r"""
+import json
+import numpy as np
+from gpmppi.mppi.synthetic import synthetic_model
+from gpmppi.mppi.planner import Planner, PlannerConfig
+from gpmppi.scenarios import circle_lane
+
+model = synthetic_model(nodes=5, n_train=30)
+sc = circle_lane()
+p = Planner(PlannerConfig(backend="cuda", samples=16, horizon=5, sample_output=4, seed=3), model)
+w = np.array([0.5, 0.3, 0.2])
+counts = []
+x = sc.start.copy()
+for weights in (w, w.copy(), np.array([0.2, 0.3, 0.5])):
+    r = p.plan(x, sc.task, weights)
+    counts.append(dict(p.device.uploads))
+    x = r.states[1]
+n_arrays = sum(isinstance(a, np.ndarray) for a in p._terrain_setup(w)[0].args())
+print(json.dumps({"counts": counts, "model_arrays": n_arrays}))
+"""
+
+
+def test_cuda_backend_uploads_the_model_only_when_it_or_the_weights_change() -> None:
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", PYTHONWARNINGS="ignore::RuntimeWarning")
+    proc = subprocess.run([sys.executable, "-c", UPLOADS], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    first, second, moved = got["counts"]
+    assert first["model"] == got["model_arrays"]  # the first plan uploads every model array
+    assert second["model"] == first["model"]  # same model, same weights (a new but equal array): none again
+    assert second["task"] == first["task"] + 1  # of the task only what is new each plan: the tightened bounds
+    assert second["sampling"] > first["sampling"]  # the start state and the nominal sequence travel every plan
+    # new weights: a new collapsed table, the weights and the weighted slide coefficients; theta, EDD5 and the
+    # grid's shape stay on the device
+    assert 0 < moved["model"] - second["model"] < got["model_arrays"]

@@ -117,7 +117,7 @@ def test_cache_check_needs_the_manifest_and_every_kernel_it_lists(
     Planner(PlannerConfig(samples=64, backend="cpu"), load_default_model()).plan(sc.start, sc.task, delay_s=0.01)
     use = kernel_cache.kernels_used({}, kernel_cache.cache_counts())  # everything this process loaded or compiled
     names = {**use.loaded, **use.compiled}
-    assert any(name.endswith(":rollout_kernel") for name in names), names
+    assert any(name.endswith(":rollout_worker") for name in names), names
     kernel_cache.record(label, use, 42.0)
     assert kernel_cache.is_cached(label)
     assert kernel_cache.compile_estimate_s(label) == (42.0, "as measured when this cache was last filled")
@@ -126,5 +126,5 @@ def test_cache_check_needs_the_manifest_and_every_kernel_it_lists(
     text = manifest.read_text()
     manifest.write_text(text.replace("float64", "float32", 1))
     assert not kernel_cache.is_cached(label)
-    manifest.write_text(text.replace(":rollout_kernel", ":no_such_kernel"))
+    manifest.write_text(text.replace(":rollout_worker", ":no_such_kernel"))
     assert not kernel_cache.is_cached(label)

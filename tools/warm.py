@@ -37,6 +37,7 @@ def shipped_planner_configs() -> Iterator[tuple[str, dict]]:
 
 
 def _warm_planners(log: Callable[[str], None]) -> None:
+    from gpmppi.mppi import kernel_cache
     from gpmppi.mppi.config import PlannerConfig
     from gpmppi.mppi.planner import Planner
     from services.planner import Settings, load_model, load_scenario
@@ -59,8 +60,14 @@ def _warm_planners(log: Callable[[str], None]) -> None:
             models[model_file] = load_model(model_file)
         scenario = load_scenario(scenario_name)
         planner = Planner(PlannerConfig.model_validate_json(planner_json), models[model_file])
-        # as the planner service warms up before going live: one plan, with a delay so its predictor is compiled
-        planner.plan(np.asarray(scenario.start, dtype=np.float64), scenario.task, delay_s=0.01)
+        c = planner.config
+        # as the planner service warms up before going live (one plan, with a delay so its predictor is compiled),
+        # through the same call, which records the kernels so that the service finds them cached
+        kernel_cache.warm_up(
+            kernel_cache.planner_label(c.dynamics, c.gp_mode, planner.backend),
+            lambda p=planner, s=scenario: p.plan(np.asarray(s.start, dtype=np.float64), s.task, delay_s=0.01),
+            lambda line: None,
+        )
         log(f"  {what}: {time.perf_counter() - t:.1f} s")
 
 

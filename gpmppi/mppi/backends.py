@@ -10,7 +10,7 @@ import numpy as np
 from gpmppi.mppi.bundles import CRITICS, CostBundle, ModelBundle, Outputs, SamplingBundle, TaskBundle
 from gpmppi.mppi.cpu_backend import nominal_critic_costs, rollout_kernel, softmax_update
 
-__all__ = ["critic_costs", "resolve", "rollouts", "softmax_update"]
+__all__ = ["critic_costs", "device_inputs", "resolve", "rollouts", "softmax_update"]
 
 
 def cuda_available() -> bool:
@@ -37,18 +37,30 @@ def resolve(backend: str) -> str:
 
 def rollouts(
     backend: str, model: ModelBundle, task: TaskBundle, sampling: SamplingBundle, cost: CostBundle, samples: int,
-    n_xy: int,
+    n_xy: int, device: object | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Perturbations (S, N, 2) float32, costs (S,), XY of the first n_xy rollouts (n_xy, N+1, 2)."""
+    """Perturbations (S, N, 2) float32, costs (S,), XY of the first n_xy rollouts (n_xy, N+1, 2).
+
+    `device`: CUDA only, the caller's `cuda_backend.DeviceInputs` (its inputs kept on the device between calls)."""
     out = Outputs.allocate(samples, sampling.nominal.shape[0], n_xy)
     args = (model.args(), task.args(), sampling.args(), cost.args(), out.args())
     if backend == "cuda":
         from gpmppi.mppi.cuda_backend import cuda_rollouts
 
-        cuda_rollouts(*args)
+        cuda_rollouts(*args, device=device)  # type: ignore[arg-type]
     else:
         rollout_kernel(*args)
     return out.eps_out, out.cost_out, out.xy_out
+
+
+def device_inputs(backend: str) -> object | None:
+    """What keeps a planner's kernel inputs on its device between plans (`cuda_backend.DeviceInputs`); None on the
+    CPU."""
+    if backend != "cuda":
+        return None
+    from gpmppi.mppi.cuda_backend import DeviceInputs
+
+    return DeviceInputs()
 
 
 def critic_costs(model: ModelBundle, task: TaskBundle, sampling: SamplingBundle, cost: CostBundle) -> dict[str, float]:

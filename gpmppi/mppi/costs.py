@@ -187,7 +187,7 @@ def stage_cost(
     return c
 
 
-@njit(cache=True, fastmath=FASTMATH, inline="always")
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def stage_critics(
     kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple,
     u: tuple, var: tuple, out: np.ndarray,

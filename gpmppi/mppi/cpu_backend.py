@@ -12,10 +12,16 @@ samples the XY of the rollout.
 
 from __future__ import annotations
 
-import numpy as np
-from numba import njit, prange
+import os
+import queue
+import threading
+from collections.abc import Callable
 
-from gpmppi.kernel_flags import FASTMATH, prefetch_row
+import numba
+import numpy as np
+from numba import njit
+
+from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row
 from gpmppi.mppi.bundles import (
     CRITICS,
     K_EXIT_DISCOUNT,
@@ -24,16 +30,11 @@ from gpmppi.mppi.bundles import (
     M_DYN_MODE,
     M_EDD5,
     M_EX_ALPHA,
-    M_EX_CHOL,
-    M_EX_INV_LS,
-    M_EX_OUTPUTSCALE,
-    M_EX_SCALED_X,
     M_GP_MODE,
     M_INV_STEP,
     M_LATERAL,
     M_LO,
     M_TABLE,
-    M_TERRAIN_W,
     M_THETA,
     O_COST,
     O_EPS,
@@ -75,14 +76,14 @@ from gpmppi.mppi.dynamics import (
 from gpmppi.mppi.gp_table import simplex_corner, simplex_params
 from gpmppi.mppi.rng import clip, noisy_command
 
-__all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "softmax_update"]
+__all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", "softmax_update"]
 
 # samples a thread steps in lockstep: each sample's step waits on its own GP table reads (the next
 # state needs them), so interleaving independent samples lets those memory reads overlap
 GROUP = 32
 
 
-@njit(cache=True, fastmath=FASTMATH, inline="always")
+@phase
 def _draw_commands(
     seed: int, counter0: int, horizon: int, k: int, limits: tuple, first: int, n_in: int, eps_out: np.ndarray,
     cmd: np.ndarray,
@@ -97,11 +98,11 @@ def _draw_commands(
         u0, u1 = noisy_command(seed, (counter0 + s) * horizon + k, nominal, k, noise_std, u_lo, u_hi)
         eps_out[s, k, 0] = u0 - nominal[k, 0]
         eps_out[s, k, 1] = u1 - nominal[k, 1]
-        cmd[j, 0] = u0
-        cmd[j, 1] = u1
+        cmd[0, j] = u0
+        cmd[1, j] = u1
 
 
-@njit(cache=True, fastmath=FASTMATH, inline="always")
+@phase
 def _add_costs(
     n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray, total: np.ndarray, kind: int, cost_w: np.ndarray,
     geo: tuple, bounds: tuple, discount_k: float,
@@ -111,92 +112,149 @@ def _add_costs(
     tightened_hw, radii = bounds
     for j in range(n_in):
         total[j] += stage_cost(kind, cost_w, geo, tightened_hw, radii, discount_k,
-                               (st[j, 0], st[j, 1], st[j, 2], st[j, 3], st[j, 4]), (cmd[j, 0], cmd[j, 1]),
-                               (res[j, 2], res[j, 3]))
+                               (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]), (cmd[0, j], cmd[1, j]),
+                               (res[2, j], res[3, j]))
 
 
-@njit(parallel=True, cache=True, fastmath=FASTMATH)
-def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out: tuple) -> None:
-    """Every sample's rollout and total cost; the bundles' tuples (`gpmppi.mppi.bundles`, `.args()`)."""
+@phase
+def _request_rows(
+    grid: tuple, table: np.ndarray, n_in: int, st: np.ndarray, cmd: np.ndarray, nodes: np.ndarray, node_w: np.ndarray,
+) -> None:
+    """The simplex nodes and weights of each sample's GP input, and a prefetch of their table rows: the rows
+    arrive from memory while the next commands are drawn and the last step's costs added."""
+    # a loop of its own, free of the noise's library calls and of branches, so that it is vectorised
+    for j in range(n_in):
+        n0, t0, t1, t2, t3, w0, w1, w2, w3, w4 = simplex_corner(grid, st[3, j], st[4, j], cmd[0, j], cmd[1, j])
+        nodes[0, j] = n0
+        nodes[1, j] = n0 + t0
+        nodes[2, j] = n0 + t0 + t1
+        nodes[3, j] = n0 + t0 + t1 + t2
+        nodes[4, j] = n0 + t0 + t1 + t2 + t3
+        node_w[0, j] = w0
+        node_w[1, j] = w1
+        node_w[2, j] = w2
+        node_w[3, j] = w3
+        node_w[4, j] = w4
+    for j in range(n_in):
+        for q in range(5):
+            prefetch_row(table, nodes[q, j])
+
+
+@phase
+def _read_rows(n_in: int, flat: np.ndarray, nodes: np.ndarray, node_w: np.ndarray, res: np.ndarray) -> None:
+    """Each sample's GP residual [mean_v, mean_w, var_v, var_w]: its five table rows, weighted."""
+    for j in range(n_in):
+        # flat offsets, unsigned: no negative-index wrap-around and no multiply by the row length
+        n = np.uint64(4) * nodes[0, j]
+        wq = node_w[0, j]
+        c0 = wq * flat[n]
+        c1 = wq * flat[n + np.uint64(1)]
+        c2 = wq * flat[n + np.uint64(2)]
+        c3 = wq * flat[n + np.uint64(3)]
+        for q in range(1, 5):
+            n = np.uint64(4) * nodes[q, j]
+            wq = node_w[q, j]
+            c0 += wq * flat[n]
+            c1 += wq * flat[n + np.uint64(1)]
+            c2 += wq * flat[n + np.uint64(2)]
+            c3 += wq * flat[n + np.uint64(3)]
+        res[0, j] = c0
+        res[1, j] = c1
+        res[2, j] = c2
+        res[3, j] = c3
+
+
+@phase
+def _gp_residuals(gp: tuple, scratch: tuple, n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray) -> None:
+    """Each sample's GP residual by `gp_residual` (multilinear grid or exact GP)."""
+    for j in range(n_in):
+        res[0, j], res[1, j], res[2, j], res[3, j] = gp_residual(gp, scratch, cmd[0, j], cmd[1, j], st[3, j],
+                                                                 st[4, j])
+
+
+@phase
+def _advance_group(
+    dyn: tuple, dt: float, n_in: int, first: int, k: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray,
+    xy_out: np.ndarray,
+) -> None:
+    """Step every sample's state; the first `xy_out.shape[0]` samples' XY to `xy_out`."""
+    dyn_mode, coef, edd5_p = dyn
+    n_xy = xy_out.shape[0]
+    for j in range(n_in):
+        s = first + j
+        px, py, yaw, v, w = advance(dyn_mode, dt, coef, edd5_p, (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]),
+                                    (cmd[0, j], cmd[1, j]), res[0, j], res[1, j])
+        st[0, j] = px
+        st[1, j] = py
+        st[2, j] = yaw
+        st[3, j] = v
+        st[4, j] = w
+        if s < n_xy:
+            xy_out[s, k + 1, 0] = px
+            xy_out[s, k + 1, 1] = py
+
+
+@njit(cache=True, fastmath=FASTMATH, nogil=True, _nrt=False)
+def rollout_worker(
+    model: tuple, task: tuple, sampling: tuple, cost_w: np.ndarray, out: tuple, plan_consts: tuple, work: tuple,
+) -> None:
+    """Roll out sample groups until none is left; several threads may run it at once (`rollout_kernel`).
+
+    The bundles' tuples as `gpmppi.mppi.bundles` defines them (`.args()`), the cost bundle as its weight vector
+    (`weight_vector`). `plan_consts` = (the model's `velocity_coefficients`, its GP table as one run of floats,
+    the shared group counter): each group of `GROUP` samples is taken from the counter (1-D int64, from 0;
+    `fetch_add`). `work` = this thread's buffers (`_thread_buffers`).
+
+    Serial, without the GIL and without reference counting (`_nrt=False`: it allocates nothing, so it needs
+    none): numba's `parallel=True` passes took ~70% of this kernel's compile time, and the reference counts of
+    the arrays handed to the per-step phases cost more than the phases' work. The phases are functions of
+    their own, each compiled once."""
     # every field is read here, once, outside the sample loops: read from the tuples inside them the kernel ran
     # slower and its results differed in the last bits
     dyn_mode = model[M_DYN_MODE]
-    theta = model[M_THETA]
-    lateral = model[M_LATERAL]
-    edd5_p = model[M_EDD5]
     gp_mode = model[M_GP_MODE]
     table = model[M_TABLE]
-    dims = model[M_DIMS]
-    lo = model[M_LO]
-    inv_step = model[M_INV_STEP]
-    ex_scaled_x = model[M_EX_SCALED_X]
-    ex_inv_ls = model[M_EX_INV_LS]
-    ex_outputscale = model[M_EX_OUTPUTSCALE]
-    ex_alpha = model[M_EX_ALPHA]
-    ex_chol = model[M_EX_CHOL]
-    terrain_w = model[M_TERRAIN_W]
     task_kind = task[T_KIND]
-    seg = task[T_SEG]
-    cell_start = task[T_CELL_START]
-    candidates = task[T_CANDIDATES]
     field = task[T_FIELD]
     grid_origin = task[T_ORIGIN]
     inv_cell = task[T_INV_CELL]
-    half_width = task[T_HALF_WIDTH]
     tightened_hw = task[T_TIGHTENED_HW]
-    speed_target = task[T_SPEED_TARGET]
     goal = task[T_GOAL]
-    obstacles = task[T_OBSTACLES]
     radii = task[T_RADII]
     x0 = sampling[S_X0]
     nominal = sampling[S_NOMINAL]
-    noise_std = sampling[S_NOISE_STD]
-    u_lo = sampling[S_U_LO]
-    u_hi = sampling[S_U_HI]
     dt = sampling[S_DT]
     seed = sampling[S_SEED]
-    iteration = sampling[S_ITERATION]
     eps_out = out[O_EPS]
     cost_out = out[O_COST]
     xy_out = out[O_XY]
-    cost_w = weight_vector(cost)
+    coef, flat, next_group = plan_consts
+    st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, scratch = work
     discount = cost_w[K_EXIT_DISCOUNT]
     samples = eps_out.shape[0]
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
-    n_tasks = ex_alpha.shape[0]
-    n_train = ex_alpha.shape[1]
     n_groups = (samples + GROUP - 1) // GROUP
-    counter0 = iteration * samples
-    coef = velocity_coefficients(theta, lateral)
-    (lo0, lo1, lo2, lo3, inv0, inv1, inv2, inv3, top0, top1, top2, top3, last0, last1, last2, last3, s0, s1,
-     s2) = simplex_params(dims, lo, inv_step)
-    flat = table.reshape(-1)  # the (nodes, 4) table as one run of floats
-    for g in prange(n_groups):
-        # the helpers' inputs grouped once per group, from the locals above
-        grid = (lo0, lo1, lo2, lo3, inv0, inv1, inv2, inv3, top0, top1, top2, top3, last0, last1, last2, last3, s0, s1,
-                s2)
-        limits = (nominal, noise_std, u_lo, u_hi)
-        gp = (gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol,
-              terrain_w)
-        geo = (seg, cell_start, candidates, field, grid_origin, inv_cell, half_width, speed_target, goal, obstacles)
-        scratch = (np.empty(n_train), np.empty(n_tasks), np.empty(n_tasks))
+    counter0 = sampling[S_ITERATION] * samples
+    dyn = (dyn_mode, coef, model[M_EDD5])
+    grid = simplex_params(model[M_DIMS], model[M_LO], model[M_INV_STEP])
+    limits = (nominal, sampling[S_NOISE_STD], sampling[S_U_LO], sampling[S_U_HI])
+    gp = gp_inputs(model)
+    geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], field, grid_origin, inv_cell, task[T_HALF_WIDTH],
+           task[T_SPEED_TARGET], goal, task[T_OBSTACLES])
+    simplex = dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX
+    while True:
+        g = fetch_add(next_group, 1)
+        if g >= n_groups:
+            break
         first = g * GROUP
         n_in = min(GROUP, samples - first)
-        st = np.empty((GROUP, 5))
-        total = np.zeros(GROUP)
-        # commands of the previous, this and the next step (rotated every step)
-        cmd_prev = np.empty((GROUP, 2))
-        cmd = np.empty((GROUP, 2))
-        cmd_next = np.empty((GROUP, 2))
-        res = np.zeros((GROUP, 4))  # GP residual [mean_v, mean_w, var_v, var_w]; zero for the other models
-        # simplex node indices and weights of the group, one row per vertex: unit-stride rows let the loop that
-        # fills them run as vector code
-        nodes = np.zeros((5, GROUP), dtype=np.uint64)
-        node_w = np.zeros((5, GROUP), dtype=np.float32)
         for j in range(n_in):
+            total[j] = 0.0
+            for i in range(4):
+                res[i, j] = 0.0  # GP residual [mean_v, mean_w, var_v, var_w]; stays zero for the other models
             for i in range(5):
-                st[j, i] = x0[i]
+                st[i, j] = x0[i]
             if first + j < n_xy:
                 xy_out[first + j, 0, 0] = x0[0]
                 xy_out[first + j, 0, 1] = x0[1]
@@ -204,80 +262,104 @@ def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out:
         discount_k = 1.0  # discount of step k - 1's cost
         # Step k: (1) the GP table rows of step k are requested (prefetch), (2) the next step's commands are
         # drawn and (3) the previous step's cost is added, both needing no table, while the rows arrive from
-        # memory, (4) the rows are read, (5) the states advance. Costs are added in step order as before.
+        # memory, (4) the rows are read, (5) the states advance. Costs are added in step order.
         for k in range(horizon):
-            if dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX:
-                # a loop of its own, free of the noise's library calls and of branches, so that it is vectorised
-                for j in range(n_in):
-                    n0, t0, t1, t2, t3, w0, w1, w2, w3, w4 = simplex_corner(grid, st[j, 3], st[j, 4], cmd[j, 0],
-                                                                            cmd[j, 1])
-                    nodes[0, j] = n0
-                    nodes[1, j] = n0 + t0
-                    nodes[2, j] = n0 + t0 + t1
-                    nodes[3, j] = n0 + t0 + t1 + t2
-                    nodes[4, j] = n0 + t0 + t1 + t2 + t3
-                    node_w[0, j] = w0
-                    node_w[1, j] = w1
-                    node_w[2, j] = w2
-                    node_w[3, j] = w3
-                    node_w[4, j] = w4
-                for j in range(n_in):
-                    for q in range(5):
-                        prefetch_row(table, nodes[q, j])
+            if simplex:
+                _request_rows(grid, table, n_in, st, cmd, nodes, node_w)
             if k + 1 < horizon:
                 _draw_commands(seed, counter0, horizon, k + 1, limits, first, n_in, eps_out, cmd_next)
             if k > 0:
                 _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[k], radii[k]),
                            discount_k)
                 discount_k *= discount
-            if dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX:
-                for j in range(n_in):
-                    # flat offsets, unsigned: no negative-index wrap-around and no multiply by the row length
-                    n = np.uint64(4) * nodes[0, j]
-                    wq = node_w[0, j]
-                    c0 = wq * flat[n]
-                    c1 = wq * flat[n + np.uint64(1)]
-                    c2 = wq * flat[n + np.uint64(2)]
-                    c3 = wq * flat[n + np.uint64(3)]
-                    for q in range(1, 5):
-                        n = np.uint64(4) * nodes[q, j]
-                        wq = node_w[q, j]
-                        c0 += wq * flat[n]
-                        c1 += wq * flat[n + np.uint64(1)]
-                        c2 += wq * flat[n + np.uint64(2)]
-                        c3 += wq * flat[n + np.uint64(3)]
-                    res[j, 0] = c0
-                    res[j, 1] = c1
-                    res[j, 2] = c2
-                    res[j, 3] = c3
+            if simplex:
+                _read_rows(n_in, flat, nodes, node_w, res)
             elif dyn_mode == DYN_GP:
-                for j in range(n_in):
-                    res[j, 0], res[j, 1], res[j, 2], res[j, 3] = gp_residual(gp, scratch, cmd[j, 0], cmd[j, 1],
-                                                                             st[j, 3], st[j, 4])
-            for j in range(n_in):
-                s = first + j
-                px, py, yaw, v, w = advance(dyn_mode, dt, coef, edd5_p,
-                                            (st[j, 0], st[j, 1], st[j, 2], st[j, 3], st[j, 4]), (cmd[j, 0], cmd[j, 1]),
-                                            res[j, 0], res[j, 1])
-                st[j, 0] = px
-                st[j, 1] = py
-                st[j, 2] = yaw
-                st[j, 3] = v
-                st[j, 4] = w
-                if s < n_xy:
-                    xy_out[s, k + 1, 0] = px
-                    xy_out[s, k + 1, 1] = py
+                _gp_residuals(gp, scratch, n_in, st, cmd, res)
+            _advance_group(dyn, dt, n_in, first, k, st, cmd, res, xy_out)
             cmd_prev, cmd, cmd_next = cmd, cmd_next, cmd_prev
         _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[horizon], radii[horizon]),
                    discount_k)
         for j in range(n_in):
             t = total[j]
             if task_kind == TASK_GOAL:
-                t += goal_term(cost_w, field, grid_origin, inv_cell, goal, st[j, 0], st[j, 1],
-                               cost_w[K_TERMINAL])
+                t += goal_term(cost_w, field, grid_origin, inv_cell, goal, st[0, j], st[1, j], cost_w[K_TERMINAL])
             if not np.isfinite(t):
                 t = np.inf
             cost_out[first + j] = t
+
+
+def _thread_buffers(model: tuple) -> tuple:
+    """One thread's buffers for `rollout_worker`: a group's states, totals, the commands of the previous, this and
+    the next step (rotated every step), GP residuals, simplex node indices and weights (one row per vertex:
+    unit-stride rows let the loop that fills them run as vector code), and the exact GP's work arrays."""
+    n_tasks, n_train = model[M_EX_ALPHA].shape
+    return (np.empty((5, GROUP)), np.empty(GROUP), np.empty((2, GROUP)), np.empty((2, GROUP)), np.empty((2, GROUP)),
+            np.zeros((4, GROUP)), np.zeros((5, GROUP), dtype=np.uint64), np.zeros((5, GROUP), dtype=np.float32),
+            (np.empty(n_train), np.empty(n_tasks), np.empty(n_tasks)))
+
+
+def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out: tuple) -> None:
+    """Every sample's rollout and total cost (the bundles' tuples, `gpmppi.mppi.bundles`, `.args()`): `rollout_worker`
+    on this thread and on `numba.get_num_threads() - 1` pool threads, which share out the sample groups."""
+    samples = out[O_EPS].shape[0]
+    n_groups = (samples + GROUP - 1) // GROUP
+    threads = max(1, min(numba.get_num_threads(), n_groups))
+    plan_consts = (velocity_coefficients(model[M_THETA], model[M_LATERAL]), model[M_TABLE].reshape(-1),
+                   np.zeros(1, dtype=np.int64))
+    head = (model, task, sampling, weight_vector(cost), out, plan_consts)
+    calls = [(*head, _thread_buffers(model)) for _ in range(threads)]
+    if threads == 1:
+        rollout_worker(*calls[0])
+        return
+    _POOL.run(rollout_worker, calls)
+
+
+class _WorkerPool:
+    """Threads kept between plans, each running a nogil kernel on request; the calling thread runs it too.
+
+    Started lazily, and anew in a forked child (a fork keeps the parent's threads' objects, not the threads)."""
+
+    def __init__(self) -> None:
+        self._pid = -1
+        self._inboxes: list[queue.SimpleQueue] = []
+        self._done: queue.SimpleQueue = queue.SimpleQueue()
+        self._lock = threading.Lock()
+
+    def _loop(self, inbox: queue.SimpleQueue) -> None:
+        while True:
+            fn, args = inbox.get()
+            try:
+                fn(*args)
+                self._done.put(None)
+            except BaseException as exc:  # handed to the caller, which raises it
+                self._done.put(exc)
+
+    def run(self, fn: Callable, calls: list[tuple]) -> None:
+        """`fn(*calls[0])` on this thread, `fn(*calls[i])` on pool thread i; raises what any of them raised."""
+        helpers = len(calls) - 1
+        with self._lock:  # one kernel at a time through the pool (its callers may be several threads)
+            if self._pid != os.getpid():
+                self._pid, self._inboxes, self._done = os.getpid(), [], queue.SimpleQueue()
+            while len(self._inboxes) < helpers:
+                inbox: queue.SimpleQueue = queue.SimpleQueue()
+                threading.Thread(target=self._loop, args=(inbox,), daemon=True, name="gpmppi-rollout").start()
+                self._inboxes.append(inbox)
+            for inbox, args in zip(self._inboxes[:helpers], calls[1:], strict=True):
+                inbox.put((fn, args))
+            error: BaseException | None = None
+            try:
+                fn(*calls[0])
+            except BaseException as exc:
+                error = exc
+            for _ in range(helpers):
+                result = self._done.get()
+                error = error or result
+            if error is not None:
+                raise error
+
+
+_POOL = _WorkerPool()
 
 
 @njit(cache=True, fastmath=FASTMATH)
@@ -308,7 +390,7 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     discount_k = 1.0
     for k in range(nominal.shape[0]):
         u = (clip(nominal[k, 0], u_lo[0], u_hi[0]), clip(nominal[k, 1], u_lo[1], u_hi[1]))
-        px, py, yaw, v, w, _mv, _mw, var_v, var_w = step_state(dyn, gp, scratch, dt, s, u)
+        px, py, yaw, v, w, _mv, _mw, var_v, var_w = step_state(dyn, gp, scratch, dt, s, u, 1.0)
         s = (px, py, yaw, v, w)
         stage_critics(kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, (var_v, var_w), out)
         discount_k *= discount

@@ -50,7 +50,7 @@ GP_EXACT = 1  # exact GP
 GP_SIMPLEX = 2  # grid table, simplex interpolation (5 nodes)
 
 
-@njit(cache=True, fastmath=FASTMATH, inline="always")
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def gp_residual(
     gp: tuple, scratch: tuple, v_ref: float, w_ref: float, v: float, w: float
 ) -> tuple[float, float, float, float]:
@@ -149,14 +149,17 @@ def advance(
     return px + v1 * c * dt, py + v1 * s_ * dt, yaw + w1 * dt, v1, w1
 
 
-@njit(cache=True, fastmath=FASTMATH, inline="always")
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def step_state(
-    dyn: tuple, gp: tuple, scratch: tuple, dt: float, s: tuple, u: tuple, residual_scale: float = 1.0,
+    dyn: tuple, gp: tuple, scratch: tuple, dt: float, s: tuple, u: tuple, residual_scale: float,
 ) -> tuple[float, float, float, float, float, float, float, float, float]:
     """Next state (5 scalars) of the chosen model, the residual means it added (mean_v, mean_w) and the step's
     residual variances (var_v, var_w). `dyn` = (dyn_mode, coef, edd5_p), `gp` and `scratch` as `gp_residual`;
     `s` the state (5 scalars), `u` the command (2). `residual_scale` < 1 adds that share of the residual mean
-    (a step shorter than the GP's)."""
+    (a step shorter than the GP's).
+
+    The one model step of the serial kernels (`propagate`, `predict_ahead`, the per-critic scorer): a function
+    of its own, compiled once and called by each (inlined into each, it was compiled three times over)."""
     dyn_mode, coef, edd5_p = dyn
     mv = 0.0
     mw = 0.0
@@ -221,7 +224,7 @@ def propagate(
     tmp = np.empty((5, 5))
     for k in range(n):
         x = states[k]
-        r = step_state(dyn, gp, scratch, dt, (x[0], x[1], x[2], x[3], x[4]), (controls[k, 0], controls[k, 1]))
+        r = step_state(dyn, gp, scratch, dt, (x[0], x[1], x[2], x[3], x[4]), (controls[k, 0], controls[k, 1]), 1.0)
         for i in range(5):
             states[k + 1, i] = r[i]
         if dyn_mode == DYN_GP:

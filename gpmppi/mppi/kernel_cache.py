@@ -14,7 +14,8 @@ import importlib
 import json
 import os
 import sys
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -86,6 +87,12 @@ def record(label: str, use: KernelUse, compile_s: float | None) -> None:
     if not kernels:
         return
     previous = _read(path)
+    # a configuration warmed on several tasks (a lane, then a goal) lists the kernels of each
+    old = previous.get("kernels")
+    if isinstance(old, dict):
+        for name, sigs in old.items():
+            if isinstance(sigs, list):
+                kernels[name] = sorted({*kernels.get(name, []), *map(str, sigs)})
     entry = {"kernels": kernels, "compile_s": compile_s if compile_s is not None else previous.get("compile_s")}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
@@ -139,3 +146,31 @@ def compile_estimate_s(label: str) -> tuple[float, str]:
     if isinstance(measured, int | float) and measured > 0:
         return float(measured), "as measured when this cache was last filled"
     return REFERENCE_COMPILE_S, "measured on 2 cores"
+
+
+def planner_label(dynamics: str, gp_mode: str, backend: str) -> str:
+    """The name a planner configuration's kernels are cached and announced under, e.g. 'gp/grid on cpu'."""
+    label = f"{dynamics}/{gp_mode}" if dynamics == "gp" else dynamics
+    return f"{label} on {backend}"
+
+
+def warm_up(label: str, run: Callable[[], object], log: Callable[[str], None]) -> KernelUse:
+    """Run `run` (one plan of configuration `label`), first saying so when its kernels are not cached (they are
+    then compiled: seconds to a minute on a small machine, once per configuration and source version), afterwards
+    how long the compile took; and record the kernels it used, so that the next start knows them cached.
+
+    The planner service and `gpmppi warm` both warm up through here, so a cache filled by one is found by the other.
+    """
+    if not is_cached(label):
+        estimate, source = compile_estimate_s(label)
+        log(f"compiling planner kernels for {label} (not cached yet in {cache_folder()}; about {estimate:.0f} s, "
+            f"{source}; once)")
+    before = cache_counts()
+    t = time.monotonic()
+    run()
+    seconds = time.monotonic() - t
+    use = kernels_used(before, cache_counts())
+    if use.compiled:
+        log(f"compiled planner kernels for {label} in {seconds:.1f} s ({len(use.compiled)} kernels)")
+    record(label, use, seconds if use.compiled else None)
+    return use

@@ -75,6 +75,7 @@ class Planner:
         if exact_gp and c.backend == "cuda":
             raise ValueError("backend='cuda' evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
         self.backend = "cpu" if exact_gp else backends.resolve(c.backend)
+        self.device = backends.device_inputs(self.backend)  # the kernel's inputs kept on the GPU between plans
         self._dyn = _DYN[c.dynamics]
         if c.gp_mode == "exact":
             self._gp_mode = GP_EXACT
@@ -317,7 +318,8 @@ class Planner:
             task_bundle = TaskBundle.for_goal(task.goal, task.obstacles, bounds, self._goal_field(task, x))
         n_xy = min(c.sample_output, c.samples)
         sampling = self._sampling(x, nominal, self._lane_std if is_lane else self._std)
-        eps, costs, xy = backends.rollouts(self.backend, model, task_bundle, sampling, self._cost, c.samples, n_xy)
+        eps, costs, xy = backends.rollouts(self.backend, model, task_bundle, sampling, self._cost, c.samples, n_xy,
+                                           self.device)
         # exact GP: the kernels' variance cost is latent; the noise adds the same to every rollout (the update
         # is unchanged), added here so that costs are those of the predictive variance in every mode
         noise_cost = c.horizon * self._cost.variance * sum(self._exact_noise_var(w))
