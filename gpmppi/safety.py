@@ -214,7 +214,9 @@ class Safety:
             a_arrive = float(np.sqrt(2.0 * jerk * abs(err)))
             a = float(np.clip(a, -a_arrive, a_arrive))
         out = last + a * dt
-        if (err > 0.0 and out > target) or (err < 0.0 and out < target) or err == 0.0:
+        # arrived (or within rounding of it: last + (err / dt) * dt need not be the target to the last bit, and the
+        # base must get the planner's command exactly when no limit binds)
+        if (err > 0.0 and out > target) or (err < 0.0 and out < target) or abs(target - out) <= 1e-12:
             out = target
         self.accel[axis] = (out - last) / dt
         return out
