@@ -171,3 +171,21 @@ def test_the_services_settings_carry_the_cycles_checks() -> None:
         EgressSettings(watchdog_timeout_s=0.0)
     assert TerrainCycleConfig.from_settings(TerrainSettings(dt=0.2)).dt == 0.2
     assert SafetyConfig.from_settings(EgressSettings(jerk_limit=3.0)).jerk_limit == 3.0
+
+
+@pytest.mark.parametrize(("service", "config", "says"), [
+    ("terrain", {"command_source": "odom"}, "services[0] (terrain).config.command_source: Input should be 'base_cmd'"),
+    ("terrain", {"dt_tolerance": 2.0}, "services[0] (terrain).config.dt_tolerance: Input should be less than 1"),
+    ("egress", {"decel_limit": 0.0}, "services[0] (egress).config.decel_limit: Input should be greater than 0"),
+    ("egress", {"watchdog_timeout_s": -1}, "services[0] (egress).config.watchdog_timeout_s"),
+])
+def test_gpmppi_launch_refuses_a_bad_setting_before_starting_anything(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], service: str, config: dict, says: str
+) -> None:
+    from services.launcher import main
+
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump({"router": {"enabled": False}, "services": [{"name": service, "config": config}]}))
+    assert main([str(path)]) == 2
+    err = capsys.readouterr().err
+    assert f"launch file {path}" in err and says in err, err

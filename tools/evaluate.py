@@ -343,7 +343,8 @@ def _finish(
     meta = {
         "command": "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
         "wall_time_s": round(seconds, 1),
-        "settings": settings.__dict__,
+        # the deployed path's settings (pydantic models) as plain data
+        "settings": {k: v.model_dump() if hasattr(v, "model_dump") else v for k, v in settings.__dict__.items()},
         "terrains": terrains,
         "models": models,
     }
