@@ -11,12 +11,12 @@ pair, gate, estimate and clean up the same way:
   solve stays off the cores the control path needs), or `command_wait_s` after the state arrived;
 - clean-up: commands older than the newest state are dropped (no later transition can use them); the weights are
   clipped to [0, 1] and renormalised, a non-finite residual reads 0;
-- `pairing: applied` (with `command_source: base_cmd`): a transition is observed with the command the base actually
-  held over it, the time average of egress's outputs by their arrival (`on_output`), not the command planned from
-  its first state. In the stack a state's command reaches the base a latency after the state (planning, two Zenoh
-  hops): for that part of the step the base still runs the previous command, which the estimator's per-terrain
-  command-change gains (fitted on drives whose commands change at the step boundaries) read as a terrain that
-  responds more slowly (docs/deployed_path.md).
+- `pairing: applied` (the default with `command_source: base_cmd`): a transition is observed with the command the
+  base actually held over it, the time average of egress's outputs by their arrival (`on_output`), not the command
+  planned from its first state. In the stack a state's command reaches the base a latency after the state (planning,
+  two Zenoh hops): for that part of the step the base still runs the previous command, which the estimator's
+  per-terrain command-change gains (fitted on drives whose commands change at the step boundaries) read as a terrain
+  that responds more slowly (docs/deployed_path.md).
 
 Times: `now` is a monotonic time [s]; stamps are integer nanoseconds.
 """
@@ -49,9 +49,10 @@ class TerrainCycleConfig(BaseModel):
         0.05, ge=0, le=1.0, description="solve once the command for the newest state has arrived, or after this "
         "long [s]"
     )
-    pairing: Pairing = Field(
-        "stamp", description="'stamp': a transition with the command planned from its first state; 'applied' (needs "
-        "command_source base_cmd): with the time average of the base's outputs over it, by their arrival"
+    pairing: Pairing | None = Field(
+        None, description="'stamp': a transition with the command planned from its first state; 'applied' (needs "
+        "command_source base_cmd): with the time average of the base's outputs over it, by their arrival; None: "
+        "'applied' with base_cmd, 'stamp' with cmd"
     )
 
     @model_validator(mode="after")
@@ -60,6 +61,12 @@ class TerrainCycleConfig(BaseModel):
             raise ValueError("pairing 'applied' averages what the base received: it needs command_source 'base_cmd' "
                              f"(got {self.command_source!r})")
         return self
+
+    @property
+    def effective_pairing(self) -> Pairing:
+        if self.pairing is not None:
+            return self.pairing
+        return "applied" if self.command_source == "base_cmd" else "stamp"
 
     @classmethod
     def from_settings(cls, settings: BaseModel | dict) -> TerrainCycleConfig:
@@ -180,7 +187,7 @@ class TerrainCycle:
             if self.previous is not None:
                 gap = (stamp - self.previous[0]) / 1e9
                 command = self.commands.get(self.previous[0])
-                if c.pairing == "applied" and command is not None:
+                if c.effective_pairing == "applied" and command is not None:
                     command = self.applied(self.previous[0], stamp)
                 if command is not None and abs(gap - c.dt) <= c.dt_tolerance * c.dt:
                     self.estimator.observe(self.previous[1], command, x)

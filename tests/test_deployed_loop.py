@@ -67,7 +67,9 @@ def test_the_services_event_loops_give_the_closed_loops_weights_and_base_command
     # first output for a command is then the command, whatever the wall-clock
     # spacing of its outputs; a long command wait, so a loaded machine's egress hop never leaves a state unpaired
     safety = SafetyConfig(accel_limit=1e9, decel_limit=1e9, yaw_accel_limit=1e9, yaw_decel_limit=1e9)
-    cycle = TerrainCycleConfig(command_wait_s=1.0)
+    # pairing by stamp: 'applied' averages the outputs by their arrival, which over Zenoh is the wall clock's
+    # (tests/test_terrain_cycle.py checks it; tools/stack_terrain.py replays a stack's log with it)
+    cycle = TerrainCycleConfig(command_wait_s=1.0, pairing="stamp")
     run = _loop(safety, 4.0, cycle)
     model = cached_gp_model(None)
     stamps = np.round(run.times[: run.commands.shape[0]] * 1e9).astype(np.int64)

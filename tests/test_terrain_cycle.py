@@ -37,7 +37,7 @@ def _state(k: int) -> np.ndarray:
 
 
 def test_pairs_each_transition_with_the_command_of_its_first_state_whatever_the_arrival_order(model) -> None:
-    c = _cycle(model)
+    c = _cycle(model, pairing="stamp")
     c.on_states([(0, _state(0))], 0.0)
     c.on_command(0, [1.0, 0.1])
     assert c.wait_s(0.0) == 0.0  # the newest state's command is in: solve now
@@ -57,7 +57,7 @@ def test_pairs_each_transition_with_the_command_of_its_first_state_whatever_the_
 
 
 def test_transitions_off_dt_or_without_a_command_are_skipped(model) -> None:
-    c = _cycle(model, dt=0.1, dt_tolerance=0.5)
+    c = _cycle(model, dt=0.1, dt_tolerance=0.5, pairing="stamp")
     c.on_states([(0, _state(0))], 0.0)
     c.on_command(0, [1.0, 0.0])
     c.solve()

@@ -6,7 +6,8 @@ From the log: states, the planner's commands (`cmd`), what the base received (`b
 arrival time), the terrain service's published weights and the sim's terrain label. Replays, each a fresh
 `TerrainCycle` with the shipped model and the default estimator:
 
-- `stack`: `command_source: base_cmd`, `pairing: stamp`: what the terrain service ran; its weights are compared
+- `stack`: `command_source: base_cmd`, `pairing: stamp`: what the terrain service ran before `pairing: applied`
+  became the default (set `pairing: stamp` in the launch to check a new log against it); its weights are compared
   with the recorded ones state by state (the replay is faithful when they agree);
 - `cmd`: the planner's command paired by stamp (the in-process estimator's pairing before the deployed path);
 - `applied`: the time average of the base's outputs over each transition, by their arrival at the recorder.
@@ -68,7 +69,8 @@ def replay(log: dict, config: TerrainCycleConfig, terrains: list[str]) -> dict[i
         else:
             cycle.on_states([(ref, states[ref])], ns / 1e9)
         if cycle.pending and cycle.wait_s(ns / 1e9) == 0.0:
-            weights[cycle.pending[-1][0]] = cycle.solve().weights
+            update = cycle.solve()
+            weights[update.stamp_ns] = update.weights
     return weights
 
 
@@ -105,8 +107,9 @@ def main(argv: list[str] | None = None) -> int:
     result["state_to_base_ms"] = {"p10": float(np.percentile(lat, 10)), "p50": float(np.median(lat)),
                                   "p90": float(np.percentile(lat, 90)), "n": int(lat.size)}
     result["recorded"] = scores(stamps, recorded, truth, terrains)
-    for name, cfg in (("stack", TerrainCycleConfig()), ("cmd", TerrainCycleConfig(command_source="cmd")),
-                      ("applied", TerrainCycleConfig(pairing="applied"))):
+    configs = (("stack", TerrainCycleConfig(pairing="stamp")), ("cmd", TerrainCycleConfig(command_source="cmd")),
+               ("applied", TerrainCycleConfig(pairing="applied")))
+    for name, cfg in configs:
         w = replay(log, cfg, terrains)
         result[name] = scores(stamps, w, truth, terrains)
         if name == "stack":
