@@ -181,7 +181,10 @@ def test_the_closed_loop_runs_this_cycle() -> None:
 
     model = load_default_model()
     sc = circle_lane()
-    cfg = ClosedLoopConfig(time_limit_s=1.5, latency_s=0.1)
+    from gpmppi.terrain_cycle import TerrainCycleConfig
+
+    # pairing by stamp: each transition with the command planned from its first state, as the loop below does
+    cfg = ClosedLoopConfig(time_limit_s=1.5, latency_s=0.1, terrain=TerrainCycleConfig(pairing="stamp"))
     traj = run_closed_loop(Planner(PlannerConfig(samples=64, seed=3), model),
                            PhysicsPlant(load_terrains(None), "grass", seed=3), sc.task, sc.start,
                            len(model.terrains), cfg, estimator=TerrainEstimator(model))
