@@ -16,7 +16,8 @@ pair, gate, estimate and clean up the same way:
   planned from its first state. In the stack a state's command reaches the base a latency after the state (planning,
   two Zenoh hops): for that part of the step the base still runs the previous command, which the estimator's
   per-terrain command-change gains (fitted on drives whose commands change at the step boundaries) read as a terrain
-  that responds more slowly (docs/deployed_path.md).
+  that responds more slowly (docs/deployed_path.md). A base that takes commands at its own ticks (the sim's 100 Hz
+  plant steps, `base_period_s`) takes each output from its first tick after the arrival.
 
 Times: `now` is a monotonic time [s]; stamps are integer nanoseconds.
 """
@@ -53,6 +54,12 @@ class TerrainCycleConfig(BaseModel):
         None, description="'stamp': a transition with the command planned from its first state; 'applied' (needs "
         "command_source base_cmd): with the time average of the base's outputs over it, by their arrival; None: "
         "'applied' with base_cmd, 'stamp' with cmd"
+    )
+
+    base_period_s: float | None = Field(
+        None, gt=0, le=0.1, description="pairing 'applied': the base takes a command at its own ticks, this far apart "
+        "and in phase with the states (the sim: 1 / step_hz, 0.01 s), so an output counts from the first tick after "
+        "it arrived [s] (None: from its arrival)"
     )
 
     @model_validator(mode="after")
@@ -126,7 +133,14 @@ class TerrainCycle:
     def on_output(self, received_ns: int, command: Sequence[float] | np.ndarray) -> None:
         """One output the base received at `received_ns` (on the states' clock), held until the next: `pairing:
         applied` averages them over each transition. Out-of-order arrivals are put in order."""
-        entry = (int(received_ns), np.asarray(command, dtype=np.float64).reshape(2).copy())
+        received_ns = int(received_ns)
+        period = self.config.base_period_s
+        anchor = self.pending[-1][0] if self.pending else (self.previous[0] if self.previous is not None else None)
+        if period is not None and anchor is not None:
+            # the base's ticks are in phase with the states it measures: the first tick at or after the arrival
+            step = round(period * 1e9)
+            received_ns = anchor + -(-(received_ns - anchor) // step) * step
+        entry = (received_ns, np.asarray(command, dtype=np.float64).reshape(2).copy())
         if self.outputs and entry[0] < self.outputs[-1][0]:
             self.outputs.append(entry)
             self.outputs.sort(key=lambda e: e[0])

@@ -104,6 +104,24 @@ def test_applied_pairing_averages_what_the_base_held_over_each_transition(model)
         TerrainCycleConfig(pairing="applied", command_source="cmd")
 
 
+def test_a_base_with_ticks_takes_an_output_at_its_first_tick_after_the_arrival(model) -> None:
+    """The sim steps its plant at 100 Hz in phase with the states it publishes: an output that arrives 12 ms after
+    a state acts from 20 ms, one at exactly a tick from that tick."""
+    ms = NS // 1000
+    c = _cycle(model, base_period_s=0.01)
+    c.on_states([(1000 * ms, _state(0))], 1.0)
+    c.on_output(1012 * ms, [1.0, 0.0])
+    c.on_output(1030 * ms, [2.0, 0.0])
+    c.on_output(1030 * ms + 1, [3.0, 0.0])
+    assert [t for t, _ in c.outputs] == [1020 * ms, 1030 * ms, 1040 * ms]
+    free = _cycle(model)
+    free.on_states([(1000 * ms, _state(0))], 1.0)
+    free.on_output(1012 * ms, [1.0, 0.0])
+    assert [t for t, _ in free.outputs] == [1012 * ms]
+    with pytest.raises(ValidationError, match="base_period_s"):
+        TerrainCycleConfig(base_period_s=0.5)
+
+
 def test_the_prior_goes_out_before_the_estimator_exists(model) -> None:
     c = TerrainCycle(TerrainCycleConfig(), len(model.terrains))
     assert c.wait_s(0.0) == float("inf")
@@ -158,7 +176,7 @@ def test_the_shipped_launch_files_give_their_limits_and_sources() -> None:
     assert robot.safety is not None and (robot.safety.accel_limit, robot.safety.decel_limit) == (2.0, 4.0)
     assert robot.safety.v_limits == (0.0, 2.0) and robot.terrain.command_source == "base_cmd"
     sim = deployed_path(REPO / "deploy" / "sim.yaml")
-    assert sim.safety == SafetyConfig() and sim.terrain == TerrainCycleConfig()
+    assert sim.safety == SafetyConfig() and sim.terrain == TerrainCycleConfig(base_period_s=0.01)  # the sim's steps
 
 
 def test_the_services_settings_carry_the_cycles_checks() -> None:

@@ -1,6 +1,7 @@
 """The stack's command path between planner cycles, in simulated time: a command reaches egress after its latency,
 egress (`SafetyCycle`) sends on acceptance, at its steady rate and at the watchdog's deadline, the plant holds each
-output until the next, and the terrain service's cycle (`TerrainCycle`) gets states and the commands of its
+output until the next (taken at the base's first tick after its arrival when the base has ticks: the terrain
+cycle's `base_period_s`), and the terrain service's cycle (`TerrainCycle`) gets states and the commands of its
 `command_source` and solves when it would in the stack; its weights go to the planner cycle at that time.
 
 Times are the simulation's [s]; stamps are its nanoseconds (states are stamped when measured, and egress's and the
@@ -41,6 +42,11 @@ class CommandPath:
         self.terrain = TerrainCycle(terrain, n_terrains, estimator, record_pairs=True) if estimator is not None \
             else None
         self.pending: deque[tuple[float, int, np.ndarray]] = deque()  # (arrival at egress [s], stamp, command)
+        # the base takes an output at its first tick at or after the arrival, when `terrain.base_period_s` says it
+        # has ticks (the sim's 100 Hz steps, in phase with the states); until then it holds the previous one
+        self.base_period = terrain.base_period_s
+        self.taking: deque[tuple[float, np.ndarray]] = deque()  # (when the base takes it [s], command)
+        self.state_time = 0.0  # the newest state's time: the base's ticks are in phase with it
         self.active = np.zeros(2)  # what the base applies now
         self.weights_ok = False  # whether the last solve succeeded (the weights the planner has now)
         self.base_times: list[float] = []
@@ -51,6 +57,7 @@ class CommandPath:
 
     # ---- inputs at a planner cycle
     def on_state(self, stamp_ns: int, state: np.ndarray, now: float) -> None:
+        self.state_time = now
         if self.terrain is not None:
             self.terrain.on_states([(stamp_ns, state)], now)
 
@@ -62,18 +69,28 @@ class CommandPath:
 
     # ---- between planner cycles
     def _base(self, now: float, command: np.ndarray, reason: str, stamp_ns: int | None) -> None:
-        self.active = np.asarray(command, dtype=np.float64).copy()
+        u = np.asarray(command, dtype=np.float64).copy()
+        if self.base_period is None:
+            self.active = u
+        else:
+            ticks = np.ceil((now - self.state_time) / self.base_period - 1e-9)
+            self.taking.append((self.state_time + ticks * self.base_period, u))
         self.base_times.append(now)
-        self.base_commands.append(self.active.copy())
+        self.base_commands.append(u.copy())
         self.base_reasons.append(reason)
         # egress's first output after a command keeps the command's stamp; repeats carry egress's clock, which
         # no state stamp matches, so they pair with nothing
         if self.terrain is not None and self.source == "base_cmd":
-            self.terrain.on_output(_ns(now), self.active)
+            self.terrain.on_output(_ns(now), u)
             if stamp_ns is not None:
-                self.terrain.on_command(stamp_ns, self.active)
+                self.terrain.on_command(stamp_ns, u)
+
+    def _take(self, now: float) -> None:
+        while self.taking and self.taking[0][0] <= now + _EPS:
+            self.active = self.taking.popleft()[1]
 
     def _events(self, now: float, planner: PlannerCycle) -> None:
+        self._take(now)
         while self.pending and self.pending[0][0] <= now + _EPS:
             _, stamp, u = self.pending.popleft()
             if self.egress is None:
@@ -85,6 +102,7 @@ class CommandPath:
         if self.egress is not None and (sent := self.egress.step(now)) is not None:
             out = sent.output
             self._base(now, np.array([out.v, out.omega]), out.reason, sent.command_stamp_ns)
+        self._take(now)
         if self.terrain is not None and self.terrain.pending and self.terrain.wait_s(now) <= _EPS:
             update = self.terrain.solve()
             self.weights_ok = update.ok
@@ -95,6 +113,8 @@ class CommandPath:
         t = end
         if self.pending:
             t = min(t, self.pending[0][0])
+        if self.taking:
+            t = min(t, self.taking[0][0])
         if self.egress is not None:
             t = min(t, self.egress.next_due(now))
         if self.terrain is not None and self.terrain.pending:
