@@ -77,9 +77,10 @@ def run(settings: Settings) -> int:
         return serve(node, settings)
 
 
-def serve(node: Node, settings: Settings) -> int:
-    """Egress's event loop on an open node, until it is stopped: decode, `SafetyCycle`, encode."""
-    cycle = SafetyCycle(SafetyConfig.from_settings(settings))
+def serve(node: Node, settings: Settings, cycle: SafetyCycle | None = None) -> int:
+    """Egress's event loop on an open node, until it is stopped: decode, `SafetyCycle`, encode. `cycle`: one made
+    from `settings` by the caller, who can then read its state (tests); None: made here."""
+    cycle = cycle or SafetyCycle(SafetyConfig.from_settings(settings))
     cmd_sub = node.subscribe("cmd")
     estop_sub = node.subscribe("estop")
     if settings.output == "sim":

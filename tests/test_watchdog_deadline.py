@@ -54,40 +54,52 @@ def test_a_refused_command_changes_nothing_and_sends_nothing_new() -> None:
     assert out is not None and out.output.v == 0.5 and out.command_stamp_ns is None  # a repeat
 
 
-def _egress_thread(port: int, **config: object) -> tuple[Node, threading.Thread]:
+def _egress_thread(port: int, **config: object) -> tuple[Node, threading.Thread, SafetyCycle]:
     s = Settings(**settings("egress", port, **config))
     node = Node(s, install_signals=False).open()
-    thread = threading.Thread(target=serve, args=(node, s), daemon=True)
+    cycle = SafetyCycle(SafetyConfig.from_settings(s))
+    thread = threading.Thread(target=serve, args=(node, s, cycle), daemon=True)
     thread.start()
-    return node, thread
+    return node, thread, cycle
 
 
 @pytest.mark.parametrize("timeout_s", [0.25, 0.22])
 def test_egress_loop_zeroes_within_20_ms_of_its_deadline_over_10_trials(timeout_s: float) -> None:
     """10 trials per timeout (20 in all): 0.25 s is the default, 0.22 s is off the 50 ms output grid (a loop that
-    waited for the next steady tick would send 30 ms late there)."""
+    waited for the next steady tick would send 30 ms late there). Measured from when egress accepted the last
+    command (its cycle's own record) to when it sent the zero (the zero's stamp), on this process's clocks; the
+    zero's arrival at a subscriber is printed beside it."""
     port = free_port()
     with router(port):
-        node, thread = _egress_thread(port, watchdog_timeout_s=timeout_s, rate_hz=20.0)
+        node, thread, cycle = _egress_thread(port, watchdog_timeout_s=timeout_s, rate_hz=20.0)
         observer = client(port)
         try:
             col = Collector(observer, "gpmppi/r1/base/cmd")
             pub = matched_publisher(observer, "gpmppi/r1/cmd")
-            delays = []
+            delays: list[float] = []  # last accepted command -> zero sent by egress
+            arrivals: list[float] = []  # -> zero arrived at the subscriber (Zenoh and this process's scheduling)
             for trial in range(10):
                 for _ in range(3):
-                    t_last = time.monotonic()  # before the put: what egress accepted came later, never earlier
+                    t_last = time.monotonic()
                     pub.put(encode(Command(v_ref=0.5, omega_ref=0.1 * trial, header=Header(stamp_ns=time.time_ns()))))
                     time.sleep(0.1)
 
-                def zero_after(t: float = t_last) -> float | None:
-                    return next((ta for ta, p, _ in col.on("gpmppi/r1/base/cmd")
-                                 if ta > t and decode(BaseCommand, p).reason == "watchdog"), None)
+                def zero_after(t: float = t_last) -> tuple[float, BaseCommand] | None:
+                    return next(((ta, b) for ta, p, _ in col.on("gpmppi/r1/base/cmd")
+                                 if ta > t and (b := decode(BaseCommand, p)).reason == "watchdog"), None)
 
                 assert wait_for(lambda: zero_after() is not None, 2.0), "no watchdog zero"
-                delays.append(zero_after() - t_last)  # type: ignore[operator]
+                accepted = cycle.safety.command_time  # the last command egress accepted (no newer one came)
+                assert t_last < accepted < t_last + 0.1
+                arrived, zero = zero_after()  # type: ignore[misc]
+                # sent: the zero's stamp is egress's wall clock when it went out, on this process's monotonic clock
+                sent = (zero.header.stamp_ns - (time.time_ns() - time.monotonic_ns())) / 1e9
+                delays.append(sent - accepted)
+                arrivals.append(arrived - accepted)
                 time.sleep(0.1)
-            print(f"timeout {timeout_s} s: last command -> zero [ms]", np.round(np.array(delays) * 1e3, 1).tolist())
+            ms = {name: np.round(np.array(v) * 1e3, 1).tolist()
+                  for name, v in (("sent", delays), ("arrived", arrivals))}
+            print(f"timeout {timeout_s} s: last accepted command -> zero [ms]", ms)
             assert min(delays) >= timeout_s - 0.002, delays  # never before the deadline
             assert max(delays) <= timeout_s + 0.020, delays
         finally:
