@@ -103,6 +103,32 @@ def _describe_run_to_recorders(
     ]
 
 
+# services whose settings are checked before anything starts: the control path's limits and the terrain cycle (a
+# bad value there would otherwise surface as one child's exit, and terrain is optional, so the launch would go on)
+CHECKED_AT_START = ("egress", "terrain")
+
+
+def check_settings(launch: LaunchFile, path: str | Path) -> None:
+    """ValueError naming the launch file, the service entry and the field of the first settings that do not
+    validate (out of range, an unknown command source, an unknown field), for the services in CHECKED_AT_START."""
+    from pydantic import ValidationError
+
+    from services.run import settings_class
+
+    for i, entry in enumerate(launch.services):
+        kind = entry.kind or entry.name
+        if not entry.enabled or kind not in CHECKED_AT_START:
+            continue
+        try:
+            settings_class(kind)(**{**entry.config, "service": entry.name})
+        except ValidationError as exc:
+            problems = "; ".join(
+                f"services[{i}] ({entry.name}).config{''.join('.' + str(p) for p in err['loc'])}: {err['msg']} "
+                f"(got {err.get('input')!r})" for err in exc.errors()
+            )
+            raise ValueError(f"launch file {path}: {problems}; fix it in the file") from None
+
+
 def run_launch(
     launch_path: str | Path | None = None,
     duration: float | None = None,
@@ -120,6 +146,7 @@ def run_launch(
     `then`, if given, runs in a thread once every service is up, instead of the `duration`; the run ends when
     it returns (it should return soon after `launcher.stop_event` is set). Its exception is raised here."""
     launch = LaunchFile.load(launch_path or DEFAULT_LAUNCH)
+    check_settings(launch, launch_path or DEFAULT_LAUNCH)
     launcher, service_names = build(launch, record, rerun, port, secrets, launch_path or DEFAULT_LAUNCH)
     launcher.out = out or sys.stdout
     interrupted = threading.Event()

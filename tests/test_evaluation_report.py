@@ -89,6 +89,29 @@ def _ramp_run(terrain: str) -> Trajectory:
                       planner_ms=np.ones(T), tightened=[], terrains=[terrain] * T, status="distance")
 
 
+def test_score_has_the_rates_of_the_commands_the_base_received() -> None:
+    """The planner steps v_ref by 0.2 m/s each 0.1 s (2 m/s^2); egress halves each step over two 20 Hz outputs, the
+    second marked `limit`: the base's v changes 0.1 m/s per 0.05 s (2 m/s^2 too, but half as big a step); omega is
+    held at 0.5 rad/s then jumps to -0.5 once (20 rad/s^2 over one 0.05 s output)."""
+    lane = LaneTask(np.array([[0.0, 0.0], [100.0, 0.0]]), half_width=1.0, closed=True)
+    run = _ramp_run("grass")
+    bt = np.arange(120) * 0.05
+    bv = 0.1 * np.arange(120)
+    bw = np.where(np.arange(120) < 60, 0.5, -0.5)
+    run.base_times, run.base_commands = bt, np.stack([bv, bw], 1)
+    run.base_reasons = ["planner" if i % 2 else "limit" for i in range(120)]
+    s = score(run, lane, 0, ClosedLoopConfig(adapt_weights=True), NAMES)
+    assert s.base_v_rate_mean == pytest.approx(2.0) and s.base_v_rate_p95 == pytest.approx(2.0)
+    assert s.base_omega_rate_mean == pytest.approx(20.0 / 119)
+    assert s.base_omega_rate_p95 == pytest.approx(0.0)  # one jump in 119 changes
+    assert s.base_limited_fraction == pytest.approx(0.5)
+    assert s.v_ref_rate_mean == pytest.approx(2.0)  # the planner's own, unchanged
+    bare = score(_ramp_run("grass"), lane, 0, ClosedLoopConfig(adapt_weights=True), NAMES)
+    assert np.isnan(bare.base_v_rate_mean) and np.isnan(bare.base_limited_fraction)  # no base commands recorded
+    cell = summarize([s, s])
+    assert cell["base_v_rate_mean"] == pytest.approx(2.0) and cell["base_v_rate_mean_std"] == pytest.approx(0.0)
+
+
 def test_score_of_a_hand_made_run_has_rates_and_weight_scores() -> None:
     lane = LaneTask(np.array([[0.0, 0.0], [100.0, 0.0]]), half_width=1.0, closed=True)
     adapting = ClosedLoopConfig(adapt_weights=True)
@@ -96,9 +119,10 @@ def test_score_of_a_hand_made_run_has_rates_and_weight_scores() -> None:
     assert s.v_ref_rate_mean == pytest.approx(2.0) and s.v_ref_rate_p95 == pytest.approx(2.0)
     assert s.omega_ref_rate_mean == pytest.approx(0.5) and s.omega_ref_rate_p95 == pytest.approx(0.5)
     assert s.true_weight_mean == pytest.approx(0.8)  # after 3 s: all 0.8 on grass
-    assert s.weight_switches_per_min == pytest.approx(10.0)  # one change in 0.1 min
+    # one change, at 3.0 s (counted: from 3 s on), in the 0.05 min after the first 3 s
+    assert s.weight_switches_per_min == pytest.approx(20.0)
     sand = score(_ramp_run("sand"), lane, 0, adapting, NAMES)
-    assert sand.true_weight_mean is None and sand.weight_switches_per_min == pytest.approx(10.0)
+    assert sand.true_weight_mean is None and sand.weight_switches_per_min == pytest.approx(20.0)
     fixed = score(_ramp_run("grass"), lane, 0, ClosedLoopConfig(adapt_weights=False), NAMES)
     assert fixed.true_weight_mean is None and fixed.weight_switches_per_min is None
     assert fixed.v_ref_rate_mean == pytest.approx(2.0)

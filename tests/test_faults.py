@@ -35,6 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 ROBOT = "jackal"
 WATCHDOG_S = 0.25  # egress's watchdog, set explicitly so the bounds hold whatever egress's default is
 EGRESS_HZ = 20.0
+DEADLINE_SLACK_S = 0.020  # the watchdog's zero, after the last command, at an outside observer: at most this late
 SIM_TIMEOUT_S = 0.5  # the sim's own command timeout (services/sim.py command_timeout_s default)
 MOVING = 0.05  # [m/s] a base command above this is driving
 STOPPED = 0.1  # [m/s] a measured speed below this is standing (the sim runs without sensor noise here)
@@ -158,6 +159,14 @@ def _accepts(port: int) -> bool:
         return False
 
 
+def _last_command(obs: Observer, t_zero: float | None) -> float | None:
+    """Arrival of the last planner command before the watchdog's zero: one published before the signal can arrive
+    after it (here, after t_kill), and egress accepted it, so the watchdog counts from it."""
+    if t_zero is None:
+        return None
+    return max((t for t, _ in obs.cmds() if t < t_zero), default=None)
+
+
 def _standing(obs: Observer, t0: float, t1: float) -> list[float]:
     """Measured speeds of the states that arrived in [t0, t1]."""
     return [abs(m.v) for t, m in obs.states(t0) if t <= t1]
@@ -182,12 +191,12 @@ def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPat
             assert obs.wait_driving(time.monotonic(), 60.0), "the robot never drove"
             time.sleep(1.0)
 
-            # ---- SIGKILL planner: zero within the watchdog + one egress period, restarted, driving again
+            # ---- SIGKILL planner: zero within the watchdog + 20 ms, restarted, driving again
             t_kill = time.monotonic()
             launcher.kill("planner", signal.SIGKILL)
             wait_for(lambda: obs.first_zero(t_kill, "watchdog") is not None, 3.0)
             t_zero = obs.first_zero(t_kill, "watchdog")
-            last_cmd = max((t for t, _ in obs.cmds() if t < t_kill), default=None)
+            last_cmd = _last_command(obs, t_zero)
             # (until the watchdog fires, egress repeats the last command: driving again counts from the zero)
             t_drive = obs.wait_driving(t_zero or t_kill, 120.0)
             if t_zero is None or last_cmd is None or t_drive is None:
@@ -200,7 +209,8 @@ def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPat
                 t_new = min((t for t, _ in obs.cmds(t_zero)), default=t_drive)
                 between = [m for t, m in obs.base(t_zero) if t < t_new and m.reason != "watchdog"]
                 check(not between, f"planner SIGKILL: non-watchdog output while the planner was gone: {between[:3]}")
-                check(t_zero - last_cmd <= WATCHDOG_S + 1 / EGRESS_HZ + 0.15,
+                # egress's watchdog is a timer at its deadline (gpmppi/safety.py SafetyCycle), not the next tick
+                check(t_zero - last_cmd <= WATCHDOG_S + DEADLINE_SLACK_S,
                       f"planner SIGKILL: zero {t_zero - last_cmd:.3f} s after the last command")
                 # driving resumed (t_drive is not None): the 2 s goal (warm cache) is the planner's start-up on an
                 # idle machine, see docs/faults.md; on 2 shared cores under load its imports alone took 5 s and
@@ -217,7 +227,7 @@ def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPat
             launcher.kill("planner", signal.SIGSTOP)
             wait_for(lambda: obs.first_zero(t_stop, "watchdog") is not None, 3.0)
             t_zero = obs.first_zero(t_stop, "watchdog")
-            last_cmd = max((t for t, _ in obs.cmds() if t < t_stop), default=None)
+            last_cmd = _last_command(obs, t_zero)
             time.sleep(1.0)
             frozen_ok = launcher.child("planner").process.poll() is None  # type: ignore[union-attr]
             t_cont = time.monotonic()
@@ -228,7 +238,7 @@ def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPat
             else:
                 timings["planner_stop_zero_after_last_cmd_s"] = t_zero - last_cmd
                 timings["planner_cont_resume_s"] = t_drive - t_cont
-                check(t_zero - last_cmd <= WATCHDOG_S + 1 / EGRESS_HZ + 0.15,
+                check(t_zero - last_cmd <= WATCHDOG_S + DEADLINE_SLACK_S,
                       f"planner SIGSTOP: zero {t_zero - last_cmd:.3f} s after the last command")
                 moving = [m for t, m in obs.base(t_zero) if t < t_cont and m.v != 0.0]
                 check(not moving, f"planner SIGSTOP: moving output while it was frozen: {moving[:3]}")

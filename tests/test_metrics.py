@@ -211,10 +211,27 @@ def test_weight_switches_per_minute_count_argmax_changes() -> None:
     times = np.arange(7) * 5.0  # six 5 s cycles: half a minute
     w = np.array([[0.6, 0.2, 0.2], [0.5, 0.4, 0.1], [0.3, 0.6, 0.1], [0.2, 0.7, 0.1], [0.8, 0.1, 0.1],
                   [0.1, 0.1, 0.8]])
-    # top terrain 0, 0, 1, 1, 0, 2: three changes in 0.5 min
-    assert weight_switches_per_min(times, w) == pytest.approx(6.0)
+    # top terrain 0, 0, 1, 1, 0, 2: three changes in 0.5 min (counted from t = 0)
+    assert weight_switches_per_min(times, w, settle_s=0.0) == pytest.approx(6.0)
+    # by default after the first 3 s: the same three changes (at 10, 20 and 25 s) in 27 s
+    assert weight_switches_per_min(times, w) == pytest.approx(3 / 0.45)
     ties = np.tile([0.5, 0.5, 0.0], (6, 1))  # a tie goes to the first every time: no change
     assert weight_switches_per_min(times, ties) == 0.0
     assert weight_switches_per_min(times[:2], w[:1]) == 0.0
     assert weight_switches_per_min(np.zeros(1), np.zeros((0, 3))) is None
     assert weight_switches_per_min(times, np.zeros((6, 0))) is None
+    assert weight_switches_per_min(times[:2] * 0.5, w[:1]) is None  # a 2.5 s run: nothing after 3 s
+
+
+def test_weight_switches_leave_out_the_first_answer_from_uniform_weights() -> None:
+    """A 6 s obstacle run whose estimate leaves the uniform start for the right terrain at 0.5 s and keeps it: no
+    switch (from t = 0 this scored 10 per minute); a later change of mind at 4 s is one in 3 s."""
+    times = np.arange(61) * 0.1
+    k = np.arange(60)
+    settled = np.where(k[:, None] < 5, 1 / 3, np.array([0.1, 0.8, 0.1])[None, :])
+    assert weight_switches_per_min(times, settled) == 0.0
+    assert weight_switches_per_min(times, settled, settle_s=0.0) == pytest.approx(10.0)
+    changed = np.where(k[:, None] < 40, settled, np.array([0.7, 0.2, 0.1])[None, :])
+    assert weight_switches_per_min(times, changed) == pytest.approx(1 / (3.0 / 60.0))
+    with pytest.raises(ValueError, match="weight rows need"):
+        weight_switches_per_min(times[:-1], settled)

@@ -181,7 +181,10 @@ def test_the_closed_loop_runs_this_cycle() -> None:
 
     model = load_default_model()
     sc = circle_lane()
-    cfg = ClosedLoopConfig(time_limit_s=1.5, latency_s=0.1)
+    from gpmppi.terrain_cycle import TerrainCycleConfig
+
+    # pairing by stamp: each transition with the command planned from its first state, as the loop below does
+    cfg = ClosedLoopConfig(time_limit_s=1.5, latency_s=0.1, terrain=TerrainCycleConfig(pairing="stamp"))
     traj = run_closed_loop(Planner(PlannerConfig(samples=64, seed=3), model),
                            PhysicsPlant(load_terrains(None), "grass", seed=3), sc.task, sc.start,
                            len(model.terrains), cfg, estimator=TerrainEstimator(model))
@@ -194,9 +197,13 @@ def test_the_closed_loop_runs_this_cycle() -> None:
     commands, weights = [], []
     for k, x in enumerate(traj.measured_states[:-1]):
         stamp = round(k * 0.1 * NS)
+        # as the terrain service: state k-1's solve waits for its command (at the base 0.1 s late, after state k
+        # arrived: so command_wait_s, 0.05 s) and observes the transition k-2 -> k-1; the plan for k gets it
         if k > 0:
-            estimator.observe(traj.measured_states[k - 1], commands[-1], x)
-            cycle.on_weights(estimator.estimate().weights, k * 0.1)
+            if k > 1:
+                estimator.observe(traj.measured_states[k - 2], commands[k - 2], traj.measured_states[k - 1])
+            w = np.clip(np.asarray(estimator.estimate().weights, dtype=np.float64), 0.0, 1.0)
+            cycle.on_weights(w / w.sum(), (k - 1) * 0.1 + 0.05)  # clean-up: on the simplex, as it publishes them
         out = cycle.on_state(x, stamp, k * 0.1, stamp)
         assert isinstance(out, Planned) and out.delay_s == 0.1
         commands.append(np.asarray(out.result.control).copy())

@@ -179,14 +179,21 @@ def test_the_paper_method_stays_available() -> None:
 @lru_cache(maxsize=3)
 def _closed_loop_steps(terrain: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
     """A GP-MPPI closed loop on the physics plant (the evaluation's runner, 20 m of the circle lane, 256 samples):
-    its times, measured states, commands and terrains."""
+    its times, measured states, the commands the base held over each cycle (the time average of egress's outputs:
+    its limits change some of the planner's) and terrains."""
     from gpmppi.evaluation.runner import EvalSettings, Job, run_job
     from gpmppi.scenarios import circle_lane
 
     settings = EvalSettings(samples=256, lane_distance_m=20.0)
     _, trajs = run_job(Job("tracking", circle_lane(), terrain, "gp", (3,), record=True, label="circle"), settings)
     tr = trajs[0]
-    return tr.times, tr.measured_states, tr.commands, tuple(tr.terrains)
+    held = np.zeros_like(tr.commands)
+    ends = np.append(tr.base_times[1:], np.inf)
+    for k in range(len(tr.commands)):
+        t0, t1 = tr.times[k], tr.times[k + 1]
+        span = np.clip(np.minimum(ends, t1) - np.maximum(tr.base_times, t0), 0.0, None)
+        held[k] = span @ tr.base_commands / span.sum()
+    return tr.times, tr.measured_states, held, tuple(tr.terrains)
 
 
 @pytest.mark.slow

@@ -78,6 +78,11 @@ CompensateOpt = Annotated[
     bool, typer.Option("--compensate/--no-compensate", help="Planners plan for the state their command meets.")
 ]
 NoiseOpt = Annotated[bool, typer.Option("--noise/--no-noise", help="Physics plant sensor noise.")]
+DeployOpt = Annotated[
+    Path | None,
+    typer.Option("--deploy", help="Launch file whose egress limits and terrain cycle (command_source, dt gating, "
+                 "estimator) the closed loop runs (default: the default launch)."),
+]
 RandomOpt = Annotated[bool, typer.Option("--random-scenes", help="Avoidance: a random scene per trial.")]
 SetOpt = Annotated[
     list[str] | None,
@@ -163,6 +168,7 @@ def _settings(
     plant: PlantName, plant_file: Path | None, terrain_file: Path | None, gp_model: Path | None, samples: int,
     distance: float | None, quick: bool, latency: float, latency_cycles: int, compensate: bool, noise: bool,
     overrides: list[str] | None, estimator: list[str] | None = None, oracle: bool = False,
+    deploy: Path | None = None,
 ) -> EvalSettings:
     if plant is PlantName.residual_net and plant_file is None:
         _fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
@@ -183,6 +189,15 @@ def _settings(
         estimator_fields = terrain_cmd.estimator_settings(estimator or [])
     except ValueError as e:
         _fail(f"--estimator: {e}")
+    # the deployed command path: egress's limits, the terrain service's cycle and estimator of the launch file
+    from gpmppi.evaluation.deployed import DeployFileError, deployed_path
+    from services.launch_file import DEFAULT_LAUNCH
+
+    try:
+        deployed = deployed_path(deploy or DEFAULT_LAUNCH)
+    except DeployFileError as e:
+        _fail(f"--deploy: {e}")
+    estimator_fields = (*deployed.estimator.model_dump(exclude_unset=True).items(), *estimator_fields)
     return EvalSettings(
         plant=plant.value,  # type: ignore[arg-type]
         plant_file=str(plant_file) if plant_file else None,
@@ -196,6 +211,8 @@ def _settings(
         planner_overrides=planner_overrides,
         terrain_estimator=estimator_fields,
         oracle_weights=oracle,
+        safety=deployed.safety,
+        terrain_cycle=deployed.terrain,
     )
 
 
@@ -326,7 +343,8 @@ def _finish(
     meta = {
         "command": "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
         "wall_time_s": round(seconds, 1),
-        "settings": settings.__dict__,
+        # the deployed path's settings (pydantic models) as plain data
+        "settings": {k: v.model_dump() if hasattr(v, "model_dump") else v for k, v in settings.__dict__.items()},
         "terrains": terrains,
         "models": models,
     }
@@ -352,9 +370,10 @@ def _run(
     workers: int, samples: int, distance: float | None, latency: float, latency_cycles: int, compensate: bool,
     noise: bool, random_scenes: bool, switch: list[str] | None, overrides: list[str] | None,
     estimator: list[str] | None = None, oracle: bool = False, ray_address: str | None = None,
+    deploy: Path | None = None,
 ) -> None:
     settings = _settings(plant, plant_file, terrain_file, gp_model, samples, distance, quick, latency,
-                         latency_cycles, compensate, noise, overrides, estimator, oracle)
+                         latency_cycles, compensate, noise, overrides, estimator, oracle, deploy)
     terrains = terrain or _default_terrains(settings)
     if quick and not terrain:
         terrains = terrains[:1]
@@ -386,12 +405,13 @@ def register(app: typer.Typer) -> None:
             latency_cycles: LatencyCyclesOpt = 0, compensate: CompensateOpt = True, noise: NoiseOpt = True,
             random_scenes: RandomOpt = False, switch: SwitchOpt = None, set_: SetOpt = None,
             estimator: EstimatorOpt = None, oracle: OracleOpt = False, ray: RayOpt = None,
+            deploy: DeployOpt = None,
         ) -> None:
             if kind == "table" and out is None:
                 out = Path("evaluation")
             _run(kind, terrain, model, trials, seed, plant, plant_file, terrain_file, scene_file, lane_file,
                  gp_model, quick, as_json, out, workers, samples, distance, latency, latency_cycles, compensate,
-                 noise, random_scenes, switch, set_, estimator, oracle, ray)
+                 noise, random_scenes, switch, set_, estimator, oracle, ray, deploy)
 
         command.__doc__ = doc
         return command

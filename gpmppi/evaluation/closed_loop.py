@@ -1,9 +1,17 @@
-"""One closed loop in one process: planner + terrain estimator + plant, exactly the code the services run.
+"""One closed loop in one process: the deployed command path (terrain cycle -> planner cycle -> egress safety) and
+the plant, exactly the code the services run.
 
 The plant advances at its own internal step (its `dt`, inside `Plant.step`), the planner runs every
-`planner_dt` on the measured state, the terrain estimator sees each measured transition and its
-weights feed the next plan, and a command can reach the plant late (latency in seconds; use
-`latency_from_cycles` for planner cycles). The planner is driven through the planner service's own cycle
+`planner_dt` on the measured state, and a command can reach egress late (latency in seconds; use
+`latency_from_cycles` for planner cycles). Egress (`gpmppi.safety.SafetyCycle` with `ClosedLoopConfig.safety`, the
+deploy file's limits) sends on each accepted command, at its steady rate and at the watchdog's deadline, and the
+plant holds each output until the next (None: the planner's commands reach the plant directly). The terrain
+estimator runs in the terrain service's cycle (`gpmppi.terrain_cycle.TerrainCycle`): it gets each state as the
+planner does and the commands from `command_source` (egress's first output after accepting a command, stamped with
+its state, or the planner's command), solves once the newest state's command is in (after the plan for that state,
+as in the stack), and its weights reach the planner for the next state.
+
+The planner is driven through the planner service's own cycle
 (`gpmppi.mppi.cycle.PlannerCycle`: weight updates and their ages, state checks, delay compensation) on the
 simulation's clock: states are stamped when measured, planning takes no simulated time, and the command latency
 is what the cycle compensates (`actuation_delay_s`). Nothing depends on wall-clock time, so a run is a pure
@@ -18,15 +26,17 @@ have no end: they stop on distance or time.
 from __future__ import annotations
 
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import numpy as np
 
+from gpmppi.evaluation.command_path import CommandPath
 from gpmppi.evaluation.metrics import first_collision_index, lane_end_reached
 from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle, PlannerLike
+from gpmppi.safety import SafetyConfig
 from gpmppi.tasks import GoalTask, LaneTask, polyline_length
+from gpmppi.terrain_cycle import EstimatorLike, TerrainCycleConfig
 
 Status = Literal["goal", "collision", "finished", "distance", "time_limit", "planner_error", "plant_error"]
 
@@ -38,11 +48,6 @@ class PlantLike(Protocol):
     def step(self, command: np.ndarray, duration: float) -> np.ndarray: ...
     def measure(self) -> np.ndarray: ...
     def set_terrain(self, name: str) -> None: ...
-
-
-class EstimatorLike(Protocol):
-    def observe(self, state: np.ndarray, command: np.ndarray, next_state: np.ndarray) -> None: ...
-    def estimate(self): ...
 
 
 @dataclass(frozen=True)
@@ -64,6 +69,8 @@ class ClosedLoopConfig:
     cycle: CycleConfig = field(default_factory=CycleConfig)
     adapt_weights: bool = True  # run the terrain estimator each cycle and feed its weights to the planner
     terrain_switches: tuple[tuple[float, str], ...] = ()  # (time [s], terrain) changes of the plant's ground
+    safety: SafetyConfig | None = None  # egress between the planner and the plant (None: none, commands go direct)
+    terrain: TerrainCycleConfig = field(default_factory=TerrainCycleConfig)  # the terrain service's cycle
 
     def __post_init__(self) -> None:
         if not self.planner_dt > 0 or not self.time_limit_s > 0:
@@ -103,6 +110,13 @@ class Trajectory:
     status: Status = "time_limit"
     message: str = ""
     plans_xy: list[np.ndarray] = field(default_factory=list)  # nominal plans (N+1, 2) if recorded
+    # what the base received (egress's outputs; without egress the commands as they reached the plant), each held
+    # until the next: times (B,) [s], (B, 2) [v, omega], and each output's reason
+    base_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    base_commands: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    base_reasons: list[str] = field(default_factory=list)
+    # each terrain solve: (time [s], stamp of the newest state it answers [ns], weights (M,), solved ok)
+    terrain_solves: list[tuple[float, int, np.ndarray, bool]] = field(default_factory=list)
 
     @property
     def positions(self) -> np.ndarray:
@@ -116,7 +130,7 @@ def run_closed_loop(
     start: np.ndarray,
     n_terrains: int,
     config: ClosedLoopConfig | None = None,
-    estimator: EstimatorLike | None = None,
+    estimator: EstimatorLike | None = None,  # the terrain estimator (None: the planner keeps its weights)
     initial_weights: np.ndarray | None = None,
     initial_terrain: str | None = None,
     record_plans: bool = False,
@@ -141,8 +155,7 @@ def run_closed_loop(
 
     times, trues, meas = [0.0], [true_state.copy()], [measured.copy()]
     cmds, ws, oks, pms, tights, terrs, plans = [], [], [], [], [], [], []
-    pending: deque[tuple[float, np.ndarray]] = deque()
-    active = np.zeros(2)
+    path = CommandPath(cfg.safety, cfg.terrain, n_terrains, estimator if cfg.adapt_weights else None)
     driven = 0.0
     status: Status = "time_limit"
     message = ""
@@ -156,17 +169,11 @@ def run_closed_loop(
         while switches and switches[0][0] <= t + eps:
             terrain = switches.pop(0)[1]
             plant.set_terrain(terrain)
-        ok = False
-        est = None
-        if estimator is not None and cfg.adapt_weights and k > 0:
-            estimator.observe(meas[-2], cmds[-1], measured)
-            est = estimator.estimate()
-            ok = bool(est.ok)
-        t0 = time.perf_counter()
-        if est is not None:
-            # as the terrain service: every solve is published, one that failed with the previous weights
-            cycle.on_weights(est.weights, t)
         stamp_ns = round(t * 1e9)
+        # the state reaches the terrain service and the planner together; the planner plans on the weights of the
+        # last solve (the terrain service solves for this state once its command is out)
+        path.on_state(stamp_ns, measured, t)
+        t0 = time.perf_counter()
         out = cycle.on_state(measured, stamp_ns, t, stamp_ns)
         if not isinstance(out, Planned):
             status, message = "planner_error", f"planner refused at t={t:.1f} s ({out.name}): {out.message}"
@@ -176,27 +183,18 @@ def run_closed_loop(
         command = np.asarray(result.control, dtype=np.float64).copy()
         cmds.append(command)
         ws.append(cycle.weights.copy())
-        oks.append(ok)
+        oks.append(path.weights_ok)
         tights.append(np.asarray(result.tightened).copy())
         terrs.append(terrain)
         if record_plans:
             plans.append(np.asarray(result.states)[:, :2].copy())
-        pending.append((t + cfg.latency_s, command))
+        path.on_planned(t, t + cfg.latency_s, stamp_ns, command)
 
-        # advance the plant over [t, t + dt), switching commands where delayed ones arrive
-        seg = t
-        end = t + dt
+        # advance the plant over [t, t + dt): egress's outputs and the terrain solve happen on their own times
         try:
-            while seg < end - eps:
-                while pending and pending[0][0] <= seg + eps:
-                    active = pending.popleft()[1]
-                seg_end = min(end, pending[0][0]) if pending else end
-                if seg_end <= seg + eps:
-                    seg_end = end
-                true_state = np.asarray(plant.step(active, seg_end - seg), dtype=np.float64).copy()
-                seg = seg_end
+            true_state = path.advance(plant, t, t + dt, cycle)
         except FloatingPointError as e:
-            status, message = "plant_error", f"plant failed at t={seg:.2f} s: {e}"
+            status, message = "plant_error", f"plant failed in [{t:.2f}, {t + dt:.2f}) s: {e}"
             cmds.pop(), ws.pop(), oks.pop(), pms.pop(), tights.pop(), terrs.pop()
             if record_plans:
                 plans.pop()
@@ -244,4 +242,8 @@ def run_closed_loop(
         status=status,
         message=message,
         plans_xy=plans,
+        base_times=np.asarray(path.base_times, dtype=np.float64),
+        base_commands=np.asarray(path.base_commands, dtype=np.float64).reshape(-1, 2),
+        base_reasons=list(path.base_reasons),
+        terrain_solves=list(path.solves),
     )

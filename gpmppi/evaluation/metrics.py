@@ -190,18 +190,27 @@ def true_weight_mean(
     return float(np.sum(true_w * span) / total)
 
 
-def weight_switches_per_min(times: np.ndarray, weights: np.ndarray) -> float | None:
-    """How often the terrain with the largest weight (argmax; ties go to the first) changes, per minute of run.
+def weight_switches_per_min(
+    times: np.ndarray, weights: np.ndarray, settle_s: float = WEIGHT_SETTLE_S
+) -> float | None:
+    """How often the terrain with the largest weight (argmax; ties go to the first) changes, per minute of run after
+    the first `settle_s` (as `true_weight_mean`: the weights start uniform, so the first answer is no switch).
 
-    `times` (T+1,) are the cycle boundaries of the weights (T, M), so the run lasts times[-1] - times[0]. None when
-    there are no weights or the run has no duration.
+    `times` (T+1,) are the cycle boundaries of the weights (T, M): row k holds from times[k], so a change between
+    rows k-1 and k happens at times[k] and counts when times[k] >= times[0] + settle_s; the minutes are those from
+    times[0] + settle_s to times[-1]. None when there are no weights or no time after `settle_s`.
     """
     w = np.asarray(weights, dtype=np.float64)
     t = np.asarray(times, dtype=np.float64).reshape(-1)
     if w.ndim != 2 or w.shape[0] == 0 or w.shape[1] == 0 or t.size < 2:
         return None
-    minutes = (float(t[-1]) - float(t[0])) / 60.0
+    if t.size != w.shape[0] + 1:
+        raise ValueError(f"weight_switches_per_min: {w.shape[0]} weight rows need {w.shape[0] + 1} times, got "
+                         f"{t.size}")
+    start = float(t[0]) + settle_s
+    minutes = (float(t[-1]) - start) / 60.0
     if minutes <= 0.0:
         return None
     top = np.argmax(w, axis=1)
-    return float(np.count_nonzero(top[1:] != top[:-1])) / minutes
+    changed = top[1:] != top[:-1]  # change k-1 -> k at times[k]
+    return float(np.count_nonzero(changed & (t[1:-1] >= start - 1e-9))) / minutes

@@ -25,8 +25,10 @@ from gpmppi.evaluation.metrics import (
     true_weight_mean,
     weight_switches_per_min,
 )
+from gpmppi.safety import SafetyConfig
 from gpmppi.scenarios import Scenario, infeasibility, random_obstacle_scene
 from gpmppi.tasks import GoalTask, LaneTask, polyline_length
+from gpmppi.terrain_cycle import TerrainCycleConfig
 
 Dynamics = Literal["gp", "edd5", "unicycle"]
 PlantKind = Literal["physics", "residual-net"]
@@ -55,6 +57,10 @@ class EvalSettings:
     planner_overrides: tuple[tuple[str, object], ...] = ()  # extra PlannerConfig fields, same for every model
     terrain_estimator: tuple[tuple[str, object], ...] = ()  # EstimatorConfig fields (gpmppi.terrain), e.g. method
     oracle_weights: bool = False  # GP-MPPI gets the true terrain's one-hot weights (uniform on an unknown terrain)
+    # the deployed command path (`gpmppi.evaluation.deployed.deployed_path` reads them from a launch file): egress's
+    # safety between planner and plant (None: commands reach the plant directly), and the terrain service's cycle
+    safety: SafetyConfig | None = field(default_factory=SafetyConfig)
+    terrain_cycle: TerrainCycleConfig = field(default_factory=TerrainCycleConfig)
 
 
 @dataclass(frozen=True)
@@ -91,6 +97,12 @@ class RunScore:
     v_ref_rate_p95: float = float("nan")  # [m/s^2] its 95th percentile
     omega_ref_rate_mean: float = float("nan")  # [rad/s^2] mean |change of omega_ref| / dt
     omega_ref_rate_p95: float = float("nan")  # [rad/s^2] its 95th percentile
+    # the same of the commands the base received (egress's outputs, after its limits), between consecutive outputs
+    base_v_rate_mean: float = float("nan")  # [m/s^2]
+    base_v_rate_p95: float = float("nan")
+    base_omega_rate_mean: float = float("nan")  # [rad/s^2]
+    base_omega_rate_p95: float = float("nan")
+    base_limited_fraction: float = float("nan")  # share of the base's commands that an egress limit changed
     true_weight_mean: float | None = None  # time-averaged weight of the terrain driven on, after the first 3 s
     # (None: a model without terrain weights, a terrain the model does not know, or nothing after 3 s)
     weight_switches_per_min: float | None = None  # changes of the top-weight terrain per minute (None: no weights)
@@ -202,6 +214,8 @@ def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
             robot_radius=settings.robot_radius,
             adapt_weights=adapt,
             terrain_switches=job.terrain_switches,
+            safety=settings.safety,
+            terrain=settings.terrain_cycle,
         )
     return ClosedLoopConfig(
         time_limit_s=settings.goal_time_limit_s,
@@ -210,6 +224,8 @@ def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
         robot_radius=settings.robot_radius,
         adapt_weights=adapt,
         terrain_switches=job.terrain_switches,
+        safety=settings.safety,
+        terrain=settings.terrain_cycle,
     )
 
 
@@ -235,6 +251,11 @@ def score(
     rates = command_rates(traj.times, traj.commands)
     s.v_ref_rate_mean, s.v_ref_rate_p95 = mean_p95(rates[:, 0])
     s.omega_ref_rate_mean, s.omega_ref_rate_p95 = mean_p95(rates[:, 1])
+    if traj.base_times.size:
+        base = command_rates(traj.base_times, traj.base_commands)
+        s.base_v_rate_mean, s.base_v_rate_p95 = mean_p95(base[:, 0])
+        s.base_omega_rate_mean, s.base_omega_rate_p95 = mean_p95(base[:, 1])
+        s.base_limited_fraction = float(np.mean([r == "limit" for r in traj.base_reasons]))
     if cfg.adapt_weights and terrain_names is not None:
         s.true_weight_mean = true_weight_mean(traj.times, traj.weights, traj.terrains, terrain_names)
         s.weight_switches_per_min = weight_switches_per_min(traj.times, traj.weights)
@@ -285,7 +306,8 @@ def run_job(job: Job, settings: EvalSettings) -> tuple[list[RunScore], list[Traj
 
 # per-trial scores a cell reports as their mean over trials and, as `<name>_std`, their population spread
 SMOOTHNESS_AND_WEIGHT_METRICS = (
-    "v_ref_rate_mean", "v_ref_rate_p95", "omega_ref_rate_mean", "omega_ref_rate_p95", "true_weight_mean",
+    "v_ref_rate_mean", "v_ref_rate_p95", "omega_ref_rate_mean", "omega_ref_rate_p95", "base_v_rate_mean",
+    "base_v_rate_p95", "base_omega_rate_mean", "base_omega_rate_p95", "base_limited_fraction", "true_weight_mean",
     "weight_switches_per_min",
 )
 # of those, the ones with no value (None, not nan) where no trial has one: a model without terrain weights

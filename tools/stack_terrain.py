@@ -1,0 +1,129 @@
+"""Replay a stack recording's states and commands through the in-process terrain cycle, step by step.
+
+    python -m tools.stack_terrain runs/asphalt.mcap [--json]
+
+From the log: states, the planner's commands (`cmd`), what the base received (`base/cmd`, with the recorder's
+arrival time), the terrain service's published weights and the sim's terrain label. Replays, each a fresh
+`TerrainCycle` with the shipped model and the default estimator:
+
+- `stack`: `command_source: base_cmd`, `pairing: stamp`: what the terrain service ran before `pairing: applied`
+  became the default (set `pairing: stamp` in the launch to check a new log against it); its weights are compared
+  with the recorded ones state by state (the replay is faithful when they agree);
+- `cmd`: the planner's command paired by stamp (the in-process estimator's pairing before the deployed path);
+- `applied`: the time average of the base's outputs over each transition, by their arrival at the recorder.
+
+For each: the weight on the true terrain after the first 3 s (time-averaged) and top-terrain changes per minute after
+3 s; and the latency of each state's command at the base (first base output's arrival - the state's stamp).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
+from gpmppi.gp.model_file import load_default_model
+from gpmppi.terrain import make_estimator
+from gpmppi.terrain_config import EstimatorConfig
+from gpmppi.terrain_cycle import TerrainCycle, TerrainCycleConfig
+from services.mcap_io import read_messages
+
+
+def load(path: Path) -> dict:
+    """The log's states, commands, base outputs, weights and terrain labels, in log order."""
+    out: dict = {"states": [], "cmds": [], "base": [], "weights": [], "labels": []}
+    for key, log_ns, msg in read_messages(path):
+        name = key.split("/", 2)[2]
+        if name == "state":
+            out["states"].append((msg.header.stamp_ns, log_ns, np.array(msg.as_array())))
+        elif name == "cmd":
+            out["cmds"].append((msg.header.stamp_ns, log_ns, np.array([msg.v_ref, msg.omega_ref])))
+        elif name == "base/cmd":
+            out["base"].append((msg.header.stamp_ns, log_ns, np.array([msg.v, msg.omega]), msg.reason))
+        elif name == "terrain/weights":
+            out["weights"].append((msg.header.stamp_ns, dict(zip(msg.names, msg.weights, strict=True))))
+        elif name == "terrain/label":
+            out["labels"].append((log_ns, msg.terrain))
+    return out
+
+
+def replay(log: dict, config: TerrainCycleConfig, terrains: list[str]) -> dict[int, np.ndarray]:
+    """Weights after each state (by stamp), the inputs fed in their recorded arrival order."""
+    model = load_default_model()
+    cycle = TerrainCycle(config, len(terrains), make_estimator(model, EstimatorConfig()))
+    events = [(ns, 0, s) for s, ns, _ in log["states"]]
+    source = log["base"] if config.command_source == "base_cmd" else log["cmds"]
+    events += [(ns, 1, i) for i, (_, ns, *_) in enumerate(source)]
+    states = {s: x for s, _, x in log["states"]}
+    weights: dict[int, np.ndarray] = {}
+    for ns, kind, ref in sorted(events, key=lambda e: (e[0], e[1])):
+        if kind == 1:
+            stamp, _, u, *_ = source[ref]
+            cycle.on_command(stamp, u)
+            if config.command_source == "base_cmd":
+                cycle.on_output(ns, u)
+        else:
+            cycle.on_states([(ref, states[ref])], ns / 1e9)
+        if cycle.pending and cycle.wait_s(ns / 1e9) == 0.0:
+            update = cycle.solve()
+            weights[update.stamp_ns] = update.weights
+    return weights
+
+
+def scores(stamps: list[int], weights: dict[int, np.ndarray], truth: list[str], terrains: list[str]) -> dict:
+    keep = [i for i, s in enumerate(stamps) if s in weights]
+    w = np.array([weights[stamps[i]] for i in keep])
+    t = np.array([(stamps[i] - stamps[0]) / 1e9 for i in keep] + [(stamps[keep[-1]] - stamps[0]) / 1e9 + 0.1])
+    return {"true_weight_mean": true_weight_mean(t, w, [truth[i] for i in keep], terrains),
+            "switches_per_min": weight_switches_per_min(t, w),
+            "mean_weights": np.mean(w[30:], axis=0).round(3).tolist()}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m tools.stack_terrain", description=__doc__.split("\n")[0])
+    parser.add_argument("log", type=Path)
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args(argv)
+    log = load(args.log)
+    terrains = list(load_default_model().terrains)
+    stamps = [s for s, _, _ in log["states"]]
+    labels = log["labels"]
+    truth = []
+    for _, ns, _ in log["states"]:
+        before = [name for t, name in labels if t <= ns]
+        truth.append(before[-1] if before else (labels[0][1] if labels else ""))
+    recorded = {s: np.array([w[n] for n in terrains]) for s, w in log["weights"]}
+    result: dict = {"states": len(stamps), "terrain": sorted(set(truth)), "terrains": terrains}
+    first: dict[int, int] = {}
+    state_stamps = set(stamps)
+    for stamp, ns, *_ in log["base"]:
+        if stamp in state_stamps:
+            first.setdefault(stamp, ns)
+    lat = np.array([(first[s] - s) / 1e6 for s in stamps if s in first])
+    result["state_to_base_ms"] = {"p10": float(np.percentile(lat, 10)), "p50": float(np.median(lat)),
+                                  "p90": float(np.percentile(lat, 90)), "n": int(lat.size)}
+    result["recorded"] = scores(stamps, recorded, truth, terrains)
+    configs = (("stack", TerrainCycleConfig(pairing="stamp")), ("cmd", TerrainCycleConfig(command_source="cmd")),
+               ("applied", TerrainCycleConfig(pairing="applied")))
+    for name, cfg in configs:
+        w = replay(log, cfg, terrains)
+        result[name] = scores(stamps, w, truth, terrains)
+        if name == "stack":
+            both = [s for s in stamps if s in w and s in recorded]
+            diff = np.array([np.max(np.abs(w[s] - recorded[s])) for s in both])
+            result["stack_vs_recorded"] = {"compared": len(both), "max_abs": float(diff.max()),
+                                           "p90_abs": float(np.percentile(diff, 90))}
+    if args.json:
+        print(json.dumps(result, default=float))
+    else:
+        for k, v in result.items():
+            print(f"{k}: {v}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
