@@ -1,5 +1,5 @@
 """Whether a planner configuration's numba kernels are in the on-disk cache, so a service can say that it has to
-compile before it does (minutes on a small machine, once) instead of sitting silent.
+compile before it does (about half a minute on a small machine, once) instead of sitting silent.
 
 Which kernels (and which type signatures) a configuration uses is only known once it has planned: after its
 first warm-up the service records them in a small manifest next to numba's own cache files
@@ -22,9 +22,10 @@ from pathlib import Path
 from numba.core import config as numba_config
 from numba.core.dispatcher import Dispatcher
 
-# one planner configuration compiled cold from an empty cache: 95 s wall, `NUMBA_CACHE_DIR=$(mktemp -d)
-# gpmppi bench planner --iters 5` on a 2-core machine; used until this machine has measured its own
-REFERENCE_COMPILE_S = 95.0
+# one planner configuration compiled cold from an empty cache: 25 s of CPU (27.5 s wall on a shared machine),
+# `NUMBA_CACHE_DIR=$(mktemp -d) gpmppi bench planner --backend cpu --iters 5` on a 2-core machine; used until this
+# machine has measured its own
+REFERENCE_COMPILE_S = 25.0
 _MANIFEST_DIR = "gpmppi-kernels"
 
 Counts = dict[str, tuple[dict[str, int], dict[str, int]]]  # kernel -> (loads by signature, compiles by signature)
