@@ -79,7 +79,8 @@ def weight_vector(cost: tuple) -> np.ndarray:
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _step(
-    query_lane: bool, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple, u: tuple, var: tuple,
+    query_lane: bool, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple, u: tuple,
+    var: tuple,
 ) -> tuple:
     """What the critics' terms read of a step (`critics.base.AT_*`); with `query_lane` the lane query at the state,
     once for all the lane critics (else zeros)."""
