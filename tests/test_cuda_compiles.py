@@ -32,7 +32,7 @@ from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene
 
 captured = []
-cuda_backend.cuda_rollouts = lambda *bundles: captured.append(bundles)
+cuda_backend.cuda_rollouts = lambda *bundles, device=None: captured.append(bundles)
 model = synthetic_model(nodes=4, n_train=20)
 for scenario in (circle_lane(), paper_obstacle_scene()):
     planner = Planner(PlannerConfig(backend="cpu", samples=8, horizon=4), model)

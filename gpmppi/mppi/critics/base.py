@@ -43,8 +43,10 @@ AT_TIGHTENED_HW, AT_RADII, AT_DISCOUNT_K, AT_LANE_DIST, AT_LANE_TX, AT_LANE_TY =
 
 
 def critic_term(func: Callable) -> Callable:
-    """Compile a critic's term with the kernels' flags."""
-    return njit(cache=True, fastmath=FASTMATH)(func)
+    """Compile a critic's term with the kernels' flags, inlined into its callers in numba's IR: a term loaded from
+    the cache as machine code could not be inlined by LLVM, and the kernels' code (and last bits) would then depend
+    on what the process compiled before (`tests/test_determinism.py`)."""
+    return njit(cache=True, fastmath=FASTMATH, inline="always")(func)
 
 
 @dataclass(frozen=True)

@@ -126,8 +126,9 @@ def _link_split(jit: Callable, term: Callable, wi: int, pi: int, slot: int, rest
 
 
 def build_sums(jit: Callable | None = None, twin: Callable | None = None) -> dict[str, Sums]:
-    """Each task kind's `Sums`, compiled by `jit` (default: njit with the kernels' flags), terms by `twin(term)`."""
-    jit = jit or njit(fastmath=FASTMATH)
+    """Each task kind's `Sums`, compiled by `jit` (default: njit with the kernels' flags, inlined in numba's IR like
+    the terms), terms by `twin(term)`."""
+    jit = jit or njit(fastmath=FASTMATH, inline="always")
     twin = twin or (lambda f: f)
     lay = layout()
     w0 = lay.weight_index(lay.names[0]) if lay.names else 0
