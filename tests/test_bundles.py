@@ -30,15 +30,10 @@ PINNED = {
         ("x0", A1), ("nominal", A2), ("noise_std", A1), ("u_lo", A1), ("u_hi", A1), ("dt", "float64"),
         ("seed", "int64"), ("iteration", "int64"),
     ]),
-    CostBundle: ("K", [
-        *((name, "float64") for name in CRITICS), ("exit_discount", "float64"), ("speed_along_lane", "bool"),
-        ("goal_geodesic", "bool"),
-    ]),
     Outputs: ("O", [("eps_out", "array(float32, 3d, C)"), ("cost_out", A1), ("xy_out", A3)]),
 }
 # the index constants whose name is not the field's own
-CONSTANT_NAMES = {"origin": "T_ORIGIN", "eps_out": "O_EPS", "cost_out": "O_COST", "xy_out": "O_XY",
-                  "speed_along_lane": "K_SPEED_ALONG_LANE"}
+CONSTANT_NAMES = {"origin": "T_ORIGIN", "eps_out": "O_EPS", "cost_out": "O_COST", "xy_out": "O_XY"}
 
 
 def model_bundle(**changes: object) -> ModelBundle:
@@ -54,7 +49,6 @@ def examples() -> dict[type, object]:
         TaskBundle: TaskBundle.for_lane(lane, 1.0, np.ones(5), 1.5),
         SamplingBundle: SamplingBundle(x0=np.zeros(5), nominal=np.zeros((4, 2)), noise_std=np.ones(2),
                                        u_lo=np.zeros(2), u_hi=np.ones(2), dt=0.1, seed=3, iteration=2),
-        CostBundle: CostBundle.from_weights({name: 1.0 for name in CRITICS}, 0.9, True, False),
         Outputs: Outputs.allocate(8, 4, 2),
     }
 
@@ -85,8 +79,6 @@ def test_swapped_fields_are_refused_naming_the_field() -> None:
         model_bundle(gp_mode=good.theta, theta=2).args()
     with pytest.raises(ValueError, match=r"SamplingBundle\.seed must be a int64 scalar, got float"):
         SamplingBundle(**{**vars(examples()[SamplingBundle]), "seed": 0.1, "dt": 3}).args()
-    with pytest.raises(ValueError, match=r"CostBundle\.exit_discount must be a float64 scalar, got bool"):
-        CostBundle(**{**vars(examples()[CostBundle]), "speed_along_lane": 0.9, "exit_discount": True}).args()
 
 
 def test_non_contiguous_read_only_and_positional_fields_are_refused_naming_the_field() -> None:
@@ -106,8 +98,15 @@ def test_non_contiguous_read_only_and_positional_fields_are_refused_naming_the_f
 
 def test_cost_bundle_takes_weights_by_critic_name() -> None:
     weights = {name: float(i + 1) for i, name in enumerate(CRITICS)}
-    cost = CostBundle.from_weights(weights, 0.8, False, True)
-    assert cost.weights() == weights and cost.slip == 3.0 and cost.terminal == 8.0
+    cost = CostBundle.from_weights(weights, {"lane_exit": {"discount": 0.8}, "speed": {"along_lane": False}}, True)
+    assert cost.weights == weights and cost.params["lane_exit"] == {"discount": 0.8}
+    # the cost vector: the goal switch, the weights in CRITICS order, the critics' parameters
+    assert cost.args() == (1.0, *weights.values(), 0.8, 0.0)
+    assert typeof(cost.args()) == typeof((1.0,) * bundles.N_COST_TERMS)
+    assert cost.args()[bundles.K_EXIT_DISCOUNT] == 0.8 and cost.args()[bundles.K_GOAL_GEODESIC] == 1.0
+    assert CostBundle.from_weights(weights).params == {**{n: {} for n in CRITICS}, "lane_exit": {"discount": 0.9},
+                                                       "speed": {"along_lane": True}}
     with pytest.raises(ValueError, match=r"unknown \['slippage'\], missing \['slip'\]"):
-        CostBundle.from_weights({**{k: v for k, v in weights.items() if k != "slip"}, "slippage": 1.0}, 0.8, False,
-                                True)
+        CostBundle.from_weights({**{k: v for k, v in weights.items() if k != "slip"}, "slippage": 1.0})
+    with pytest.raises(ValueError, match=r"parameters of unknown critics \['slippage'\]"):
+        CostBundle.from_weights(weights, {"slippage": {"x": 1.0}})

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gpmppi.mppi import backends
-from gpmppi.mppi.bundles import CRITICS, CostBundle, TaskBundle
+from gpmppi.mppi.bundles import CRITICS, TaskBundle
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene
@@ -61,34 +61,35 @@ def _bundles(model, task_name: str) -> tuple:  # noqa: ANN001
         t = TaskBundle.for_lane(p._lane_lookup(task), 0.3, np.full(r.tightened.shape[0], 0.02), task.speed_target)
     else:
         t = TaskBundle.for_goal(task.goal, task.obstacles, r.tightened, p._goal_field(task, scenario.start))
-    return p, bundle, t, p._sampling(r.states[0], r.controls, np.zeros(2))
+    return p, bundle, t, p._sampling(r.states[0], r.controls, np.zeros(2)), p._costs[task_name]
 
 
 @pytest.mark.parametrize("task_name", ["lane", "goal"])
 def test_a_zero_weight_silences_its_own_critic_only(model, task_name: str) -> None:  # noqa: ANN001
-    p, bundle, task, sampling = _bundles(model, task_name)
-    full = backends.critic_costs(bundle, task, sampling, p._cost)
+    p, bundle, task, sampling, base = _bundles(model, task_name)
+    full = backends.critic_costs(bundle, task, sampling, base)
     used = [name for name in CRITICS if full[name] != 0.0]
     assert set(used) >= ({"variance"} | (LANE_ONLY if task_name == "lane" else {"goal", "terminal"})), full
     for name in used:
-        cost = CostBundle(**{**vars(p._cost), name: 0.0})
+        cost = base.with_weight(name, 0.0)
         got = backends.critic_costs(bundle, task, sampling, cost)
         assert got[name] == 0.0
         assert {k: v for k, v in got.items() if k != name} == {k: v for k, v in full.items() if k != name}, name
         # and the kernel's total drops by exactly that critic's share
         _, total, _ = backends.rollouts("cpu", bundle, task, sampling, cost, 1, 0)
-        _, total_full, _ = backends.rollouts("cpu", bundle, task, sampling, p._cost, 1, 0)
+        _, total_full, _ = backends.rollouts("cpu", bundle, task, sampling, base, 1, 0)
         assert total_full[0] - total[0] == pytest.approx(full[name], abs=1e-8 * total_full[0])
 
 
 def test_weights_reach_their_critics_by_name(model) -> None:  # noqa: ANN001
-    config = PlannerConfig(**{f"w_{name}": float(i + 1) for i, name in enumerate(CRITICS)})
-    assert config.critic_weights() == {name: float(i + 1) for i, name in enumerate(CRITICS)}
-    assert config.cost_bundle().weights() == config.critic_weights()
-    p, bundle, task, sampling = _bundles(model, "lane")
-    full = backends.critic_costs(bundle, task, sampling, p._cost)
+    config = PlannerConfig(critics={name: {"weight": float(i + 1)} for i, name in enumerate(CRITICS)})
+    assert config.critic_weights("lane") == {name: float(i + 1) if name not in GOAL_ONLY else 0.0
+                                             for i, name in enumerate(CRITICS)}
+    assert config.cost_bundle("goal").weights == config.critic_weights("goal")
+    p, bundle, task, sampling, base = _bundles(model, "lane")
+    full = backends.critic_costs(bundle, task, sampling, base)
     for name in ("deviation", "slip", "speed", "variance", "lane_exit"):
-        doubled = CostBundle(**{**vars(p._cost), name: 2.0 * getattr(p._cost, name)})
+        doubled = base.with_weight(name, 2.0 * base.weights[name])
         got = backends.critic_costs(bundle, task, sampling, doubled)
         assert got[name] == pytest.approx(2.0 * full[name], rel=1e-12)
         assert all(got[k] == full[k] for k in CRITICS if k != name)

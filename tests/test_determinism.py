@@ -62,7 +62,8 @@ LOOP_S = @LOOP_S@
 
 if sys.argv[1] == "helpers_first":
     from gpmppi.mppi.bundles import N_COST_TERMS
-    from gpmppi.mppi.costs import lane_exit_cost, slip_cost, stage_cost, tighten_lane, variance_cost
+    from gpmppi.mppi.costs import stage_cost, tighten_lane
+    from gpmppi.mppi.critics import lane_exit, slip, variance
     from gpmppi.gp.grid_interp import grid_interp
     from gpmppi.models.dynamic_unicycle import nominal_step, jacobian
     from gpmppi.mppi.dynamics import advance, nominal_velocity_step, velocity_coefficients
@@ -86,9 +87,9 @@ if sys.argv[1] == "helpers_first":
     grid_interp(np.ones((3, 3, 3, 3, 2)), np.zeros(4), np.ones(4), np.full(4, 0.5), np.zeros(2))
     normal_pair(1, 2)
     noisy_command(1, 2, np.ones((3, 2)), 0, np.ones(2), np.zeros(2), np.full(2, 2.0))
-    variance_cost(0.1, 0.2, 1.0)
-    slip_cost(0.5, 0.1, 1.0, 0.2, 1.0)
-    lane_exit_cost(1.0, 1.5, 0.9, 1.0)
+    step = (0.0, 0.0, 0.1, 0.5, 0.1, 1.0, 0.2, 0.1, 0.2, 1.5, np.zeros(0), 0.9, 1.0, 1.0, 0.0)
+    for term in (variance.variance_cost, slip.slip_cost, lane_exit.lane_exit_cost):
+        term(1.0, np.ones(N_COST_TERMS), 0, (), step)
     tighten_lane(np.zeros((3, 5, 5)), 1.0, 5.99, 0.2)
     lane = build_lane_lookup(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]), False, 1.0)
     lane_query(lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell, 0.5, 0.1,

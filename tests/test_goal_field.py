@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from gpmppi.mppi.bundles import K_GOAL_GEODESIC, N_COST_TERMS
-from gpmppi.mppi.costs import goal_cost, goal_term
+from gpmppi.mppi.critics.goal import goal_term, straight_goal_cost
 from gpmppi.mppi.goal_field import _STENCIL, GoalField, build_goal_field, goal_distance
 from gpmppi.scenarios import PAPER_OBSTACLES
 
@@ -92,7 +92,7 @@ def test_goal_term_selects_straight_line_or_field() -> None:
     g = build_goal_field(goal, PAPER_OBSTACLES, np.zeros((1, 2)))
     w = np.zeros(N_COST_TERMS)
     pocket = (5.3, 4.2)
-    straight = goal_cost(*pocket, goal, 2.0)
+    straight = straight_goal_cost(*pocket, goal, 2.0)
     assert goal_term(w, g.field, g.origin, g.inv_cell, goal, *pocket, 2.0) == pytest.approx(straight)
     w[K_GOAL_GEODESIC] = 1.0
     assert goal_term(w, g.field, g.origin, g.inv_cell, goal, *pocket, 2.0) == pytest.approx(2.0 * _d(g, *pocket))

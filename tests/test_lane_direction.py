@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpmppi.mppi.bundles import K_SPEED, K_SPEED_ALONG_LANE, N_COST_TERMS, TASK_LANE
+from gpmppi.mppi.bundles import N_COST_TERMS, TASK_LANE
 from gpmppi.mppi.costs import stage_cost
+from gpmppi.mppi.critics.registry import layout
 from gpmppi.mppi.lane import LaneLookup, build_lane_lookup, lane_query
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.mppi.synthetic import synthetic_model
@@ -51,8 +52,8 @@ def test_direction_turns_smoothly_across_a_corner_bisector_and_stays_bounded_off
 
 def _lane_step_cost(lane: LaneLookup, yaw: float, along: bool) -> float:
     w = np.zeros(N_COST_TERMS)
-    w[K_SPEED] = 1.0
-    w[K_SPEED_ALONG_LANE] = float(along)
+    w[layout().weight_index("speed")] = 1.0
+    w[layout().param_index("speed", "along_lane")] = float(along)
     geo = (lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell, 2.75, 1.5,
            np.zeros(2), np.zeros((0, 3)))
     return stage_cost(TASK_LANE, w, geo, 2.75, np.zeros(0), 1.0, (10.0, 0.0, yaw, 1.5, 0.0), (1.5, 0.0), (0.0, 0.0))

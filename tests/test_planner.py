@@ -72,11 +72,11 @@ def test_variance_cost_is_counted_at_every_step() -> None:
     var_v = np.array([0.01, 0.02, 0.04])
     var_w = np.array([0.03, 0.005, 0.01])
     model = _constant_variance_model(var_v, var_w)
-    zero = {k: 0.0 for k in ("w_deviation", "w_slip", "w_lane_exit", "w_speed")}
+    critics = {k: {"weight": 0.0} for k in ("deviation", "slip", "lane_exit", "speed")} | {"variance": {"weight": 3.0}}
     sc = circle_lane()
     for horizon in (5, 12):
         # a known start state (zero start covariance): the velocity block is then the model's variance alone
-        p = Planner(_cfg(horizon=horizon, w_variance=3.0, state_std=(0.0,) * 5, **zero), model)
+        p = Planner(_cfg(horizon=horizon, critics=critics, state_std=(0.0,) * 5), model)
         for _ in range(3):  # and on later calls too (no reset or accumulation across calls)
             r = p.plan(sc.start, sc.task, W3)
             # predictive variance: the table's latent variance plus the model's likelihood noise

@@ -299,10 +299,10 @@ def test_recorded_settings_overrides_and_attached_model(tmp_path: Path) -> None:
     live = live_services(["planner"], info, {"planner"}, ROBOT, warn=pytest.fail)
     over = tmp_path / "p.yaml"
     over.write_text("planner:\n  samples: 256\n")
-    apply_overrides(live, [f"planner={over}"], ["planner.temperature=0.5", "planner.planner.w_speed=4"])
+    apply_overrides(live, [f"planner={over}"], ["planner.temperature=0.5", "planner.planner.critics.speed.weight=4"])
     finalize(live, info, "other", "tcp/127.0.0.1:1", tmp_path)
     c = live[0].config
-    assert c["planner"] == {"seed": 7, "temperature": 0.5, "samples": 256, "w_speed": 4}
+    assert c["planner"] == {"seed": 7, "temperature": 0.5, "samples": 256, "critics": {"speed": {"weight": 4}}}
     assert c["robot"] == "other" and c["zenoh"]["connect"] == ["tcp/127.0.0.1:1"] and c["compensate_delay"] is False
     assert Path(c["model_file"]).read_bytes() == b"MODEL"  # the attached model, not the robot's path
     assert resolve_path(__import__("services.planner", fromlist=["Settings"]).Settings, ["seed"], "x") == [
@@ -366,7 +366,7 @@ def test_replace_and_set_errors_name_what_is_wrong(tmp_path: Path) -> None:
     code, out = _cli(str(log), "--replace", "planner", "--set", "planner.temprature=0.5", "--quiet")
     assert code == 2 and "unknown field 'temprature'" in out and "temperature" in out, out
     code, out = _cli(str(log), "--replace", "planner", "--set", "planner.planner.nope=1", "--quiet")
-    assert code == 2 and "unknown field 'nope' in planner" in out and "w_speed" in out, out
+    assert code == 2 and "unknown field 'nope' in planner" in out and "critics" in out, out
     code, out = _cli(str(log), "--replace", "planner", "--set", "egress.rate_hz=5", "--quiet")
     assert code == 2 and "egress" in out and "not replaced" in out, out
     code, out = _cli(str(log), "--replace", "planner", "--set", "planner.planner.samples=-3", "--quiet")
@@ -461,8 +461,8 @@ def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
     assert same["exact"] == same["compared"]  # measured: bit for bit
 
     changed = run_replay(ReplayRequest(log, replace="planner", compare=True, progress=False, delay_s=0.3,
-                                       lockstep=True, sets=["planner.w_speed=40"]))["compare"]
-    print(f"with --set planner.w_speed=40: {changed}")
+                                       lockstep=True, sets=["planner.critics.speed.weight=40"]))["compare"]
+    print(f"with --set planner.critics.speed.weight=40: {changed}")
     assert changed["compared"] >= 0.9 * len(recorded)
     assert changed["v_rmse"] > 0.01 and changed["exact"] < changed["compared"], changed  # a different weight
 

@@ -1,5 +1,7 @@
 """The rollout kernels' inputs as five bundles: model, task, sampling, cost weights, outputs.
 
+The cost bundle's layout derives from the registered critics (`gpmppi.mppi.critics`).
+
 Each bundle is a frozen, keyword-only dataclass; `.args()` checks every field against the bundle's
 `SPECS` (dtype, number of dimensions, C-contiguous, writeable where the kernels write) and returns
 the fixed-size tuple the kernels take. The kernels read a tuple's fields by the index constants
@@ -20,20 +22,19 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from gpmppi.mppi.critics import registry
+from gpmppi.mppi.critics.base import TASK_GOAL, TASK_LANE, W_GOAL_GEODESIC
 from gpmppi.mppi.goal_field import GoalField
 from gpmppi.mppi.lane import LaneLookup
 
 __all__ = [
-    "CRITICS", "TASK_GOAL", "TASK_LANE", "CostBundle", "FieldSpec", "ModelBundle", "Outputs", "SamplingBundle",
-    "TaskBundle",
+    "CRITICS", "K_EXIT_DISCOUNT", "K_GOAL_GEODESIC", "N_COST_TERMS", "TASK_GOAL", "TASK_LANE", "CostBundle",
+    "FieldSpec", "ModelBundle", "Outputs", "SamplingBundle", "TaskBundle",
 ]
 
-# task kinds of the rollout kernels
-TASK_LANE = 0
-TASK_GOAL = 1
-
-# the cost terms, each with its own weight (`gpmppi.mppi.costs` has one function per term)
-CRITICS = ("variance", "deviation", "slip", "lane_exit", "speed", "collision", "goal", "terminal")
+# the registered critics (`gpmppi.mppi.critics`), each with its own weight, in the kernels' order
+_LAYOUT = registry.layout()
+CRITICS = _LAYOUT.names
 
 
 class FieldSpec(NamedTuple):
@@ -227,47 +228,62 @@ class SamplingBundle(_Bundle):
 
 
 # ------------------------------------------------------------------------------------------------- cost
-K_VARIANCE, K_DEVIATION, K_SLIP, K_LANE_EXIT, K_SPEED, K_COLLISION, K_GOAL, K_TERMINAL = range(8)
-K_EXIT_DISCOUNT, K_SPEED_ALONG_LANE, K_GOAL_GEODESIC = range(8, 11)
-N_COST_TERMS = 11
+# the cost vector the kernels read (`registry.CriticLayout`): the goal-distance switch, each critic's weight, each
+# critic's parameters; the drivers read the lane-exit discount (they hold discount^k)
+K_GOAL_GEODESIC = W_GOAL_GEODESIC
+K_EXIT_DISCOUNT = _LAYOUT.param_index("lane_exit", "discount")
+N_COST_TERMS = _LAYOUT.size
 
 
-@dataclass(frozen=True, kw_only=True)
-class CostBundle(_Bundle):
-    """The weight of each critic (by name, `CRITICS`), the lane-exit discount and the two switches."""
+@dataclass(frozen=True)
+class CostBundle:
+    """Each critic's weight and parameters, by name (every registered critic, `CRITICS`), and whether the goal
+    critics measure the distance around the obstacles. `.args()`: the cost vector as a tuple of floats (a bool as
+    1.0 / 0.0), in `registry.CriticLayout` order."""
 
-    variance: float
-    deviation: float
-    slip: float
-    lane_exit: float
-    speed: float
-    collision: float
-    goal: float
-    terminal: float
-    exit_discount: float  # per-step discount of the lane-exit indicator
-    speed_along_lane: bool  # speed critic on the speed along the lane (else the speed magnitude)
-    goal_geodesic: bool  # goal critics on the distance around the obstacles (else the straight line)
+    weights: Mapping[str, float]
+    params: Mapping[str, Mapping[str, float | bool]]
+    goal_geodesic: bool
 
-    SPECS: ClassVar[dict[str, FieldSpec]] = {
-        **{name: FieldSpec("float64", 0) for name in CRITICS}, "exit_discount": FieldSpec("float64", 0),
-        "speed_along_lane": FieldSpec("bool", 0), "goal_geodesic": FieldSpec("bool", 0),
-    }
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.weights) - set(CRITICS))
+        missing = [name for name in CRITICS if name not in self.weights]
+        if unknown or missing:
+            raise ValueError(f"critic weights: unknown {unknown}, missing {missing}; the critics are {list(CRITICS)}")
+        for c in _LAYOUT.critics:
+            given = dict(self.params.get(c.name, {}))
+            if set(given) != set(c.params):
+                raise ValueError(f"critic {c.name!r} parameters: given {sorted(given)}, expected {sorted(c.params)}")
+        extra = sorted(set(self.params) - set(CRITICS))
+        if extra:
+            raise ValueError(f"parameters of unknown critics {extra}; the critics are {list(CRITICS)}")
 
     @classmethod
     def from_weights(
-        cls, weights: Mapping[str, float], exit_discount: float, speed_along_lane: bool, goal_geodesic: bool
+        cls, weights: Mapping[str, float], params: Mapping[str, Mapping[str, float | bool]] | None = None,
+        goal_geodesic: bool = True,
     ) -> CostBundle:
-        """Weights by critic name; every critic of `CRITICS` must have one, and no other name may appear."""
-        unknown = sorted(set(weights) - set(CRITICS))
-        missing = [name for name in CRITICS if name not in weights]
-        if unknown or missing:
-            raise ValueError(f"critic weights: unknown {unknown}, missing {missing}; the critics are {list(CRITICS)}")
-        return cls(**{name: float(weights[name]) for name in CRITICS}, exit_discount=float(exit_discount),
-                   speed_along_lane=bool(speed_along_lane), goal_geodesic=bool(goal_geodesic))
+        """Weights by critic name; parameters by critic and name, each critic's defaults where not given."""
+        given = params or {}
+        full = {c.name: {p: given.get(c.name, {}).get(p, spec.default) for p, spec in c.params.items()}
+                for c in _LAYOUT.critics}
+        extra = sorted(set(given) - set(CRITICS))
+        if extra:
+            raise ValueError(f"parameters of unknown critics {extra}; the critics are {list(CRITICS)}")
+        return cls({name: float(weights[name]) for name in weights}, full, bool(goal_geodesic))
 
-    def weights(self) -> dict[str, float]:
-        """The weight of each critic, by name."""
-        return {name: getattr(self, name) for name in CRITICS}
+    def with_weight(self, name: str, weight: float) -> CostBundle:
+        """This bundle with critic `name`'s weight replaced."""
+        return CostBundle({**self.weights, name: float(weight)}, self.params, self.goal_geodesic)
+
+    def args(self) -> tuple[float, ...]:
+        values = [0.0] * N_COST_TERMS
+        values[K_GOAL_GEODESIC] = 1.0 if self.goal_geodesic else 0.0
+        for c in _LAYOUT.critics:
+            values[_LAYOUT.weight_index(c.name)] = float(self.weights[c.name])
+            for p in c.params:
+                values[_LAYOUT.param_index(c.name, p)] = float(self.params[c.name][p])
+        return tuple(values)
 
 
 # ---------------------------------------------------------------------------------------------- outputs
@@ -293,5 +309,5 @@ class Outputs(_Bundle):
                    xy_out=np.empty((n_xy, horizon + 1, 2)))
 
 
-for _cls in (ModelBundle, TaskBundle, SamplingBundle, CostBundle, Outputs):
+for _cls in (ModelBundle, TaskBundle, SamplingBundle, Outputs):
     _cls._check_specs()

@@ -5,13 +5,15 @@ The same costs and settings apply to every dynamics choice, so the baselines are
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from math import pi
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from gpmppi.mppi.bundles import CRITICS, CostBundle
+from gpmppi.mppi.bundles import CostBundle
+from gpmppi.mppi.critics.settings import CRITIC_KEYS, critic_settings, critic_weights
 
 __all__ = ["PlannerConfig"]
 
@@ -75,34 +77,10 @@ class PlannerConfig(BaseModel):
     initial_control: tuple[float, float] = Field((0.0, 0.0), description="Sequence at start and appended on shift")
     sample_output: int = Field(32, ge=0, description="How many rollouts' XY to return for display")
     lane_cell: float = Field(0.1, gt=0, description="Cell of the lane nearest-segment lookup grid [m]")
-    # the critics' weights, `w_<critic>` for each name of `CRITICS` (how the defaults were chosen:
-    # docs/planner_config.md)
-    w_variance: float = Field(
-        1.0, ge=0, description="Weight of the GP variance critic, sum of var_v + var_w over the steps [cost / (m/s)^2]"
-    )
-    w_deviation: float = Field(300.0, ge=0, description="Weight of the lane deviation critic (d / r)^2 per step [cost]")
-    w_slip: float = Field(
-        0.1, ge=0,
-        description="Weight of the slip critic (v_ref - v)^2 + (omega_ref - omega)^2 per step [cost / (m/s)^2]",
-    )
-    w_lane_exit: float = Field(
-        1000.0, ge=0,
-        description="Weight of the lane-exit critic: outside the tightened lane at step k costs weight * discount^k "
-        "[cost]",
-    )
-    lane_exit_discount: float = Field(
-        0.9, gt=0, le=1, description="Discount per step of the lane-exit critic (dimensionless)"
-    )
-    w_speed: float = Field(
-        2.0, ge=0, description="Weight of the speed critic (v_lane - speed_target)^2 per step [cost / (m/s)^2]"
-    )
-    speed_along_lane: bool = Field(
-        True,
-        description="Speed critic on the speed along the lane (v cos of the heading error; the centre line's point "
-        "order is the driving direction) instead of the speed magnitude as in the paper",
-    )
-    w_collision: float = Field(
-        1000.0, ge=0, description="Weight of the collision critic: inside an inflated obstacle at a step [cost]"
+    critics: dict[str, dict[str, Any]] = Field(
+        default_factory=dict, validate_default=True,
+        description="The critics (cost terms) by name: `{name: {weight, enabled, tasks, <its parameters>}}`, each key "
+        "optional (the critic's default); see docs/planner_config.md for the critics, their defaults and parameters",
     )
     goal_distance: Literal["geodesic", "euclidean"] = Field(
         "geodesic",
@@ -110,10 +88,13 @@ class PlannerConfig(BaseModel):
         "in the paper",
     )
     goal_cell: float = Field(0.1, gt=0, description="Cell of the geodesic goal-distance grid [m]")
-    w_goal: float = Field(1.0, ge=0, description="Weight of the goal critic: distance to the goal per step [cost / m]")
-    w_terminal: float = Field(
-        10.0, ge=0, description="Weight of the terminal critic: distance to the goal at the horizon's end [cost / m]"
-    )
+
+    @field_validator("critics", mode="before")
+    @classmethod
+    def _complete_critics(cls, raw: Any) -> dict[str, dict[str, Any]]:
+        if raw is not None and not isinstance(raw, Mapping):
+            raise ValueError(f"critics must be a mapping of critic name to its settings, got {raw!r}")
+        return critic_settings(raw)
 
     @model_validator(mode="after")
     def _check(self) -> PlannerConfig:
@@ -136,11 +117,12 @@ class PlannerConfig(BaseModel):
                 raise ValueError("smoothing_window must not exceed the horizon")
         return self
 
-    def critic_weights(self) -> dict[str, float]:
-        """The weight of each critic (`CRITICS`) by name, from the `w_<critic>` fields."""
-        return {name: float(getattr(self, f"w_{name}")) for name in CRITICS}
+    def critic_weights(self, task: str) -> dict[str, float]:
+        """The weight of each critic (`CRITICS`) by name in a task kind ('lane' or 'goal'): 0 where it is disabled or
+        not run in that kind."""
+        return critic_weights(self.critics, task)
 
-    def cost_bundle(self) -> CostBundle:
-        """The kernels' cost input: the critic weights by name, the lane-exit discount and the two switches."""
-        return CostBundle.from_weights(self.critic_weights(), self.lane_exit_discount, self.speed_along_lane,
-                                       self.goal_distance == "geodesic")
+    def cost_bundle(self, task: str) -> CostBundle:
+        """The kernels' cost input for a task kind: the critic weights and parameters by name, and the goal switch."""
+        params = {name: {p: s[p] for p in s if p not in CRITIC_KEYS} for name, s in self.critics.items()}
+        return CostBundle.from_weights(self.critic_weights(task), params, self.goal_distance == "geodesic")

@@ -28,7 +28,6 @@ took ~0.35 s of every planner start; tests check them against scipy.stats).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,114 +35,34 @@ from numba import njit
 from scipy.special import chdtri, ndtri
 
 from gpmppi.kernel_flags import FASTMATH
-from gpmppi.mppi.bundles import (
-    CRITICS,
-    K_COLLISION,
-    K_DEVIATION,
-    K_EXIT_DISCOUNT,
-    K_GOAL,
-    K_GOAL_GEODESIC,
-    K_LANE_EXIT,
-    K_SLIP,
-    K_SPEED,
-    K_SPEED_ALONG_LANE,
-    K_TERMINAL,
-    K_VARIANCE,
-    N_COST_TERMS,
-    TASK_GOAL,
-    TASK_LANE,
-)
-from gpmppi.mppi.goal_field import goal_distance
+from gpmppi.mppi.bundles import CRITICS, TASK_LANE
+from gpmppi.mppi.critics.registry import build_sums, layout
 from gpmppi.mppi.lane import lane_query
 
 __all__ = [
-    "CRITICS", "TASK_GOAL", "TASK_LANE", "ChanceQuantiles", "collision_cost", "deviation_cost", "goal_cost",
-    "goal_term", "inflate_obstacles", "lane_exit_cost", "slip_cost", "speed_cost", "stage_cost", "stage_critics",
-    "tighten_lane", "variance_cost", "weight_vector", "fill_weight_vector", "xy_lambda_max",
+    "CRITICS", "ChanceQuantiles", "fill_weight_vector", "inflate_obstacles", "stage_cost", "stage_critics",
+    "terminal_cost", "terminal_critics", "tighten_lane", "weight_vector", "xy_lambda_max",
 ]
 
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def variance_cost(var_v: float, var_w: float, weight: float) -> float:
-    """Penalise uncertain regions: the ensemble variance of the step's velocity residuals."""
-    return weight * (var_v + var_w)
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def deviation_cost(dist: float, half_width: float, weight: float) -> float:
-    """Lane deviation normalised by the nominal half-width."""
-    e = dist / half_width
-    return weight * e * e
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def slip_cost(v: float, w: float, v_ref: float, w_ref: float, weight: float) -> float:
-    """Gap between the commanded and the resulting velocities (slip / lag of the base)."""
-    dv = v_ref - v
-    dw = w_ref - w
-    return weight * (dv * dv + dw * dw)
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def lane_exit_cost(dist: float, tightened_half_width: float, discount_k: float, weight: float) -> float:
-    """Indicator of leaving the tightened lane, discounted along the horizon (discount^k)."""
-    return weight * discount_k if dist > tightened_half_width else 0.0
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def speed_cost(v: float, target: float, weight: float) -> float:
-    """Shortfall or excess of the speed (along the lane, see the module notes) against the target."""
-    e = v - target
-    return weight * e * e
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def collision_cost(x: float, y: float, obstacles: np.ndarray, radii: np.ndarray, weight: float) -> float:
-    """Indicator of being inside any circle; `radii` (K,) are the inflated radii at this step."""
-    for j in range(obstacles.shape[0]):
-        dx = x - obstacles[j, 0]
-        dy = y - obstacles[j, 1]
-        r = radii[j]
-        if dx * dx + dy * dy < r * r:  # squared distance against squared radius
-            return weight
-    return 0.0
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def goal_cost(x: float, y: float, goal: np.ndarray, weight: float) -> float:
-    """Euclidean distance to the goal (stage term; the terminal term uses the same with its weight)."""
-    dx = x - goal[0]
-    dy = y - goal[1]
-    return weight * math.sqrt(dx * dx + dy * dy)
-
-
-@njit(cache=True, fastmath=FASTMATH, inline="always")
-def goal_term(
-    cost_w: np.ndarray, field: np.ndarray, origin: np.ndarray, inv_cell: float, goal: np.ndarray, x: float, y: float,
-    weight: float,
-) -> float:
-    """Distance-to-goal term: around the obstacles (`field`) or in a straight line (by the switch in `cost_w`,
-    `weight_vector`), times `weight`."""
-    if cost_w[K_GOAL_GEODESIC] > 0.0:
-        return weight * goal_distance(field, origin, inv_cell, x, y)
-    return goal_cost(x, y, goal, weight)
+# the registered critics' terms, summed and split, per task kind (`gpmppi.mppi.critics.registry`)
+_SUMS = build_sums()
+_lane_stage = _SUMS["lane"].stage
+_goal_stage = _SUMS["goal"].stage
+_lane_stage_split = _SUMS["lane"].stage_split
+_goal_stage_split = _SUMS["goal"].stage_split
+_lane_terminal = _SUMS["lane"].terminal
+_goal_terminal = _SUMS["goal"].terminal
+_lane_terminal_split = _SUMS["lane"].terminal_split
+_goal_terminal_split = _SUMS["goal"].terminal_split
+_LANE_TERMINAL = bool(layout().terms("lane", True))  # whether a terminal critic reads the lane at the horizon's end
 
 
 @njit(cache=True, inline="always")
 def fill_weight_vector(cost: tuple, w: np.ndarray) -> None:
-    """Write the cost bundle's tuple (`CostBundle.args()`) into `w` (`N_COST_TERMS`,) by the same `K_*` (switches
-    1.0 on, 0.0 off): the vector the kernels read (`weight_vector`)."""
-    w[K_VARIANCE] = cost[K_VARIANCE]
-    w[K_DEVIATION] = cost[K_DEVIATION]
-    w[K_SLIP] = cost[K_SLIP]
-    w[K_LANE_EXIT] = cost[K_LANE_EXIT]
-    w[K_SPEED] = cost[K_SPEED]
-    w[K_COLLISION] = cost[K_COLLISION]
-    w[K_GOAL] = cost[K_GOAL]
-    w[K_TERMINAL] = cost[K_TERMINAL]
-    w[K_EXIT_DISCOUNT] = cost[K_EXIT_DISCOUNT]
-    w[K_SPEED_ALONG_LANE] = 1.0 if cost[K_SPEED_ALONG_LANE] else 0.0
-    w[K_GOAL_GEODESIC] = 1.0 if cost[K_GOAL_GEODESIC] else 0.0
+    """Write the cost bundle's tuple (`CostBundle.args()`) into `w` (`N_COST_TERMS`,): the vector the kernels
+    read (`weight_vector`)."""
+    for i in range(len(cost)):
+        w[i] = cost[i]
 
 
 @njit(cache=True, inline="always")
@@ -153,9 +72,24 @@ def weight_vector(cost: tuple) -> np.ndarray:
     Why a vector and not the tuple's scalars: under fastmath reassociation LLVM orders the operands of the
     cost sums by where their values come from, and weights read from memory inside the loops (as before
     the bundles) keep the kernels' rounding, so seeded plans are unchanged."""
-    w = np.empty(N_COST_TERMS)
+    w = np.empty(len(cost))
     fill_weight_vector(cost, w)
     return w
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def _step(
+    query_lane: bool, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple, u: tuple,
+    var: tuple,
+) -> tuple:
+    """What the critics' terms read of a step (`critics.base.AT_*`); with `query_lane` the lane query at the state,
+    once for all the lane critics (else zeros)."""
+    seg, cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles = geo
+    px, py, yaw, v, w = s
+    d, tx, ty = 0.0, 0.0, 0.0
+    if query_lane:
+        d, tx, ty = lane_query(seg, cell_start, candidates, field, origin, inv_cell, px, py, tightened_hw)
+    return (px, py, yaw, v, w, u[0], u[1], var[0], var[1], tightened_hw, radii, discount_k, d, tx, ty)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -163,28 +97,18 @@ def stage_cost(
     kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple,
     u: tuple, var: tuple,
 ) -> float:
-    """Cost of one rollout step, the sum of the stage critics (`stage_critics`, in `CRITICS` order).
+    """Cost of one rollout step: the sum of the task kind's stage critics, in `CRITICS` order.
 
     `cost_w` the cost bundle as the kernels hold it (`weight_vector`); `geo` the task's geometry (seg,
     cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles: `TaskBundle`
-    fields); `tightened_hw` this
-    step's tightened half-width (the lane distance is exact near it), `radii` (K,) this step's inflated
-    radii; `s` the state after the step (x, y, yaw, v, omega), `u` its command, `var` its GP variances.
+    fields); `tightened_hw` this step's tightened half-width (the lane distance is exact near it), `radii` (K,) this
+    step's inflated radii; `discount_k` the lane-exit discount of this step; `s` the state after the step (x, y,
+    yaw, v, omega), `u` its command, `var` its GP variances.
     """
-    seg, cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles = geo
-    px, py, yaw, v, w = s
-    c = variance_cost(var[0], var[1], cost_w[K_VARIANCE])
+    at = _step(kind == TASK_LANE, geo, tightened_hw, radii, discount_k, s, u, var)
     if kind == TASK_LANE:
-        d, tx, ty = lane_query(seg, cell_start, candidates, field, origin, inv_cell, px, py, tightened_hw)
-        c += deviation_cost(d, half_width, cost_w[K_DEVIATION])
-        c += slip_cost(v, w, u[0], u[1], cost_w[K_SLIP])
-        c += lane_exit_cost(d, tightened_hw, discount_k, cost_w[K_LANE_EXIT])
-        v_lane = v * (math.cos(yaw) * tx + math.sin(yaw) * ty) if cost_w[K_SPEED_ALONG_LANE] > 0.0 else v
-        c += speed_cost(v_lane, speed_target, cost_w[K_SPEED])
-    else:
-        c += collision_cost(px, py, obstacles, radii, cost_w[K_COLLISION])
-        c += goal_term(cost_w, field, origin, inv_cell, goal, px, py, cost_w[K_GOAL])
-    return c
+        return _lane_stage(0.0, cost_w, geo, at)
+    return _goal_stage(0.0, cost_w, geo, at)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
@@ -192,26 +116,36 @@ def stage_critics(
     kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple,
     u: tuple, var: tuple, out: np.ndarray,
 ) -> None:
-    """Add each stage critic's cost of one step to `out` (`CRITICS` order; arguments as `stage_cost`).
-
-    The same terms as `stage_cost`, kept apart: the rollout kernels need only their sum, the plan reports each.
-    """
-    seg, cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles = geo
-    px, py, yaw, v, w = s
-    out[K_VARIANCE] += variance_cost(var[0], var[1], cost_w[K_VARIANCE])
+    """Add each stage critic's cost of one step to `out` (`CRITICS` order; arguments as `stage_cost`): the kernels
+    need only the sum, the plan reports each."""
+    at = _step(kind == TASK_LANE, geo, tightened_hw, radii, discount_k, s, u, var)
     if kind == TASK_LANE:
-        d, tx, ty = lane_query(seg, cell_start, candidates, field, origin, inv_cell, px, py, tightened_hw)
-        out[K_DEVIATION] += deviation_cost(d, half_width, cost_w[K_DEVIATION])
-        out[K_SLIP] += slip_cost(v, w, u[0], u[1], cost_w[K_SLIP])
-        out[K_LANE_EXIT] += lane_exit_cost(d, tightened_hw, discount_k, cost_w[K_LANE_EXIT])
-        v_lane = v * (math.cos(yaw) * tx + math.sin(yaw) * ty) if cost_w[K_SPEED_ALONG_LANE] > 0.0 else v
-        out[K_SPEED] += speed_cost(v_lane, speed_target, cost_w[K_SPEED])
+        _lane_stage_split(cost_w, geo, at, out)
     else:
-        out[K_COLLISION] += collision_cost(px, py, obstacles, radii, cost_w[K_COLLISION])
-        out[K_GOAL] += goal_term(cost_w, field, origin, inv_cell, goal, px, py, cost_w[K_GOAL])
+        _goal_stage_split(cost_w, geo, at, out)
 
 
-assert len(CRITICS) == 8 and CRITICS[K_GOAL] == "goal"  # the K_* of the critics index CRITICS too
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def terminal_cost(
+    kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, s: tuple,
+) -> float:
+    """The sum of the task kind's terminal critics at the state after the last step (`s`; bounds of that step)."""
+    at = _step(kind == TASK_LANE and _LANE_TERMINAL, geo, tightened_hw, radii, 1.0, s, (0.0, 0.0), (0.0, 0.0))
+    if kind == TASK_LANE:
+        return _lane_terminal(0.0, cost_w, geo, at)
+    return _goal_terminal(0.0, cost_w, geo, at)
+
+
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def terminal_critics(
+    kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, s: tuple, out: np.ndarray,
+) -> None:
+    """Add each terminal critic's cost to `out` (`CRITICS` order; arguments as `terminal_cost`)."""
+    at = _step(kind == TASK_LANE and _LANE_TERMINAL, geo, tightened_hw, radii, 1.0, s, (0.0, 0.0), (0.0, 0.0))
+    if kind == TASK_LANE:
+        _lane_terminal_split(cost_w, geo, at, out)
+    else:
+        _goal_terminal_split(cost_w, geo, at, out)
 
 
 @dataclass(frozen=True)

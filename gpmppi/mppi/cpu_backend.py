@@ -25,7 +25,6 @@ from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row
 from gpmppi.mppi.bundles import (
     CRITICS,
     K_EXIT_DISCOUNT,
-    K_TERMINAL,
     M_DIMS,
     M_DYN_MODE,
     M_EDD5,
@@ -60,9 +59,8 @@ from gpmppi.mppi.bundles import (
     T_SEG,
     T_SPEED_TARGET,
     T_TIGHTENED_HW,
-    TASK_GOAL,
 )
-from gpmppi.mppi.costs import goal_term, stage_cost, stage_critics, weight_vector
+from gpmppi.mppi.costs import stage_cost, stage_critics, terminal_cost, terminal_critics, weight_vector
 from gpmppi.mppi.dynamics import (
     DYN_GP,
     GP_SIMPLEX,
@@ -281,9 +279,8 @@ def rollout_worker(
         _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[horizon], radii[horizon]),
                    discount_k)
         for j in range(n_in):
-            t = total[j]
-            if task_kind == TASK_GOAL:
-                t += goal_term(cost_w, field, grid_origin, inv_cell, goal, st[0, j], st[1, j], cost_w[K_TERMINAL])
+            t = total[j] + terminal_cost(task_kind, cost_w, geo, tightened_hw[horizon], radii[horizon],
+                                         (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]))
             if not np.isfinite(t):
                 t = np.inf
             cost_out[first + j] = t
@@ -394,9 +391,7 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
         s = (px, py, yaw, v, w)
         stage_critics(kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, (var_v, var_w), out)
         discount_k *= discount
-    if kind == TASK_GOAL:
-        out[K_TERMINAL] += goal_term(cost_w, task[T_FIELD], task[T_ORIGIN], task[T_INV_CELL],
-                                     task[T_GOAL], s[0], s[1], cost_w[K_TERMINAL])
+    terminal_critics(kind, cost_w, geo, tightened_hw[nominal.shape[0]], radii[nominal.shape[0]], s, out)
     return out
 
 

@@ -19,12 +19,11 @@ import numba
 import numpy as np
 from numba import cuda
 
-from gpmppi.gp.cuda_kernels import device_version
+from gpmppi.gp.cuda_kernels import device_version, set_device_version
 from gpmppi.mppi import costs as critic
 from gpmppi.mppi import dynamics, gp_table, rng
 from gpmppi.mppi.bundles import (
     K_EXIT_DISCOUNT,
-    K_TERMINAL,
     M_DIMS,
     M_DYN_MODE,
     M_EDD5,
@@ -59,8 +58,8 @@ from gpmppi.mppi.bundles import (
     T_SEG,
     T_SPEED_TARGET,
     T_TIGHTENED_HW,
-    TASK_GOAL,
 )
+from gpmppi.mppi.critics.registry import build_sums
 from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX
 
 THREADS_PER_BLOCK = 128
@@ -70,8 +69,12 @@ _noisy_command = device_version(rng.noisy_command)
 _interp4 = device_version(gp_table.interp4)
 _interp4_simplex = device_version(gp_table.interp4_simplex)
 _advance = device_version(dynamics.advance)
+# the critics' sums from the terms' device twins (the CPU sums are closures, which `device_version` cannot rebuild)
+for _kind, _sums in build_sums(cuda.jit(device=True, inline=True), device_version).items():
+    set_device_version(getattr(critic, f"_{_kind}_stage"), _sums.stage)
+    set_device_version(getattr(critic, f"_{_kind}_terminal"), _sums.terminal)
 _stage_cost = device_version(critic.stage_cost)
-_goal_term = device_version(critic.goal_term)
+_terminal_cost = device_version(critic.terminal_cost)
 _fill_weight_vector = device_version(critic.fill_weight_vector)
 
 
@@ -156,9 +159,7 @@ def _rollout_kernel(model, task, sampling, cost, out):
         total += _stage_cost(task_kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k,
                              (px, py, yaw, v, w), (u0, u1), (cv, cw))
         discount_k *= discount
-    if task_kind == TASK_GOAL:
-        total += _goal_term(cost_w, field, grid_origin, inv_cell, goal, px, py,
-                            cost_w[K_TERMINAL])
+    total += _terminal_cost(task_kind, cost_w, geo, tightened_hw[horizon], radii[horizon], (px, py, yaw, v, w))
     if math.isnan(total) or math.isinf(total):
         total = math.inf
     cost_out[s] = total

@@ -21,6 +21,7 @@ from gpmppi.mppi import backends
 from gpmppi.mppi.bundles import ModelBundle, SamplingBundle, TaskBundle
 from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
+from gpmppi.mppi.critics.base import TASK_KINDS
 from gpmppi.mppi.dynamics import (
     DYN_EDD5,
     DYN_GP,
@@ -85,7 +86,7 @@ class Planner:
         self._noise = np.asarray(model.noise, dtype=np.float64).reshape(-1)
         self._edd5 = np.stack([np.asarray(model.edd5[t], dtype=np.float64) for t in model.terrains])
         self._quant = ChanceQuantiles.for_probability(c.p_x)
-        self._cost = c.cost_bundle()
+        self._costs = {task: c.cost_bundle(task) for task in TASK_KINDS}  # by task kind
         self._u_lo = np.array([c.v_limits[0], c.omega_limits[0]])
         self._u_hi = np.array([c.v_limits[1], c.omega_limits[1]])
         self._std = np.array(c.noise_std, dtype=np.float64)
@@ -318,11 +319,12 @@ class Planner:
             task_bundle = TaskBundle.for_goal(task.goal, task.obstacles, bounds, self._goal_field(task, x))
         n_xy = min(c.sample_output, c.samples)
         sampling = self._sampling(x, nominal, self._lane_std if is_lane else self._std)
-        eps, costs, xy = backends.rollouts(self.backend, model, task_bundle, sampling, self._cost, c.samples, n_xy,
+        cost = self._costs["lane" if is_lane else "goal"]
+        eps, costs, xy = backends.rollouts(self.backend, model, task_bundle, sampling, cost, c.samples, n_xy,
                                            self.device)
         # exact GP: the kernels' variance cost is latent; the noise adds the same to every rollout (the update
         # is unchanged), added here so that costs are those of the predictive variance in every mode
-        noise_cost = c.horizon * self._cost.variance * sum(self._exact_noise_var(w))
+        noise_cost = c.horizon * cost.weights["variance"] * sum(self._exact_noise_var(w))
         costs = costs + noise_cost
         t2 = time.perf_counter()
 
@@ -335,9 +337,9 @@ class Planner:
         states, covs, _ = self._propagate(x, new_u, model, cov0)
         out_bounds, clamped_after = self._bounds(task, states, covs)
         nominal_sampling = self._sampling(x, new_u, np.zeros(2))
-        _, nominal_cost, _ = backends.rollouts("cpu", model, task_bundle, nominal_sampling, self._cost, 1, 0)
+        _, nominal_cost, _ = backends.rollouts("cpu", model, task_bundle, nominal_sampling, cost, 1, 0)
         nominal_cost = nominal_cost + noise_cost
-        critic_costs = backends.critic_costs(model, task_bundle, nominal_sampling, self._cost)
+        critic_costs = backends.critic_costs(model, task_bundle, nominal_sampling, cost)
         critic_costs["variance"] += noise_cost
         t4 = time.perf_counter()
 

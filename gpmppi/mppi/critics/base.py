@@ -1,0 +1,91 @@
+"""What a critic is: its name, default weight and parameters, the task kinds it applies to, stage or terminal, and its
+numba term; and what every term reads (the cost vector, the task's geometry, the step).
+
+A term is `term(weight, cost_w, p, geo, at) -> float`, compiled by `critic_term`:
+
+* `weight` its weight; `cost_w` the cost vector the kernels hold (`registry.CriticLayout`), `p` the index in it of
+  the critic's first parameter (in the order of `Critic.params`);
+* `geo` the task's geometry, read by the `G_*` indices; `at` the step, read by the `AT_*` indices: the state after
+  the step, its command and GP variances, this step's tightened lane half-width and inflated obstacle radii, the
+  lane-exit discount of this step, and (lane tasks) the lane distance and direction at the state.
+
+A terminal term is evaluated once, on the state after the last step (its command and variances zero).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from numba import njit
+
+from gpmppi.kernel_flags import FASTMATH
+
+__all__ = [
+    "TASK_GOAL", "TASK_KINDS", "TASK_LANE", "W_GOAL_GEODESIC", "Critic", "Param", "critic_term",
+]
+
+# task kinds of the rollout kernels, by the name the config uses
+TASK_LANE = 0
+TASK_GOAL = 1
+TASK_KINDS = {"lane": TASK_LANE, "goal": TASK_GOAL}
+
+# the cost vector's first slot: goal critics measure the distance around the obstacles (1.0) or the straight line
+W_GOAL_GEODESIC = 0
+
+# the task's geometry (`TaskBundle` fields)
+G_SEG, G_CELL_START, G_CANDIDATES, G_FIELD, G_ORIGIN, G_INV_CELL, G_HALF_WIDTH, G_SPEED_TARGET, G_GOAL = range(9)
+G_OBSTACLES = 9
+
+# the step
+AT_X, AT_Y, AT_YAW, AT_V, AT_OMEGA, AT_V_REF, AT_OMEGA_REF, AT_VAR_V, AT_VAR_OMEGA = range(9)
+AT_TIGHTENED_HW, AT_RADII, AT_DISCOUNT_K, AT_LANE_DIST, AT_LANE_TX, AT_LANE_TY = range(9, 15)
+
+
+def critic_term(func: Callable) -> Callable:
+    """Compile a critic's term with the kernels' flags, inlined into its callers in numba's IR: a term loaded from
+    the cache as machine code could not be inlined by LLVM, and the kernels' code (and last bits) would then depend
+    on what the process compiled before (`tests/test_determinism.py`)."""
+    return njit(cache=True, fastmath=FASTMATH, inline="always")(func)
+
+
+@dataclass(frozen=True)
+class Param:
+    """A critic parameter: its default (a float, or a bool held as 1.0 / 0.0 in the cost vector), what it is, and
+    for a float the open-or-closed range it must lie in."""
+
+    default: float | bool
+    description: str
+    low: float = float("-inf")
+    high: float = float("inf")
+    low_open: bool = False
+
+    def check(self, critic: str, name: str, value: object) -> float | bool:
+        """`value` as the config holds it, or a ValueError saying what it must be."""
+        where = f"critics.{critic}.{name}"
+        if isinstance(self.default, bool):
+            if not isinstance(value, bool):
+                raise ValueError(f"{where} must be true or false, got {value!r}")
+            return value
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"{where} must be a number, got {value!r}")
+        v = float(value)
+        below = v <= self.low if self.low_open else v < self.low
+        if not (v == v) or below or v > self.high:
+            bound = "(" if self.low_open else "["
+            raise ValueError(f"{where} must lie in {bound}{self.low}, {self.high}], got {value!r}")
+        return v
+
+
+@dataclass(frozen=True)
+class Critic:
+    """One cost term: its name (the config's key), default weight, the task kinds it applies to ('lane', 'goal'),
+    whether it is counted once at the horizon's end (`terminal`) or at every step, its parameters and its term."""
+
+    name: str
+    weight: float
+    tasks: tuple[str, ...]
+    term: Callable
+    description: str
+    terminal: bool = False
+    params: dict[str, Param] = field(default_factory=dict)

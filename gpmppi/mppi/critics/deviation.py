@@ -1,0 +1,16 @@
+"""Deviation critic: the distance to the lane's centre line, normalised by the nominal half-width, squared."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gpmppi.mppi.critics.base import AT_LANE_DIST, G_HALF_WIDTH, Critic, critic_term
+
+
+@critic_term
+def deviation_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
+    e = at[AT_LANE_DIST] / geo[G_HALF_WIDTH]
+    return weight * e * e
+
+
+CRITIC = Critic("deviation", 300.0, ("lane",), deviation_cost, "(d / r)^2 per step [cost]")

@@ -1,0 +1,140 @@
+"""The registered critics and what derives from them: the cost vector's layout and the summed and split terms.
+
+Critics are registered once, before the kernels' modules read the layout (`gpmppi.mppi.bundles` does on import);
+`register` after that is an error. The cost vector the kernels read is, in order: the task switches (`base.W_*`),
+each critic's weight (registration order), then each critic's parameters (registration order, then the order of its
+`params`).
+
+The kernels' sums are built here from the registered terms, as a chain of small compiled functions, one per term
+(`_chain`): the summed cost adds the terms in registration order, the split adds each to its own slot. numba
+resolves a chain's calls when it compiles, so they are plain calls that LLVM inlines (a tuple of functions would
+be called through pointers). CUDA gets the same chains built from the terms' device twins (`device_chains`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from numba import njit
+
+from gpmppi.kernel_flags import FASTMATH
+from gpmppi.mppi.critics.base import TASK_KINDS, W_GOAL_GEODESIC, Critic
+
+__all__ = ["CriticLayout", "Sums", "build_sums", "layout", "register"]
+
+_REGISTERED: list[Critic] = []
+_LAYOUT: CriticLayout | None = None
+
+
+def register(critic: Critic) -> None:
+    """Add a critic (a critic module's `CRITIC`); before the layout is read, names unique."""
+    if _LAYOUT is not None:
+        raise RuntimeError(f"critic {critic.name!r} registered after the kernels' layout was read: register critics "
+                           "before importing gpmppi.mppi.bundles (or anything that imports it)")
+    if any(c.name == critic.name for c in _REGISTERED):
+        raise ValueError(f"a critic named {critic.name!r} is already registered")
+    unknown = sorted(set(critic.tasks) - set(TASK_KINDS))
+    if unknown or not critic.tasks:
+        raise ValueError(f"critic {critic.name!r}: task kinds {list(critic.tasks)}; each must be one of "
+                         f"{list(TASK_KINDS)}, at least one")
+    _REGISTERED.append(critic)
+
+
+@dataclass(frozen=True)
+class CriticLayout:
+    """The registered critics and the cost vector's layout."""
+
+    critics: tuple[Critic, ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.critics)
+
+    def weight_index(self, name: str) -> int:
+        return W_GOAL_GEODESIC + 1 + self.names.index(name)
+
+    def param_index(self, name: str, param: str) -> int:
+        """The index of critic `name`'s parameter `param` in the cost vector."""
+        i = W_GOAL_GEODESIC + 1 + len(self.critics)
+        for c in self.critics:
+            for p in c.params:
+                if (c.name, p) == (name, param):
+                    return i
+                i += 1
+        raise KeyError(f"critic {name!r} has no parameter {param!r}")
+
+    def first_param(self, name: str) -> int:
+        """Where critic `name`'s parameters start (one past the last slot when it has none)."""
+        c = self.critics[self.names.index(name)]
+        return self.param_index(name, next(iter(c.params))) if c.params else self.size
+
+    @property
+    def size(self) -> int:
+        return W_GOAL_GEODESIC + 1 + len(self.critics) + sum(len(c.params) for c in self.critics)
+
+    def terms(self, task: str, terminal: bool) -> tuple[tuple[int, int, Callable], ...]:
+        """(weight index, first parameter index, term) of the critics of a task kind, stage or terminal."""
+        return tuple((self.weight_index(c.name), self.first_param(c.name), c.term) for c in self.critics
+                     if task in c.tasks and c.terminal == terminal)
+
+
+def layout() -> CriticLayout:
+    """The registered critics' layout; registration ends here."""
+    global _LAYOUT
+    if _LAYOUT is None:
+        _LAYOUT = CriticLayout(tuple(_REGISTERED))
+    return _LAYOUT
+
+
+@dataclass(frozen=True)
+class Sums:
+    """A task kind's summed and split terms, stage and terminal: `summed(c, cost_w, geo, at)` returns c plus the
+    terms in registration order; `split(cost_w, geo, at, out)` adds each term to `out` at its critic's index
+    (`CriticLayout.names` order)."""
+
+    stage: Callable
+    stage_split: Callable
+    terminal: Callable
+    terminal_split: Callable
+
+
+def _chain(terms: tuple, jit: Callable, twin: Callable, names: tuple[str, ...], weights0: int) -> tuple:
+    """The summed and the split function of `terms` ((weight index, parameter index, term), ...), compiled by `jit`
+    with each term replaced by `twin(term)`."""
+    summed = jit(lambda c, cost_w, geo, at: c)
+    split = jit(lambda cost_w, geo, at, out: None)
+    for wi, pi, term in reversed(terms):
+        summed = _link_sum(jit, twin(term), wi, pi, summed)
+        split = _link_split(jit, twin(term), wi, pi, wi - weights0, split)
+    return summed, split
+
+
+def _link_sum(jit: Callable, term: Callable, wi: int, pi: int, rest: Callable) -> Callable:
+    def add(c: float, cost_w, geo: tuple, at: tuple) -> float:  # noqa: ANN001 - an array, or a CUDA array
+        return rest(c + term(cost_w[wi], cost_w, pi, geo, at), cost_w, geo, at)
+
+    return jit(add)
+
+
+def _link_split(jit: Callable, term: Callable, wi: int, pi: int, slot: int, rest: Callable) -> Callable:
+    def add(cost_w, geo: tuple, at: tuple, out) -> None:  # noqa: ANN001 - arrays, or CUDA arrays
+        out[slot] += term(cost_w[wi], cost_w, pi, geo, at)
+        rest(cost_w, geo, at, out)
+
+    return jit(add)
+
+
+def build_sums(jit: Callable | None = None, twin: Callable | None = None) -> dict[str, Sums]:
+    """Each task kind's `Sums`, compiled by `jit` (default: njit with the kernels' flags, inlined in numba's IR like
+    the terms), terms by `twin(term)`."""
+    jit = jit or njit(fastmath=FASTMATH, inline="always")
+    twin = twin or (lambda f: f)
+    lay = layout()
+    w0 = lay.weight_index(lay.names[0]) if lay.names else 0
+    out = {}
+    for task in TASK_KINDS:
+        stage, stage_split = _chain(lay.terms(task, False), jit, twin, lay.names, w0)
+        terminal, terminal_split = _chain(lay.terms(task, True), jit, twin, lay.names, w0)
+        out[task] = Sums(stage, stage_split, terminal, terminal_split)
+    return out

@@ -1,0 +1,27 @@
+"""Speed critic: shortfall or excess of the speed against the lane's speed target, squared.
+
+With `along_lane` (default) the speed is the speed along the lane, v cos(yaw - lane direction) (the centre line's
+point order is the driving direction); off, the speed itself, as the paper writes it, which rewards speed in any
+direction: at a square track's corners the robot then kept its speed through loops instead of slowing into the
+turn."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from gpmppi.mppi.critics.base import AT_LANE_TX, AT_LANE_TY, AT_V, AT_YAW, G_SPEED_TARGET, Critic, Param, critic_term
+
+
+@critic_term
+def speed_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
+    v = at[AT_V]
+    yaw = at[AT_YAW]
+    v_lane = v * (math.cos(yaw) * at[AT_LANE_TX] + math.sin(yaw) * at[AT_LANE_TY]) if cost_w[p] > 0.0 else v
+    e = v_lane - geo[G_SPEED_TARGET]
+    return weight * e * e
+
+
+CRITIC = Critic("speed", 2.0, ("lane",), speed_cost, "(v_lane - speed_target)^2 per step [cost / (m/s)^2]",
+                params={"along_lane": Param(True, "on the speed along the lane (else the speed magnitude)")})

@@ -1,0 +1,16 @@
+"""Variance critic: penalise uncertain regions, the GP ensemble's variance of the step's velocity residuals."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from gpmppi.mppi.critics.base import AT_VAR_OMEGA, AT_VAR_V, Critic, critic_term
+
+
+@critic_term
+def variance_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
+    return weight * (at[AT_VAR_V] + at[AT_VAR_OMEGA])
+
+
+CRITIC = Critic("variance", 1.0, ("lane", "goal"), variance_cost,
+                "sum of var_v + var_omega over the steps [cost / (m/s)^2]")

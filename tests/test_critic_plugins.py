@@ -1,0 +1,114 @@
+"""Critics as plug-ins: the config section `critics:` and its errors, and a new critic added in one module and one
+registration line, counted by the CPU kernel, the CUDA kernel (simulator) and the per-critic split."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from gpmppi.mppi.bundles import CRITICS
+from gpmppi.mppi.config import PlannerConfig
+from gpmppi.mppi.critics.registry import layout
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_the_config_section_defaults_to_each_critic_module() -> None:
+    c = PlannerConfig()
+    assert list(c.critics) == list(CRITICS) == [critic.name for critic in layout().critics]
+    assert c.critics["deviation"] == {"weight": 300.0, "enabled": True, "tasks": ["lane"]}
+    assert c.critics["lane_exit"]["discount"] == 0.9 and c.critics["speed"]["along_lane"] is True
+    assert c.critics["variance"]["tasks"] == ["lane", "goal"]
+
+
+def test_disabled_or_restricted_critics_weigh_nothing_there() -> None:
+    c = PlannerConfig(critics={"deviation": {"enabled": False}, "variance": {"tasks": ["goal"], "weight": 3}})
+    lane, goal = c.critic_weights("lane"), c.critic_weights("goal")
+    assert lane["deviation"] == 0.0 and lane["variance"] == 0.0 and goal["variance"] == 3.0
+    assert lane["speed"] == 2.0 and goal["speed"] == 0.0 and goal["terminal"] == 10.0 and lane["terminal"] == 0.0
+    bundle = c.cost_bundle("lane")
+    assert bundle.params["lane_exit"] == {"discount": 0.9} and bundle.goal_geodesic
+
+
+@pytest.mark.parametrize(("critics", "words"), [
+    ({"slippage": {}}, r"unknown critic 'slippage'; the critics are \['variance', 'deviation'"),
+    ({"speed": {"along": True}}, r"critics\.speed: unknown parameter 'along'; its parameters are \['weight', "
+                                 r"'enabled', 'tasks', 'along_lane'\]"),
+    ({"slip": {"weight": -1.0}}, r"critics\.slip\.weight must be a finite number >= 0, got -1\.0"),
+    ({"goal": {"weight": float("nan")}}, r"critics\.goal\.weight must be a finite number >= 0, got nan"),
+    ({"goal": {"weight": float("inf")}}, r"critics\.goal\.weight must be a finite number >= 0, got inf"),
+    ({"collision": {"tasks": ["lane", "goal"]}}, r"critics\.collision is enabled for task kind 'lane', which it "
+                                                  r"does not support; it supports \['goal'\]"),
+    ({"lane_exit": {"discount": 0.0}}, r"critics\.lane_exit\.discount must lie in \(0\.0, 1\.0\], got 0\.0"),
+    ({"speed": {"along_lane": 1}}, r"critics\.speed\.along_lane must be true or false, got 1"),
+    ({"deviation": {"enabled": "yes"}}, r"critics\.deviation\.enabled must be true or false"),
+])
+def test_bad_critic_settings_are_refused_at_start_naming_them(critics: dict, words: str) -> None:
+    with pytest.raises(ValueError, match=words):
+        PlannerConfig(critics=critics)
+
+
+def test_the_old_weight_fields_are_gone_with_a_clear_error() -> None:
+    with pytest.raises(ValueError, match="w_speed"):
+        PlannerConfig(w_speed=4.0)  # type: ignore[call-arg]
+
+
+# a critic that is one module (here: this script) and one registration line
+PLUGIN = r"""
+import json, sys
+import numpy as np
+from gpmppi.mppi.critics import register
+from gpmppi.mppi.critics.base import AT_OMEGA, Critic, critic_term
+
+
+@critic_term
+def turning_cost(weight, cost_w, p, geo, at):
+    return weight * at[AT_OMEGA] * at[AT_OMEGA]
+
+
+register(Critic("turning", 0.5, ("lane", "goal"), turning_cost, "omega^2 per step [cost / (rad/s)^2]"))
+
+from gpmppi.mppi import backends
+from gpmppi.mppi.planner import Planner, PlannerConfig
+from gpmppi.mppi.synthetic import synthetic_model
+from gpmppi.scenarios import circle_lane, paper_obstacle_scene
+
+backend = sys.argv[1]
+model = synthetic_model(nodes=4, n_train=20)
+out = {}
+for name, scenario in (("lane", circle_lane()), ("goal", paper_obstacle_scene())):
+    p = Planner(PlannerConfig(backend=backend, samples=32, horizon=8, critics={"turning": {"weight": 2.0}}), model)
+    r = p.plan(scenario.start, scenario.task, np.array([0.5, 0.3, 0.2]))
+    # the nominal sequence's cost by the backend's own kernel, with and without the new critic
+    cost = p._costs[name]
+    out[name] = {"critics": r.critic_costs, "cost": r.cost, "sample_costs": r.sample_costs.tolist(),
+                 "weight": cost.weights["turning"]}
+    p0 = Planner(PlannerConfig(backend=backend, samples=32, horizon=8, critics={"turning": {"enabled": False}}), model)
+    off = p0.plan(scenario.start, scenario.task, np.array([0.5, 0.3, 0.2]))
+    out[name]["sample_costs_off"] = off.sample_costs.tolist()
+print("RESULT", json.dumps(out))
+"""
+
+
+@pytest.mark.parametrize("backend", ["cpu", "cuda"])
+def test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported(backend: str, tmp_path: Path) -> None:
+    script = tmp_path / "turning_critic.py"
+    script.write_text(PLUGIN)
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), PYTHONWARNINGS="ignore::RuntimeWarning")
+    if backend == "cuda":
+        env["NUMBA_ENABLE_CUDASIM"] = "1"
+    proc = subprocess.run([sys.executable, str(script), backend], cwd=REPO, env=env, capture_output=True, text=True,
+                          timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    out = json.loads(proc.stdout.split("RESULT ", 1)[1])
+    for name, r in out.items():
+        assert list(r["critics"])[-1] == "turning" and r["critics"]["turning"] > 0.0, (name, r["critics"])
+        assert sum(r["critics"].values()) == pytest.approx(r["cost"], rel=1e-8), name
+        # the backend's kernel counts it: the same samples (same seed) cost more with it than without
+        pairs = list(zip(r["sample_costs"], r["sample_costs_off"], strict=True))
+        assert all(on >= off for on, off in pairs) and any(on > off for on, off in pairs), name
