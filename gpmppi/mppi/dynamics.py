@@ -218,9 +218,14 @@ def propagate(
     states = np.zeros((n + 1, 5))
     covs = np.zeros((n + 1, 5, 5))
     step_var = np.zeros((n, 2))
-    states[0] = x0
+    # element by element: numba's whole-array assignment brings a shape-mismatch error path whose message
+    # formatting took seconds to compile
+    for i in range(5):
+        states[0, i] = x0[i]
     if cov0 is not None and dyn_mode == DYN_GP:
-        covs[0] = cov0
+        for i in range(5):
+            for j in range(5):
+                covs[0, i, j] = cov0[i, j]
     tmp = np.empty((5, 5))
     for k in range(n):
         x = states[k]
@@ -268,7 +273,9 @@ def predict_ahead(
         if dyn_mode == DYN_GP:
             jac = jacobian(theta, x, control, h, r[5], r[6], lateral[0], lateral[1])
             _sandwich(jac, cov, tmp, nxt)
-            cov[:, :] = nxt
+            for i in range(5):  # element by element, as in `propagate`
+                for j in range(5):
+                    cov[i, j] = nxt[i, j]
             cov[3, 3] += frac * (r[7] + noise_v)
             cov[4, 4] += frac * (r[8] + noise_w)
         for i in range(5):
