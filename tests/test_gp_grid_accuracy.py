@@ -155,23 +155,48 @@ def test_simplex_predictor_matches_the_planner_interpolation() -> None:
         np.testing.assert_allclose(out, ref, atol=2e-5)
 
 
-# the table's mean error at the robot's real inputs, as a share of the exact GP's own latent std there: measured
-# 0.19 (simplex) and 0.22 (multilinear) at worst on the paper's held-out inputs; the uniform-box test above judges
-# relative RMS, which real inputs (small residuals) inflate
-MAX_MEAN_ERROR_PER_STD = 0.25
+# the table's mean error at the robot's real inputs, as a share of the exact GP's own latent std there (a third:
+# well inside the GP's own uncertainty). Measured at worst: 0.19 (simplex) and 0.22 (multilinear) on the paper's
+# held-out inputs, 0.23 and 0.17 on the shipped model's closed-loop inputs. The uniform-box test above judges
+# relative RMS, which real inputs (small residuals) inflate.
+MAX_MEAN_ERROR_PER_STD = 1.0 / 3.0
 
 
-def test_paper_grid_mean_is_within_a_quarter_std_of_the_exact_gp_at_real_inputs(
+def _worst_mean_error_per_std(model: GPModel, x: np.ndarray) -> dict[str, np.ndarray]:
+    """Per interpolation, each task's largest |table mean - exact mean| / exact latent std over the points `x`."""
+    assert np.all((x >= model.domain_lo) & (x <= model.domain_hi))  # inside the table: no clamping
+    ref_mean, ref_var = gpytorch_predict(model, x)
+    return {interpolation: (np.abs(GridPredictor(model, interpolation).predict(x)[0] - ref_mean)
+                            / np.sqrt(ref_var)).max(0) for interpolation in ("simplex", "multilinear")}
+
+
+def test_paper_grid_mean_is_within_a_third_std_of_the_exact_gp_at_real_inputs(
     jackal: Path, paper_model: GPModel
 ) -> None:
     """On the paper's held-out inputs (`gp_test.csv`: where the Jackal drove), the table's mean differs from GPyTorch's
-    exact GP by at most `MAX_MEAN_ERROR_PER_STD` of the GP's latent std, at every point and task, for both
+    exact GP by less than `MAX_MEAN_ERROR_PER_STD` of the GP's latent std, at every point and task, for both
     interpolations."""
     x = np.loadtxt(jackal / "gp_test.csv", delimiter=",", skiprows=1)[:, :4]  # [v_ref, omega_ref, v, omega]
-    assert np.all((x >= paper_model.domain_lo) & (x <= paper_model.domain_hi))  # inside the table: no clamping
-    ref_mean, ref_var = gpytorch_predict(paper_model, x)
-    for interpolation in ("simplex", "multilinear"):
-        mean, _ = GridPredictor(paper_model, interpolation).predict(x)
-        worst = (np.abs(mean - ref_mean) / np.sqrt(ref_var)).max(0)
+    for interpolation, worst in _worst_mean_error_per_std(paper_model, x).items():
         assert np.all(worst < MAX_MEAN_ERROR_PER_STD), (
             interpolation, dict(zip(paper_model.tasks, worst.round(3), strict=True)))
+
+
+@pytest.mark.slow  # two closed loops
+def test_shipped_grid_mean_is_within_a_third_std_of_the_exact_gp_at_closed_loop_inputs() -> None:
+    """The same at the GP inputs of the shipped model's own closed loops (GP-MPPI on the physics plant, tile, 20 m of
+    the circle and of the square): each cycle's command and measured velocities."""
+    from gpmppi.evaluation.runner import EvalSettings, Job, run_job
+    from gpmppi.scenarios import circle_lane, square_lane
+
+    model = load_default_model()
+    inputs = []
+    for lane in (circle_lane(), square_lane()):
+        _, trajs = run_job(Job("tracking", lane, "tile", "gp", (3,), record=True, label="lane"),
+                           EvalSettings(samples=256, lane_distance_m=20.0))
+        inputs.append(np.column_stack([trajs[0].commands, trajs[0].measured_states[:-1, 3:5]]))
+    x = np.concatenate(inputs)
+    assert len(x) > 200
+    for interpolation, worst in _worst_mean_error_per_std(model, x).items():
+        assert np.all(worst < MAX_MEAN_ERROR_PER_STD), (
+            interpolation, dict(zip(model.tasks, worst.round(3), strict=True)))
