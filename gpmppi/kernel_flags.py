@@ -96,7 +96,6 @@ def fetch_add(typingctx, counter, amount):  # noqa: ANN001, ANN201 - numba intri
     return sig, codegen
 
 
-
 # numba's own flag that puts `noalias` on a function's pointer arguments (so on every array's data): its
 # `parallel=True` lowering sets it on the loop bodies it outlines when it proves their arrays distinct, and without
 # it LLVM vectorises no loop that writes one array and reads another (it cannot rule out that they overlap). numba

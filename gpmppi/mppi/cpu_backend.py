@@ -1,6 +1,7 @@
-"""CPU backend: one numba kernel runs every sample's whole horizon (noise, model, GP, costs) in `prange`.
+"""CPU backend: a serial kernel, one per thread, runs every sample's whole horizon (noise, model, GP, costs).
 
-Threads take groups of `GROUP` samples and step them in lockstep over the horizon.
+Each thread takes groups of `GROUP` samples from a shared counter and steps them in lockstep over the horizon
+(`rollout_kernel`, `rollout_worker`; docs/development.md says why it is built this way).
 
 The kernel takes the five bundles of `gpmppi.mppi.bundles` (their `.args()` tuples).
 
@@ -256,7 +257,8 @@ def rollout_worker(
             if first + j < n_xy:
                 xy_out[first + j, 0, 0] = x0[0]
                 xy_out[first + j, 0, 1] = x0[1]
-        _draw_commands(seed, counter0, horizon, 0, limits, first, n_in, eps_out, cmd)
+        # step 0 as an int64, not the literal 0: numba would compile the phase a second time for `Literal[int](0)`
+        _draw_commands(seed, counter0, horizon, np.int64(0), limits, first, n_in, eps_out, cmd)
         discount_k = 1.0  # discount of step k - 1's cost
         # Step k: (1) the GP table rows of step k are requested (prefetch), (2) the next step's commands are
         # drawn and (3) the previous step's cost is added, both needing no table, while the rows arrive from

@@ -1,7 +1,7 @@
 """Counter-based Gaussian noise for MPPI: the noise of (seed, iteration, sample, step) is a pure function.
 
 Every sample draws its own noise inside the rollout kernel from a hash of its counter, so the
-result does not depend on how threads (CPU `prange`) or blocks (CUDA) are scheduled, and the CPU
+result does not depend on how threads (CPU) or blocks (CUDA) are scheduled, and the CPU
 and CUDA backends draw exactly the same numbers. The hash is SplitMix64's finaliser; one 64-bit
 hash gives two 32-bit uniforms, and Box-Muller turns them into the two control-noise normals.
 
