@@ -44,6 +44,8 @@ def test_temperature_at_the_edges() -> None:
     assert _kish(costs[np.isfinite(costs)], t) == pytest.approx(3.0, rel=1e-4)
     assert temperature_for_effective_samples(np.full(8, 5.0), 4.0, 0.7) == 0.7  # equal costs: temperature is moot
     assert temperature_for_effective_samples(np.full(8, np.inf), 4.0, 0.7) == 0.7  # none finite
+    # costs that differ only by rounding (1e-300 apart: spread * 1e-9 underflows) are equal costs, not an error
+    assert temperature_for_effective_samples(np.array([0.0, 1e-300, 2e-300]), 2.0, 0.7) == 0.7
 
 
 def test_savgol_matrix_is_scipys_filter() -> None:

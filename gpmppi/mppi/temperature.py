@@ -46,7 +46,8 @@ def temperature_for_effective_samples(costs: np.ndarray, target: float, fallback
     """The temperature at which the update's effective sample size is `target` (clipped to what is reachable: at
     least 1, at most the number of finite costs).
 
-    `fallback` is returned when the temperature does not matter: every finite cost is the same, or none is finite.
+    `fallback` is returned when the temperature does not matter: every finite cost is the same (to 1e-12 of their
+    size), or none is finite.
     Serial and deterministic: the same costs give the same temperature to the last bit."""
     c_min = np.inf
     c_max = -np.inf
@@ -57,7 +58,8 @@ def temperature_for_effective_samples(costs: np.ndarray, target: float, fallback
             c_min = min(c_min, c)
             c_max = max(c_max, c)
     spread = c_max - c_min
-    if n_finite == 0 or not spread > 0.0:
+    # equal costs up to rounding (1e-12 of their size): every temperature gives the same update
+    if n_finite == 0 or not spread > 1e-12 * max(1.0, abs(c_min)):
         return fallback
     goal = min(max(target, 1.0), float(n_finite))
     lo = np.log(spread * 1e-9)  # every weight but the lowest cost's is below exp(-1e9): ESS = ties at the minimum
