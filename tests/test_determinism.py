@@ -69,7 +69,7 @@ if sys.argv[1] == "helpers_first":
     from gpmppi.mppi.dynamics import advance, nominal_velocity_step, velocity_coefficients
     from gpmppi.mppi.gp_table import interp4, interp4_simplex, simplex_nodes
     from gpmppi.mppi.lane import build_lane_lookup, lane_query
-    from gpmppi.mppi.rng import noisy_command, normal_pair
+    from gpmppi.mppi.rng import normal_pair, sampled_command
 
     theta = np.array([0.3, 0.25, 0.1, 1.0, 0.05, 1.1])
     x = np.array([0.1, 0.2, 0.3, 0.8, 0.1])
@@ -86,7 +86,7 @@ if sys.argv[1] == "helpers_first":
     interp4(table, dims, np.zeros(4), np.ones(4), 0.5, 0.5, 0.5, 0.5)
     grid_interp(np.ones((3, 3, 3, 3, 2)), np.zeros(4), np.ones(4), np.full(4, 0.5), np.zeros(2))
     normal_pair(1, 2)
-    noisy_command(1, 2, np.ones((3, 2)), 0, np.ones(2), np.zeros(2), np.full(2, 2.0))
+    sampled_command(1, 2, np.ones((3, 2)), 1, np.ones(2), np.zeros(2), np.full(2, 2.0), (0.5, 0.75**0.5), 0.1, 0.2)
     step = (0.0, 0.0, 0.1, 0.5, 0.1, 1.0, 0.2, 0.1, 0.2, 1.5, np.zeros(0), 0.9, 1.0, 1.0, 0.0)
     for term in (variance.variance_cost, slip.slip_cost, lane_exit.lane_exit_cost):
         term(1.0, np.ones(N_COST_TERMS), 0, (), step)

@@ -27,7 +27,7 @@ def test_plans_report_the_effective_samples_of_their_update(temperature: float) 
     sc = circle_lane()
     samples = 64
     cfg = PlannerConfig(dynamics="edd5", backend="cpu", samples=samples, sample_output=samples, seed=3,
-                        temperature=temperature)
+                        temperature=temperature, update="paper")
     p = Planner(cfg, synthetic_model())
     x = sc.start.copy()
     for _ in range(3):

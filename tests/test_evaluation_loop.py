@@ -50,6 +50,7 @@ class Result:
     control: np.ndarray
     tightened: np.ndarray
     states: np.ndarray
+    effective_samples: float = 1.0
 
 
 class CountingPlanner:

@@ -244,8 +244,8 @@ def test_acceleration_limits_and_smoothing_shape_the_sequence() -> None:
             assert abs(r.control[0] - last[0]) <= 0.05 + 1e-12 and abs(r.control[1] - last[1]) <= 0.1 + 1e-12
         last = r.control
         x = kinematic_step(x, r.control, 0.1)
-    raw = Planner(_cfg(dynamics="unicycle"), _model()).plan(sc.start, sc.task, W3).controls
-    smooth = Planner(_cfg(dynamics="unicycle", smoothing_window=7, smoothing_order=2), _model()).plan(
+    raw = Planner(_cfg(dynamics="unicycle", update="paper"), _model()).plan(sc.start, sc.task, W3).controls
+    smooth = Planner(_cfg(dynamics="unicycle", update="paper", smoothing_window=7, smoothing_order=2), _model()).plan(
         sc.start, sc.task, W3).controls
     assert np.abs(np.diff(smooth, axis=0)).sum() < 0.7 * np.abs(np.diff(raw, axis=0)).sum()
     with pytest.raises(ValueError, match="smoothing_window"):

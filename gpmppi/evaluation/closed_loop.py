@@ -110,6 +110,8 @@ class Trajectory:
     status: Status = "time_limit"
     message: str = ""
     plans_xy: list[np.ndarray] = field(default_factory=list)  # nominal plans (N+1, 2) if recorded
+    # (T,) each cycle's update's effective sample size (`PlanResult.effective_samples`)
+    effective_samples: np.ndarray = field(default_factory=lambda: np.zeros(0))
     # what the base received (egress's outputs; without egress the commands as they reached the plant), each held
     # until the next: times (B,) [s], (B, 2) [v, omega], and each output's reason
     base_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -155,6 +157,7 @@ def run_closed_loop(
 
     times, trues, meas = [0.0], [true_state.copy()], [measured.copy()]
     cmds, ws, oks, pms, tights, terrs, plans = [], [], [], [], [], [], []
+    ess: list[float] = []
     path = CommandPath(cfg.safety, cfg.terrain, n_terrains, estimator if cfg.adapt_weights else None)
     driven = 0.0
     status: Status = "time_limit"
@@ -186,6 +189,7 @@ def run_closed_loop(
         oks.append(path.weights_ok)
         tights.append(np.asarray(result.tightened).copy())
         terrs.append(terrain)
+        ess.append(float(result.effective_samples))
         if record_plans:
             plans.append(np.asarray(result.states)[:, :2].copy())
         path.on_planned(t, t + cfg.latency_s, stamp_ns, command)
@@ -195,7 +199,7 @@ def run_closed_loop(
             true_state = path.advance(plant, t, t + dt, cycle)
         except FloatingPointError as e:
             status, message = "plant_error", f"plant failed in [{t:.2f}, {t + dt:.2f}) s: {e}"
-            cmds.pop(), ws.pop(), oks.pop(), pms.pop(), tights.pop(), terrs.pop()
+            cmds.pop(), ws.pop(), oks.pop(), pms.pop(), tights.pop(), terrs.pop(), ess.pop()
             if record_plans:
                 plans.pop()
             break
@@ -242,6 +246,7 @@ def run_closed_loop(
         status=status,
         message=message,
         plans_xy=plans,
+        effective_samples=np.asarray(ess, dtype=np.float64),
         base_times=np.asarray(path.base_times, dtype=np.float64),
         base_commands=np.asarray(path.base_commands, dtype=np.float64).reshape(-1, 2),
         base_reasons=list(path.base_reasons),

@@ -97,6 +97,9 @@ class RunScore:
     v_ref_rate_p95: float = float("nan")  # [m/s^2] its 95th percentile
     omega_ref_rate_mean: float = float("nan")  # [rad/s^2] mean |change of omega_ref| / dt
     omega_ref_rate_p95: float = float("nan")  # [rad/s^2] its 95th percentile
+    # the update's effective sample size over the run's plans (Kish; `PlanResult.effective_samples`)
+    effective_samples_p50: float = float("nan")
+    effective_samples_p10: float = float("nan")
     # the same of the commands the base received (egress's outputs, after its limits), between consecutive outputs
     base_v_rate_mean: float = float("nan")  # [m/s^2]
     base_v_rate_p95: float = float("nan")
@@ -251,6 +254,9 @@ def score(
     rates = command_rates(traj.times, traj.commands)
     s.v_ref_rate_mean, s.v_ref_rate_p95 = mean_p95(rates[:, 0])
     s.omega_ref_rate_mean, s.omega_ref_rate_p95 = mean_p95(rates[:, 1])
+    if traj.effective_samples.size:
+        s.effective_samples_p50 = float(np.percentile(traj.effective_samples, 50))
+        s.effective_samples_p10 = float(np.percentile(traj.effective_samples, 10))
     if traj.base_times.size:
         base = command_rates(traj.base_times, traj.base_commands)
         s.base_v_rate_mean, s.base_v_rate_p95 = mean_p95(base[:, 0])
@@ -308,7 +314,7 @@ def run_job(job: Job, settings: EvalSettings) -> tuple[list[RunScore], list[Traj
 SMOOTHNESS_AND_WEIGHT_METRICS = (
     "v_ref_rate_mean", "v_ref_rate_p95", "omega_ref_rate_mean", "omega_ref_rate_p95", "base_v_rate_mean",
     "base_v_rate_p95", "base_omega_rate_mean", "base_omega_rate_p95", "base_limited_fraction", "true_weight_mean",
-    "weight_switches_per_min",
+    "weight_switches_per_min", "effective_samples_p50", "effective_samples_p10",
 )
 # of those, the ones with no value (None, not nan) where no trial has one: a model without terrain weights
 OPTIONAL_CELL_METRICS = ("true_weight_mean", "weight_switches_per_min")

@@ -204,7 +204,7 @@ class TaskBundle(_Bundle):
 
 
 # --------------------------------------------------------------------------------------------- sampling
-S_X0, S_NOMINAL, S_NOISE_STD, S_U_LO, S_U_HI, S_DT, S_SEED, S_ITERATION = range(8)
+S_X0, S_NOMINAL, S_NOISE_STD, S_U_LO, S_U_HI, S_DT, S_SEED, S_ITERATION, S_NOISE_MEMORY = range(9)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -219,11 +219,13 @@ class SamplingBundle(_Bundle):
     dt: float  # rollout step [s]
     seed: int  # noise seed
     iteration: int  # planner iteration (part of the noise counter)
+    noise_memory: float  # AR(1) memory of the unit noise from step to step (0 = white; `rng.sampled_command`)
 
     SPECS: ClassVar[dict[str, FieldSpec]] = {
         "x0": FieldSpec("float64", 1), "nominal": FieldSpec("float64", 2), "noise_std": FieldSpec("float64", 1),
         "u_lo": FieldSpec("float64", 1), "u_hi": FieldSpec("float64", 1), "dt": FieldSpec("float64", 0),
         "seed": FieldSpec("int64", 0), "iteration": FieldSpec("int64", 0),
+        "noise_memory": FieldSpec("float64", 0),
     }
 
 

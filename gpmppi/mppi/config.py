@@ -14,8 +14,12 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from gpmppi.mppi.bundles import CostBundle
 from gpmppi.mppi.critics.settings import CRITIC_KEYS, critic_settings, critic_weights
+from gpmppi.mppi.rng import noise_memory
 
-__all__ = ["PlannerConfig"]
+__all__ = ["DEFAULT_SMOOTHING_WINDOW", "PlannerConfig"]
+
+# update=smooth's Savitzky-Golay window [steps] unless one is set: 9 won the comparison in docs/smooth_commands.md
+DEFAULT_SMOOTHING_WINDOW = 9
 
 
 class PlannerConfig(BaseModel):
@@ -38,7 +42,29 @@ class PlannerConfig(BaseModel):
     samples: int = Field(1024, ge=1, description="Number of sampled control sequences S")
     horizon: int = Field(40, ge=1, description="Horizon N [steps]")
     dt: float = Field(0.1, gt=0, description="Step of the rollouts [s]")
-    temperature: float = Field(1.0, gt=0, description="MPPI temperature lambda of the softmax over costs")
+    update: Literal["smooth", "paper"] = Field(
+        "smooth",
+        description="MPPI update: `smooth` picks each update's temperature so that the softmax's effective sample "
+        "size is `effective_sample_fraction` of the samples and smooths the sequence (`smoothing_window`); `paper` "
+        "is the paper's form: the fixed `temperature`, no smoothing (docs/smooth_commands.md)",
+    )
+    temperature: float = Field(
+        1.0, gt=0, description="MPPI temperature lambda of the softmax over costs (update=paper; update=smooth uses "
+        "it only when every finite cost is the same)",
+    )
+    effective_sample_fraction: float = Field(
+        0.05, gt=0, le=1,
+        description="update=smooth: the effective sample size (Kish) each update's temperature is chosen for, as a "
+        "fraction of the samples",
+    )
+    sampling: Literal["white", "coloured"] = Field(
+        "white",
+        description="Noise of the sampled sequences: `white` (independent per step, as in the paper) or `coloured` "
+        "(AR(1) in time, each step N(0, noise_std^2), correlation falling by 1/e in `noise_correlation_time`)",
+    )
+    noise_correlation_time: float = Field(
+        0.5, gt=0, description="sampling=coloured: time over which the noise's correlation falls to 1/e [s]"
+    )
     noise_std: tuple[float, float] = Field(
         (1.0, 1.0), description="Control noise std [m/s, rad/s] (goal tasks; lanes use `lane_noise_std`)"
     )
@@ -51,7 +77,11 @@ class PlannerConfig(BaseModel):
     accel_limits: tuple[float, float] | None = Field(
         None, description="Optional |dv_ref/dt|, |domega_ref/dt| limits along the sequence [m/s^2, rad/s^2]"
     )
-    smoothing_window: int = Field(0, ge=0, description="Savitzky-Golay window over the sequence (0 = off; odd)")
+    smoothing_window: int | None = Field(
+        None, ge=0,
+        description="Savitzky-Golay window over the updated sequence [steps] (odd; 0 = off; None = 9 under "
+        "update=smooth, limited to the horizon, and off under update=paper)",
+    )
     smoothing_order: int = Field(2, ge=0, description="Savitzky-Golay polynomial order")
     p_x: float = Field(0.95, gt=0, lt=1, description="Probability of the chance constraints")
     tightening: bool = Field(True, description="Tighten the lane / inflate obstacles with the propagated covariance")
@@ -110,12 +140,29 @@ class PlannerConfig(BaseModel):
                 raise ValueError(f"{name} must be finite and >= 0, got {std}")
         if self.accel_limits is not None and any(not np.isfinite(a) or a <= 0 for a in self.accel_limits):
             raise ValueError(f"accel_limits must be positive, got {self.accel_limits}")
-        if self.smoothing_window:
-            if self.smoothing_window % 2 == 0 or self.smoothing_window <= self.smoothing_order:
-                raise ValueError("smoothing_window must be odd and larger than smoothing_order")
-            if self.smoothing_window > self.horizon:
-                raise ValueError("smoothing_window must not exceed the horizon")
+        window = self.smoothing_window
+        if window:
+            if window % 2 == 0 or window <= self.smoothing_order:
+                raise ValueError(f"smoothing_window must be odd and larger than smoothing_order "
+                                 f"({self.smoothing_order}), got {window}; use 0 to turn smoothing off")
+            if window > self.horizon:
+                raise ValueError(f"smoothing_window ({window}) must not exceed the horizon ({self.horizon})")
         return self
+
+    @property
+    def savgol_window(self) -> int:
+        """The Savitzky-Golay window the planner applies [steps]; 0 = none (`smoothing_window`)."""
+        if self.smoothing_window is not None:
+            return self.smoothing_window
+        if self.update == "paper":
+            return 0
+        window = min(DEFAULT_SMOOTHING_WINDOW, self.horizon - (1 - self.horizon % 2))  # odd, within the horizon
+        return window if window > self.smoothing_order else 0
+
+    @property
+    def noise_memory(self) -> float:
+        """The AR(1) memory of the sampling noise from one step to the next (0 = white)."""
+        return noise_memory(self.noise_correlation_time, self.dt) if self.sampling == "coloured" else 0.0
 
     def critic_weights(self, task: str) -> dict[str, float]:
         """The weight of each critic (`CRITICS`) by name in a task kind ('lane' or 'goal'): 0 where it is disabled or

@@ -41,6 +41,7 @@ from gpmppi.mppi.bundles import (
     O_XY,
     S_DT,
     S_ITERATION,
+    S_NOISE_MEMORY,
     S_NOISE_STD,
     S_NOMINAL,
     S_SEED,
@@ -73,7 +74,7 @@ from gpmppi.mppi.dynamics import (
     velocity_coefficients,
 )
 from gpmppi.mppi.gp_table import simplex_corner, simplex_params
-from gpmppi.mppi.rng import clip, noisy_command
+from gpmppi.mppi.rng import clip, sampled_command
 
 __all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", "softmax_update"]
 
@@ -85,16 +86,20 @@ GROUP = 32
 @phase
 def _draw_commands(
     seed: int, counter0: int, horizon: int, k: int, limits: tuple, first: int, n_in: int, eps_out: np.ndarray,
-    cmd: np.ndarray,
+    cmd: np.ndarray, noise: np.ndarray,
 ) -> None:
     """Step k's noisy commands of the group's samples first .. first + n_in - 1 into `cmd`; perturbations to eps_out.
 
     `counter0` = iteration * samples (the noise counter of sample s, step k is (counter0 + s) * horizon + k);
-    `limits` = (nominal, noise_std, u_lo, u_hi)."""
-    nominal, noise_std, u_lo, u_hi = limits
+    `limits` = (nominal, noise_std, u_lo, u_hi, (noise memory, innovation)); `noise` holds each sample's unit
+    noise of step k - 1 and gets step k's (`rng.sampled_command`)."""
+    nominal, noise_std, u_lo, u_hi, ar = limits
     for j in range(n_in):
         s = first + j
-        u0, u1 = noisy_command(seed, (counter0 + s) * horizon + k, nominal, k, noise_std, u_lo, u_hi)
+        u0, u1, d0, d1 = sampled_command(seed, (counter0 + s) * horizon + k, nominal, k, noise_std, u_lo, u_hi, ar,
+                                         noise[0, j], noise[1, j])
+        noise[0, j] = d0
+        noise[1, j] = d1
         eps_out[s, k, 0] = u0 - nominal[k, 0]
         eps_out[s, k, 1] = u1 - nominal[k, 1]
         cmd[0, j] = u0
@@ -228,7 +233,7 @@ def rollout_worker(
     cost_out = out[O_COST]
     xy_out = out[O_XY]
     coef, flat, next_group = plan_consts
-    st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, scratch = work
+    st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, noise, scratch = work
     discount = cost_w[K_EXIT_DISCOUNT]
     samples = eps_out.shape[0]
     horizon = nominal.shape[0]
@@ -237,7 +242,9 @@ def rollout_worker(
     counter0 = sampling[S_ITERATION] * samples
     dyn = (dyn_mode, coef, model[M_EDD5])
     grid = simplex_params(model[M_DIMS], model[M_LO], model[M_INV_STEP])
-    limits = (nominal, sampling[S_NOISE_STD], sampling[S_U_LO], sampling[S_U_HI])
+    memory = sampling[S_NOISE_MEMORY]
+    ar = (memory, np.sqrt(1.0 - memory * memory))  # `rng.sampled_command`
+    limits = (nominal, sampling[S_NOISE_STD], sampling[S_U_LO], sampling[S_U_HI], ar)
     gp = gp_inputs(model)
     geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], field, grid_origin, inv_cell, task[T_HALF_WIDTH],
            task[T_SPEED_TARGET], goal, task[T_OBSTACLES])
@@ -258,7 +265,7 @@ def rollout_worker(
                 xy_out[first + j, 0, 0] = x0[0]
                 xy_out[first + j, 0, 1] = x0[1]
         # step 0 as an int64, not the literal 0: numba would compile the phase a second time for `Literal[int](0)`
-        _draw_commands(seed, counter0, horizon, np.int64(0), limits, first, n_in, eps_out, cmd)
+        _draw_commands(seed, counter0, horizon, np.int64(0), limits, first, n_in, eps_out, cmd, noise)
         discount_k = 1.0  # discount of step k - 1's cost
         # Step k: (1) the GP table rows of step k are requested (prefetch), (2) the next step's commands are
         # drawn and (3) the previous step's cost is added, both needing no table, while the rows arrive from
@@ -267,7 +274,7 @@ def rollout_worker(
             if simplex:
                 _request_rows(grid, table, n_in, st, cmd, nodes, node_w)
             if k + 1 < horizon:
-                _draw_commands(seed, counter0, horizon, k + 1, limits, first, n_in, eps_out, cmd_next)
+                _draw_commands(seed, counter0, horizon, k + 1, limits, first, n_in, eps_out, cmd_next, noise)
             if k > 0:
                 _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[k], radii[k]),
                            discount_k)
@@ -291,11 +298,12 @@ def rollout_worker(
 def _thread_buffers(model: tuple) -> tuple:
     """One thread's buffers for `rollout_worker`: a group's states, totals, the commands of the previous, this and
     the next step (rotated every step), GP residuals, simplex node indices and weights (one row per vertex:
-    unit-stride rows let the loop that fills them run as vector code), and the exact GP's work arrays."""
+    unit-stride rows let the loop that fills them run as vector code), the unit noise of the last step drawn, and
+    the exact GP's work arrays."""
     n_tasks, n_train = model[M_EX_ALPHA].shape
     return (np.empty((5, GROUP)), np.empty(GROUP), np.empty((2, GROUP)), np.empty((2, GROUP)), np.empty((2, GROUP)),
             np.zeros((4, GROUP)), np.zeros((5, GROUP), dtype=np.uint64), np.zeros((5, GROUP), dtype=np.float32),
-            (np.empty(n_train), np.empty(n_tasks), np.empty(n_tasks)))
+            np.zeros((2, GROUP)), (np.empty(n_train), np.empty(n_tasks), np.empty(n_tasks)))
 
 
 def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out: tuple) -> None:

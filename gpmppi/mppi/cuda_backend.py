@@ -39,6 +39,7 @@ from gpmppi.mppi.bundles import (
     O_XY,
     S_DT,
     S_ITERATION,
+    S_NOISE_MEMORY,
     S_NOISE_STD,
     S_NOMINAL,
     S_SEED,
@@ -65,7 +66,7 @@ from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX
 THREADS_PER_BLOCK = 128
 
 
-_noisy_command = device_version(rng.noisy_command)
+_sampled_command = device_version(rng.sampled_command)
 _interp4 = device_version(gp_table.interp4)
 _interp4_simplex = device_version(gp_table.interp4_simplex)
 _advance = device_version(dynamics.advance)
@@ -113,6 +114,8 @@ def _rollout_kernel(model, task, sampling, cost, out):
     dt = sampling[S_DT]
     seed = sampling[S_SEED]
     iteration = sampling[S_ITERATION]
+    memory = sampling[S_NOISE_MEMORY]
+    ar = (memory, math.sqrt(1.0 - memory * memory))
     cost_w = cuda.local.array(N_COST_TERMS, numba.float64)
     _fill_weight_vector(cost, cost_w)
     discount = cost_w[K_EXIT_DISCOUNT]
@@ -139,8 +142,10 @@ def _rollout_kernel(model, task, sampling, cost, out):
     total = 0.0
     discount_k = 1.0
     base = (iteration * samples + s) * horizon
+    d0 = 0.0  # the unit noise of the last step (`rng.sampled_command`)
+    d1 = 0.0
     for k in range(horizon):
-        u0, u1 = _noisy_command(seed, base + k, nominal, k, noise_std, u_lo, u_hi)
+        u0, u1, d0, d1 = _sampled_command(seed, base + k, nominal, k, noise_std, u_lo, u_hi, ar, d0, d1)
         eps_out[s, k, 0] = u0 - nominal[k, 0]
         eps_out[s, k, 1] = u1 - nominal[k, 1]
         mv = 0.0

@@ -35,6 +35,7 @@ from gpmppi.mppi.dynamics import (
 from gpmppi.mppi.goal_field import GoalField, cached_goal_field
 from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table, rollout_order
 from gpmppi.mppi.lane import LaneLookup, cached_lane_lookup
+from gpmppi.mppi.temperature import temperature_for_effective_samples
 from gpmppi.tasks import GoalTask, LaneTask
 
 __all__ = ["PlanResult", "Planner", "PlannerConfig"]
@@ -60,6 +61,16 @@ class PlanResult:
     # Kish's effective sample size of the update, 1 / sum(w_s^2) over the normalised softmax weights: 1 when one
     # rollout decides the update, `samples` when all weigh the same; 0 when every rollout's cost was infinite
     effective_samples: float = 0.0
+    temperature: float = 0.0  # the softmax temperature of this update (update=smooth: chosen for the sample size)
+
+
+def savgol_matrix(horizon: int, window: int, order: int) -> np.ndarray:
+    """The (horizon, horizon) matrix M with M @ u = scipy's `savgol_filter(u, window, order, axis=0,
+    mode="nearest")`: the filter is linear, so its matrix is the filter of the identity's columns. Built once;
+    applying it is one small product per plan (scipy.signal's import and call cost more)."""
+    from scipy.signal import savgol_filter
+
+    return np.ascontiguousarray(savgol_filter(np.eye(horizon), window, order, axis=0, mode="nearest"))
 
 
 class Planner:
@@ -116,6 +127,7 @@ class Planner:
         else:
             self._ex = ModelBundle.no_exact(2 * m)
         self._table_weights: np.ndarray | None = None
+        self._smoother = savgol_matrix(c.horizon, c.savgol_window, c.smoothing_order) if c.savgol_window else None
         self._lateral_full = model.lateral_matrix()
         self._lateral = np.zeros(2)
         self._lane_key: tuple | None = None
@@ -328,7 +340,8 @@ class Planner:
         costs = costs + noise_cost
         t2 = time.perf_counter()
 
-        new_u, sample_w = backends.softmax_update(nominal, eps, costs, c.temperature)
+        temperature = self._temperature(costs)
+        new_u, sample_w = backends.softmax_update(nominal, eps, costs, temperature)
         effective_samples = backends.effective_sample_size(sample_w)
         flags: dict[str, int] = {"all_costs_infinite": int(not np.any(np.isfinite(costs)))}
         new_u = self._shape_sequence(new_u)
@@ -382,20 +395,27 @@ class Planner:
             flags=flags,
             critic_costs=critic_costs,
             effective_samples=effective_samples,
+            temperature=temperature,
         )
 
     def _sampling(self, x: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray) -> SamplingBundle:
         c = self.config
         return SamplingBundle(x0=x, nominal=nominal, noise_std=noise_std, u_lo=self._u_lo, u_hi=self._u_hi, dt=c.dt,
-                              seed=c.seed, iteration=self._iteration)
+                              seed=c.seed, iteration=self._iteration, noise_memory=c.noise_memory)
+
+    def _temperature(self, costs: np.ndarray) -> float:
+        """This update's softmax temperature: the fixed one (update=paper) or the one that gives the update
+        `effective_sample_fraction` of the samples as its effective sample size (update=smooth)."""
+        c = self.config
+        if c.update == "paper":
+            return c.temperature
+        return temperature_for_effective_samples(costs, c.effective_sample_fraction * c.samples, c.temperature)
 
     def _shape_sequence(self, u: np.ndarray) -> np.ndarray:
         """Optional smoothing, then acceleration limits from the last applied control, then control limits."""
         c = self.config
-        if c.smoothing_window:
-            from scipy.signal import savgol_filter  # here: scipy.signal's import is slow and smoothing is optional
-
-            u = savgol_filter(u, c.smoothing_window, c.smoothing_order, axis=0, mode="nearest")
+        if self._smoother is not None:
+            u = self._smoother @ u
         if c.accel_limits is not None:
             step = np.array(c.accel_limits) * c.dt
             prev = self._last_control

@@ -60,13 +60,29 @@ def clip(x: float, lo: float, hi: float) -> float:
 
 
 @njit(cache=True, inline="always")
-def noisy_command(
-    seed: int, counter: int, nominal: np.ndarray, k: int, noise_std: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray
-) -> tuple[float, float]:
-    """Step k's command of one sample: nominal + noise_std * N(0, 1) (noise of `counter`), clipped to the limits."""
+def sampled_command(
+    seed: int, counter: int, nominal: np.ndarray, k: int, noise_std: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray,
+    ar: tuple, d0: float, d1: float,
+) -> tuple[float, float, float, float]:
+    """Step k's command of one sample and its unit noise (d0, d1), given the sample's unit noise of step k - 1.
+
+    `ar` = (memory, innovation): the noise is AR(1), d_k = memory d_{k-1} + innovation z_k with innovation =
+    sqrt(1 - memory^2) and d_0 = z_0, so each step's noise stays N(0, 1) and steps tau apart correlate by
+    memory^(tau / dt) (time-correlated, "coloured" noise). memory = 0 is white noise, d_k = z_k. The command is
+    nominal + noise_std * d, clipped to the limits."""
     z0, z1 = normal_pair(seed, counter)
-    return clip(nominal[k, 0] + noise_std[0] * z0, u_lo[0], u_hi[0]), clip(nominal[k, 1] + noise_std[1] * z1, u_lo[1],
-                                                                           u_hi[1])
+    memory, innovation = ar
+    if memory > 0.0 and k > 0:
+        z0 = memory * d0 + innovation * z0
+        z1 = memory * d1 + innovation * z1
+    return (clip(nominal[k, 0] + noise_std[0] * z0, u_lo[0], u_hi[0]),
+            clip(nominal[k, 1] + noise_std[1] * z1, u_lo[1], u_hi[1]), z0, z1)
+
+
+def noise_memory(correlation_time: float, dt: float) -> float:
+    """The AR(1) memory exp(-dt / correlation_time) of noise whose correlation falls by 1/e in `correlation_time`
+    [s]; 0 (white noise) for a correlation time of 0."""
+    return math.exp(-dt / correlation_time) if correlation_time > 0.0 else 0.0
 
 
 def noise_counter(iteration: int, sample: int, step: int, samples: int, horizon: int) -> int:
@@ -84,3 +100,14 @@ def standard_noise(seed: int, iteration: int, samples: int, horizon: int) -> np.
             out[s, k, 0] = a
             out[s, k, 1] = b
     return out
+
+
+def sampled_noise(seed: int, iteration: int, samples: int, horizon: int, memory: float) -> np.ndarray:
+    """The (samples, horizon, 2) unit noise d of `sampled_command` for one iteration, in numpy (the kernels'
+    reference, for tests): white for memory 0, else AR(1) over the steps."""
+    z = standard_noise(seed, iteration, samples, horizon)
+    innovation = np.sqrt(1.0 - memory * memory)
+    d = z.copy()
+    for k in range(1, horizon):
+        d[:, k] = memory * d[:, k - 1] + innovation * z[:, k] if memory > 0.0 else z[:, k]
+    return d
