@@ -1,4 +1,4 @@
-"""`gpmppi bench soak`, short: the whole stack with the recorder for ~25 s while an outside client sends junk;
+"""`gpmppi bench soak`, short: the whole stack with the recorder for ~12 s while an outside client sends junk;
 the report's numbers are computed from the real processes and the real MCAP file."""
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from zenoh_helpers import client, free_port
 from schemas import key_for
 from tools.bench_soak import SoakData, Tick, memory_report, planner_windows, rss_kib, soak
 
+SOAK_S = 12.0
 SERVICES = {"router", "recorder", "sim", "ingress", "terrain", "planner", "egress"}
 
 
@@ -75,14 +76,15 @@ def test_short_soak_reports_real_numbers(tmp_path: Path, monkeypatch: pytest.Mon
 
     side = threading.Thread(target=junk_client, daemon=True)
     side.start()
-    r = soak(25.0, port=port, record=record, warmup_s=5.0, window_s=5.0)
+    # 12 s: four 2.5 s windows after a 2 s warm-up (the 10-minute soak of docs/fuzz-soak.md is the benchmark)
+    r = soak(SOAK_S, port=port, record=record, warmup_s=2.0, window_s=2.5)
     side.join(5)
     assert r["exit_code"] == 0 and r["restarts"] == {} and r["failed"] == []
-    assert 24.0 <= r["duration_s"] < 40.0
+    assert SOAK_S - 1.0 <= r["duration_s"] < SOAK_S + 15.0
     # memory: every process sampled about once a second after the warm-up, plausible sizes
     assert set(r["memory"]) == SERVICES, r["memory"].keys()
     for name, m in r["memory"].items():
-        assert m["samples"] >= 15, (name, m)
+        assert m["samples"] >= SOAK_S - 2.0 - 2, (name, m)  # one a second after the warm-up, two may be missed
         assert 5.0 < m["min_mib"] <= m["start_mib"] <= m["max_mib"] < 4096, (name, m)
         assert m["min_mib"] <= m["end_mib"] <= m["max_mib"] and m["spread_pct"] >= 0
     assert r["memory"]["planner"]["start_mib"] > 100  # numba, the model and the kernels are in there
@@ -91,10 +93,11 @@ def test_short_soak_reports_real_numbers(tmp_path: Path, monkeypatch: pytest.Mon
     with open(record, "rb") as f:
         in_file = sum(1 for _ in make_reader(f).iter_messages())
     assert rec["in_file"] == in_file and rec["lost"] == 0, rec["lost_per_key"]
-    assert rec["seen_while_up"] > 1000 and rec["seen_while_up"] <= in_file
+    # > 40 messages a second while up (the 25 s soak asked for 1000; a 12 s one sees ~1070)
+    assert rec["seen_while_up"] > 40 * SOAK_S and rec["seen_while_up"] <= in_file
     cmd = rec["per_key"][key_for("cmd")]
     assert 0 < cmd["seen_while_up"] <= cmd["recorded"] and cmd["monitor"] >= cmd["seen_while_up"]
-    # planner: four windows of ~5 s at about the state rate (10 Hz; a loaded 2-core machine may drop some)
+    # planner: four windows of ~2.5 s at about the state rate (10 Hz; a loaded 2-core machine may drop some)
     p = r["planner"]
     assert len(p["windows"]) == 4, p["windows"]
     for w in p["windows"]:

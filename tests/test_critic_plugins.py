@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -95,17 +96,47 @@ print("RESULT", json.dumps(out))
 """
 
 
-@pytest.mark.parametrize("backend", ["cpu", "cuda"])
-def test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported(backend: str, tmp_path: Path) -> None:
-    script = tmp_path / "turning_critic.py"
-    script.write_text(PLUGIN)
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"), PYTHONWARNINGS="ignore::RuntimeWarning")
-    if backend == "cuda":
-        env["NUMBA_ENABLE_CUDASIM"] = "1"
-    proc = subprocess.run([sys.executable, str(script), backend], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=900)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    out = json.loads(proc.stdout.split("RESULT ", 1)[1])
+BACKENDS = ["cpu", "cuda"]
+TEST_NAME = "test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported"
+
+
+@pytest.fixture(scope="module")
+def plugin_runs(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
+) -> Iterator[dict[str, subprocess.Popen]]:
+    """PLUGIN in a fresh process per backend, each with an empty numba cache (a cached kernel would not know the
+    new critic), all started at once: each compiles the kernels anew (~24 s on one core), side by side on the
+    cores. Only the backends whose test is selected are started."""
+    wanted = {item.callspec.params["backend"] for item in request.session.items
+              if item.module is request.module and getattr(item, "originalname", "") == TEST_NAME}
+    runs = {}
+    for backend in [b for b in BACKENDS if b in wanted]:
+        d = tmp_path_factory.mktemp(f"plugin-{backend}")
+        script = d / "turning_critic.py"
+        script.write_text(PLUGIN)
+        env = dict(os.environ, NUMBA_CACHE_DIR=str(d / "cache"), PYTHONWARNINGS="ignore::RuntimeWarning")
+        if backend == "cuda":
+            env["NUMBA_ENABLE_CUDASIM"] = "1"
+        with (d / "stdout").open("w") as out, (d / "stderr").open("w") as err:  # files: no pipe fills up
+            runs[backend] = subprocess.Popen([sys.executable, str(script), backend], cwd=REPO, env=env, stdout=out,
+                                             stderr=err, text=True)
+    yield runs
+    for proc in runs.values():  # a failed test leaves no compiling process behind
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported(
+    backend: str, plugin_runs: dict[str, subprocess.Popen]
+) -> None:
+    proc = plugin_runs[backend]
+    proc.wait(timeout=900)
+    folder = Path(proc.args[1]).parent
+    stdout, stderr = (folder / "stdout").read_text(), (folder / "stderr").read_text()
+    assert proc.returncode == 0, stderr[-3000:]
+    out = json.loads(stdout.split("RESULT ", 1)[1])
     for name, r in out.items():
         assert list(r["critics"])[-1] == "turning" and r["critics"]["turning"] > 0.0, (name, r["critics"])
         assert sum(r["critics"].values()) == pytest.approx(r["cost"], rel=1e-8), name

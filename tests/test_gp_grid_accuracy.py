@@ -11,15 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
 from gpmppi.gp.grid import GridPredictor
 from gpmppi.gp.grid_interp import simplex_interp_point
 from gpmppi.gp.grid_table import DEFAULT_SPACING, build_grid, grid_dims, model_grid_dims
 from gpmppi.gp.model_file import GPModel, load_default_model
-from tools.cli import app
-
-runner = CliRunner()
 
 
 def gpytorch_predict(model: GPModel, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -120,15 +116,10 @@ def test_shipped_grid_within_one_percent_of_gpytorch_on_every_task() -> None:
 
 
 @pytest.fixture(scope="module")
-def paper_model(jackal: Path, tmp_path_factory) -> GPModel:
-    """The paper's fitted GP, with the grid table `gpmppi train` stores by default."""
-    out = tmp_path_factory.mktemp("paper_grid") / "m.npz"
-    result = runner.invoke(app, [
-        "train", str(jackal / "gp_train.csv"), "--hyperparameters", str(jackal / "gp_hyperparameters.json"),
-        "--theta", str(jackal / "theta.json"), "--edd5", str(jackal / "edd5.json"), "-o", str(out),
-    ])
-    assert result.exit_code == 0, result.output
-    return GPModel.load(out)
+def paper_model(paper_model_file: Path) -> GPModel:
+    """The paper's fitted GP, with the grid table `gpmppi train` stores by default (conftest's session fixture:
+    trained once for this and the GPyTorch predict test)."""
+    return GPModel.load(paper_model_file)
 
 
 def test_paper_grid_within_one_percent_of_gpytorch_on_every_task(jackal: Path, paper_model: GPModel) -> None:

@@ -57,14 +57,9 @@ def _gpytorch_reference(train_x, train_y, hp: dict, test_x) -> tuple[np.ndarray,
 
 
 @pytest.fixture(scope="module")
-def paper_model(jackal: Path, tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("paper") / "m.npz"
-    result = runner.invoke(app, [
-        "train", str(jackal / "gp_train.csv"), "--hyperparameters", str(jackal / "gp_hyperparameters.json"),
-        "--theta", str(jackal / "theta.json"), "--edd5", str(jackal / "edd5.json"), "-o", str(out),
-    ])
-    assert result.exit_code == 0, result.output
-    return out
+def paper_model(paper_model_file: Path) -> Path:
+    """`gpmppi train` on the paper's data (conftest's session fixture: trained once for this and the grid test)."""
+    return paper_model_file
 
 
 def test_exact_predict_matches_gpytorch(jackal: Path, paper_model: Path, tmp_path: Path) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -451,17 +452,21 @@ def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
     assert len(recorded) > 30
 
     # lockstep: each state waits for the live answer to the one before, so a planner slowed down by a loaded
-    # machine cannot skip a state the recorded one planned (which would change its iteration count, and noise)
-    same = run_replay(ReplayRequest(log, replace="planner", compare=True, progress=False, delay_s=0.3,
-                                    lockstep=True))["compare"]
+    # machine cannot skip a state the recorded one planned (which would change its iteration count, and noise).
+    # The two replays run side by side (each with its own router and live planner): most of their time is waiting
+    def replay(sets: list[str]) -> dict:
+        return run_replay(ReplayRequest(log, replace="planner", compare=True, progress=False, delay_s=0.3,
+                                        lockstep=True, sets=sets))["compare"]
+
+    with ThreadPoolExecutor(2) as pool:
+        same_run, changed_run = pool.submit(replay, []), pool.submit(replay, ["planner.critics.speed.weight=40"])
+        same, changed = same_run.result(), changed_run.result()
     print(f"\nreplay --replace planner --compare (seeded, no delay compensation): {same}")
     # every recorded command answered again, and the same within float noise (see docs/replay.md: measured 0)
     assert same["compared"] >= 0.9 * len(recorded), (same, len(recorded))
     assert same["v_max"] < 1e-6 and same["omega_max"] < 1e-6, same
     assert same["exact"] == same["compared"]  # measured: bit for bit
 
-    changed = run_replay(ReplayRequest(log, replace="planner", compare=True, progress=False, delay_s=0.3,
-                                       lockstep=True, sets=["planner.critics.speed.weight=40"]))["compare"]
     print(f"with --set planner.critics.speed.weight=40: {changed}")
     assert changed["compared"] >= 0.9 * len(recorded)
     assert changed["v_rmse"] > 0.01 and changed["exact"] < changed["compared"], changed  # a different weight

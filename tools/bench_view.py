@@ -282,7 +282,13 @@ def transport_stall_numbers(
                 if time.monotonic() > deadline:
                     raise RuntimeError("the echo session did not match within 60 s")
                 time.sleep(0.05)
-            time.sleep(8.0)  # the viewer's imports and session
+            # the viewer is up, its subscriber declared, once it sends its first heartbeat (its imports and session
+            # take seconds; a fixed wait could start the windows before it listens on a loaded machine)
+            viewer_up = threading.Event()
+            health = a.declare_subscriber("gpmppi/bench/health/viewer", lambda _: viewer_up.set())
+            if not viewer_up.wait(60.0):
+                raise RuntimeError(f"the viewer sent no heartbeat within 60 s (exit code {viewer.poll()})")
+            health.undeclare()
             phases: list[tuple[str, int, int]] = []
             n = 0
             for w in range(2 * windows):
