@@ -266,3 +266,35 @@ def test_residual_net_reproduces_the_paper_residuals_in_csv_order(jackal: Path) 
     pv, pw = velocity_step_exact(theta, x[k, 2:3], x[k, 3:4], x[k, 0:1], x[k, 1:2], DT)
     assert out[3] - pv[0] == pytest.approx(targets[k, 4], abs=0.02)
     assert out[4] - pw[0] == pytest.approx(targets[k, 5], abs=0.02)
+
+
+def test_residual_net_plant_runs_the_deployed_command_path(tmp_path: Path) -> None:
+    """Egress sends at 20 Hz, the network steps at 0.1 s: the plant holds, per step, the command active at its start
+    (a base sampling its input at its own rate), and every egress output is still scored as the base's command."""
+    from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.mppi.synthetic import synthetic_model
+    from gpmppi.safety import SafetyConfig
+    from gpmppi.scenarios import circle_lane
+
+    net = _tiny_net(tmp_path, with_names=False)
+    plant = ResidualNetPlant(net, THETA, "grass", terrain_names=["asphalt", "grass"])
+    applied: list[np.ndarray] = []
+    step = plant.step
+
+    def recording_step(command: np.ndarray, duration: float) -> np.ndarray:
+        applied.append(np.array(command, dtype=float))
+        assert duration == pytest.approx(0.1)  # whole network steps only
+        return step(command, duration)
+
+    plant.step = recording_step  # type: ignore[method-assign]
+    sc = circle_lane()
+    planner = Planner(PlannerConfig(dynamics="unicycle", backend="cpu", samples=64, seed=1), synthetic_model())
+    cfg = ClosedLoopConfig(time_limit_s=2.0, safety=SafetyConfig(accel_limit=2.0, yaw_accel_limit=3.0))
+    traj = run_closed_loop(planner, plant, sc.task, sc.start, 3, cfg)
+    assert traj.status == "time_limit" and len(traj.commands) == 20 and len(applied) == 20
+    # egress sent twice per planner cycle (its 20 Hz), and the plant applied the first output of each cycle
+    assert len(traj.base_times) >= 38
+    for k, u in enumerate(applied):
+        first = np.flatnonzero(np.isclose(traj.base_times, 0.1 * k))
+        assert first.size and np.allclose(u, traj.base_commands[first[-1]]), k

@@ -122,14 +122,29 @@ class CommandPath:
         return max(t, now + 1e-7) if t < end else end
 
     def advance(self, plant: SteppablePlant, start: float, end: float, planner: PlannerCycle) -> np.ndarray:
-        """Run the path's events in [start, end) and the plant between them; the plant's state at `end`."""
+        """Run the path's events in [start, end) and the plant between them; the plant's state at `end`.
+
+        A plant with a `command_period_s` (the residual network's 0.1 s step) takes a command only at the start of
+        each such period, as a base that samples its input at its own control rate: the path's events inside a
+        period happen at their times, and the plant holds the command that was active when the period began."""
         now = start
         state = None
+        period = getattr(plant, "command_period_s", None)
         while now < end - _EPS:
             self._events(now, planner)
-            nxt = self._next(now, end)
-            state = plant.step(self.active, nxt - now)
-            now = nxt
+            if period is None:
+                nxt = self._next(now, end)
+                state = plant.step(self.active, nxt - now)
+                now = nxt
+                continue
+            held = self.active.copy()
+            period_end = min(now + period, end)
+            t = self._next(now, period_end)
+            while t < period_end - _EPS:
+                self._events(t, planner)
+                t = self._next(t, period_end)
+            state = plant.step(held, period_end - now)
+            now = period_end
         if state is None:
             raise ValueError(f"empty planner cycle [{start}, {end})")
         return np.asarray(state, dtype=np.float64).copy()

@@ -156,6 +156,7 @@ class ResidualNetPlant:
     """
 
     dt = RESIDUAL_DT
+    command_period_s = RESIDUAL_DT  # it takes a new command only every network step (`CommandPath.advance`)
 
     def __init__(
         self,
