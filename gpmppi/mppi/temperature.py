@@ -14,24 +14,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["effective_samples_at", "temperature_for_effective_samples"]
+__all__ = ["temperature_for_effective_samples"]
 
 _BISECTIONS = 24  # log lambda spans ln(1e15) = 34.5: found to 34.5 / 2^24 = 2e-6 relative
 _NEGLIGIBLE = 40.0  # exp(-40) = 4e-18: below a float64's resolution next to the lowest cost's weight 1
 
 
 @njit(cache=True)
-def effective_samples_at(costs: np.ndarray, temperature: float) -> float:
-    """Kish's effective sample size of softmax(-costs / temperature) over the finite costs; 0 if none is finite."""
-    c_min = np.inf
-    for c in costs:
-        if c < c_min:
-            c_min = c
-    if not np.isfinite(c_min):
-        return 0.0
+def _kish(costs: np.ndarray, c_min: float, inv_t: float) -> float:
+    """(sum w)^2 / sum w^2 of w = exp(-(c - c_min) inv_t) over the finite costs, given their minimum c_min."""
     total = 0.0
     total_sq = 0.0
-    inv_t = 1.0 / temperature
     for c in costs:
         a = (c - c_min) * inv_t
         if a < _NEGLIGIBLE:  # also skips infinite costs; a weight below exp(-40) changes neither sum
@@ -66,7 +59,7 @@ def temperature_for_effective_samples(costs: np.ndarray, target: float, fallback
     hi = np.log(spread * 1e6)  # every weight is above exp(-1e-6): ESS = n_finite to 1e-6
     for _ in range(_BISECTIONS):
         mid = 0.5 * (lo + hi)
-        if effective_samples_at(costs, np.exp(mid)) < goal:
+        if _kish(costs, c_min, 1.0 / np.exp(mid)) < goal:  # the minimum found once, not per bisection
             lo = mid
         else:
             hi = mid
