@@ -111,3 +111,49 @@ def phase(func: Callable) -> Callable:
 
     A phase must never be given the same array twice where one of them is written."""
     return njit(cache=True, fastmath=FASTMATH, _nrt=False, noalias=True)(func)
+
+
+def _int64_vector(array: types.Type) -> bool:
+    return isinstance(array, types.Array) and array.ndim == 1 and array.dtype == types.int64
+
+
+@intrinsic
+def load_acquire(typingctx, array, index):  # noqa: ANN001, ANN201 - numba intrinsic: typing context and numba types
+    """`array[index]` of a 1-D int64 array, read with acquire ordering (no bounds check).
+
+    Paired with `store_release`: a thread that reads the value another thread stored with it also sees every
+    write that thread made before the store (the lazily collapsed GP table's slabs, `gp_table.ensure_block`).
+    On x86 it is a plain load that the compiler may not move later loads above.
+    """
+    if not (_int64_vector(array) and isinstance(index, types.Integer)):
+        return None
+    sig = types.int64(array, index)
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        idx = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+        return builder.load_atomic(ptr, "acquire", 8)
+
+    return sig, codegen
+
+
+@intrinsic
+def store_release(typingctx, array, index, value):  # noqa: ANN001, ANN201 - numba intrinsic
+    """`array[index] = value` on a 1-D int64 array with release ordering (no bounds check): every write this
+    thread made before it is seen by a thread that reads the value with `load_acquire`."""
+    if not (_int64_vector(array) and isinstance(index, types.Integer) and isinstance(value, types.Integer)):
+        return None
+    sig = types.void(array, index, value)
+
+    def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        idx = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+        val = context.cast(builder, args[2], signature.args[2], types.int64)
+        builder.store_atomic(val, ptr, "release", 8)
+        return context.get_dummy_value()
+
+    return sig, codegen

@@ -19,7 +19,8 @@ PINNED = {
         ("dyn_mode", "int64"), ("theta", A1), ("lateral", A1), ("edd5", A1), ("gp_mode", "int64"),
         ("table", "array(float32, 2d, C)"), ("dims", "array(int64, 1d, C)"), ("lo", A1), ("inv_step", A1),
         ("ex_scaled_x", A3), ("ex_inv_ls", A2), ("ex_outputscale", A1), ("ex_alpha", A2), ("ex_chol", A3),
-        ("terrain_w", A1),
+        ("terrain_w", A1), ("table_src", "array(float32, 2d, C)"), ("lazy", "array(int64, 1d, C)"),
+        ("collapse_w", A1),
     ]),
     TaskBundle: ("T", [
         ("kind", "int64"), ("seg", A2), ("cell_start", "array(int64, 1d, C)"), ("candidates", "array(int32, 1d, C)"),

@@ -23,7 +23,8 @@ def test_propagation_adds_the_likelihood_noise_to_the_latent_variance() -> None:
     bundle = ModelBundle(dyn_mode=DYN_GP, theta=model.theta, lateral=np.zeros(2), edd5=model.edd5["grass"],
                          gp_mode=GP_GRID, table=table.reshape(-1, 4), dims=np.array(table.shape[:4], dtype=np.int64),
                          lo=g.lo[TABLE_AXES], inv_step=g.inv_step[TABLE_AXES],
-                         **ModelBundle.no_exact(2 * len(model.terrains)), terrain_w=w)
+                         **ModelBundle.no_exact(2 * len(model.terrains)), terrain_w=w,
+                         **ModelBundle.collapsed_whole())
     args = (bundle.args(), x0, controls, 0.1)
     # called with the argument types the planner passes (noise floats, a start covariance), so this test runs the
     # planner's compiled propagate instead of compiling two more specialisations of it

@@ -90,7 +90,8 @@ def test_propagation_matches_finite_difference_jacobians() -> None:
     bundle = ModelBundle(dyn_mode=DYN_GP, theta=model.theta, lateral=np.zeros(2), edd5=model.edd5["grass"],
                          gp_mode=GP_GRID, table=table.reshape(-1, 4), dims=np.array(table.shape[:4], dtype=np.int64),
                          lo=g.lo[TABLE_AXES], inv_step=g.inv_step[TABLE_AXES],
-                         **ModelBundle.no_exact(2 * len(model.terrains)), terrain_w=w)
+                         **ModelBundle.no_exact(2 * len(model.terrains)), terrain_w=w,
+                         **ModelBundle.collapsed_whole())
     states, covs, step_var = propagate(bundle.args(), x0, controls, 0.1)
     sigma = np.zeros((5, 5))
     for k in range(15):

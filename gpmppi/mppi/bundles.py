@@ -97,6 +97,7 @@ class _Bundle:
 # ------------------------------------------------------------------------------------------------ model
 M_DYN_MODE, M_THETA, M_LATERAL, M_EDD5, M_GP_MODE, M_TABLE, M_DIMS, M_LO, M_INV_STEP = range(9)
 M_EX_SCALED_X, M_EX_INV_LS, M_EX_OUTPUTSCALE, M_EX_ALPHA, M_EX_CHOL, M_TERRAIN_W = range(9, 15)
+M_TABLE_SRC, M_LAZY, M_COLLAPSE_W = range(15, 18)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -118,21 +119,37 @@ class ModelBundle(_Bundle):
     ex_alpha: np.ndarray  # (2M, n) exact GP: K^-1 y
     ex_chol: np.ndarray  # (2M, n, n) exact GP: Cholesky factors of K
     terrain_w: np.ndarray  # (M,) terrain weights
+    # a table collapsed lazily on the CPU (`gp_table.ensure_block`): the per-terrain rows (nodes, 4M) float32, the
+    # slab versions (int64; [0] = the weights' version, 0 when `table` is collapsed whole) and the factors to
+    # collapse with (4 + 4M, `gp_table.collapse_weights`); a table collapsed whole carries a one-row `table_src`
+    # and `lazy` = [0] (and `collapse_w` is not read). The CPU kernels write `table` and `lazy`.
+    table_src: np.ndarray
+    lazy: np.ndarray
+    collapse_w: np.ndarray
 
     SPECS: ClassVar[dict[str, FieldSpec]] = {
         "dyn_mode": FieldSpec("int64", 0), "theta": FieldSpec("float64", 1), "lateral": FieldSpec("float64", 1),
-        "edd5": FieldSpec("float64", 1), "gp_mode": FieldSpec("int64", 0), "table": FieldSpec("float32", 2),
+        "edd5": FieldSpec("float64", 1), "gp_mode": FieldSpec("int64", 0),
+        "table": FieldSpec("float32", 2, written=True),
         "dims": FieldSpec("int64", 1), "lo": FieldSpec("float64", 1), "inv_step": FieldSpec("float64", 1),
         "ex_scaled_x": FieldSpec("float64", 3), "ex_inv_ls": FieldSpec("float64", 2),
         "ex_outputscale": FieldSpec("float64", 1), "ex_alpha": FieldSpec("float64", 2),
         "ex_chol": FieldSpec("float64", 3), "terrain_w": FieldSpec("float64", 1),
+        "table_src": FieldSpec("float32", 2), "lazy": FieldSpec("int64", 1, written=True),
+        "collapse_w": FieldSpec("float64", 1),
     }
 
     @classmethod
     def no_grid(cls) -> dict[str, np.ndarray]:
         """The grid fields of a model that reads no grid table (a 2^4-node table of zeros)."""
         return {"table": np.zeros((16, 4), dtype=np.float32), "dims": np.full(4, 2, dtype=np.int64),
-                "lo": np.zeros(4), "inv_step": np.ones(4)}
+                "lo": np.zeros(4), "inv_step": np.ones(4), **cls.collapsed_whole()}
+
+    @classmethod
+    def collapsed_whole(cls) -> dict[str, np.ndarray]:
+        """The lazy-collapse fields of a table collapsed whole (nothing left to collapse)."""
+        return {"table_src": np.zeros((1, 4), dtype=np.float32), "lazy": np.zeros(1, dtype=np.int64),
+                "collapse_w": np.zeros(3)}
 
     @classmethod
     def no_exact(cls, n_tasks: int) -> dict[str, np.ndarray]:

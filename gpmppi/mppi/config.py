@@ -36,6 +36,12 @@ class PlannerConfig(BaseModel):
         description="Grid GP interpolation: simplex (5 table nodes per lookup) or multilinear (16 nodes, as "
         "gpmppi.gp.grid_interp); both exact at the nodes and second-order accurate (docs/planner_config.md)",
     )
+    table_collapse: Literal["lazy", "whole"] = Field(
+        "lazy",
+        description="Grid GP on the CPU: collapse the table for new terrain weights slab by slab as the rollouts "
+        "reach them (lazy) or all of it at once (whole); the plans are identical, lazy is cheaper when the weights "
+        "move every cycle. The CUDA backend always collapses whole",
+    )
     backend: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="Kernels: numba CPU, numba CUDA (grid GP only), or auto (CUDA when numba finds a GPU)"
     )

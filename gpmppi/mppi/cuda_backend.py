@@ -30,6 +30,7 @@ from gpmppi.mppi.bundles import (
     M_GP_MODE,
     M_INV_STEP,
     M_LATERAL,
+    M_LAZY,
     M_LO,
     M_TABLE,
     M_THETA,
@@ -227,6 +228,9 @@ def cuda_rollouts(
     `device` keeps the inputs on the device between calls (a planner holds one); None uploads everything."""
     if model[M_DYN_MODE] == DYN_GP and model[M_GP_MODE] == GP_EXACT:
         raise ValueError("the CUDA backend evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
+    if model[M_LAZY][0] != 0:
+        raise ValueError("the model's GP table is collapsed lazily (a CPU planner's); the CUDA kernel reads a table "
+                         "collapsed whole (table_collapse='whole')")
     device = device if device is not None else DeviceInputs()
     eps, costs, xy = out[O_EPS], out[O_COST], out[O_XY]
     d_out = (device.output(eps.shape, eps.dtype), device.output(costs.shape, costs.dtype),

@@ -19,11 +19,13 @@ import numpy as np
 from numba import njit
 
 from gpmppi.gp.exact import exact_tasks
+from gpmppi.gp.grid_interp import grid_cell
 from gpmppi.kernel_flags import FASTMATH
 from gpmppi.models.dynamic_unicycle import jacobian
 from gpmppi.models.edd5 import edd5_velocity
 from gpmppi.models.lateral_slip import lateral_velocity
 from gpmppi.mppi.bundles import (
+    M_COLLAPSE_W,
     M_DIMS,
     M_DYN_MODE,
     M_EDD5,
@@ -35,12 +37,14 @@ from gpmppi.mppi.bundles import (
     M_GP_MODE,
     M_INV_STEP,
     M_LATERAL,
+    M_LAZY,
     M_LO,
     M_TABLE,
+    M_TABLE_SRC,
     M_TERRAIN_W,
     M_THETA,
 )
-from gpmppi.mppi.gp_table import interp4, interp4_simplex
+from gpmppi.mppi.gp_table import cell32, ensure_block, interp4, interp4_simplex, simplex_params
 
 DYN_UNICYCLE = 0
 DYN_EDD5 = 1
@@ -59,10 +63,22 @@ def gp_residual(
     `gp` = `gp_inputs(...)` of the model bundle's fields; `scratch` = (work (n,), mean (2M,), var (2M,)) for the
     exact GP. Grid mode: `table`, `lo`, `inv_step` are in the collapsed table's axis order (`TABLE_AXES`).
     """
-    gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol, terrain_w = gp
+    (gp_mode, table, dims, lo, inv_step, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol, terrain_w,
+     table_src, lazy, collapse_w) = gp
     if gp_mode == GP_SIMPLEX:
+        if lazy[0] != 0:  # a lazily collapsed table: the slabs of the cell the lookup reads, by its own cells
+            g = simplex_params(dims, lo, inv_step)
+            i0, _ = cell32(v, g[0], g[4], g[8], g[12])
+            i1, _ = cell32(w, g[1], g[5], g[9], g[13])
+            i2, _ = cell32(v_ref, g[2], g[6], g[10], g[14])
+            ensure_block(lazy, table_src, collapse_w, table, dims, i0, i1, i2)
         return interp4_simplex(table, dims, lo, inv_step, v, w, v_ref, w_ref)
     if gp_mode == GP_GRID:
+        if lazy[0] != 0:
+            i0, _ = grid_cell(v, lo[0], inv_step[0], dims[0])
+            i1, _ = grid_cell(w, lo[1], inv_step[1], dims[1])
+            i2, _ = grid_cell(v_ref, lo[2], inv_step[2], dims[2])
+            ensure_block(lazy, table_src, collapse_w, table, dims, i0, i1, i2)
         return interp4(table, dims, lo, inv_step, v, w, v_ref, w_ref)
     work, gp_mean, gp_var = scratch
     exact_tasks(v_ref, w_ref, v, w, ex_scaled_x, ex_inv_ls, ex_outputscale, ex_alpha, ex_chol, work, gp_mean, gp_var,
@@ -84,7 +100,8 @@ def gp_residual(
 def gp_inputs(model: tuple) -> tuple:
     """The GP fields of a model bundle's tuple, as `gp_residual` takes them (called once, before any loop)."""
     return (model[M_GP_MODE], model[M_TABLE], model[M_DIMS], model[M_LO], model[M_INV_STEP], model[M_EX_SCALED_X],
-            model[M_EX_INV_LS], model[M_EX_OUTPUTSCALE], model[M_EX_ALPHA], model[M_EX_CHOL], model[M_TERRAIN_W])
+            model[M_EX_INV_LS], model[M_EX_OUTPUTSCALE], model[M_EX_ALPHA], model[M_EX_CHOL], model[M_TERRAIN_W],
+            model[M_TABLE_SRC], model[M_LAZY], model[M_COLLAPSE_W])
 
 
 @njit(cache=True, inline="always")

@@ -1,8 +1,9 @@
 """The GP residual table of the rollouts: the ensemble collapse and its interpolation (multilinear, simplex).
 
 `collapse_table` re-weights the model's (G, G, G, G, 4M) grid table with the current terrain weights
-into a (G, G, G, G, 4) float32 table [mean_v, mean_w, var_v, var_w] (run only when the weights
-change); `interp4` / `interp4_simplex` read it at a GP input. The rollout kernels inline these.
+into a (G, G, G, G, 4) float32 table [mean_v, mean_w, var_v, var_w]; on the CPU the planner collapses it
+lazily instead, slab by slab as the rollouts reach them ("lazy collapse" below). `interp4` /
+`interp4_simplex` read it at a GP input. The rollout kernels inline these.
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ import numpy as np
 from numba import njit, prange
 
 from gpmppi.gp.grid_interp import grid_cell
-from gpmppi.kernel_flags import FASTMATH, fmax, fmin
+from gpmppi.kernel_flags import FASTMATH, fmax, fmin, load_acquire, prefetch_row, store_release
 
 TABLE_AXES = np.array([2, 3, 0, 1])  # collapsed table axes in terms of the GP input [v_ref, omega_ref, v, omega]
 
@@ -27,6 +28,23 @@ def rollout_order(table: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.transpose(table, (2, 3, 0, 1, 4)), dtype=np.float32)
 
 
+def terrain_rows(ordered: np.ndarray) -> np.ndarray:
+    """The `rollout_order` table as (nodes, 4M) float32 rows, each terrain's four values side by side:
+    [mean_v, mean_w, var_v, var_w] of terrain 0, of terrain 1, ... (the collapse then weighs four adjacent
+    values by four adjacent factors, which compiles to vector code)."""
+    g = ordered.shape
+    m = g[4] // 4
+    grouped = ordered.reshape(-1, 2, m, 2).transpose(0, 2, 1, 3)  # (nodes, terrain, mean|var, v|w)
+    return np.ascontiguousarray(grouped.reshape(-1, 4 * m), dtype=np.float32)
+
+
+def collapse_weights(weights: np.ndarray, noise: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """The collapse's factors (4 + 4M,): the starting values [0, 0, n_v, n_w], then per terrain [w, w, w^2, w^2]."""
+    w = np.asarray(weights, dtype=np.float64).reshape(-1)
+    factors = np.column_stack([w, w, w * w, w * w]).reshape(-1)
+    return np.concatenate([[0.0, 0.0, float(noise[0]), float(noise[1])], factors])
+
+
 def collapse_table(
     table: np.ndarray, weights: np.ndarray, noise: tuple[float, float] = (0.0, 0.0), ordered: bool = False
 ) -> np.ndarray:
@@ -39,33 +57,120 @@ def collapse_table(
     # allocated by numpy, which asks the kernel for huge pages on large arrays: the rollouts read
     # this table at random, and huge pages mean fewer TLB misses
     out = np.empty(src.shape[:4] + (4,), dtype=np.float32)
-    _collapse_into(src, np.ascontiguousarray(weights, dtype=np.float64), float(noise[0]), float(noise[1]), out)
+    collapse_into(terrain_rows(src), collapse_weights(weights, noise), out.reshape(-1, 4))
     return out
 
 
+@njit(cache=True, nogil=True, _nrt=False)
+def collapse_rows(src: np.ndarray, collapse_w: np.ndarray, out: np.ndarray, start: int, stop: int) -> None:
+    """Rows start .. stop - 1 of the collapsed table from the `terrain_rows` rows `src` and the
+    `collapse_weights` factors: out[i, c] = start_c + sum over terrains t of factor_tc src[i, 4t + c], summed in
+    terrain order in float64 (whoever collapses a row, lazily or whole, gets the same bits)."""
+    m = src.shape[1] // 4
+    for i in range(start, stop):
+        a0 = collapse_w[0]
+        a1 = collapse_w[1]
+        a2 = collapse_w[2]
+        a3 = collapse_w[3]
+        for t in range(m):
+            k = 4 * t
+            a0 += collapse_w[4 + k] * src[i, k]
+            a1 += collapse_w[5 + k] * src[i, k + 1]
+            a2 += collapse_w[6 + k] * src[i, k + 2]
+            a3 += collapse_w[7 + k] * src[i, k + 3]
+        out[i, 0] = a0
+        out[i, 1] = a1
+        out[i, 2] = a2
+        out[i, 3] = a3
+
+
+_CHUNK = 4096  # rows per task of the whole collapse
+
+
 @njit(cache=True, parallel=True)
-def _collapse_into(table: np.ndarray, weights: np.ndarray, noise_v: float, noise_w: float, out: np.ndarray) -> None:
-    g0, g1, g2, g3, c = table.shape
-    m = c // 4
-    for i0 in prange(g0):
-        for i1 in range(g1):
-            for i2 in range(g2):
-                for i3 in range(g3):
-                    node = table[i0, i1, i2, i3]
-                    mv = 0.0
-                    mw = 0.0
-                    cv = noise_v
-                    cw = noise_w
-                    for t in range(m):
-                        wt = weights[t]
-                        mv += wt * node[2 * t]
-                        mw += wt * node[2 * t + 1]
-                        cv += wt * wt * node[2 * m + 2 * t]
-                        cw += wt * wt * node[2 * m + 2 * t + 1]
-                    out[i0, i1, i2, i3, 0] = mv
-                    out[i0, i1, i2, i3, 1] = mw
-                    out[i0, i1, i2, i3, 2] = cv
-                    out[i0, i1, i2, i3, 3] = cw
+def collapse_into(src: np.ndarray, collapse_w: np.ndarray, out: np.ndarray) -> None:
+    """The whole (nodes, 4) collapsed table into `out` (`collapse_rows` over every row, in parallel)."""
+    n = src.shape[0]
+    for c in prange((n + _CHUNK - 1) // _CHUNK):
+        collapse_rows(src, collapse_w, out, c * _CHUNK, min(n, (c + 1) * _CHUNK))
+
+
+# ------------------------------------------------------------------------------------------- lazy collapse
+# New terrain weights arrive every cycle, and collapsing the whole table for them cost about as much as the plan
+# itself (it reads every node of every terrain). A plan reads only the nodes near the velocities and commands its
+# rollouts reach. So on the CPU the planner only marks the table stale (`lazy[0]`, the weights' version, goes up)
+# and the readers collapse the slabs they are about to read. A slab is the nodes that share the three outer indices
+# (v, omega, v_ref in `TABLE_AXES` order): `dims[3]` consecutive rows, slab s holding rows s * dims[3] on, and
+# `lazy[1 + s]` is the version it holds. (Slabs of 8 or 16 rows measured slower: the checks cost more than the
+# rows they spared.) A slab is collapsed by the same function as the whole table (`collapse_rows`), so its values
+# are the same to the bit whoever collapses it, and a plan is identical to one with the whole table collapsed.
+# Two threads may collapse one slab at once: both write the same bytes, and each publishes the slab with a
+# release store only after its own writes (`store_release`), which a reader's acquire load (`load_acquire`)
+# pairs with.
+
+
+@njit(cache=True, inline="always")
+def block_key(dims: np.ndarray, i0: int, i1: int, i2: int) -> int:
+    """The cell (i0, i1, i2) of the three outer axes as one index below `block_keys` (`ensure_block`'s unit)."""
+    return (i0 * dims[1] + i1) * dims[2] + i2
+
+
+def block_keys(dims: np.ndarray) -> int:
+    """The number of cells of the three outer axes (as many as slabs)."""
+    return int(dims[0]) * int(dims[1]) * int(dims[2])
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def ensure_block(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
+                 i0: int, i1: int, i2: int) -> None:
+    """Make current the eight slabs an interpolation in the cell (i0, i1, i2) of the three outer axes reads
+    (nodes i..i+1 on each axis; each index at most dims - 2, as the cell lookups clamp them).
+
+    Two passes: the first finds the stale slabs and requests their rows from memory, the second collapses them, so
+    that the slabs' memory reads overlap instead of waiting one after another (they lie far apart)."""
+    version = lazy[0]
+    if version == 0:  # the whole table is collapsed
+        return
+    if not (0 <= i0 <= dims[0] - 2 and 0 <= i1 <= dims[1] - 2 and 0 <= i2 <= dims[2] - 2):
+        return  # not a cell (a NaN state through `grid_cell`): write nothing; the reader's lookup is garbage anyway
+    rows = dims[3]
+    s1 = dims[2]
+    s0 = dims[1] * s1
+    first = i0 * s0 + i1 * s1 + i2
+    stale = 0
+    for b in range(8):
+        slab = first + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)
+        if load_acquire(lazy, 1 + slab) != version:
+            stale |= 1 << b
+            for r in range(slab * rows, (slab + 1) * rows):
+                prefetch_row(src, r)
+    if stale == 0:
+        return
+    for b in range(8):
+        if stale & (1 << b):
+            slab = first + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)
+            collapse_rows(src, collapse_w, table, slab * rows, (slab + 1) * rows)
+            store_release(lazy, 1 + slab, version)
+
+
+@njit(cache=True, nogil=True)
+def collapse_slabs_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
+                      old: int, new: int) -> None:
+    """Collapse every slab that holds version `old` for the weights of version `new` (`collapse_w`), and stamp it
+    `new`: the slabs the last plan read, collapsed ahead of the next (`Planner.prepare`). Single-threaded, with
+    no plan running."""
+    rows = dims[3]
+    for s in range(lazy.shape[0] - 1):
+        if lazy[1 + s] == old:
+            collapse_rows(src, collapse_w, table, s * rows, (s + 1) * rows)
+            lazy[1 + s] = new
+
+
+def lazy_state(dims: np.ndarray) -> np.ndarray:
+    """A lazily collapsed table's slab versions (`lazy`): version 1 current, every slab stale (holding 0)."""
+    state = np.zeros(1 + block_keys(dims), dtype=np.int64)
+    state[0] = 1
+    return state
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")

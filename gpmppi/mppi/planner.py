@@ -33,7 +33,15 @@ from gpmppi.mppi.dynamics import (
     propagate,
 )
 from gpmppi.mppi.goal_field import GoalField, cached_goal_field
-from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table, rollout_order
+from gpmppi.mppi.gp_table import (
+    TABLE_AXES,
+    collapse_into,
+    collapse_slabs_at,
+    collapse_weights,
+    lazy_state,
+    rollout_order,
+    terrain_rows,
+)
 from gpmppi.mppi.lane import LaneLookup, cached_lane_lookup
 from gpmppi.mppi.temperature import temperature_for_effective_samples
 from gpmppi.tasks import GoalTask, LaneTask
@@ -106,15 +114,26 @@ class Planner:
         self._table_full: np.ndarray | None = None
         # the model bundle's grid fields (the table itself collapsed per weights) and exact-GP fields
         self._grid = ModelBundle.no_grid()
+        self._lazy_collapse = False
+        self._table_version = 1  # the version of the lazily collapsed table's weights (`gp_table.ensure_block`)
+        self._planned_with_weights = False  # whether a plan has run with the weights of the table
         if self._dyn == DYN_GP and self._gp_mode != GP_EXACT:
             g = model.grid()
-            self._table_full = rollout_order(g.table)
+            self._table_full = terrain_rows(rollout_order(g.table))
+            dims = np.array(g.table.shape[:4], dtype=np.int64)[TABLE_AXES]
             self._grid = {
                 "table": self._grid["table"],
-                "dims": np.array(g.table.shape[:4], dtype=np.int64)[TABLE_AXES],
+                "dims": dims,
                 "lo": np.ascontiguousarray(np.asarray(g.lo, dtype=np.float64)[TABLE_AXES]),
                 "inv_step": np.ascontiguousarray(np.asarray(g.inv_step, dtype=np.float64)[TABLE_AXES]),
+                **ModelBundle.collapsed_whole(),
             }
+            if self.backend == "cpu" and c.table_collapse == "lazy":
+                self._lazy_collapse = True
+                # collapsed lazily, slab by slab as the rollouts reach them (`gp_table.ensure_block`), into one
+                # table kept for the planner's life; the CUDA kernel reads a table collapsed whole, new per weights
+                self._grid.update(table=np.empty((int(np.prod(dims)), 4), dtype=np.float32),
+                                  table_src=self._table_full, lazy=lazy_state(dims), collapse_w=np.zeros(4 + 4 * m))
         if self._dyn == DYN_GP and self._gp_mode == GP_EXACT:
             inv_ls = 1.0 / model.lengthscale
             self._ex = {
@@ -182,10 +201,12 @@ class Planner:
     def prepare(self, weights: np.ndarray | None) -> None:
         """Get ready to plan with these terrain weights: collapse the GP table now rather than in the next `plan`.
 
-        The collapse reads the whole per-terrain table (39 MB for the shipped model, ~3 ms here); a service
-        calls this when new weights arrive, between states, which takes it off the state -> command path.
+        A service calls this when new weights arrive, between states, which takes the collapse off the state ->
+        command path. Collapsed lazily (the CPU), it collapses the slabs the last plan read, which the next plan
+        will mostly read again; collapsed whole, all of it (28.5 MB of per-terrain table for the shipped model).
+        Not while a plan runs (the lazily collapsed table is rewritten in place): call both from one thread.
         """
-        self._terrain_setup(self._check_weights(weights))
+        self._terrain_setup(self._check_weights(weights), ahead=True)
 
     def _lane_lookup(self, task: LaneTask) -> LaneLookup:
         key = (task.centerline.shape, hash(task.centerline.tobytes()), task.closed)
@@ -217,15 +238,34 @@ class Planner:
             self._goal_scene, self._goal_extent = scene, x[None, :2].copy()
         return cached_goal_field(task.goal, circles, self._goal_extent, margin=min(reach, 10.0), cell=c.goal_cell)
 
-    def _terrain_setup(self, w: np.ndarray) -> tuple[ModelBundle, float]:
-        """Collapse the grid table when the weights changed; pick the EDD5 terrain. Returns (the model, ms)."""
+    def _terrain_setup(self, w: np.ndarray, ahead: bool = False) -> tuple[ModelBundle, float]:
+        """Collapse the grid table when the weights changed (on the CPU: mark it stale, `gp_table.ensure_block`); pick
+        the EDD5 terrain. Returns (the model, ms)."""
         t0 = time.perf_counter()
-        if self._table_full is not None and (self._table_weights is None or not np.array_equal(w, self._table_weights)):
+        changed = self._table_weights is None or not np.array_equal(w, self._table_weights)
+        if self._table_full is not None and self._lazy_collapse:
+            lazy = self._grid["lazy"]
+            if changed:  # every slab stale: the readers collapse those they read
+                self._grid["collapse_w"][:] = collapse_weights(w, self._noise_var(w))
+                self._table_version += 1
+                if ahead:  # `prepare`: the slabs the last lazy plan made current, now
+                    collapse_slabs_at(lazy, self._table_full, self._grid["collapse_w"], self._grid["table"],
+                                      self._grid["dims"], self._table_version - 1, self._table_version)
+                lazy[0] = self._table_version
+            elif lazy[0] != 0 and self._planned_with_weights:
+                # the weights held for a second plan: collapse the rest of the table now (the slabs already current
+                # get the same bits again), and the rollouts skip their slab checks until the weights move
+                collapse_into(self._table_full, self._grid["collapse_w"], self._grid["table"])
+                lazy[0] = 0
+        elif self._table_full is not None and changed:
             # predictive variance = latent + likelihood noise: the rollouts' variance cost and the propagated
             # covariance both read it from the table
-            table = collapse_table(self._table_full, w, self._noise_var(w), ordered=True).reshape(-1, 4)
+            table = np.empty((self._table_full.shape[0], 4), dtype=np.float32)
+            collapse_into(self._table_full, collapse_weights(w, self._noise_var(w)), table)
             self._grid = {**self._grid, "table": table}
+        if changed:
             self._table_weights = w.copy()
+            self._planned_with_weights = False
         # the sideways slide is linear in its coefficients, so the ensemble's is the weighted sum (GP model only)
         self._lateral = w @ self._lateral_full if self._dyn == DYN_GP else np.zeros(2)
         name = self.config.edd5_terrain
@@ -315,6 +355,7 @@ class Planner:
         x, w = self._check_inputs(state, task, weights)
         cov0 = self._state_covariance(state_cov)
         model, collapse_ms = self._terrain_setup(w)
+        self._planned_with_weights = True
         if delay_s != 0.0:
             x, cov0 = self._predict_ahead(x, cov0, delay_s, model)
         t0 = time.perf_counter()

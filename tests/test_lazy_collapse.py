@@ -1,0 +1,185 @@
+"""The GP table collapsed lazily for moving terrain weights (`gp_table.ensure_block`): plans identical to the bit to
+those with the table collapsed whole, slabs that match the whole collapse, and a collapse that matches its formula."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gpmppi.gp.model_file import load_default_model
+from gpmppi.models.kinematic_unicycle import kinematic_step
+from gpmppi.mppi.config import PlannerConfig
+from gpmppi.mppi.gp_table import (
+    collapse_into,
+    collapse_table,
+    collapse_weights,
+    ensure_block,
+    lazy_state,
+    rollout_order,
+    terrain_rows,
+)
+from gpmppi.mppi.planner import Planner
+from gpmppi.scenarios import circle_lane
+
+REPO = Path(__file__).resolve().parents[1]
+
+@pytest.fixture(scope="module")
+def model():
+    return load_default_model()
+
+
+def _closed_loop(model, steps: int = 12, prepare: bool = False, **config) -> tuple[Planner, np.ndarray]:
+    """A few plans on the circle lane with weights that move every plan (a seeded walk), as the terrain service's."""
+    planner = Planner(PlannerConfig(backend="cpu", samples=256, horizon=20, seed=5, **config), model)
+    sc = circle_lane()
+    x = sc.start.copy()
+    rng = np.random.default_rng(1)
+    w = np.array([0.5, 0.3, 0.2])
+    out = []
+    for k in range(steps):
+        if k % 4 != 3:  # every fourth plan keeps the weights (the table is then collapsed whole, once)
+            w = np.clip(w + rng.normal(0.0, 0.05, 3), 0.01, 1.0)
+            w = w / w.sum()
+        if prepare:  # as the planner service does when new weights arrive
+            planner.prepare(w)
+        r = planner.plan(x, sc.task, w)
+        out.append(np.concatenate([r.controls.ravel(), r.states.ravel(), r.covariances.ravel(), r.sample_costs,
+                                   [r.cost]]))
+        x = kinematic_step(x, r.control, 0.1)
+    return planner, np.array(out)
+
+
+@pytest.mark.parametrize(("interpolation", "prepare"), [("simplex", False), ("simplex", True),
+                                                        ("multilinear", False)])
+def test_lazy_plans_are_identical_to_plans_with_the_table_collapsed_whole(
+    model, interpolation: str, prepare: bool,
+) -> None:
+    lazy, plans_lazy = _closed_loop(model, prepare=prepare, grid_interpolation=interpolation)
+    whole, plans_whole = _closed_loop(model, grid_interpolation=interpolation, table_collapse="whole")
+    # one collapsed lazily (a new version per weights), the other whole
+    assert lazy._lazy_collapse and lazy._table_version > 5 and not whole._lazy_collapse
+    np.testing.assert_array_equal(plans_lazy, plans_whole)
+
+
+def test_the_slabs_a_plan_made_current_equal_the_whole_collapse_and_the_rest_were_not_touched(model) -> None:
+    planner, _ = _closed_loop(model, steps=3)
+    grid = planner._grid
+    lazy, dims = grid["lazy"], grid["dims"]
+    current = np.flatnonzero(lazy[1:] == lazy[0])
+    # the rollouts reach a small part of the table: that is the saving
+    assert 0 < current.size < 0.5 * (lazy.size - 1)
+    whole = np.empty_like(grid["table"])
+    collapse_into(grid["table_src"], grid["collapse_w"], whole)
+    rows = (current[:, None] * dims[3] + np.arange(dims[3])[None, :]).ravel()
+    np.testing.assert_array_equal(grid["table"][rows], whole[rows])
+
+
+def test_the_collapse_is_the_weighted_sum_of_the_terrains(model) -> None:
+    """Against the formula in numpy: means weighted by w, latent variances by w^2, plus the likelihood noise."""
+    table = model.grid().table
+    m = len(model.terrains)
+    w = np.array([0.6, 0.1, 0.3])
+    noise = (2e-4, 3e-3)
+    got = collapse_table(np.ascontiguousarray(table, dtype=np.float32), w, noise)
+    # the reference sums the same float32 inputs in float64; the result is rounded to float32 once
+    ordered = np.transpose(table.astype(np.float32), (2, 3, 0, 1, 4)).astype(np.float64)
+    mean = ordered[..., : 2 * m].reshape(*ordered.shape[:4], m, 2)
+    var = ordered[..., 2 * m :].reshape(*ordered.shape[:4], m, 2)
+    want = np.concatenate([np.einsum("...tc,t->...c", mean, w), np.einsum("...tc,t->...c", var, w * w) + noise], -1)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-12)
+
+
+def test_terrain_rows_put_each_terrains_four_values_side_by_side(model) -> None:
+    ordered = rollout_order(model.grid().table)
+    rows = terrain_rows(ordered)
+    m = len(model.terrains)
+    flat = ordered.reshape(-1, 4 * m)
+    for t in range(m):
+        np.testing.assert_array_equal(rows[:, 4 * t : 4 * t + 2], flat[:, 2 * t : 2 * t + 2])
+        np.testing.assert_array_equal(rows[:, 4 * t + 2 : 4 * t + 4], flat[:, 2 * m + 2 * t : 2 * m + 2 * t + 2])
+    np.testing.assert_array_equal(collapse_weights([0.5, 0.25, 0.25], (1.0, 2.0)),
+                                  [0, 0, 1, 2, 0.5, 0.5, 0.25, 0.25, 0.25, 0.25, 0.0625, 0.0625, 0.25, 0.25,
+                                   0.0625, 0.0625])
+
+
+def test_weights_held_for_a_second_plan_collapse_the_whole_table_once(model) -> None:
+    planner = Planner(PlannerConfig(backend="cpu", samples=128, horizon=10), model)
+    sc = circle_lane()
+    w = np.array([0.2, 0.3, 0.5])
+    planner.prepare(w)
+    planner.prepare(w)  # no plan ran with them yet: still lazy
+    lazy = planner._grid["lazy"]
+    assert lazy[0] != 0
+    planner.plan(sc.start, sc.task, w)
+    assert lazy[0] != 0
+    planner.plan(sc.start, sc.task, w)
+    assert lazy[0] == 0  # the checks are off
+    whole = np.empty_like(planner._grid["table"])
+    collapse_into(planner._grid["table_src"], planner._grid["collapse_w"], whole)
+    np.testing.assert_array_equal(planner._grid["table"], whole)
+    planner.plan(sc.start, sc.task, np.array([0.3, 0.3, 0.4]))
+    assert lazy[0] > np.max(lazy[1:]) - 1 and lazy[0] != 0  # a new version, above every slab's
+
+
+def test_new_weights_make_every_slab_stale_and_prepare_collapses_those_the_last_plan_read(model) -> None:
+    planner = Planner(PlannerConfig(backend="cpu", samples=128, horizon=10), model)
+    sc = circle_lane()
+    planner.plan(sc.start, sc.task, np.array([0.2, 0.3, 0.5]))
+    lazy = planner._grid["lazy"]
+    before = lazy[0]
+    planner._terrain_setup(np.array([0.25, 0.3, 0.45]))  # as `plan` does: nothing collapsed yet
+    assert lazy[0] == before + 1 and not np.any(lazy[1:] == lazy[0])
+    planner.plan(sc.start, sc.task, np.array([0.25, 0.3, 0.45]))
+    read = lazy[1:] == lazy[0]
+    before = lazy[0]
+    planner.prepare(np.array([0.3, 0.3, 0.4]))  # as the planner service does when new weights arrive
+    assert lazy[0] == before + 1
+    np.testing.assert_array_equal(lazy[1:] == lazy[0], read)  # exactly the slabs the last plan read
+    whole = np.empty_like(planner._grid["table"])
+    collapse_into(planner._grid["table_src"], planner._grid["collapse_w"], whole)
+    rows = (np.flatnonzero(read)[:, None] * planner._grid["dims"][3] + np.arange(planner._grid["dims"][3])).ravel()
+    np.testing.assert_array_equal(planner._grid["table"][rows], whole[rows])
+    planner.prepare(np.array([0.3, 0.3, 0.4]))  # the same weights: nothing to do
+    assert lazy[0] == before + 1
+    state = lazy_state(np.array([2, 3, 4, 5]))
+    assert state[0] == 1 and state.size == 1 + 2 * 3 * 4
+
+
+def test_a_lookup_outside_the_cells_writes_nothing(model) -> None:
+    """A NaN state reaches `ensure_block` through the multilinear cell lookup as a garbage index: nothing is written."""
+    planner = Planner(PlannerConfig(backend="cpu", samples=64, horizon=5), model)
+    planner.prepare(np.array([0.2, 0.3, 0.5]))
+    grid = planner._grid
+    lazy_before, table_before = grid["lazy"].copy(), grid["table"].copy()
+    for cell in ((-1, 0, 0), (0, int(grid["dims"][1]) - 1, 0), (np.iinfo(np.int64).min, 0, 0)):
+        ensure_block(grid["lazy"], grid["table_src"], grid["collapse_w"], grid["table"], grid["dims"], *cell)
+    np.testing.assert_array_equal(grid["lazy"], lazy_before)
+    np.testing.assert_array_equal(grid["table"], table_before)
+
+
+CUDA_REFUSES_LAZY = """
+import numpy as np
+from gpmppi.mppi.cuda_backend import cuda_rollouts
+from gpmppi.mppi.planner import Planner, PlannerConfig
+from gpmppi.mppi.synthetic import synthetic_model
+from gpmppi.scenarios import circle_lane
+p = Planner(PlannerConfig(backend="cpu", samples=8, horizon=4), synthetic_model(nodes=4, n_train=20))
+model, _ = p._terrain_setup(np.array([0.5, 0.3, 0.2]))
+try:
+    cuda_rollouts(model.args(), None, None, None, None)
+except ValueError as exc:
+    print(exc)
+"""
+
+
+def test_the_cuda_backend_refuses_a_lazily_collapsed_table() -> None:
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    proc = subprocess.run([sys.executable, "-c", CUDA_REFUSES_LAZY], cwd=REPO, env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "collapsed lazily" in proc.stdout and "table_collapse='whole'" in proc.stdout
