@@ -154,10 +154,11 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     assert {"/map/robot", "/map/plan/nominal", "/map/lane/edges", "/plots/v/state"} <= paths
     # the stack plans for the state its command meets (each state's age + compute + actuation), the reference for
     # the state after the stack's median latency: both compensate the latency they have
-    # 2x: with the grid sized from the lengthscales the in-process reference improved (25-29 mm in three runs)
-    # while the stack over Zenoh stayed where it was (43-46 mm, the demo's 46 mm before): 1.6-1.75x; why the
-    # stack does not gain what the reference gained is open
-    assert over_zenoh <= 2.0 * reference, f"over Zenoh {over_zenoh:.0f} mm vs in-process {reference:.0f} mm"
+    # 1.2x (issue "Evaluate what the robot runs"): with the smooth update, the applied-command pairing and the
+    # retrained model the stack tracks as the reference does: 10.5 / 11.4 / 11.0 mm over Zenoh against 13.1 mm in
+    # process, three runs (0.80-0.87x); the deployed-path evaluation of the same seconds gave 13.0 mm. It was 2x
+    # while the stack lagged (43-46 against 25-29 mm)
+    assert over_zenoh <= 1.2 * reference, f"over Zenoh {over_zenoh:.0f} mm vs in-process {reference:.0f} mm"
     assert summary.planner_rate_hz is not None and summary.planner_rate_hz > 2.0
     assert summary.latency_p99_ms is not None and "lane, RMSE" in result["log"]
     # the planner's own stamp -> publish latency comes before any session receives the command (one clock)
