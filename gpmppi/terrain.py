@@ -32,6 +32,11 @@ from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.terrain_config import EstimatorConfig, terrain_command_gains
+from gpmppi.terrain_response import SHIPPED_RESPONSE, load_response
+
+# command changes the roughness has seen before the response is scored: a few, so that commands jittery from the
+# start are not scored on a chance small first change, and no more, so that the evidence starts early
+ROUGHNESS_WARMUP_STEPS = 3
 
 __all__ = ["BayesTerrainEstimator", "EstimatorConfig", "TerrainEstimate", "TerrainEstimator", "make_estimator"]
 
@@ -172,6 +177,14 @@ class BayesTerrainEstimator:
       default) every terrain is scored against the weighted mean of the spreads, so the terrains are told apart by
       what they predict, not by their training noise.
 
+    To `l_i` is added the log-likelihood of the terrain's response (`response: steady_map`,
+    gpmppi/terrain_response.py): each terrain's measured steady-state velocity under the commands, run free through
+    a first-order rate from the measured velocity, its residual averaged over `response_smoothing_steps` and scored
+    against `response_spread`. The GP's inputs lack the plant's hidden states, so at a held command its one-step
+    mean is off by as much as the terrains differ, and smooth commands drive close to steady state; the steady map
+    is right there by construction. Scored only while the commands are smooth (`response_max_roughness`): under
+    jittery ones its average is biased, and the command-change term carries the evidence instead.
+
     The weights are the posterior of a hidden terrain that changes with probability `switch_prob` per step (a
     hidden Markov model's forward filter), published with hysteresis on which terrain leads (`_published`):
 
@@ -196,6 +209,10 @@ class BayesTerrainEstimator:
         self._rows: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=config.history)  # (y (2,), predictions (M, 2))
         self._terrain_gains = terrain_command_gains(config, list(model.terrains)) if (
             config.command_change == "per_terrain") else np.zeros((self._m, 2))
+        self._response = None
+        if config.response == "steady_map":
+            path = config.response_file or SHIPPED_RESPONSE
+            self._response = load_response(path).select(list(model.terrains), source=f"response_file {path}")
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:
@@ -215,6 +232,16 @@ class BayesTerrainEstimator:
         self._extra_var = np.square(np.asarray(self.config.extra_noise_std, dtype=np.float64))
         self._sum_spread = np.zeros(2)
         self._calibrated = 0.0  # effective number of steps in the calibration sums
+        # the response evidence: each terrain's free-run velocity (M, 2), the measured state it has reached (the last
+        # observed next state: a step that does not start there re-anchors), and the averaged residual (M, 2)
+        self._response_pred: np.ndarray | None = None
+        self._response_at: np.ndarray | None = None
+        self._response_residual = np.zeros((self._m, 2))
+        # mean |du|/dt over the last ~10 steps [m/s^2, rad/s^2] (an exponential average, divided by its weight so far
+        # so that the first changes count fully), and how many changes it has seen
+        self._roughness_sum = np.zeros(2)
+        self._roughness_weight = 0.0
+        self._roughness_seen = 0
 
     @property
     def weights(self) -> np.ndarray:
@@ -244,7 +271,8 @@ class BayesTerrainEstimator:
         )
         mean, latent = self._predictor.predict(np.array([[u[0], u[1], x[3], x[4]]]), with_var=True)
         y = np.array([x1[3] - v_nom[0], x1[4] - w_nom[0]])
-        du = np.zeros(2) if self._u_prev is None else u - self._u_prev
+        first = self._u_prev is None  # no previous command: the change is unknown (taken as 0)
+        du = np.zeros(2) if first else u - self._u_prev
         self._u_prev = u
         mean = mean[0].reshape(self._m, 2)
         gp_var = latent[0].reshape(self._m, 2) + self._noise
@@ -260,12 +288,43 @@ class BayesTerrainEstimator:
             var = np.broadcast_to(prior @ var, var.shape)
         r = y[None, :] - pred
         loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
+        loglik = loglik + self._response_loglik(x, u, x1, du, first)
         log_post = np.log(prior) + loglik
         p = np.exp(log_post - log_post.max())
         self._calibrate(y, du, prior, mean, pred, gp_var)
         self._posterior = p / p.sum()
         self._rows.append((y, pred))
         self._seen += 1
+
+    def _response_loglik(
+        self, x: np.ndarray, u: np.ndarray, x1: np.ndarray, du: np.ndarray, first: bool
+    ) -> np.ndarray:
+        """(M,) each terrain's log-likelihood of the averaged response residual after this step (0 without one).
+
+        Each terrain's response runs free under the applied commands from the measured velocity (re-anchored where
+        a step does not start at the last one's end: a skipped transition); its residual against the measured next
+        velocity is averaged exponentially over `response_smoothing_steps` and scored against `response_spread`,
+        while the commands are smooth (`response_max_roughness`; `du` is the change since the previous command,
+        unknown on the `first` step).
+        """
+        if self._response is None:
+            return np.zeros(self._m)
+        if self._response_pred is None or self._response_at is None or not np.array_equal(x, self._response_at):
+            self._response_pred = np.tile(x[3:5], (self._m, 1))
+        self._response_pred = self._response.step(self._response_pred, u)
+        self._response_at = x1.copy()
+        if not first:
+            self._roughness_sum = 0.9 * self._roughness_sum + np.abs(du) / self.model.dt
+            self._roughness_weight = 0.9 * self._roughness_weight + 1.0
+            self._roughness_seen += 1
+        if self._roughness_seen < ROUGHNESS_WARMUP_STEPS or np.any(
+            self._roughness_sum / max(self._roughness_weight, 1e-12) > np.asarray(self.config.response_max_roughness)
+        ):
+            return np.zeros(self._m)
+        beta = 1.0 / self.config.response_smoothing_steps
+        self._response_residual = (1.0 - beta) * self._response_residual + beta * (x1[None, 3:5] - self._response_pred)
+        spread = np.asarray(self.config.response_spread, dtype=np.float64)
+        return -0.5 * np.sum((self._response_residual / spread) ** 2, axis=1)
 
     def _command_part(self, du: np.ndarray) -> np.ndarray:
         """(M, 2) the residual each terrain expects from the change of command `du` since the previous step."""

@@ -54,6 +54,25 @@ class EstimatorConfig(BaseModel):
         None, description="bayes, command_change per_terrain: per terrain the residual per unit change of command "
         "(v [m/s per m/s], omega [rad/s per rad/s]); None: the shipped gains (gpmppi/data/terrain_command_gains.yaml)")
     calibration_steps: float = Field(100.0, ge=2, description="bayes: steps over which the online fits forget")
+    response: Literal["steady_map", "none"] = Field(
+        "steady_map", description="bayes: also score each terrain by its velocity response to the commands "
+        "(gpmppi.terrain_response: steady-state map and rate, run free from the measured velocity), which is "
+        "unbiased at steady driving where the GP's one-step residuals are not; 'none': the GP evidence only")
+    response_file: str | None = Field(
+        None, description="bayes, response steady_map: the terrain response YAML; None: the shipped one "
+        "(gpmppi/data/terrain_response.yaml, written by `gpmppi evaluate terrain-response`)")
+    response_smoothing_steps: float = Field(
+        35.0, ge=1, description="bayes, response steady_map: steps over which the response residual is averaged "
+        "(exponentially) before it is scored: the fast transients a first-order response gets wrong average out, "
+        "a steady offset stays")
+    response_max_roughness: tuple[float, float] = Field(
+        (2.5, 5.0), description="bayes, response steady_map: the response is scored only while the commands' "
+        "roughness (mean |du|/dt over the last ~10 steps; v [m/s^2], omega [rad/s^2]) stays below this: under "
+        "jittery commands (the paper's update: ~5 and ~19) a first-order response is biased, under the smooth "
+        "default (~0.5 and ~1.3) it is not")
+    response_spread: tuple[float, float] = Field(
+        (0.08, 0.016), description="bayes, response steady_map: the spread (v [m/s], omega [rad/s]) the averaged "
+        "response residual is scored against (smaller: trust it more)")
 
     @model_validator(mode="after")
     def _consistent(self) -> EstimatorConfig:
@@ -61,6 +80,10 @@ class EstimatorConfig(BaseModel):
             raise ValueError(f"min_history ({self.min_history}) must be <= history ({self.history})")
         if any(not (np.isfinite(s) and s >= 0) for s in self.extra_noise_std):
             raise ValueError(f"extra_noise_std must be two finite numbers >= 0, got {list(self.extra_noise_std)}")
+        if any(not (np.isfinite(s) and s > 0) for s in self.response_spread):
+            raise ValueError(f"response_spread must be two finite numbers > 0, got {list(self.response_spread)}")
+        if any(not (s > 0) for s in self.response_max_roughness):  # inf allowed: always score
+            raise ValueError(f"response_max_roughness must be two numbers > 0, got {list(self.response_max_roughness)}")
         return self
 
 

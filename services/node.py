@@ -220,6 +220,13 @@ class Node:
             self.heartbeat()
             if self._token is not None:
                 self._token.undeclare()
+            # callback subscribers first: closing a session with Python callbacks still declared can wait out
+            # zenoh's close timeout (10 s) while a callback holds on; the inboxes drop what still arrives (closing)
+            for sub in self._subscribers:
+                try:
+                    sub.undeclare()
+                except Exception as e:  # already gone with a broken link: the close below still runs
+                    self.log.debug("undeclaring a subscriber: %s", e)
             self.session.close()
         finally:
             self.session = None

@@ -137,6 +137,63 @@ def register(ev: typer.Typer) -> None:
             out.write_text(text)
         print(text, end="")
 
+    @ev.command("terrain-response")
+    def response_cmd(
+        settle: Annotated[float, typer.Option("--settle", min=0.5, help="Seconds each held command runs before its "
+                                              "velocities are averaged.")] = 2.5,
+        average: Annotated[float, typer.Option("--average", min=0.1, help="Seconds of measured velocity averaged "
+                                               "per held command.")] = 1.5,
+        distance: Annotated[float, typer.Option("--distance", min=10.0, help="Excitation distance per terrain in m "
+                                                "(for the rates).")] = 400.0,
+        seed: Annotated[int, typer.Option("--seed", help="Excitation and plant seed.")] = 5,
+        out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the YAML here.")] = None,
+    ) -> None:
+        """Fit each terrain's velocity response (gpmppi.terrain_response) on drives of the physics plant.
+
+        Per terrain of the GP model: holds every command of a (v_ref, omega_ref) grid from rest for --settle s and
+        averages the measured (sensor-noisy) velocities over the next --average s (the steady map); then fits the
+        one-step rate of approach to it on the training data's excitation commands. On a robot, the same drives:
+        hold each command, log the settled velocities.
+        """
+        from gpmppi.evaluation.runner import cached_gp_model, cached_terrain_set
+        from gpmppi.plant.excitation import drive
+        from gpmppi.plant.physics import PhysicsPlant
+        from gpmppi.terrain_response import TerrainResponse, fit_rate
+
+        dt = 0.1
+        v_ref = np.round(np.arange(0.0, 2.0 + 1e-9, 0.2), 4)
+        omega_ref = np.round(np.arange(-2.0, 2.0 + 1e-9, 0.2), 4) + 0.0  # no -0.0
+        model = cached_gp_model(None)
+        names = list(model.terrains)
+        steady = np.zeros((len(names), len(v_ref), len(omega_ref), 2))
+        rates = np.zeros((len(names), 2))
+        for m, terrain in enumerate(names):
+            plant = PhysicsPlant(cached_terrain_set(None), terrain, seed=seed)
+            for i, v in enumerate(v_ref):
+                for j, w in enumerate(omega_ref):
+                    plant.reset(np.zeros(5))
+                    u = np.array([v, w])
+                    for _ in range(int(round(settle / dt))):
+                        plant.step(u, dt)
+                    seen = []
+                    for _ in range(max(1, int(round(average / dt)))):
+                        plant.step(u, dt)
+                        seen.append(plant.measure()[3:5])
+                    steady[m, i, j] = np.mean(seen, axis=0)
+            one = TerrainResponse(v_ref, omega_ref, (terrain,), steady[m:m + 1], np.ones((1, 2)))
+            run = drive(PhysicsPlant(cached_terrain_set(None), terrain, seed=seed), terrain, distance, seed=seed, dt=dt)
+            # command[k] is applied over [t_k, t_k+1): the last one has no next state
+            rates[m] = fit_rate(lambda c, one=one: one.steady_at(c)[0], run.state, run.command[:-1])
+        response = TerrainResponse(v_ref, omega_ref, tuple(names), steady, rates)
+        command = "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        text = response.to_yaml(
+            "# Each terrain's velocity response to a held command (gpmppi/terrain_response.py): the steady (v, omega)\n"
+            "# on a (v_ref, omega_ref) grid and the one-step rate of approach to it. Used by the terrain estimator.\n"
+            f"# Written by: {command}\n")
+        if out is not None:
+            out.write_text(text)
+        print(text if out is None else f"wrote {out}: terrains {names}, rates {np.round(rates, 3).tolist()}")
+
     @ev.command("terrain-separability")
     def separability_cmd(
         terrain: Annotated[list[str] | None, typer.Option("--terrain", "-t", help="Terrain(s) (repeat).")] = None,

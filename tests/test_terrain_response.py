@@ -1,0 +1,158 @@
+"""Each terrain's velocity response (gpmppi/terrain_response.py) and the terrain filter's use of it: the map
+interpolates like scipy's, the rate fit recovers a known rate, the shipped file is what `gpmppi evaluate
+terrain-response` writes, held commands on the physics plant are identified with it (and were not without it),
+a skipped transition re-anchors the response, and bad files or settings fail naming what is wrong."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.interpolate import RegularGridInterpolator
+from typer.testing import CliRunner
+
+from gpmppi.gp.model_file import load_default_model
+from gpmppi.plant.physics import PhysicsPlant
+from gpmppi.plant.terrains import load_terrains
+from gpmppi.terrain import BayesTerrainEstimator, EstimatorConfig, make_estimator
+from gpmppi.terrain_response import SHIPPED_RESPONSE, TerrainResponse, fit_rate, load_response
+
+
+def _random_response(seed: int = 0) -> TerrainResponse:
+    rng = np.random.default_rng(seed)
+    v_ref, omega_ref = np.array([0.0, 0.5, 1.2, 2.0]), np.array([-2.0, -0.3, 0.0, 0.8, 2.0])
+    return TerrainResponse(v_ref, omega_ref, ("a", "b"), rng.normal(size=(2, 4, 5, 2)), np.array([[0.3, 0.2],
+                                                                                                  [0.5, 1.0]]))
+
+
+def test_steady_map_is_bilinear_like_scipy_and_clamped_to_the_grid() -> None:
+    r = _random_response()
+    rng = np.random.default_rng(1)
+    for u in rng.uniform([0.0, -2.0], [2.0, 2.0], size=(50, 2)):
+        expected = np.stack([RegularGridInterpolator((r.v_ref, r.omega_ref), r.steady[i])(u)[0] for i in range(2)])
+        np.testing.assert_allclose(r.steady_at(u), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(r.steady_at(np.array([5.0, -9.0])), r.steady[:, -1, 0])  # clamped, not extrapolated
+    p = np.array([[0.1, 0.2], [0.3, 0.4]])
+    u = np.array([1.0, 0.5])
+    np.testing.assert_allclose(r.step(p, u), p + r.rate * (r.steady_at(u) - p))
+
+
+def test_rate_fit_recovers_the_rate_of_a_first_order_response() -> None:
+    r = _random_response()
+    one = TerrainResponse(r.v_ref, r.omega_ref, ("a",), r.steady[:1], r.rate[:1])
+    rng = np.random.default_rng(2)
+    commands = np.repeat(rng.uniform([0.0, -2.0], [2.0, 2.0], size=(40, 2)), 5, axis=0)
+    states = np.zeros((len(commands) + 1, 5))
+    for k, u in enumerate(commands):
+        states[k + 1, 3:5] = one.step(states[k:k + 1, 3:5], u)[0]
+    np.testing.assert_allclose(fit_rate(lambda c: one.steady_at(c)[0], states, commands), r.rate[0], rtol=1e-9)
+
+
+def test_the_shipped_response_is_what_the_fit_command_writes(tmp_path: Path) -> None:
+    from tools.cli import app
+
+    out = tmp_path / "response.yaml"
+    result = CliRunner().invoke(app, ["evaluate", "terrain-response", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    shipped, fitted = load_response(SHIPPED_RESPONSE), load_response(out)
+    assert fitted.terrains == shipped.terrains == tuple(load_default_model().terrains)
+    np.testing.assert_array_equal(fitted.steady, shipped.steady)
+    np.testing.assert_array_equal(fitted.rate, shipped.rate)
+    # what makes it useful: at a held turn the terrains settle apart (asphalt's skid moment resists turning, tile
+    # turns easily, grass drags), by more than the sensor noise averaged over the settled window
+    asphalt, grass, tile = shipped.select(["asphalt", "grass", "tile"]).steady_at(np.array([1.3, 0.8]))
+    assert grass[1] + 0.03 < asphalt[1] < tile[1] - 0.03
+
+
+def _held_drive(terrain: str, command: tuple[float, float], seconds: float, seed: int):
+    """(state, command, next state) steps of the physics plant (sensor noise on) under one held command from rest."""
+    plant = PhysicsPlant(load_terrains(), terrain, seed=seed)
+    plant.reset(np.zeros(5))
+    u = np.asarray(command, dtype=np.float64)
+    x = plant.measure()
+    rows = []
+    for _ in range(int(round(seconds / 0.1))):
+        plant.step(u, 0.1)
+        x1 = plant.measure()
+        rows.append((x, u, x1))
+        x = x1
+    return rows
+
+
+@pytest.mark.parametrize("terrain", ["asphalt", "grass", "tile"])
+def test_a_held_command_is_identified_by_its_response(terrain: str) -> None:
+    model = load_default_model()
+    rows = _held_drive(terrain, (1.3, 0.6), 12.0, seed=4)
+    with_response = make_estimator(model)
+    for row in rows:
+        with_response.observe(*row)
+    i = list(model.terrains).index(terrain)
+    assert with_response.estimate().weights[i] > 0.9
+
+
+def test_the_gp_alone_misreads_steady_asphalt() -> None:
+    # why the response is there: at a held command the GP's one-step residuals point away from asphalt
+    model = load_default_model()
+    gp_only = make_estimator(model, EstimatorConfig(response="none"))
+    for row in _held_drive("asphalt", (1.3, 0.6), 12.0, seed=4):
+        gp_only.observe(*row)
+    assert gp_only.estimate().weights[list(model.terrains).index("asphalt")] < 0.5
+
+
+def test_a_skipped_transition_re_anchors_the_response() -> None:
+    model = load_default_model()
+    est = make_estimator(model)
+    assert isinstance(est, BayesTerrainEstimator)
+    rows = _held_drive("tile", (1.0, 0.3), 2.0, seed=5)
+    for row in rows[:5]:
+        est.observe(*row)
+    x, u, x1 = rows[10]  # rows 5-9 never observed: this step does not start where the last one ended
+    est.observe(x, u, x1)
+    response = load_response().select(list(model.terrains))
+    np.testing.assert_allclose(est._response_pred, response.step(np.tile(x[3:5], (3, 1)), u))
+
+
+def test_bad_response_files_fail_naming_the_file_and_the_fix(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("version: 1\nv_ref: [0.0, 1.0]\n")
+    with pytest.raises(ValueError, match=r"terrain response file .*bad.yaml.*gpmppi evaluate terrain-response"):
+        load_response(bad)
+    text = SHIPPED_RESPONSE.read_text()
+    bad.write_text(text.replace("rate: [0.2828", "rate: [1.5", 1))
+    with pytest.raises(ValueError, match=r"bad.yaml.*rate must lie in \(0, 1\]"):
+        load_response(bad)
+    only = tmp_path / "only_asphalt.yaml"
+    r = load_response()
+    only.write_text(r.select(["asphalt"]).to_yaml())
+    with pytest.raises(ValueError, match=r"response_file .*only_asphalt.yaml: no response for terrain\(s\) "
+                                         r"\['grass', 'tile'\].*gpmppi evaluate terrain-response"):
+        make_estimator(load_default_model(), EstimatorConfig(response_file=str(only)))
+
+
+def test_jittery_commands_leave_the_response_unscored() -> None:
+    # under commands that jump every step (the paper's update) a first-order response's average is biased: the filter
+    # scores the GP evidence alone, exactly as with response: none
+    model = load_default_model()
+    plant = PhysicsPlant(load_terrains(), "grass", seed=6)
+    plant.reset(np.zeros(5))
+    rng = np.random.default_rng(6)
+    x = plant.measure()
+    rows = []
+    for _ in range(60):
+        u = np.array([rng.uniform(0.8, 1.8), rng.uniform(-1.5, 1.5)])
+        plant.step(u, 0.1)
+        x1 = plant.measure()
+        rows.append((x, u, x1))
+        x = x1
+    default, gp_only = make_estimator(model), make_estimator(model, EstimatorConfig(response="none"))
+    for row in rows:
+        default.observe(*row)
+        gp_only.observe(*row)
+    np.testing.assert_array_equal(default.estimate().weights, gp_only.estimate().weights)
+    smooth = make_estimator(model)  # and held commands are scored: the weights differ
+    plain = make_estimator(model, EstimatorConfig(response="none"))
+    for row in _held_drive("grass", (1.3, 0.6), 5.0, seed=6):
+        smooth.observe(*row)
+        plain.observe(*row)
+    assert not np.array_equal(smooth.estimate().weights, plain.estimate().weights)
