@@ -63,14 +63,16 @@ def test_write_tables_and_figures(tmp_path: Path) -> None:
     assert json.loads((tmp_path / "results.json").read_text())["results"]["avoidance"]["tile"]["gp"]["success"] == 4
     t = np.linspace(0, 2 * np.pi, 50)
     ring = {"xy": np.stack([8.3 * np.cos(t), 8.3 * np.sin(t)], 1), "inflated": None,
-            "times": t, "weights": np.tile([0.2, 0.3, 0.5], (50, 1)), "weights_ok": np.ones(50, bool)}
+            "times": t, "weights": np.tile([0.2, 0.3, 0.5], (50, 1)), "weights_ok": np.ones(50, bool),
+            "commands": np.stack([np.full(50, 1.2), np.sin(t)], 1)}
     line = {"xy": np.stack([t, t], 1), "inflated": np.array([0.8, 1.0, 0.8, 0.9, 0.9]), "times": t,
             "weights": np.tile([0.2, 0.3, 0.5], (50, 1)), "weights_ok": np.ones(50, bool)}
     figs = write_figures({"circle": {"tile": {"gp": ring, "unicycle": ring}}, "avoidance": {"tile": {"gp": line}}},
                          {"circle": circle_lane(), "avoidance": paper_obstacle_scene()}, res, tmp_path,
                          ["asphalt", "grass", "tile"])
     names = {p.name for p in figs}
-    assert names == {"trajectories_circle.png", "trajectories_avoidance.png", "terrain_weights.png", "rmse_bars.png"}
+    assert names == {"trajectories_circle.png", "trajectories_avoidance.png", "terrain_weights.png", "rmse_bars.png",
+                     "commands_circle.png", "terrain_confusion.png"}
     assert all((tmp_path / n).read_bytes()[:4] == b"\x89PNG" for n in names)
 
 

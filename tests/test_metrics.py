@@ -16,6 +16,7 @@ from gpmppi.evaluation.metrics import (
     mean_std,
     obstacle_clearance,
     path_length,
+    top_terrain_confusion,
     true_weight_mean,
     weight_switches_per_min,
 )
@@ -235,3 +236,20 @@ def test_weight_switches_leave_out_the_first_answer_from_uniform_weights() -> No
     assert weight_switches_per_min(times, changed) == pytest.approx(1 / (3.0 / 60.0))
     with pytest.raises(ValueError, match="weight rows need"):
         weight_switches_per_min(times[:-1], settled)
+
+
+def test_top_terrain_confusion_of_hand_made_runs() -> None:
+    names = ["asphalt", "grass", "tile"]
+    t = np.arange(0.0, 10.5, 0.5)  # 20 cycles of 0.5 s: 14 after the first 3 s
+    on_asphalt = np.tile([0.2, 0.3, 0.5], (20, 1))  # tile leads until 5 s (4 cycles after 3 s), then asphalt
+    on_asphalt[10:] = [0.9, 0.05, 0.05]
+    on_grass = np.tile([0.1, 0.8, 0.1], (20, 1))
+    rows, m = top_terrain_confusion(
+        [("asphalt", t, on_asphalt), ("grass", t, on_grass), ("sand", t, on_grass), ("tile", t[:5], on_grass[:4])],
+        names)
+    assert rows == ["asphalt", "grass"]  # sand is not a trained terrain; the tile run ends before 3 s
+    np.testing.assert_allclose(m, [[10 / 14, 0.0, 4 / 14], [0.0, 1.0, 0.0]])
+    # two runs on one terrain pool by time: 7 s after 3 s above, and 7 s on grass in a run of ten 1 s cycles
+    rows, m = top_terrain_confusion([("asphalt", t, on_asphalt), ("asphalt", t[:11] * 2, on_grass[:10])], names)
+    np.testing.assert_allclose(m, [[5 / 14, 7 / 14, 2 / 14]])
+    assert top_terrain_confusion([], names)[0] == []

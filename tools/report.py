@@ -140,7 +140,8 @@ def _lane_axes(ax, task: LaneTask) -> None:
 def write_figures(
     paths: dict, scenarios: dict[str, Scenario], results: dict, out_dir: Path, terrain_names: list[str] | None = None
 ) -> list[Path]:
-    """Lane trajectories per lane, an avoidance scene with the three paths, terrain weights, RMSE bars."""
+    """Lane trajectories per lane, an avoidance scene with the three paths, terrain weights, the planners' commands
+    over time per task, the terrain estimator's confusion matrix, RMSE bars."""
     terrain_names = terrain_names or []
     import matplotlib
 
@@ -205,6 +206,11 @@ def write_figures(
         plt.close(fig)
         written.append(p)
 
+    written += _command_figures(paths, out_dir, plt)
+    confusion = _confusion_figure(adaptive, terrain_names, out_dir, plt)
+    if confusion is not None:
+        written.append(confusion)
+
     lanes = [t for t in LANE_TASKS if t in results]
     if lanes:
         fig, axes = plt.subplots(1, len(lanes), figsize=(6.0 * len(lanes), 4.0), squeeze=False)
@@ -226,3 +232,66 @@ def write_figures(
         plt.close(fig)
         written.append(p)
     return written
+
+
+def _command_figures(paths: dict, out_dir: Path, plt) -> list[Path]:
+    """Per task `commands_<task>.png`: v_ref and omega_ref over time of each model's recorded run, per terrain."""
+    written = []
+    for task_name, by_terrain in paths.items():
+        terrains = [t for t, recs in by_terrain.items() if any(r.get("commands") is not None for r in recs.values())]
+        if not terrains:
+            continue
+        fig, axes = plt.subplots(2, len(terrains), figsize=(5.0 * len(terrains), 5.0), squeeze=False, sharex="col")
+        for j, terrain in enumerate(terrains):
+            for model, rec in sorted(by_terrain[terrain].items(), key=lambda kv: _model_rank(kv[0])):
+                u = rec.get("commands")
+                if u is None or len(u) == 0:
+                    continue
+                u = np.asarray(u)
+                t = np.asarray(rec["times"])[: len(u)]
+                for i in range(2):
+                    axes[i, j].plot(t, u[: len(t), i], color=MODEL_COLOURS.get(model), lw=1.0,
+                                    label=MODEL_LABELS.get(model, model))
+            axes[0, j].set_title(f"{task_name} on {terrain}")
+            axes[0, j].set_ylabel("v_ref [m/s]")
+            axes[1, j].set_ylabel("omega_ref [rad/s]")
+            axes[1, j].set_xlabel("time [s]")
+            axes[0, j].legend(fontsize=7, loc="lower right")
+        fig.tight_layout()
+        p = out_dir / f"commands_{task_name}.png"
+        fig.savefig(p, dpi=110)
+        plt.close(fig)
+        written.append(p)
+    return written
+
+
+def _confusion_figure(adaptive: list, terrain_names: list[str], out_dir: Path, plt) -> Path | None:
+    """`terrain_confusion.png`: per true terrain, the share of time after 3 s each terrain led GP-MPPI's weights,
+    pooled over the recorded runs (`gpmppi.evaluation.metrics.top_terrain_confusion`)."""
+    from gpmppi.evaluation.metrics import top_terrain_confusion
+
+    runs = []
+    for _, terrain, rec in adaptive:
+        t = np.asarray(rec["times"], dtype=np.float64)  # each cycle's start: the last one ends a cycle later
+        if t.size < 2:
+            continue
+        runs.append((terrain, np.append(t, t[-1] + (t[-1] - t[-2])), np.asarray(rec["weights"])))
+    rows, matrix = top_terrain_confusion(runs, terrain_names)
+    if not rows:
+        return None
+    fig, ax = plt.subplots(figsize=(1.6 + 1.3 * len(terrain_names), 1.2 + 1.0 * len(rows)))
+    ax.imshow(matrix, vmin=0.0, vmax=1.0, cmap="Blues")
+    for i in range(len(rows)):
+        for j in range(len(terrain_names)):
+            ax.text(j, i, f"{matrix[i, j]:.2f}", ha="center", va="center",
+                    color="white" if matrix[i, j] > 0.6 else "black", fontsize=9)
+    ax.set_xticks(range(len(terrain_names)), terrain_names)
+    ax.set_yticks(range(len(rows)), rows)
+    ax.set_xlabel("largest weight")
+    ax.set_ylabel("terrain under the robot")
+    ax.set_title("GP-MPPI terrain estimate, time after 3 s", fontsize=9)
+    fig.tight_layout()
+    p = out_dir / "terrain_confusion.png"
+    fig.savefig(p, dpi=120)
+    plt.close(fig)
+    return p

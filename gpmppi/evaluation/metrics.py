@@ -214,3 +214,33 @@ def weight_switches_per_min(
     top = np.argmax(w, axis=1)
     changed = top[1:] != top[:-1]  # change k-1 -> k at times[k]
     return float(np.count_nonzero(changed & (t[1:-1] >= start - 1e-9))) / minutes
+
+
+def top_terrain_confusion(
+    runs: list[tuple[str, np.ndarray, np.ndarray]], names: list[str], settle_s: float = WEIGHT_SETTLE_S
+) -> tuple[list[str], np.ndarray]:
+    """The terrain estimator's confusion: per true terrain (rows, those among `names` that some run drove on, in
+    `names` order) the fraction of time after the first `settle_s` that each of `names` (columns) had the largest
+    weight.
+
+    `runs` holds per run its true terrain, the cycle boundaries `times` (T+1,) and the weights (T, M), row k holding
+    from times[k] to times[k + 1] (as `true_weight_mean`). Rows sum to 1; a run with no time after `settle_s` adds
+    nothing, and a true terrain without any such time is left out.
+    """
+    rows: dict[str, np.ndarray] = {}
+    for terrain, times, weights in runs:
+        w = np.asarray(weights, dtype=np.float64)
+        t = np.asarray(times, dtype=np.float64).reshape(-1)
+        if terrain not in names or w.ndim != 2 or w.shape[1] != len(names) or t.size != w.shape[0] + 1:
+            continue
+        start = t[0] + settle_s
+        held = np.clip(t[1:], start, None) - np.clip(t[:-1], start, None)  # each row's time after the settling
+        if held.sum() <= 0.0:
+            continue
+        acc = rows.setdefault(terrain, np.zeros(len(names)))
+        np.add.at(acc, np.argmax(w, axis=1), held)
+    order = [n for n in names if n in rows]
+    if not order:
+        return [], np.zeros((0, len(names)))
+    matrix = np.stack([rows[n] / rows[n].sum() for n in order])
+    return order, matrix

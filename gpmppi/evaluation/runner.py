@@ -363,9 +363,11 @@ def score_dicts(scores: list[RunScore]) -> list[dict]:
 
 
 def figure_record(traj: Trajectory) -> dict:
-    """The small part of a trajectory the figures need: the driven XY and typical inflated radii."""
+    """The small part of a trajectory the figures need: the driven XY, typical inflated radii, the cycles' start times
+    with the terrain weights and the planner's commands."""
     rec: dict = {"xy": traj.positions.copy(), "inflated": None, "times": traj.times[:-1].copy(),
-                 "weights": traj.weights.copy(), "weights_ok": traj.weights_ok.copy()}
+                 "weights": traj.weights.copy(), "weights_ok": traj.weights_ok.copy(),
+                 "commands": traj.commands.copy()}
     goal_tight = [t for t in traj.tightened if t.ndim == 2 and t.shape[1] > 0]
     if goal_tight:
         # per obstacle: the largest inflation along each plan's horizon, median over the run's cycles
