@@ -146,42 +146,52 @@ def register(ev: typer.Typer) -> None:
         distance: Annotated[float, typer.Option("--distance", min=10.0, help="Excitation distance per terrain in m "
                                                 "(for the rates).")] = 400.0,
         seed: Annotated[int, typer.Option("--seed", help="Excitation and plant seed.")] = 5,
+        plant: Annotated[str, typer.Option("--plant", help="physics (default) or residual-net (the paper's "
+                                           "simulator, with --plant-file).")] = "physics",
+        plant_file: Annotated[Path | None, typer.Option("--plant-file", help="Residual-net JSON (the paper's "
+                                                        "fcnn.json).")] = None,
+        gp_model: Annotated[Path | None, typer.Option("--gp-model", help="GP model whose terrains to fit (and, "
+                                                      "for residual-net, whose nominal model).")] = None,
         out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the YAML here.")] = None,
     ) -> None:
-        """Fit each terrain's velocity response (gpmppi.terrain_response) on drives of the physics plant.
+        """Fit each terrain's velocity response (gpmppi.terrain_response) on drives of the plant.
 
-        Per terrain of the GP model: holds every command of a (v_ref, omega_ref) grid from rest for --settle s and
+        Per terrain of the GP model (--gp-model; default the shipped one) on --plant: holds every command of a
+        (v_ref, omega_ref) grid from rest for --settle s and
         averages the measured (sensor-noisy) velocities over the next --average s (the steady map); then fits the
         one-step rate of approach to it on the training data's excitation commands. On a robot, the same drives:
         hold each command, log the settled velocities.
         """
-        from gpmppi.evaluation.runner import cached_gp_model, cached_terrain_set
+        from gpmppi.evaluation.runner import EvalSettings, cached_gp_model, make_plant
         from gpmppi.plant.excitation import drive
-        from gpmppi.plant.physics import PhysicsPlant
         from gpmppi.terrain_response import TerrainResponse, fit_rate
 
+        if plant not in ("physics", "residual-net"):
+            raise typer.BadParameter(f"--plant must be physics or residual-net, got {plant!r}")
+        settings = EvalSettings(plant=plant, plant_file=None if plant_file is None else str(plant_file),  # type: ignore[arg-type]
+                                gp_model=None if gp_model is None else str(gp_model))
         dt = 0.1
         v_ref = np.round(np.arange(0.0, 2.0 + 1e-9, 0.2), 4)
         omega_ref = np.round(np.arange(-2.0, 2.0 + 1e-9, 0.2), 4) + 0.0  # no -0.0
-        model = cached_gp_model(None)
+        model = cached_gp_model(settings.gp_model)
         names = list(model.terrains)
         steady = np.zeros((len(names), len(v_ref), len(omega_ref), 2))
         rates = np.zeros((len(names), 2))
         for m, terrain in enumerate(names):
-            plant = PhysicsPlant(cached_terrain_set(None), terrain, seed=seed)
+            robot = make_plant(settings, terrain, seed)
             for i, v in enumerate(v_ref):
                 for j, w in enumerate(omega_ref):
-                    plant.reset(np.zeros(5))
+                    robot.reset(np.zeros(5))
                     u = np.array([v, w])
                     for _ in range(int(round(settle / dt))):
-                        plant.step(u, dt)
+                        robot.step(u, dt)
                     seen = []
                     for _ in range(max(1, int(round(average / dt)))):
-                        plant.step(u, dt)
-                        seen.append(plant.measure()[3:5])
+                        robot.step(u, dt)
+                        seen.append(robot.measure()[3:5])
                     steady[m, i, j] = np.mean(seen, axis=0)
             one = TerrainResponse(v_ref, omega_ref, (terrain,), steady[m:m + 1], np.ones((1, 2)))
-            run = drive(PhysicsPlant(cached_terrain_set(None), terrain, seed=seed), terrain, distance, seed=seed, dt=dt)
+            run = drive(make_plant(settings, terrain, seed), terrain, distance, seed=seed, dt=dt)
             # command[k] is applied over [t_k, t_k+1): the last one has no next state
             rates[m] = fit_rate(lambda c, one=one: one.steady_at(c)[0], run.state, run.command[:-1])
         response = TerrainResponse(v_ref, omega_ref, tuple(names), steady, rates)

@@ -219,6 +219,10 @@ class ResidualNetPlant:
         self._x[2] = _wrap(self._x[2])
         return self._x.copy()
 
+    def state(self) -> np.ndarray:
+        """True `[X, Y, yaw, v, omega]`."""
+        return self._x.copy()
+
     def measure(self) -> np.ndarray:
         s = self._x.copy()
         if self.noise_std is not None:
