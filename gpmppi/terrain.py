@@ -210,6 +210,8 @@ class BayesTerrainEstimator:
         self._terrain_gains = terrain_command_gains(config, list(model.terrains)) if (
             config.command_change == "per_terrain") else np.zeros((self._m, 2))
         self._response = None
+        self._response_spread = np.asarray(config.response_spread, dtype=np.float64)
+        self._max_roughness = np.asarray(config.response_max_roughness, dtype=np.float64)
         if config.response == "steady_map":
             path = config.response_file or SHIPPED_RESPONSE
             self._response = load_response(path).select(list(model.terrains), source=f"response_file {path}")
@@ -318,13 +320,12 @@ class BayesTerrainEstimator:
             self._roughness_weight = 0.9 * self._roughness_weight + 1.0
             self._roughness_seen += 1
         if self._roughness_seen < ROUGHNESS_WARMUP_STEPS or np.any(
-            self._roughness_sum / max(self._roughness_weight, 1e-12) > np.asarray(self.config.response_max_roughness)
+            self._roughness_sum / max(self._roughness_weight, 1e-12) > self._max_roughness
         ):
             return np.zeros(self._m)
         beta = 1.0 / self.config.response_smoothing_steps
         self._response_residual = (1.0 - beta) * self._response_residual + beta * (x1[None, 3:5] - self._response_pred)
-        spread = np.asarray(self.config.response_spread, dtype=np.float64)
-        return -0.5 * np.sum((self._response_residual / spread) ** 2, axis=1)
+        return -0.5 * np.sum((self._response_residual / self._response_spread) ** 2, axis=1)
 
     def _command_part(self, du: np.ndarray) -> np.ndarray:
         """(M, 2) the residual each terrain expects from the change of command `du` since the previous step."""

@@ -158,6 +158,11 @@ def mean_p95(values: np.ndarray) -> tuple[float, float]:
     return float(v.mean()), float(np.percentile(v, 95))
 
 
+def _settled_spans(times: np.ndarray, settle_s: float) -> np.ndarray:
+    """(T,) the seconds of each cycle [times[k], times[k + 1]) after the first `settle_s` of the run."""
+    return np.clip(times[1:] - np.maximum(times[:-1], times[0] + settle_s), 0.0, None)
+
+
 def true_weight_mean(
     times: np.ndarray,
     weights: np.ndarray,
@@ -180,7 +185,7 @@ def true_weight_mean(
         raise ValueError(f"true_weight_mean: {w.shape[0]} weight rows need {w.shape[0] + 1} times and as many "
                          f"terrains, got {t.size} times and {len(driven)} terrains")
     index = {name: i for i, name in enumerate(terrain_names)}
-    span = np.clip(t[1:] - np.maximum(t[:-1], t[0] + settle_s), 0.0, None)  # [s] of each cycle after settling
+    span = _settled_spans(t, settle_s)
     known = np.array([name in index for name in driven])
     span = np.where(known, span, 0.0)
     total = float(span.sum())
@@ -233,8 +238,7 @@ def top_terrain_confusion(
         t = np.asarray(times, dtype=np.float64).reshape(-1)
         if terrain not in names or w.ndim != 2 or w.shape[1] != len(names) or t.size != w.shape[0] + 1:
             continue
-        start = t[0] + settle_s
-        held = np.clip(t[1:], start, None) - np.clip(t[:-1], start, None)  # each row's time after the settling
+        held = _settled_spans(t, settle_s)
         if held.sum() <= 0.0:
             continue
         acc = rows.setdefault(terrain, np.zeros(len(names)))
