@@ -29,7 +29,7 @@ PINNED = {
     ]),
     SamplingBundle: ("S", [
         ("x0", A1), ("nominal", A2), ("noise_std", A1), ("u_lo", A1), ("u_hi", A1), ("dt", "float64"),
-        ("seed", "int64"), ("iteration", "int64"), ("noise_memory", "float64"),
+        ("seed", "int64"), ("iteration", "int64"), ("noise_memory", "float64"), ("u_prev", A1), ("rate_step", A1),
     ]),
     Outputs: ("O", [("eps_out", "array(float32, 3d, C)"), ("cost_out", A1), ("xy_out", A3)]),
 }
@@ -49,7 +49,8 @@ def examples() -> dict[type, object]:
         ModelBundle: model_bundle(),
         TaskBundle: TaskBundle.for_lane(lane, 1.0, np.ones(5), 1.5),
         SamplingBundle: SamplingBundle(x0=np.zeros(5), nominal=np.zeros((4, 2)), noise_std=np.ones(2), noise_memory=0.5,
-                                       u_lo=np.zeros(2), u_hi=np.ones(2), dt=0.1, seed=3, iteration=2),
+                                       u_lo=np.zeros(2), u_hi=np.ones(2), dt=0.1, seed=3, iteration=2,
+                                       u_prev=np.zeros(2), rate_step=np.full(2, 0.3)),
         Outputs: Outputs.allocate(8, 4, 2),
     }
 

@@ -86,7 +86,8 @@ if sys.argv[1] == "helpers_first":
     interp4(table, dims, np.zeros(4), np.ones(4), 0.5, 0.5, 0.5, 0.5)
     grid_interp(np.ones((3, 3, 3, 3, 2)), np.zeros(4), np.ones(4), np.full(4, 0.5), np.zeros(2))
     normal_pair(1, 2)
-    sampled_command(1, 2, np.ones((3, 2)), 1, np.ones(2), np.zeros(2), np.full(2, 2.0), (0.5, 0.75**0.5), 0.1, 0.2)
+    sampled_command(1, 2, np.ones((3, 2)), 1, np.ones(2), np.zeros(2), np.full(2, 2.0), (0.5, 0.75**0.5), 0.1, 0.2,
+                    (np.ones(2), np.full(2, np.inf)))
     step = (0.0, 0.0, 0.1, 0.5, 0.1, 1.0, 0.2, 0.1, 0.2, 1.5, np.zeros(0), 0.9, 1.0, 1.0, 0.0)
     for term in (variance.variance_cost, slip.slip_cost, lane_exit.lane_exit_cost):
         term(1.0, np.ones(N_COST_TERMS), 0, (), step)

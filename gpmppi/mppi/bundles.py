@@ -221,12 +221,14 @@ class TaskBundle(_Bundle):
 
 
 # --------------------------------------------------------------------------------------------- sampling
-S_X0, S_NOMINAL, S_NOISE_STD, S_U_LO, S_U_HI, S_DT, S_SEED, S_ITERATION, S_NOISE_MEMORY = range(9)
+(S_X0, S_NOMINAL, S_NOISE_STD, S_U_LO, S_U_HI, S_DT, S_SEED, S_ITERATION, S_NOISE_MEMORY, S_U_PREV,
+ S_RATE_STEP) = range(11)
 
 
 @dataclass(frozen=True, kw_only=True)
 class SamplingBundle(_Bundle):
-    """Where the rollouts start and how their commands are drawn: nominal + noise, clipped to the limits."""
+    """Where the rollouts start and how their commands are drawn: nominal + noise, clipped to the limits, the first
+    command also to the rate limits from the command in effect (`rng.sampled_command`)."""
 
     x0: np.ndarray  # (5,) start state [x m, y m, yaw rad, v m/s, omega rad/s]
     nominal: np.ndarray  # (N, 2) nominal sequence [v_ref m/s, omega_ref rad/s]
@@ -237,12 +239,15 @@ class SamplingBundle(_Bundle):
     seed: int  # noise seed
     iteration: int  # planner iteration (part of the noise counter)
     noise_memory: float  # AR(1) memory of the unit noise from step to step (0 = white; `rng.sampled_command`)
+    u_prev: np.ndarray  # (2,) the command in effect before the sequence's first step [m/s, rad/s]
+    rate_step: np.ndarray  # (2,) largest change of the first command from `u_prev` [m/s, rad/s]; inf: none
 
     SPECS: ClassVar[dict[str, FieldSpec]] = {
         "x0": FieldSpec("float64", 1), "nominal": FieldSpec("float64", 2), "noise_std": FieldSpec("float64", 1),
         "u_lo": FieldSpec("float64", 1), "u_hi": FieldSpec("float64", 1), "dt": FieldSpec("float64", 0),
         "seed": FieldSpec("int64", 0), "iteration": FieldSpec("int64", 0),
-        "noise_memory": FieldSpec("float64", 0),
+        "noise_memory": FieldSpec("float64", 0), "u_prev": FieldSpec("float64", 1),
+        "rate_step": FieldSpec("float64", 1),
     }
 
 

@@ -47,9 +47,11 @@ from gpmppi.mppi.bundles import (
     S_NOISE_MEMORY,
     S_NOISE_STD,
     S_NOMINAL,
+    S_RATE_STEP,
     S_SEED,
     S_U_HI,
     S_U_LO,
+    S_U_PREV,
     S_X0,
     T_CANDIDATES,
     T_CELL_START,
@@ -77,7 +79,7 @@ from gpmppi.mppi.dynamics import (
     velocity_coefficients,
 )
 from gpmppi.mppi.gp_table import block_key, block_keys, cell32, ensure_block, simplex_corner, simplex_params
-from gpmppi.mppi.rng import clip, sampled_command
+from gpmppi.mppi.rng import clip, rate_limited, sampled_command
 
 __all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", "softmax_update"]
 
@@ -94,13 +96,13 @@ def _draw_commands(
     """Step k's noisy commands of the group's samples first .. first + n_in - 1 into `cmd`; perturbations to eps_out.
 
     `counter0` = iteration * samples (the noise counter of sample s, step k is (counter0 + s) * horizon + k);
-    `limits` = (nominal, noise_std, u_lo, u_hi, (noise memory, innovation)); `noise` holds each sample's unit
-    noise of step k - 1 and gets step k's (`rng.sampled_command`)."""
-    nominal, noise_std, u_lo, u_hi, ar = limits
+    `limits` = (nominal, noise_std, u_lo, u_hi, (noise memory, innovation), (command in effect, rate step));
+    `noise` holds each sample's unit noise of step k - 1 and gets step k's (`rng.sampled_command`)."""
+    nominal, noise_std, u_lo, u_hi, ar, first_step = limits
     for j in range(n_in):
         s = first + j
         u0, u1, d0, d1 = sampled_command(seed, (counter0 + s) * horizon + k, nominal, k, noise_std, u_lo, u_hi, ar,
-                                         noise[0, j], noise[1, j])
+                                         noise[0, j], noise[1, j], first_step)
         noise[0, j] = d0
         noise[1, j] = d1
         eps_out[s, k, 0] = u0 - nominal[k, 0]
@@ -266,7 +268,8 @@ def rollout_worker(
     grid = simplex_params(model[M_DIMS], model[M_LO], model[M_INV_STEP])
     memory = sampling[S_NOISE_MEMORY]
     ar = (memory, np.sqrt(1.0 - memory * memory))  # `rng.sampled_command`
-    limits = (nominal, sampling[S_NOISE_STD], sampling[S_U_LO], sampling[S_U_HI], ar)
+    limits = (nominal, sampling[S_NOISE_STD], sampling[S_U_LO], sampling[S_U_HI], ar,
+              (sampling[S_U_PREV], sampling[S_RATE_STEP]))
     gp = gp_inputs(model)
     geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], field, grid_origin, inv_cell, task[T_HALF_WIDTH],
            task[T_SPEED_TARGET], goal, task[T_OBSTACLES])
@@ -400,7 +403,8 @@ _POOL = _WorkerPool()
 
 @njit(cache=True, fastmath=FASTMATH)
 def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple) -> np.ndarray:
-    """Each critic's cost (`CRITICS` order) of the sampling bundle's nominal sequence, clipped to its limits.
+    """Each critic's cost (`CRITICS` order) of the sampling bundle's nominal sequence, clipped to its limits (its first
+    command to the rate limits too) as the kernels clip a sampled command.
 
     Serial, one rollout with the model's own step (`step_state`), compiled with the kernels' flags (without them
     the float32 cos/sin and table reads round differently and the sum strayed 5e-9 from the kernel's cost): the
@@ -426,6 +430,8 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     discount_k = 1.0
     for k in range(nominal.shape[0]):
         u = (clip(nominal[k, 0], u_lo[0], u_hi[0]), clip(nominal[k, 1], u_lo[1], u_hi[1]))
+        if k == 0:
+            u = rate_limited(u[0], u[1], sampling[S_U_PREV], sampling[S_RATE_STEP])
         px, py, yaw, v, w, _mv, _mw, var_v, var_w = step_state(dyn, gp, scratch, dt, s, u, 1.0)
         s = (px, py, yaw, v, w)
         stage_critics(kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, (var_v, var_w), out)

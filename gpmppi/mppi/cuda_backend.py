@@ -43,9 +43,11 @@ from gpmppi.mppi.bundles import (
     S_NOISE_MEMORY,
     S_NOISE_STD,
     S_NOMINAL,
+    S_RATE_STEP,
     S_SEED,
     S_U_HI,
     S_U_LO,
+    S_U_PREV,
     S_X0,
     T_CANDIDATES,
     T_CELL_START,
@@ -145,8 +147,9 @@ def _rollout_kernel(model, task, sampling, cost, out):
     base = (iteration * samples + s) * horizon
     d0 = 0.0  # the unit noise of the last step (`rng.sampled_command`)
     d1 = 0.0
+    first_step = (sampling[S_U_PREV], sampling[S_RATE_STEP])
     for k in range(horizon):
-        u0, u1, d0, d1 = _sampled_command(seed, base + k, nominal, k, noise_std, u_lo, u_hi, ar, d0, d1)
+        u0, u1, d0, d1 = _sampled_command(seed, base + k, nominal, k, noise_std, u_lo, u_hi, ar, d0, d1, first_step)
         eps_out[s, k, 0] = u0 - nominal[k, 0]
         eps_out[s, k, 1] = u1 - nominal[k, 1]
         mv = 0.0

@@ -146,6 +146,9 @@ class Planner:
         else:
             self._ex = ModelBundle.no_exact(2 * m)
         self._table_weights: np.ndarray | None = None
+        # the largest change of the command sent from one plan to the next [m/s, rad/s] (`rng.sampled_command`)
+        limits = c.rate_limits
+        self._rate_step = np.full(2, np.inf) if limits is None else np.asarray(limits, dtype=np.float64) * c.dt
         self._smoother = savgol_matrix(c.horizon, c.savgol_window, c.smoothing_order) if c.savgol_window else None
         self._lateral_full = model.lateral_matrix()
         self._lateral = np.zeros(2)
@@ -304,9 +307,14 @@ class Planner:
                 f"delay_s must be between 0 and the horizon ({c.horizon * c.dt:.2f} s), got {delay_s}; "
                 "a state that old is stale: drop it"
             )
-        held = self._last_control if self._last_control is not None else np.clip(x[3:5], self._u_lo, self._u_hi)
+        held = self._command_in_effect(x)
         return predict_ahead(model.args(), x, cov0, np.ascontiguousarray(held, dtype=np.float64), float(delay_s),
                              c.dt, *self._exact_noise_var(model.terrain_w))
+
+    def _command_in_effect(self, x: np.ndarray) -> np.ndarray:
+        """The command the base is under at state `x`: the last one this planner returned (since a reset: the
+        state's own velocities, held, within the limits)."""
+        return self._last_control if self._last_control is not None else np.clip(x[3:5], self._u_lo, self._u_hi)
 
     def _state_covariance(self, state_cov: np.ndarray | None) -> np.ndarray:
         if state_cov is None:
@@ -385,7 +393,7 @@ class Planner:
         new_u, sample_w = backends.softmax_update(nominal, eps, costs, temperature)
         effective_samples = backends.effective_sample_size(sample_w)
         flags: dict[str, int] = {"all_costs_infinite": int(not np.any(np.isfinite(costs)))}
-        new_u = self._shape_sequence(new_u)
+        new_u = self._shape_sequence(new_u, x)
         t3 = time.perf_counter()
 
         states, covs, _ = self._propagate(x, new_u, model, cov0)
@@ -442,7 +450,9 @@ class Planner:
     def _sampling(self, x: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray) -> SamplingBundle:
         c = self.config
         return SamplingBundle(x0=x, nominal=nominal, noise_std=noise_std, u_lo=self._u_lo, u_hi=self._u_hi, dt=c.dt,
-                              seed=c.seed, iteration=self._iteration, noise_memory=c.noise_memory)
+                              seed=c.seed, iteration=self._iteration, noise_memory=c.noise_memory,
+                              u_prev=np.ascontiguousarray(self._command_in_effect(x), dtype=np.float64),
+                              rate_step=self._rate_step)
 
     def _temperature(self, costs: np.ndarray) -> float:
         """This update's softmax temperature: the fixed one (update=paper) or the one that gives the update
@@ -452,17 +462,16 @@ class Planner:
             return c.temperature
         return temperature_for_effective_samples(costs, c.effective_sample_fraction * c.samples, c.temperature)
 
-    def _shape_sequence(self, u: np.ndarray) -> np.ndarray:
-        """Optional smoothing, then acceleration limits from the last applied control, then control limits."""
-        c = self.config
+    def _shape_sequence(self, u: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """Optional smoothing, then the first command within the rate limits of the command in effect, then the
+        control limits.
+
+        Every sample's first command, and so the update's, keeps the rate limits already; the smoothing can move it a
+        little, and this puts it back, as the kernels clip a sampled first command (`rng.sampled_command`)."""
         if self._smoother is not None:
             u = self._smoother @ u
-        if c.accel_limits is not None:
-            step = np.array(c.accel_limits) * c.dt
-            prev = self._last_control
+        if self.config.rate_limits is not None:
+            prev = self._command_in_effect(x)
             u = u.copy()
-            for k in range(u.shape[0]):
-                if prev is not None:
-                    u[k] = np.clip(u[k], prev - step, prev + step)
-                prev = u[k]
+            u[0] = np.clip(u[0], prev - self._rate_step, prev + self._rate_step)
         return np.ascontiguousarray(np.clip(u, self._u_lo, self._u_hi))

@@ -60,23 +60,38 @@ def clip(x: float, lo: float, hi: float) -> float:
 
 
 @njit(cache=True, inline="always")
+def rate_limited(u0: float, u1: float, u_prev: np.ndarray, rate_step: np.ndarray) -> tuple[float, float]:
+    """(u0, u1) within `rate_step` [m/s, rad/s] of the command `u_prev` before it; inf: unlimited (the same bits)."""
+    return (clip(u0, u_prev[0] - rate_step[0], u_prev[0] + rate_step[0]),
+            clip(u1, u_prev[1] - rate_step[1], u_prev[1] + rate_step[1]))
+
+
+@njit(cache=True, inline="always")
 def sampled_command(
     seed: int, counter: int, nominal: np.ndarray, k: int, noise_std: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray,
-    ar: tuple, d0: float, d1: float,
+    ar: tuple, d0: float, d1: float, first_step: tuple,
 ) -> tuple[float, float, float, float]:
     """Step k's command of one sample and its unit noise (d0, d1), given the sample's unit noise of step k - 1.
 
     `ar` = (memory, innovation): the noise is AR(1), d_k = memory d_{k-1} + innovation z_k with innovation =
     sqrt(1 - memory^2) and d_0 = z_0, so each step's noise stays N(0, 1) and steps tau apart correlate by
     memory^(tau / dt) (time-correlated, "coloured" noise). memory = 0 is white noise, d_k = z_k. The command is
-    nominal + noise_std * d, clipped to the limits."""
+    nominal + noise_std * d, clipped to the limits; step 0's then to within `rate_step` of `u_prev`, the command
+    in effect (`first_step` = (u_prev, rate_step), each (2,) [m/s, rad/s]; inf: no limit, the same bits). So every
+    sample's first command, the update's first command (their weighted average) and the command sent change from
+    the one before by at most the rate limits allow in a step. The later steps stay free: limited too, the samples
+    became random walks of the limit's size, the time-correlated exploration that tracked worse
+    (docs/smooth_commands.md), and the next plan limits its own first command anyway."""
     z0, z1 = normal_pair(seed, counter)
     memory, innovation = ar
     if memory > 0.0 and k > 0:
         z0 = memory * d0 + innovation * z0
         z1 = memory * d1 + innovation * z1
-    return (clip(nominal[k, 0] + noise_std[0] * z0, u_lo[0], u_hi[0]),
-            clip(nominal[k, 1] + noise_std[1] * z1, u_lo[1], u_hi[1]), z0, z1)
+    u0 = clip(nominal[k, 0] + noise_std[0] * z0, u_lo[0], u_hi[0])
+    u1 = clip(nominal[k, 1] + noise_std[1] * z1, u_lo[1], u_hi[1])
+    if k == 0:  # within the box still: the window is around a command inside it
+        u0, u1 = rate_limited(u0, u1, first_step[0], first_step[1])
+    return u0, u1, z0, z1
 
 
 def noise_memory(correlation_time: float, dt: float) -> float:
