@@ -78,7 +78,7 @@ from gpmppi.mppi.dynamics import (
     step_state,
     velocity_coefficients,
 )
-from gpmppi.mppi.gp_table import block_key, block_keys, cell32, ensure_block, simplex_corner, simplex_params
+from gpmppi.mppi.gp_table import block_keys, cell32, ensure_block_at, simplex_corner, simplex_params
 from gpmppi.mppi.rng import clip, rate_limited, sampled_command
 
 __all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", "softmax_update"]
@@ -127,20 +127,25 @@ def _add_costs(
 
 @phase
 def _ensure_slabs(
-    grid: tuple, lazy_table: tuple, n_in: int, st: np.ndarray, cmd: np.ndarray, seen: np.ndarray,
+    grid: tuple, lazy_table: tuple, n_in: int, st: np.ndarray, cmd: np.ndarray, keys: np.ndarray, seen: np.ndarray,
 ) -> None:
     """Collapse the table slabs this step's lookups read (a lazily collapsed table, `gp_table.ensure_block`) that
     no earlier lookup of this thread made current in this plan: `seen` marks each `block_key` it checked."""
     lazy, src, collapse_w, table, dims = lazy_table
     lo0, lo1, lo2, _l3, inv0, inv1, inv2, _i3, top0, top1, top2, _t3, last0, last1, last2, _a3, _s0, _s1, _s2 = grid
+    d1 = np.int32(dims[1])
+    d2 = np.int32(dims[2])
+    # each lookup's cell key first, in a loop of its own free of branches (vector code): the cells of the lookup's
+    # own float32 cell computation (`simplex_corner`)
     for j in range(n_in):
-        # the cells of the lookup's own float32 cell computation (`simplex_corner`)
         i0, _f0 = cell32(st[3, j], lo0, inv0, top0, last0)
         i1, _f1 = cell32(st[4, j], lo1, inv1, top1, last1)
         i2, _f2 = cell32(cmd[0, j], lo2, inv2, top2, last2)
-        b = block_key(dims, i0, i1, i2)
+        keys[j] = (i0 * d1 + i1) * d2 + i2
+    for j in range(n_in):
+        b = keys[j]
         if seen[b] == 0:
-            ensure_block(lazy, src, collapse_w, table, dims, i0, i1, i2)
+            ensure_block_at(lazy, src, collapse_w, table, dims, b)
             seen[b] = 1
 
 
@@ -257,7 +262,7 @@ def rollout_worker(
     cost_out = out[O_COST]
     xy_out = out[O_XY]
     coef, flat, next_group = plan_consts
-    st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, noise, scratch, seen = work
+    st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, noise, scratch, keys, seen = work
     discount = cost_w[K_EXIT_DISCOUNT]
     samples = eps_out.shape[0]
     horizon = nominal.shape[0]
@@ -300,7 +305,7 @@ def rollout_worker(
         # memory, (4) the rows are read, (5) the states advance. Costs are added in step order.
         for k in range(horizon):
             if lazy_collapse:
-                _ensure_slabs(grid, lazy_table, n_in, st, cmd, seen)
+                _ensure_slabs(grid, lazy_table, n_in, st, cmd, keys, seen)
             if simplex:
                 _request_rows(grid, table, n_in, st, cmd, nodes, node_w)
             if k + 1 < horizon:
@@ -329,13 +334,14 @@ def _thread_buffers(model: tuple) -> tuple:
     """One thread's buffers for `rollout_worker`: a group's states, totals, the commands of the previous, this and
     the next step (rotated every step), GP residuals, simplex node indices and weights (one row per vertex:
     unit-stride rows let the loop that fills them run as vector code), the unit noise of the last step drawn, and
-    the exact GP's work arrays, and the cell corners whose table slabs this thread made current (`_ensure_slabs`)."""
+    the exact GP's work arrays, and (`_ensure_slabs`) the lookups' cell keys and the cells whose table slabs this
+    thread made current."""
     n_tasks, n_train = model[M_EX_ALPHA].shape
     dims = model[M_DIMS]
     return (np.empty((5, GROUP)), np.empty(GROUP), np.empty((2, GROUP)), np.empty((2, GROUP)), np.empty((2, GROUP)),
             np.zeros((4, GROUP)), np.zeros((5, GROUP), dtype=np.uint64), np.zeros((5, GROUP), dtype=np.float32),
             np.zeros((2, GROUP)), (np.empty(n_train), np.empty(n_tasks), np.empty(n_tasks)),
-            np.zeros(block_keys(dims), dtype=np.uint8))
+            np.zeros(GROUP, dtype=np.int32), np.zeros(block_keys(dims), dtype=np.uint8))
 
 
 def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out: tuple) -> None:

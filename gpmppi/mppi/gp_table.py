@@ -124,19 +124,26 @@ def block_keys(dims: np.ndarray) -> int:
 def ensure_block(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
                  i0: int, i1: int, i2: int) -> None:
     """Make current the eight slabs an interpolation in the cell (i0, i1, i2) of the three outer axes reads
-    (nodes i..i+1 on each axis; each index at most dims - 2, as the cell lookups clamp them).
+    (nodes i..i+1 on each axis; each index at most dims - 2, as the cell lookups clamp them)."""
+    if lazy[0] == 0:  # the whole table is collapsed
+        return
+    if not (0 <= i0 <= dims[0] - 2 and 0 <= i1 <= dims[1] - 2 and 0 <= i2 <= dims[2] - 2):
+        return  # not a cell (a NaN state through `grid_cell`): write nothing; the reader's lookup is garbage anyway
+    ensure_block_at(lazy, src, collapse_w, table, dims, block_key(dims, i0, i1, i2))
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def ensure_block_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
+                    first: int) -> None:
+    """`ensure_block` for the cell whose `block_key` is `first` (a cell of the lookups, each index within
+    0 .. dims - 2): its lowest slab is slab `first`, the other seven lie one step up each outer axis.
 
     Two passes: the first finds the stale slabs and requests their rows from memory, the second collapses them, so
     that the slabs' memory reads overlap instead of waiting one after another (they lie far apart)."""
     version = lazy[0]
-    if version == 0:  # the whole table is collapsed
-        return
-    if not (0 <= i0 <= dims[0] - 2 and 0 <= i1 <= dims[1] - 2 and 0 <= i2 <= dims[2] - 2):
-        return  # not a cell (a NaN state through `grid_cell`): write nothing; the reader's lookup is garbage anyway
     rows = dims[3]
     s1 = dims[2]
     s0 = dims[1] * s1
-    first = i0 * s0 + i1 * s1 + i2
     stale = 0
     for b in range(8):
         slab = first + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)
