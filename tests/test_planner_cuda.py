@@ -26,7 +26,7 @@ assert cuda.is_available()
 model = synthetic_model(nodes=5, n_train=30)
 w = np.array([0.5, 0.3, 0.2])
 out = {}
-for dyn in ["gp", "gp-multilinear", "gp-coloured", "edd5", "unicycle"]:
+for dyn in ["gp", "gp-multilinear", "gp-coloured", "gp-limited", "edd5", "unicycle"]:
     for sc in [circle_lane(), paper_obstacle_scene()]:
         runs = {}
         for backend in ["cpu", "cuda"]:
@@ -34,7 +34,8 @@ for dyn in ["gp", "gp-multilinear", "gp-coloured", "edd5", "unicycle"]:
             sampling = "coloured" if dyn.endswith("coloured") else "white"
             p = Planner(PlannerConfig(dynamics=dyn.split("-")[0], backend=backend, samples=16, horizon=5,
                                       sample_output=4, seed=3, grid_interpolation=interp, sampling=sampling,
-                                      noise_correlation_time=0.3), model)
+                                      noise_correlation_time=0.3,
+                                      accel_limits=(2.5, 3.2) if dyn.endswith("limited") else None), model)
             assert p.backend == backend
             x = sc.start.copy()
             res = []
@@ -61,7 +62,7 @@ def sim_results() -> dict:
 
 
 def test_cuda_simulator_matches_cpu_backend(sim_results: dict) -> None:
-    assert len(sim_results) == 10
+    assert len(sim_results) == 12
     for case, runs in sim_results.items():
         assert runs["auto_backend"] == "cuda", case  # auto picks CUDA when numba sees a device
         for cpu, gpu in zip(runs["cpu"], runs["cuda"], strict=True):

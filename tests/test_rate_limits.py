@@ -1,8 +1,8 @@
 """Rate-limited commands: every sampled sequence's first command, and so the update's and the command sent, changes
 from the command in effect by at most the planner's `accel_limits` allow in one step (checked on the kernel's own
-samples and on closed loops), the later steps stay free, the limits are the smooth update's default and off in the
-paper's form, limits that never bind change nothing, and bad limits are refused by name. (CPU and the CUDA simulator
-agree on the default, rate-limited, configuration: tests/test_planner_cuda.py.)"""
+samples and on closed loops), the later steps stay free, no limits are the default, limits that never bind change
+nothing, and bad limits are refused by name. (CPU and the CUDA simulator agree with limits:
+tests/test_planner_cuda.py.)"""
 
 from __future__ import annotations
 
@@ -13,20 +13,21 @@ from pydantic import ValidationError
 from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.mppi import backends
 from gpmppi.mppi.bundles import TaskBundle
-from gpmppi.mppi.config import DEFAULT_ACCEL_LIMITS
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene, square_lane
 
 W = np.array([0.5, 0.3, 0.2])
 DT = 0.1
-STEP = np.array(DEFAULT_ACCEL_LIMITS) * DT  # the largest change from one plan's command to the next [m/s, rad/s]
+LIMITS = (2.5, 3.2)  # a Nav2 velocity smoother's defaults [m/s^2, rad/s^2]
+STEP = np.array(LIMITS) * DT  # the largest change from one plan's command to the next [m/s, rad/s]
 # eps is stored as float32: a command rebuilt from it is off by up to ~1e-7
 TOL = 1e-6
 
 
 def test_every_sampled_first_command_keeps_the_rate_limits_and_the_later_steps_are_free() -> None:
-    p = Planner(PlannerConfig(dynamics="gp", backend="cpu", samples=512, horizon=20, seed=4), synthetic_model())
+    p = Planner(PlannerConfig(dynamics="gp", backend="cpu", samples=512, horizon=20, seed=4, accel_limits=LIMITS),
+                synthetic_model())
     sc = circle_lane()
     x = sc.start.copy()
     for _ in range(3):  # a few cycles in, so that the command in effect is the planner's own
@@ -66,9 +67,9 @@ def _command_changes(scenario, **settings: object) -> np.ndarray:  # noqa: ANN00
 
 @pytest.mark.parametrize("scenario", [circle_lane, square_lane, paper_obstacle_scene])
 def test_the_commands_sent_keep_the_rate_limits(scenario) -> None:  # noqa: ANN001
-    changes = _command_changes(scenario)
+    changes = _command_changes(scenario, accel_limits=LIMITS)
     assert np.all(changes <= STEP + 1e-12), changes.max(axis=0)
-    free = _command_changes(scenario, accel_limits="off")  # the same loop unlimited oversteps them
+    free = _command_changes(scenario)  # the same loop unlimited oversteps them
     assert np.any(free > STEP), free.max(axis=0)
 
 
@@ -84,28 +85,25 @@ def test_limits_that_never_bind_change_nothing() -> None:
         return np.array(out)
 
     base = {"dynamics": "gp", "backend": "cpu", "samples": 128, "seed": 6}
-    off = drive(PlannerConfig(**base, accel_limits="off"))
+    off = drive(PlannerConfig(**base))
     np.testing.assert_array_equal(drive(PlannerConfig(**base, accel_limits=(1e6, 1e6))), off)
-    assert not np.array_equal(drive(PlannerConfig(**base)), off)  # the default's bind
+    assert not np.array_equal(drive(PlannerConfig(**base, accel_limits=LIMITS)), off)  # these bind
 
 
-def test_the_default_limits_and_the_paper_form() -> None:
-    assert PlannerConfig().rate_limits == DEFAULT_ACCEL_LIMITS == (2.5, 3.2)
-    assert PlannerConfig(update="paper").rate_limits is None
-    assert PlannerConfig(accel_limits="off").rate_limits is None
-    assert PlannerConfig(update="paper", accel_limits=(1.0, 2.0)).rate_limits == (1.0, 2.0)
-    p = Planner(PlannerConfig(update="paper", backend="cpu", samples=8), synthetic_model())
+def test_no_limits_by_default() -> None:
+    assert PlannerConfig().accel_limits is None and PlannerConfig(update="paper").accel_limits is None
+    p = Planner(PlannerConfig(backend="cpu", samples=8), synthetic_model())
     assert np.all(np.isinf(p._sampling(np.zeros(5), p._nominal, np.ones(2)).rate_step))
 
 
-@pytest.mark.parametrize("value", [(-1.0, 3.2), (2.5, 0.0), (float("nan"), 3.2), (2.5, float("inf")), "fast"])
+@pytest.mark.parametrize("value", [(-1.0, 3.2), (2.5, 0.0), (float("nan"), 3.2), (2.5, float("inf")), "fast", (1.0,)])
 def test_bad_rate_limits_are_refused_by_name(value: object) -> None:
     with pytest.raises(ValidationError, match="accel_limits"):
         PlannerConfig(accel_limits=value)
 
 
 def test_the_sampling_bundle_carries_the_command_in_effect() -> None:
-    p = Planner(PlannerConfig(dynamics="unicycle", backend="cpu", samples=8), synthetic_model())
+    p = Planner(PlannerConfig(dynamics="unicycle", backend="cpu", samples=8, accel_limits=LIMITS), synthetic_model())
     x = np.array([0.0, 0.0, 0.0, 0.7, -5.0])
     s = p._sampling(x, p._nominal, np.ones(2))
     np.testing.assert_array_equal(s.u_prev, [0.7, -np.pi])  # before any plan: the state's velocities, in the box

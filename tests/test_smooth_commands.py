@@ -57,7 +57,7 @@ def test_savgol_matrix_is_scipys_filter() -> None:
 def _rollout_noise(memory: float, seed: int = 7, iteration: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """The kernel's unit noise eps / noise_std of one call with limits too wide to clip, and its numpy reference."""
     p = Planner(PlannerConfig(dynamics="unicycle", backend="cpu", samples=2048, horizon=30, seed=seed,
-                              v_limits=(-1e6, 1e6), omega_limits=(-1e6, 1e6), accel_limits="off"), synthetic_model())
+                              v_limits=(-1e6, 1e6), omega_limits=(-1e6, 1e6)), synthetic_model())
     sc = circle_lane()
     bundle, _ = p._terrain_setup(np.full(3, 1 / 3))
     from gpmppi.mppi.bundles import TaskBundle

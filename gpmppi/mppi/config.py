@@ -16,12 +16,10 @@ from gpmppi.mppi.bundles import CostBundle
 from gpmppi.mppi.critics.settings import CRITIC_KEYS, critic_settings, critic_weights
 from gpmppi.mppi.rng import noise_memory
 
-__all__ = ["DEFAULT_ACCEL_LIMITS", "DEFAULT_SMOOTHING_WINDOW", "PlannerConfig"]
+__all__ = ["DEFAULT_SMOOTHING_WINDOW", "PlannerConfig"]
 
 # update=smooth's Savitzky-Golay window [steps] unless one is set: 9 won the comparison in docs/smooth_commands.md
 DEFAULT_SMOOTHING_WINDOW = 9
-# update=smooth's rate limits unless some are set: a Nav2 velocity smoother's defaults [m/s^2, rad/s^2]
-DEFAULT_ACCEL_LIMITS = (2.5, 3.2)
 
 
 class PlannerConfig(BaseModel):
@@ -82,12 +80,11 @@ class PlannerConfig(BaseModel):
     )
     v_limits: tuple[float, float] = Field((0.0, 2.0), description="Commanded linear speed limits [m/s]")
     omega_limits: tuple[float, float] = Field((-pi, pi), description="Commanded yaw-rate limits [rad/s]")
-    accel_limits: tuple[float, float] | Literal["off"] | None = Field(
+    accel_limits: tuple[float, float] | None = Field(
         None,
-        description="|dv_ref/dt|, |domega_ref/dt| limits [m/s^2, rad/s^2] of the command sent, from one plan to the "
-        "next: every sampled sequence's first command keeps them from the command in effect, so the update chooses "
-        "within them; None = (2.5, 3.2), a Nav2 velocity smoother's defaults, under update=smooth and none under "
-        "update=paper; 'off' = none",
+        description="Optional |dv_ref/dt|, |domega_ref/dt| limits [m/s^2, rad/s^2] of the command sent, from one plan "
+        "to the next: every sampled sequence's first command keeps them from the command in effect, so the update "
+        "chooses within them (None: none; docs/smooth_commands.md has what they cost)",
     )
     smoothing_window: int | None = Field(
         None, ge=0,
@@ -150,9 +147,9 @@ class PlannerConfig(BaseModel):
             std = getattr(self, name)
             if std is not None and any(not np.isfinite(s) or s < 0 for s in std):
                 raise ValueError(f"{name} must be finite and >= 0, got {std}")
-        if isinstance(self.accel_limits, tuple) and any(not np.isfinite(a) or a <= 0 for a in self.accel_limits):
+        if self.accel_limits is not None and any(not np.isfinite(a) or a <= 0 for a in self.accel_limits):
             raise ValueError(f"accel_limits must be positive and finite [m/s^2, rad/s^2], got "
-                             f"{list(self.accel_limits)}; use 'off' for none")
+                             f"{list(self.accel_limits)}; leave it out for none")
         window = self.smoothing_window
         if window:
             if window % 2 == 0 or window <= self.smoothing_order:
@@ -171,15 +168,6 @@ class PlannerConfig(BaseModel):
             return 0
         window = min(DEFAULT_SMOOTHING_WINDOW, self.horizon - (1 - self.horizon % 2))  # odd, within the horizon
         return window if window > self.smoothing_order else 0
-
-    @property
-    def rate_limits(self) -> tuple[float, float] | None:
-        """The |dv_ref/dt|, |domega_ref/dt| limits the planner applies [m/s^2, rad/s^2]; None: none (`accel_limits`)."""
-        if self.accel_limits == "off":
-            return None
-        if self.accel_limits is not None:
-            return self.accel_limits
-        return DEFAULT_ACCEL_LIMITS if self.update == "smooth" else None
 
     @property
     def noise_memory(self) -> float:

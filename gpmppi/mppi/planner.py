@@ -147,7 +147,7 @@ class Planner:
             self._ex = ModelBundle.no_exact(2 * m)
         self._table_weights: np.ndarray | None = None
         # the largest change of the command sent from one plan to the next [m/s, rad/s] (`rng.sampled_command`)
-        limits = c.rate_limits
+        limits = c.accel_limits
         self._rate_step = np.full(2, np.inf) if limits is None else np.asarray(limits, dtype=np.float64) * c.dt
         self._smoother = savgol_matrix(c.horizon, c.savgol_window, c.smoothing_order) if c.savgol_window else None
         self._lateral_full = model.lateral_matrix()
@@ -470,7 +470,7 @@ class Planner:
         little, and this puts it back, as the kernels clip a sampled first command (`rng.sampled_command`)."""
         if self._smoother is not None:
             u = self._smoother @ u
-        if self.config.rate_limits is not None:
+        if self.config.accel_limits is not None:
             prev = self._command_in_effect(x)
             u = u.copy()
             u[0] = np.clip(u[0], prev - self._rate_step, prev + self._rate_step)
