@@ -46,6 +46,7 @@ def test_windows_and_memory_from_samples() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.exclusive
 def test_short_soak_reports_real_numbers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     port = free_port()

@@ -173,6 +173,7 @@ def _standing(obs: Observer, t0: float, t1: float) -> list[float]:
 
 
 @pytest.mark.slow
+@pytest.mark.exclusive
 def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     port = free_port()

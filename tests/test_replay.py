@@ -109,6 +109,7 @@ def play(path: Path, port: int, **kw) -> dict:
     return run_replay(ReplayRequest(path, connect=endpoint(port), delay_s=0.3, progress=False, **kw))
 
 
+@pytest.mark.exclusive
 def test_speed_1_keeps_the_recorded_timing_and_moves_stamps_to_now(tmp_path: Path) -> None:
     msgs = synthetic()
     log = write_log(tmp_path / "run.mcap", msgs)

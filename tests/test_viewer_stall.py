@@ -15,7 +15,7 @@ import pytest
 from tests.zenoh_helpers import Collector, ServiceProcess, client, free_port, heartbeats, router, settings, wait_for
 from tools.bench_view import transport_stall_numbers
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.exclusive]
 
 
 def test_stopped_viewer_does_not_delay_or_drop_the_control_path() -> None:

@@ -63,6 +63,7 @@ def _egress_thread(port: int, **config: object) -> tuple[Node, threading.Thread,
     return node, thread, cycle
 
 
+@pytest.mark.exclusive
 @pytest.mark.parametrize("timeout_s", [0.25, 0.22])
 def test_egress_loop_zeroes_within_20_ms_of_its_deadline_over_10_trials(timeout_s: float) -> None:
     """10 trials per timeout (20 in all): 0.25 s is the default, 0.22 s is off the 50 ms output grid (a loop that
