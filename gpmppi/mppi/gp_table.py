@@ -65,36 +65,19 @@ def collapse_table(
 def collapse_rows(src: np.ndarray, collapse_w: np.ndarray, out: np.ndarray, start: int, stop: int) -> None:
     """Rows start .. stop - 1 of the collapsed table from the `terrain_rows` rows `src` and the
     `collapse_weights` factors: out[i, c] = start_c + sum over terrains t of factor_tc src[i, 4t + c], summed in
-    terrain order in float32 (whoever collapses a row, lazily or whole, gets the same bits).
-
-    float32, the table's own precision: the four channels of a row then fill one vector register (in float64 the
-    collapse ran scalar, 7-8 ns a row against ~5). Each output is within 4 float32 roundings of the float64 sum of
-    its terms (`tests/test_lazy_collapse.py` checks the bound). Three terrains, as the shipped models have, are
-    written out: a loop over them was not vectorised; it sums the same terms in the same order."""
+    terrain order in float64 (whoever collapses a row, lazily or whole, gets the same bits)."""
     m = src.shape[1] // 4
-    f = np.float32
-    if m == 3:
-        b0, b1, b2, b3 = f(collapse_w[0]), f(collapse_w[1]), f(collapse_w[2]), f(collapse_w[3])
-        w00, w01, w02, w03 = f(collapse_w[4]), f(collapse_w[5]), f(collapse_w[6]), f(collapse_w[7])
-        w10, w11, w12, w13 = f(collapse_w[8]), f(collapse_w[9]), f(collapse_w[10]), f(collapse_w[11])
-        w20, w21, w22, w23 = f(collapse_w[12]), f(collapse_w[13]), f(collapse_w[14]), f(collapse_w[15])
-        for i in range(start, stop):
-            out[i, 0] = ((b0 + w00 * src[i, 0]) + w10 * src[i, 4]) + w20 * src[i, 8]
-            out[i, 1] = ((b1 + w01 * src[i, 1]) + w11 * src[i, 5]) + w21 * src[i, 9]
-            out[i, 2] = ((b2 + w02 * src[i, 2]) + w12 * src[i, 6]) + w22 * src[i, 10]
-            out[i, 3] = ((b3 + w03 * src[i, 3]) + w13 * src[i, 7]) + w23 * src[i, 11]
-        return
     for i in range(start, stop):
-        a0 = f(collapse_w[0])
-        a1 = f(collapse_w[1])
-        a2 = f(collapse_w[2])
-        a3 = f(collapse_w[3])
+        a0 = collapse_w[0]
+        a1 = collapse_w[1]
+        a2 = collapse_w[2]
+        a3 = collapse_w[3]
         for t in range(m):
             k = 4 * t
-            a0 += f(collapse_w[4 + k]) * src[i, k]
-            a1 += f(collapse_w[5 + k]) * src[i, k + 1]
-            a2 += f(collapse_w[6 + k]) * src[i, k + 2]
-            a3 += f(collapse_w[7 + k]) * src[i, k + 3]
+            a0 += collapse_w[4 + k] * src[i, k]
+            a1 += collapse_w[5 + k] * src[i, k + 1]
+            a2 += collapse_w[6 + k] * src[i, k + 2]
+            a3 += collapse_w[7 + k] * src[i, k + 3]
         out[i, 0] = a0
         out[i, 1] = a1
         out[i, 2] = a2
