@@ -82,10 +82,3 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
     with _run_lock(item.get_closest_marker("exclusive") is not None):
         yield
 
-
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """The modules with a `slow` test first, each module's tests kept together and in order: the workers start on
-    the long ones and finish on short ones, instead of one worker running a long test alone at the end (a module
-    split over two workers would also set its module fixtures up twice)."""
-    slow_modules = {item.module.__name__ for item in items if item.get_closest_marker("slow")}
-    items.sort(key=lambda item: item.module.__name__ not in slow_modules)  # stable: the order within each kept
