@@ -129,8 +129,9 @@ def _add_costs(
 def _ensure_slabs(
     grid: tuple, lazy_table: tuple, n_in: int, st: np.ndarray, cmd: np.ndarray, keys: np.ndarray, seen: np.ndarray,
 ) -> None:
-    """Collapse the table slabs this step's lookups read (a lazily collapsed table, `gp_table.ensure_block`) that
-    no earlier lookup of this thread made current in this plan: `seen` marks each `block_key` it checked."""
+    """Collapse the table slabs this step's lookups read (a lazily collapsed table, `gp_table.ensure_block_at`) that
+    no earlier lookup of this thread made current in this plan: `keys` gets each lookup's `block_key` (in int32),
+    `seen` marks each key this thread checked."""
     lazy, src, collapse_w, table, dims = lazy_table
     lo0, lo1, lo2, _l3, inv0, inv1, inv2, _i3, top0, top1, top2, _t3, last0, last1, last2, _a3, _s0, _s1, _s2 = grid
     d1 = np.int32(dims[1])
