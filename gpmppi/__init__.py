@@ -5,7 +5,9 @@ Two process-wide settings are made here, before any submodule imports numba:
 - numba's on-disk cache (`cache=True`) is keyed on the defining file's timestamp only, so a
   kernel that inlines a helper from another file silently keeps the old helper after an
   update. The cache therefore lives in a folder named by a hash of this package's sources:
-  any source change gives a fresh cache, and services still start warm between runs.
+  any source change gives a fresh cache, and services still start warm between runs. numba
+  writes that cache without a lock, so processes compiling at once could cross its entries;
+  `numba_cache_lock` adds one.
 - numba's OpenMP pool spin-waits between parallel regions by default; on a small shared
   machine the spinning threads steal the cores the kernels need (measured: a 2-thread kernel
   ran 2x slower than 1 thread). Passive waiting is chosen unless the user set a policy.
@@ -33,3 +35,7 @@ if "NUMBA_CACHE_DIR" not in os.environ:
     _cache_root = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
     os.environ["NUMBA_CACHE_DIR"] = str(_cache_root / "gpmppi" / "numba" / _source_digest())
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from gpmppi.numba_cache_lock import install as _lock_numba_cache  # noqa: E402 - after the settings above
+
+_lock_numba_cache()

@@ -1,0 +1,67 @@
+"""numba's kernel cache is written under a lock (`gpmppi.numba_cache_lock`): a real child process that compiles a
+cached function into a fresh cache folder cannot write the function's index while this process holds its lock."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from gpmppi.numba_cache_lock import index_lock
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="flock is POSIX")
+
+_CHILD = textwrap.dedent(
+    """
+    import sys
+    import gpmppi  # installs the lock before numba is imported
+    sys.path.insert(0, sys.argv[1])
+    import cached_twice
+    cache_file = cached_twice.add_one._cache._cache_file
+    print(cache_file._index_path, flush=True)
+    sys.stdin.readline()  # the parent holds the lock now
+    assert cached_twice.add_one(1.5) == 2.5
+    print("compiled", flush=True)
+    """
+)
+
+
+def _index_entries(index_path: str) -> dict:
+    with open(index_path, "rb") as f:
+        pickle.load(f)  # numba's version
+        _, overloads = pickle.loads(f.read())
+    return overloads
+
+
+def test_a_process_waits_for_the_cache_lock_before_writing_the_index(tmp_path: Path) -> None:
+    (tmp_path / "cached_twice.py").write_text(
+        "from numba import njit\n\n\n@njit(cache=True)\ndef add_one(x):\n    return x + 1\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    child = subprocess.Popen(
+        [sys.executable, "-c", _CHILD, str(tmp_path)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        index_path = child.stdout.readline().strip()
+        assert index_path.endswith(".nbi"), index_path
+        with index_lock(index_path, exclusive=True):
+            child.stdin.write("go\n")
+            child.stdin.flush()
+            time.sleep(2.0)  # compiling add_one takes well under this: unlocked, the child would have written
+            assert child.poll() is None, "the child finished while the lock was held"
+            assert not os.path.exists(index_path), "the index was written while the lock was held"
+        assert child.stdout.readline().strip() == "compiled"
+        assert child.wait(timeout=60) == 0
+    finally:
+        if child.poll() is None:
+            child.kill()
+    entries = _index_entries(index_path)
+    assert len(entries) == 1
+    ((key, data_name),) = entries.items()
+    assert str(key[0]) == "(float64,)" and (Path(index_path).parent / data_name).exists()
