@@ -3,7 +3,11 @@
 The planner runs in closed loop on the circle lane (kinematic plant) so the warm start is
 realistic; weights of 3 terrains are fixed (the grid table collapse then happens once), or with
 `--online-weights` move a little every iteration, as when the terrain estimator re-solves each
-cycle (the collapse of the grid table with the new weights is then part of every iteration).
+cycle. Then, as in the planner service, the new weights are handed to `Planner.prepare` when
+they arrive (it collapses ahead the table slabs the last plan read, off the state -> command
+path; timed apart as `prepare`) and the state then to `plan` (`--collapse-in-plan`: no
+`prepare`, the plan collapses what it reads); a planner with fixed weights runs interleaved in
+the same process and the moving / fixed ratio of the plans' p50 is reported.
 With `--vs pytorch-mppi` the same kinematic-unicycle problem (same S, N, dt,
 noise, lambda; a simple quadratic lane-tracking cost) runs through pytorch_mppi in the same
 process, interleaved with our plain (unicycle) and our chosen-model iterations.
@@ -54,7 +58,7 @@ def _load_model():
 class _Ours:
     """One of our planners in closed loop on the circle lane."""
 
-    def __init__(self, config, model, weights: np.ndarray, online_weights: bool = False) -> None:
+    def __init__(self, config, model, weights: np.ndarray, online_weights: bool = False, prepare: bool = True) -> None:
         from gpmppi.mppi.planner import Planner
 
         self.scenario = circle_lane()
@@ -62,12 +66,18 @@ class _Ours:
         self.weights = weights
         self.x = self.scenario.start.copy()
         self.online_weights = online_weights
+        self.prepare = prepare
+        self.prepare_ms: list[float] = []
         self.rng = np.random.default_rng(0)
 
     def step(self) -> float:
         if self.online_weights:  # a small seeded walk on the simplex, as the estimator's re-solves give
             w = np.clip(self.weights + self.rng.normal(0.0, 0.01, self.weights.shape), 0.01, 1.0)
             self.weights = w / w.sum()
+            if self.prepare:  # the weights arrive before the state, as in the planner service
+                t0 = time.perf_counter()
+                self.planner.prepare(self.weights)
+                self.prepare_ms.append((time.perf_counter() - t0) * 1e3)
         t0 = time.perf_counter()
         r = self.planner.plan(self.x, self.scenario.task, self.weights)
         dt_ms = (time.perf_counter() - t0) * 1e3
@@ -123,7 +133,7 @@ def _stats(ts: list[float]) -> dict[str, float]:
 
 
 def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: str, vs: str | None, iters: int,
-              warmup: int = 5, online_weights: bool = False) -> dict:
+              warmup: int = 5, online_weights: bool = False, prepare: bool = True) -> dict:
     from gpmppi.mppi.planner import PlannerConfig
 
     model, source = _load_model()
@@ -132,8 +142,10 @@ def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: s
     weights /= weights.sum()
     common = {"samples": samples, "horizon": horizon, "backend": backend, "gp_mode": gp}
     runners: dict[str, object] = {
-        "main": _Ours(PlannerConfig(dynamics=model_choice, **common), model, weights, online_weights)
+        "main": _Ours(PlannerConfig(dynamics=model_choice, **common), model, weights, online_weights, prepare)
     }
+    if online_weights:
+        runners["fixed"] = _Ours(PlannerConfig(dynamics=model_choice, **common), model, weights)
     cfg = runners["main"].planner.config  # type: ignore[attr-defined]
     if vs is not None:
         runners["plain"] = _Ours(PlannerConfig(dynamics="unicycle", **common), model, weights)
@@ -147,6 +159,16 @@ def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: s
     out = {"samples": samples, "horizon": horizon, "model": model_choice, "gp": gp,
            "backend": runners["main"].planner.backend, "iters": iters, "terrains": m,  # type: ignore[attr-defined]
            "model_source": source, **_stats(times["main"])}
+    if online_weights:
+        fixed = _stats(times["fixed"])
+        prep = runners["main"].prepare_ms[warmup:]  # type: ignore[attr-defined]
+        prepare_p50 = float(np.percentile(prep, 50)) if prep else 0.0
+        out.update({
+            "online_weights": True, "prepare": prepare, "fixed_p50_ms": fixed["p50_ms"],
+            "fixed_p99_ms": fixed["p99_ms"], "ratio_moving_vs_fixed": out["p50_ms"] / fixed["p50_ms"],
+            "prepare_p50_ms": prepare_p50, "prepare_p99_ms": float(np.percentile(prep, 99)) if prep else 0.0,
+            "ratio_cycle_vs_fixed": (out["p50_ms"] + prepare_p50) / fixed["p50_ms"],
+        })
     if vs is not None:
         plain, peer = _stats(times["plain"]), _stats(times["peer"])
         out.update({
@@ -175,11 +197,15 @@ def register(app: typer.Typer) -> None:
         online_weights: Annotated[
             bool, typer.Option("--online-weights", help="Move the terrain weights every iteration (table collapse)")
         ] = False,
+        collapse_in_plan: Annotated[
+            bool, typer.Option("--collapse-in-plan",
+                               help="With --online-weights: no Planner.prepare, the plan collapses what it reads")
+        ] = False,
     ) -> None:
         """Time planner iterations: p50/p99 ms and Hz (the machine's load adds noise: re-run when quiet)."""
         try:
             res = run_bench(samples, horizon, model.value, gp.value, backend.value, vs.value if vs else None, iters,
-                            online_weights=online_weights)
+                            online_weights=online_weights, prepare=not collapse_in_plan)
         except ValueError as e:  # e.g. --backend cuda on a machine without a GPU
             typer.echo(f"error: {e}", err=True)
             raise typer.Exit(2) from e
@@ -191,6 +217,13 @@ def register(app: typer.Typer) -> None:
             f"{res['terrains']} terrains ({res['model_source']} model), {iters} iterations"
         )
         typer.echo(f"  ours:  p50 {res['p50_ms']:.2f} ms  p99 {res['p99_ms']:.2f} ms  {res['hz']:.0f} Hz")
+        if online_weights:
+            typer.echo(f"  fixed weights: p50 {res['fixed_p50_ms']:.2f} ms  p99 {res['fixed_p99_ms']:.2f} ms")
+            where = "prepare (weights arrive)" if res["prepare"] else "no prepare (--collapse-in-plan)"
+            typer.echo(
+                f"  {where}: p50 {res['prepare_p50_ms']:.2f} ms  p99 {res['prepare_p99_ms']:.2f} ms; moving / fixed: "
+                f"plan {res['ratio_moving_vs_fixed']:.3f}x, prepare + plan {res['ratio_cycle_vs_fixed']:.3f}x"
+            )
         if vs is not None:
             typer.echo(f"  plain: p50 {res['plain_p50_ms']:.2f} ms  p99 {res['plain_p99_ms']:.2f} ms")
             typer.echo(f"  {res['peer']}: p50 {res['peer_p50_ms']:.2f} ms  p99 {res['peer_p99_ms']:.2f} ms")

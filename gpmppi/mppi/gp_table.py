@@ -107,6 +107,10 @@ def collapse_into(src: np.ndarray, collapse_w: np.ndarray, out: np.ndarray) -> N
 # Two threads may collapse one slab at once: both write the same bytes, and each publishes the slab with a
 # release store only after its own writes (`store_release`), which a reader's acquire load (`load_acquire`)
 # pairs with.
+# Read marks: `Planner.prepare` collapses ahead, for new weights, the slabs the last plan read (`collapse_slabs_at`),
+# and stamps them `-version`: current, not read yet. A reader that meets such a slab re-stamps it `version` (read)
+# without collapsing it. So the next collapse ahead covers the slabs the last plan read, not every slab ever
+# collapsed ahead (without the marks that set grew plan after plan: 3,488 slabs read a plan, 7,549 current).
 
 
 @njit(cache=True, inline="always")
@@ -147,10 +151,14 @@ def ensure_block_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, t
     stale = 0
     for b in range(8):
         slab = first + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)
-        if load_acquire(lazy, 1 + slab) != version:
-            stale |= 1 << b
-            for r in range(slab * rows, (slab + 1) * rows):
-                prefetch_row(src, r)
+        held = load_acquire(lazy, 1 + slab)
+        if held != version:
+            if held == -version:  # collapsed ahead, now read: mark it read
+                store_release(lazy, 1 + slab, version)
+            else:
+                stale |= 1 << b
+                for r in range(slab * rows, (slab + 1) * rows):
+                    prefetch_row(src, r)
     if stale == 0:
         return
     for b in range(8):
@@ -160,17 +168,17 @@ def ensure_block_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, t
             store_release(lazy, 1 + slab, version)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, parallel=True)
 def collapse_slabs_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
                       old: int, new: int) -> None:
-    """Collapse every slab that holds version `old` for the weights of version `new` (`collapse_w`), and stamp it
-    `new`: the slabs the last plan read, collapsed ahead of the next (`Planner.prepare`). Single-threaded, with
-    no plan running."""
+    """Collapse every slab read with version `old` (stamped `old`) for the weights of version `new` (`collapse_w`),
+    and stamp it `-new` (current, not read yet): the slabs the last plan read, collapsed ahead of the next
+    (`Planner.prepare`), on every core. With no plan running."""
     rows = dims[3]
-    for s in range(lazy.shape[0] - 1):
+    for s in prange(lazy.shape[0] - 1):
         if lazy[1 + s] == old:
             collapse_rows(src, collapse_w, table, s * rows, (s + 1) * rows)
-            lazy[1 + s] = new
+            lazy[1 + s] = -new
 
 
 def lazy_state(dims: np.ndarray) -> np.ndarray:
