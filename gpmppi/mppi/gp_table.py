@@ -170,13 +170,29 @@ def ensure_block_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, t
 
 @njit(cache=True, parallel=True)
 def collapse_slabs_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
-                      old: int, new: int) -> None:
+                      old: int, new: int, threads: int) -> None:
     """Collapse every slab read with version `old` (stamped `old`) for the weights of version `new` (`collapse_w`),
     and stamp it `-new` (current, not read yet): the slabs the last plan read, collapsed ahead of the next
-    (`Planner.prepare`), on every core. With no plan running."""
+    (`Planner.prepare`), on `threads` threads. With no plan running.
+
+    The slabs are listed first and dealt out in turn (slab i to thread i mod threads): the slabs a plan reads lie
+    together (near the robot's velocities), so a split of the table in halves gave one thread nearly all of them
+    and ran no faster than one thread. Each thread requests its next slab's rows while it collapses this one."""
     rows = dims[3]
-    for s in prange(lazy.shape[0] - 1):
+    n = lazy.shape[0] - 1
+    todo = np.empty(n, dtype=np.int64)
+    count = 0
+    for s in range(n):
         if lazy[1 + s] == old:
+            todo[count] = s
+            count += 1
+    for t in prange(threads):
+        for q in range(t, count, threads):
+            if q + threads < count:
+                ahead = todo[q + threads]
+                for r in range(ahead * rows, (ahead + 1) * rows):
+                    prefetch_row(src, r)
+            s = todo[q]
             collapse_rows(src, collapse_w, table, s * rows, (s + 1) * rows)
             lazy[1 + s] = -new
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from gpmppi.gp.model_file import GPModel
@@ -253,7 +254,8 @@ class Planner:
                 self._table_version += 1
                 if ahead:  # `prepare`: the slabs the last lazy plan made current, now
                     collapse_slabs_at(lazy, self._table_full, self._grid["collapse_w"], self._grid["table"],
-                                      self._grid["dims"], self._table_version - 1, self._table_version)
+                                      self._grid["dims"], self._table_version - 1, self._table_version,
+                                      numba.get_num_threads())
                 lazy[0] = self._table_version
             elif lazy[0] != 0 and self._planned_with_weights:
                 # the weights held for a second plan: collapse the rest of the table now (the slabs already current

@@ -1,5 +1,5 @@
-"""numba's kernel cache is written under a lock (`gpmppi.numba_cache_lock`): a real child process that compiles a
-cached function into a fresh cache folder cannot write the function's index while this process holds its lock."""
+"""numba's kernel cache: in the folder named by the sources' hash even where numba was imported first, and written
+under a lock (`gpmppi.numba_cache_lock`), in real child processes."""
 
 from __future__ import annotations
 
@@ -65,3 +65,22 @@ def test_a_process_waits_for_the_cache_lock_before_writing_the_index(tmp_path: P
     assert len(entries) == 1
     ((key, data_name),) = entries.items()
     assert str(key[0]) == "(float64,)" and (Path(index_path).parent / data_name).exists()
+
+
+_NUMBA_FIRST = textwrap.dedent(
+    """
+    import numba  # before gpmppi, as a script or a test module sorted by isort may
+    import gpmppi
+    from gpmppi.mppi.gp_table import collapse_rows
+    print(collapse_rows._cache._cache_path)
+    """
+)
+
+
+def test_the_kernel_cache_is_the_hashed_folder_even_where_numba_was_imported_first(tmp_path: Path) -> None:
+    """Imported first, numba would cache next to the sources, keyed on each file's own timestamp: a kernel then kept
+    a helper from another file as it was before that file changed (seen: lazily collapsed slabs an ulp off)."""
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+    env["XDG_CACHE_HOME"] = str(tmp_path)
+    out = subprocess.run([sys.executable, "-c", _NUMBA_FIRST], env=env, capture_output=True, text=True, check=True)
+    assert Path(out.stdout.strip()).is_relative_to(tmp_path / "gpmppi" / "numba"), out.stdout
