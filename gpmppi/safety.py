@@ -20,7 +20,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
-Reason = Literal["planner", "limit", "watchdog", "stale_command", "estop", "estop_heartbeat"]
+Reason = Literal["planner", "ramp", "limit", "watchdog", "stale_command", "estop", "estop_heartbeat"]
 ZERO_REASONS: frozenset[str] = frozenset({"watchdog", "stale_command", "estop", "estop_heartbeat"})
 
 
@@ -54,6 +54,12 @@ class SafetyConfig(BaseModel):
     yaw_accel_limit: float = Field(40.0, gt=0, description="|omega| increasing: |domega/dt| limit [rad/s^2]")
     yaw_decel_limit: float = Field(
         80.0, gt=0, description="|omega| decreasing or changing sign: |domega/dt| limit [rad/s^2]"
+    )
+    command_ramp_s: float | None = Field(
+        None, gt=0, description="spread each accepted command's change over this time [s], in equal steps, one per "
+        "output (the first at acceptance): 0.1 with rate_hz 20 and a 10 Hz planner sends half the change at once "
+        "and the rest one period later, so what the base sees changes at the planner's rate instead of twice it "
+        "in one period (None: step at once)"
     )
     jerk_limit: float | None = Field(None, gt=0, description="|d2v/dt2| limit [m/s^3] (None: off)")
     yaw_jerk_limit: float | None = Field(None, gt=0, description="|d2omega/dt2| limit [rad/s^3] (None: off)")
@@ -97,6 +103,7 @@ class Safety:
         self.accel = np.zeros(2)  # the acceleration of the last output step (for the jerk limit)
         self.command: np.ndarray | None = None
         self.command_time = -np.inf  # arrival of the last accepted command
+        self.ramp_from = np.zeros(2)  # the output when it arrived (`command_ramp_s`)
         self.refused_time = -np.inf  # arrival of the last refused one
         self.estop = False  # latched: set by an engaged EStop, cleared only by a released one
         self.estop_seen = -np.inf  # arrival of the last EStop (heartbeat mode)
@@ -135,6 +142,7 @@ class Safety:
             return refusal
         self.command = np.array([v_ref, omega_ref], dtype=np.float64)
         self.command_time = now
+        self.ramp_from = self.last_output.copy()
         return None
 
     def on_estop(self, engaged: bool, now: float) -> bool:
@@ -186,10 +194,18 @@ class Safety:
         s = self.s
         v, omega = self.command
         target = np.array([np.clip(v, *s.v_limits), np.clip(omega, -s.omega_limit, s.omega_limit)])
+        ramping = False
+        if s.command_ramp_s is not None:
+            share = (now - self.command_time + 1.0 / s.rate_hz) / s.command_ramp_s
+            if share < 1.0 - 1e-9:
+                target = self.ramp_from + (target - self.ramp_from) * max(share, 0.0)
+                ramping = True
         # the budget is the time since the last output, capped at two periods: a stalled loop banks no jump
         dt = 1.0 / s.rate_hz if self.last_time is None else min(max(0.0, now - self.last_time), 2.0 / s.rate_hz)
         out = np.array([self._slew(i, target[i], dt) for i in range(2)])
         reason: Reason = "planner" if np.allclose(out, self.command, rtol=0.0, atol=1e-9) else "limit"
+        if reason == "limit" and ramping and np.allclose(out, target, rtol=0.0, atol=1e-9):
+            reason = "ramp"
         if reason == "limit":
             self._count("limited")
         self.last_output = out

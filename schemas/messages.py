@@ -73,8 +73,9 @@ class BaseCommand(Message):
 
     v: float = Field(description="forward velocity [m/s]")
     omega: float = Field(description="yaw rate [rad/s]")
-    reason: Literal["planner", "watchdog", "estop", "limit", "stale_command", "estop_heartbeat"] = Field(
-        "planner", description="why this command has this value: planner (as commanded), limit (velocity, "
+    reason: Literal["planner", "ramp", "watchdog", "estop", "limit", "stale_command", "estop_heartbeat"] = Field(
+        "planner", description="why this command has this value: planner (as commanded), ramp (on its way to a new "
+        "command, egress's command_ramp_s), limit (velocity, "
         "acceleration or jerk limited), watchdog (no command within the timeout: zero), stale_command (commands "
         "arrive but their stamps are too old: zero), estop (engaged: zero), estop_heartbeat (the e-stop source "
         "went silent: zero)"

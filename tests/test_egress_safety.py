@@ -177,6 +177,42 @@ def test_jerk_limit_bounds_the_change_of_acceleration_without_overshoot() -> Non
     assert _ramp(unlimited, 1.0, 0.0, dt, dt * 1.5)[0][0] > v[1]  # the jerk limit did slow the start
 
 
+def test_command_ramp_spreads_each_change_over_the_planner_period() -> None:
+    """With `command_ramp_s` 0.1 at 20 Hz, each new 10 Hz command is sent half at acceptance and whole one period
+    later: what the base receives at 20 Hz changes at the commands' own rate, not twice it in one period."""
+    s = _safety(command_ramp_s=0.1)
+    sent = []
+    omegas = [0.0, 0.4, 0.4, -0.2, 1.0]
+    for i, w in enumerate(omegas):
+        t = 0.1 * i
+        _command(s, 1.0, w, now=t)
+        sent += [s.output(t), s.output(t + 0.05)]
+    got = np.array([o.omega for o in sent])
+    want = np.repeat(omegas, 2) - np.diff(np.concatenate([[0.0], omegas])).repeat(2) * np.tile([0.5, 0.0], 5)
+    np.testing.assert_allclose(got, want, atol=1e-12)
+    rates = np.abs(np.diff(got)) / 0.05
+    assert rates.max() == pytest.approx(np.abs(np.diff(omegas)).max() / 0.1)  # the 10 Hz commands' own rate
+    assert [o.reason for o in sent[2:4]] == ["ramp", "planner"]  # the command itself once the ramp is done
+    assert sent[1].omega == 0.0 and sent[5].omega == 0.4  # exactly the planner's command, no rounding
+    assert "limited" not in s.counts
+    # a new command mid-ramp starts from what was sent last
+    _command(s, 1.0, 0.0, now=0.5)
+    assert s.output(0.5).omega == pytest.approx(0.5)
+    _command(s, 1.0, 0.0, now=0.52)
+    assert s.output(0.52).omega == pytest.approx(0.25)
+    # zeros are not ramped: the watchdog zeroes at once
+    assert s.output(0.52 + 0.25).reason == "watchdog" and s.last_output.tolist() == [0.0, 0.0]
+
+
+def test_command_ramp_still_obeys_the_acceleration_limits() -> None:
+    s = _safety(command_ramp_s=0.1, yaw_accel_limit=2.0)
+    _command(s, 0.0, 0.0, now=0.0)
+    s.output(0.0)
+    _command(s, 0.0, 1.0, now=0.1)
+    first = s.output(0.1)
+    assert first.omega == pytest.approx(2.0 * 0.1) and first.reason == "limit"  # the limit binds before the ramp
+
+
 # ---- e-stop --------------------------------------------------------------------------------------------
 def test_estop_latches_zero_until_an_explicit_release() -> None:
     s = _safety(accel_limit=2.0)
@@ -232,7 +268,7 @@ def test_ros2_output_must_keep_at_least_10_hz_and_zero_must_be_allowed() -> None
 
 def test_every_reason_fits_the_wire_message() -> None:
     wire = set(get_args(BaseCommand.model_fields["reason"].annotation))
-    assert {"planner", "watchdog", "estop", "limit", "stale_command", "estop_heartbeat"} <= wire
+    assert {"planner", "ramp", "watchdog", "estop", "limit", "stale_command", "estop_heartbeat"} <= wire
     assert ZERO_REASONS <= wire
     for reason in wire:
         BaseCommand(v=0.0, omega=0.0, reason=reason)

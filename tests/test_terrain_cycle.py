@@ -176,7 +176,8 @@ def test_the_shipped_launch_files_give_their_limits_and_sources() -> None:
     assert robot.safety is not None and (robot.safety.accel_limit, robot.safety.decel_limit) == (2.0, 4.0)
     assert robot.safety.v_limits == (0.0, 2.0) and robot.terrain.command_source == "base_cmd"
     sim = deployed_path(REPO / "deploy" / "sim.yaml")
-    assert sim.safety == SafetyConfig() and sim.terrain == TerrainCycleConfig(base_period_s=0.01)  # the sim's steps
+    # the sim's steps; each 10 Hz command ramped over its period
+    assert sim.safety == SafetyConfig(command_ramp_s=0.1) and sim.terrain == TerrainCycleConfig(base_period_s=0.01)
 
 
 def test_the_services_settings_carry_the_cycles_checks() -> None:
