@@ -127,6 +127,7 @@ def plugin_runs(
             proc.wait()
 
 
+@pytest.mark.slow  # the kernels compiled with the plug-in, in a fresh process and an empty cache per backend
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported(
     backend: str, plugin_runs: dict[str, subprocess.Popen]
