@@ -81,14 +81,21 @@ from gpmppi.scenarios import circle_lane, paper_obstacle_scene
 
 backend = sys.argv[1]
 model = synthetic_model(nodes=4, n_train=20)
+scored = []
+split = backends.critic_costs
+def recording_split(*bundles):  # the plan's nominal scoring, recorded to score the same sequence by the kernel
+    scored.append(bundles)
+    return split(*bundles)
+backends.critic_costs = recording_split
 out = {}
 for name, scenario in (("lane", circle_lane()), ("goal", paper_obstacle_scene())):
     p = Planner(PlannerConfig(backend=backend, samples=32, horizon=8, critics={"turning": {"weight": 2.0}}), model)
     r = p.plan(scenario.start, scenario.task, np.array([0.5, 0.3, 0.2]))
-    # the nominal sequence's cost by the backend's own kernel, with and without the new critic
+    # the nominal sequence's cost by the CPU rollout kernel, which must count the new critic as the split does
+    kernel_cost = float(backends.rollouts("cpu", *scored[-1], 1, 0)[1][0])
     cost = p._costs[name]
-    out[name] = {"critics": r.critic_costs, "cost": r.cost, "sample_costs": r.sample_costs.tolist(),
-                 "weight": cost.weights["turning"]}
+    out[name] = {"critics": r.critic_costs, "cost": r.cost, "kernel_cost": kernel_cost,
+                 "sample_costs": r.sample_costs.tolist(), "weight": cost.weights["turning"]}
     p0 = Planner(PlannerConfig(backend=backend, samples=32, horizon=8, critics={"turning": {"enabled": False}}), model)
     off = p0.plan(scenario.start, scenario.task, np.array([0.5, 0.3, 0.2]))
     out[name]["sample_costs_off"] = off.sample_costs.tolist()
@@ -140,7 +147,8 @@ def test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported(
     out = json.loads(stdout.split("RESULT ", 1)[1])
     for name, r in out.items():
         assert list(r["critics"])[-1] == "turning" and r["critics"]["turning"] > 0.0, (name, r["critics"])
-        assert sum(r["critics"].values()) == pytest.approx(r["cost"], rel=1e-8), name
+        assert sum(r["critics"].values()) == r["cost"], name
+        assert r["cost"] == pytest.approx(r["kernel_cost"], rel=1e-8), name  # the kernel counts it as the split
         # the backend's kernel counts it: the same samples (same seed) cost more with it than without
         pairs = list(zip(r["sample_costs"], r["sample_costs_off"], strict=True))
         assert all(on >= off for on, off in pairs) and any(on > off for on, off in pairs), name

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from nominal_scoring import kernel_cost, record_nominal_scoring
 from pydantic import ValidationError
 
 from gpmppi.models.kinematic_unicycle import kinematic_step
@@ -47,8 +48,9 @@ def test_every_sampled_first_command_keeps_the_rate_limits_and_the_later_steps_a
     assert np.mean(np.abs(np.diff(u[:, 1:, 1], axis=1)) > STEP[1]) > 0.5
 
 
-def _command_changes(scenario, **settings: object) -> np.ndarray:  # noqa: ANN001
+def _command_changes(scenario, monkeypatch: pytest.MonkeyPatch, **settings: object) -> np.ndarray:  # noqa: ANN001
     """|change| of the command sent from the one in effect, over 30 cycles of a closed loop [m/s, rad/s]."""
+    scored = record_nominal_scoring(monkeypatch)
     sc = scenario()
     p = Planner(PlannerConfig(dynamics="gp", backend="cpu", samples=256, seed=5, **settings), synthetic_model())
     x = sc.start.copy()
@@ -58,18 +60,19 @@ def _command_changes(scenario, **settings: object) -> np.ndarray:  # noqa: ANN00
         r = p.plan(x, sc.task, W)
         np.testing.assert_array_equal(r.controls[0], r.control)
         changes.append(np.abs(r.control - prev))
-        # the nominal sequence's critics, scored with the kernels' clipping, still sum to the plan's cost
-        assert sum(r.critic_costs.values()) == pytest.approx(r.cost, rel=1e-9, abs=1e-9)
+        # the nominal sequence's critics, scored with the kernels' clipping, still sum to the kernel's cost of it
+        assert r.cost == sum(r.critic_costs.values())
+        assert r.cost == pytest.approx(kernel_cost(scored[-1]), rel=1e-9, abs=1e-9)
         prev = r.control
         x = kinematic_step(x, r.control, DT)
     return np.array(changes)
 
 
 @pytest.mark.parametrize("scenario", [circle_lane, square_lane, paper_obstacle_scene])
-def test_the_commands_sent_keep_the_rate_limits(scenario) -> None:  # noqa: ANN001
-    changes = _command_changes(scenario, accel_limits=LIMITS)
+def test_the_commands_sent_keep_the_rate_limits(scenario, monkeypatch: pytest.MonkeyPatch) -> None:  # noqa: ANN001
+    changes = _command_changes(scenario, monkeypatch, accel_limits=LIMITS)
     assert np.all(changes <= STEP + 1e-12), changes.max(axis=0)
-    free = _command_changes(scenario)  # the same loop unlimited oversteps them
+    free = _command_changes(scenario, monkeypatch)  # the same loop unlimited oversteps them
     assert np.any(free > STEP), free.max(axis=0)
 
 

@@ -401,10 +401,13 @@ class Planner:
         states, covs, _ = self._propagate(x, new_u, model, cov0)
         out_bounds, clamped_after = self._bounds(task, states, covs)
         nominal_sampling = self._sampling(x, new_u, np.zeros(2))
-        _, nominal_cost, _ = backends.rollouts("cpu", model, task_bundle, nominal_sampling, cost, 1, 0)
-        nominal_cost = nominal_cost + noise_cost
+        # the nominal sequence scored once: each critic's share, whose sum is its cost (the kernels add the same
+        # terms step by step; tests/test_critics.py compares the sum with the kernel's cost of this sequence)
         critic_costs = backends.critic_costs(model, task_bundle, nominal_sampling, cost)
         critic_costs["variance"] += noise_cost
+        nominal_cost = sum(critic_costs.values())
+        if not np.isfinite(nominal_cost):
+            nominal_cost = np.inf  # as the kernels score a rollout that left the finite
         t4 = time.perf_counter()
 
         control = new_u[0].copy()
@@ -433,7 +436,7 @@ class Planner:
             tightened=out_bounds,
             sample_states=xy,
             sample_costs=costs[:n_xy].copy(),
-            cost=float(nominal_cost[0]),
+            cost=float(nominal_cost),
             weights=w,
             timings_ms={
                 "total": (t_end - t_start) * 1e3,
