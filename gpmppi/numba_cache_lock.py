@@ -42,8 +42,12 @@ def index_lock(index_path: str, exclusive: bool) -> Iterator[None]:
     if fcntl is None:
         yield
         return
-    os.makedirs(os.path.dirname(index_path), exist_ok=True)
-    fd = os.open(lock_path(index_path), os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        os.makedirs(os.path.dirname(index_path), exist_ok=True)
+        fd = os.open(lock_path(index_path), os.O_RDWR | os.O_CREAT, 0o666)
+    except OSError:  # a folder numba can read but this process cannot write: numba's own (unlocked) behaviour
+        yield
+        return
     try:
         fcntl.flock(fd, fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH)
         yield

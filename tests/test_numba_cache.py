@@ -84,3 +84,13 @@ def test_the_kernel_cache_is_the_hashed_folder_even_where_numba_was_imported_fir
     env["XDG_CACHE_HOME"] = str(tmp_path)
     out = subprocess.run([sys.executable, "-c", _NUMBA_FIRST], env=env, capture_output=True, text=True, check=True)
     assert Path(out.stdout.strip()).is_relative_to(tmp_path / "gpmppi" / "numba"), out.stdout
+
+
+def test_a_cache_folder_that_cannot_take_a_lock_file_is_read_unlocked(tmp_path: Path) -> None:
+    """numba may load a cache where no lock file can be made (a read-only install): no lock then, and no error."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    index = blocker / "cache" / "f-1.py311.nbi"  # under a file: no folder, so no lock file, even for root
+    with index_lock(str(index), exclusive=False):
+        pass
+    assert not Path(str(index) + ".lock").exists()
