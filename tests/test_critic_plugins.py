@@ -11,6 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from cuda_mode import cuda_env
 
 from gpmppi.mppi.bundles import CRITICS
 from gpmppi.mppi.config import PlannerConfig
@@ -122,8 +123,8 @@ def plugin_runs(
         script = d / "turning_critic.py"
         script.write_text(PLUGIN)
         env = dict(os.environ, NUMBA_CACHE_DIR=str(d / "cache"), PYTHONWARNINGS="ignore::RuntimeWarning")
-        if backend == "cuda":
-            env["NUMBA_ENABLE_CUDASIM"] = "1"
+        if backend == "cuda":  # the simulator, or the GPU where the tests run on one (tests/cuda_mode.py)
+            env = cuda_env(**env)
         with (d / "stdout").open("w") as out, (d / "stderr").open("w") as err:  # files: no pipe fills up
             runs[backend] = subprocess.Popen([sys.executable, str(script), backend], cwd=REPO, env=env, stdout=out,
                                              stderr=err, text=True)

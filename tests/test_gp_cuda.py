@@ -2,19 +2,22 @@
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
+
+from cuda_mode import cuda_env
 
 REPO = Path(__file__).resolve().parents[1]
 
 SCRIPT = textwrap.dedent(
     """
     import numpy as np
+    import os
     from numba import config
-    assert config.ENABLE_CUDASIM, "the CUDA simulator is not enabled"
+    # the simulator unless the tests run on a real device (tests/cuda_mode.py)
+    assert bool(config.ENABLE_CUDASIM) == (os.environ.get("GPMPPI_CUDA_DEVICE") != "1")
     from gpmppi.gp.cuda_kernels import cuda_predict
     from gpmppi.gp.exact import ExactPredictor
     from gpmppi.gp.grid import GridPredictor, build_grid
@@ -47,7 +50,7 @@ SCRIPT = textwrap.dedent(
 
 
 def test_cuda_device_functions_match_cpu() -> None:
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
+    env = cuda_env()
     proc = subprocess.run([sys.executable, "-c", SCRIPT], cwd=REPO, env=env, capture_output=True, text=True,
                           timeout=300)
     assert proc.returncode == 0, proc.stdout + proc.stderr

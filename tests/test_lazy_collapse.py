@@ -3,9 +3,6 @@ those with the table collapsed whole, slabs that match the whole collapse, and a
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -174,24 +171,3 @@ def test_a_lookup_outside_the_cells_writes_nothing(model) -> None:
     np.testing.assert_array_equal(grid["table"], table_before)
 
 
-CUDA_REFUSES_LAZY = """
-import numpy as np
-from gpmppi.mppi.cuda_backend import cuda_rollouts
-from gpmppi.mppi.planner import Planner, PlannerConfig
-from gpmppi.mppi.synthetic import synthetic_model
-from gpmppi.scenarios import circle_lane
-p = Planner(PlannerConfig(backend="cpu", samples=8, horizon=4), synthetic_model(nodes=4, n_train=20))
-model, _ = p._terrain_setup(np.array([0.5, 0.3, 0.2]))
-try:
-    cuda_rollouts(model.args(), None, None, None, None)
-except ValueError as exc:
-    print(exc)
-"""
-
-
-def test_the_cuda_backend_refuses_a_lazily_collapsed_table() -> None:
-    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1")
-    proc = subprocess.run([sys.executable, "-c", CUDA_REFUSES_LAZY], cwd=REPO, env=env, capture_output=True,
-                          text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "collapsed lazily" in proc.stdout and "table_collapse='whole'" in proc.stdout

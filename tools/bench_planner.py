@@ -39,6 +39,11 @@ class BackendChoice(str, Enum):
     cuda = "cuda"
 
 
+class CollapseChoice(str, Enum):
+    lazy = "lazy"
+    whole = "whole"
+
+
 class Peer(str, Enum):
     pytorch_mppi = "pytorch-mppi"
 
@@ -68,7 +73,10 @@ class _Ours:
         self.online_weights = online_weights
         self.prepare = prepare
         self.prepare_ms: list[float] = []
+        self.phases_ms: list[dict[str, float]] = []  # each plan's `timings_ms`
         self.rng = np.random.default_rng(0)
+        if self.planner.device is not None:  # CUDA: time the uploads, the kernel and the copies back (CUDA events)
+            self.planner.device.timed = True
 
     def step(self) -> float:
         if self.online_weights:  # a small seeded walk on the simplex, as the estimator's re-solves give
@@ -81,8 +89,19 @@ class _Ours:
         t0 = time.perf_counter()
         r = self.planner.plan(self.x, self.scenario.task, self.weights)
         dt_ms = (time.perf_counter() - t0) * 1e3
+        self.phases_ms.append(r.timings_ms)
         self.x = kinematic_step(self.x, r.control, 0.1)
         return dt_ms
+
+    def phases(self, warmup: int) -> dict[str, float]:
+        """The p50 of each phase of the timed plans [ms]: the plan's own split, and on CUDA the device's."""
+        kept = self.phases_ms[warmup:]
+        out = {name: float(np.percentile([t[name] for t in kept], 50)) for name in kept[0]} if kept else {}
+        device = self.planner.device
+        if device is not None:
+            out.update({f"cuda_{name}": float(np.percentile(ms[warmup:], 50)) for name, ms in device.phase_ms.items()
+                        if ms[warmup:]})
+        return out
 
 
 class _Peer:
@@ -133,14 +152,16 @@ def _stats(ts: list[float]) -> dict[str, float]:
 
 
 def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: str, vs: str | None, iters: int,
-              warmup: int = 5, online_weights: bool = False, prepare: bool = True) -> dict:
+              warmup: int = 5, online_weights: bool = False, prepare: bool = True,
+              table_collapse: str = "lazy") -> dict:
     from gpmppi.mppi.planner import PlannerConfig
 
     model, source = _load_model()
     m = len(model.terrains)
     weights = np.linspace(1.0, 2.0, m)
     weights /= weights.sum()
-    common = {"samples": samples, "horizon": horizon, "backend": backend, "gp_mode": gp}
+    common = {"samples": samples, "horizon": horizon, "backend": backend, "gp_mode": gp,
+              "table_collapse": table_collapse}
     runners: dict[str, object] = {
         "main": _Ours(PlannerConfig(dynamics=model_choice, **common), model, weights, online_weights, prepare)
     }
@@ -156,9 +177,10 @@ def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: s
             t = r.step()  # type: ignore[attr-defined]
             if i >= warmup:
                 times[name].append(t)
-    out = {"samples": samples, "horizon": horizon, "model": model_choice, "gp": gp,
+    out = {"samples": samples, "horizon": horizon, "model": model_choice, "gp": gp, "table_collapse": table_collapse,
            "backend": runners["main"].planner.backend, "iters": iters, "terrains": m,  # type: ignore[attr-defined]
-           "model_source": source, **_stats(times["main"])}
+           "model_source": source, **_stats(times["main"]),
+           "phases_p50_ms": runners["main"].phases(warmup)}  # type: ignore[attr-defined]
     if online_weights:
         fixed = _stats(times["fixed"])
         prep_ms = runners["main"].prepare_ms[warmup:]  # type: ignore[attr-defined]
@@ -197,6 +219,10 @@ def register(app: typer.Typer) -> None:
         online_weights: Annotated[
             bool, typer.Option("--online-weights", help="Move the terrain weights every iteration (table collapse)")
         ] = False,
+        table_collapse: Annotated[
+            CollapseChoice, typer.Option("--table-collapse", help="GP table: collapsed lazily (on CUDA: on the device) "
+                                         "or whole (on CUDA: on the host, then uploaded)")
+        ] = CollapseChoice.lazy,
         collapse_in_plan: Annotated[
             bool, typer.Option("--collapse-in-plan",
                                help="With --online-weights: no Planner.prepare, the plan collapses what it reads")
@@ -205,7 +231,8 @@ def register(app: typer.Typer) -> None:
         """Time planner iterations: p50/p99 ms and Hz (the machine's load adds noise: re-run when quiet)."""
         try:
             res = run_bench(samples, horizon, model.value, gp.value, backend.value, vs.value if vs else None, iters,
-                            online_weights=online_weights, prepare=not collapse_in_plan)
+                            online_weights=online_weights, prepare=not collapse_in_plan,
+                            table_collapse=table_collapse.value)
         except ValueError as e:  # e.g. --backend cuda on a machine without a GPU
             typer.echo(f"error: {e}", err=True)
             raise typer.Exit(2) from e
@@ -217,6 +244,7 @@ def register(app: typer.Typer) -> None:
             f"{res['terrains']} terrains ({res['model_source']} model), {iters} iterations"
         )
         typer.echo(f"  ours:  p50 {res['p50_ms']:.2f} ms  p99 {res['p99_ms']:.2f} ms  {res['hz']:.0f} Hz")
+        typer.echo("  phases (p50 ms): " + ", ".join(f"{k} {v:.3f}" for k, v in res["phases_p50_ms"].items()))
         if online_weights:
             typer.echo(f"  fixed weights: p50 {res['fixed_p50_ms']:.2f} ms  p99 {res['fixed_p99_ms']:.2f} ms")
             where = "prepare (weights arrive)" if res["prepare"] else "no prepare (--collapse-in-plan)"

@@ -40,7 +40,8 @@ class PlannerConfig(BaseModel):
         "lazy",
         description="Grid GP on the CPU: collapse the table for new terrain weights slab by slab as the rollouts "
         "reach them (lazy) or all of it at once (whole); the plans are identical, lazy is cheaper when the weights "
-        "move every cycle. The CUDA backend always collapses whole",
+        "move every cycle. On CUDA: lazy collapses the device's table on the device (the host's lazily, for the "
+        "nominal), whole collapses on the host and uploads the table",
     )
     backend: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="Kernels: numba CPU, numba CUDA (grid GP only), or auto (CUDA when numba finds a GPU)"

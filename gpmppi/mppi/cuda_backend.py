@@ -24,6 +24,7 @@ from gpmppi.mppi import costs as critic
 from gpmppi.mppi import dynamics, gp_table, rng
 from gpmppi.mppi.bundles import (
     K_EXIT_DISCOUNT,
+    M_COLLAPSE_W,
     M_DIMS,
     M_DYN_MODE,
     M_EDD5,
@@ -33,6 +34,7 @@ from gpmppi.mppi.bundles import (
     M_LAZY,
     M_LO,
     M_TABLE,
+    M_TABLE_SRC,
     M_THETA,
     N_COST_TERMS,
     O_COST,
@@ -73,6 +75,7 @@ _sampled_command = device_version(rng.sampled_command)
 _interp4 = device_version(gp_table.interp4)
 _interp4_simplex = device_version(gp_table.interp4_simplex)
 _advance = device_version(dynamics.advance)
+_collapse_rows = device_version(gp_table.collapse_rows)
 # the critics' sums from the terms' device twins (the CPU sums are closures, which `device_version` cannot rebuild)
 for _kind, _sums in build_sums(cuda.jit(device=True, inline=True), device_version).items():
     set_device_version(getattr(critic, f"_{_kind}_stage"), _sums.stage)
@@ -174,6 +177,19 @@ def _rollout_kernel(model, task, sampling, cost, out):
     cost_out[s] = total
 
 
+@cuda.jit(cache=True)
+def _collapse_kernel(src, collapse_w, out):
+    """One row of the collapsed table per thread (`gp_table.collapse_rows`: the same sum in the same order)."""
+    i = cuda.grid(1)
+    if i < src.shape[0]:
+        _collapse_rows(src, collapse_w, out, i, i + 1)
+
+
+# what stands in the kernel's model tuple for the host's lazily collapsed table and its marks: the device collapses
+# its own table whole (`DeviceInputs.collapsed_table`)
+_NO_LAZY = np.zeros(1, dtype=np.int64)
+_NO_TABLE = np.zeros((1, 4), dtype=np.float32)
+
 # arrays up to this size are compared by content to their device copy's source; larger ones by identity
 _COMPARE_BYTES = 4096
 
@@ -189,10 +205,17 @@ class DeviceInputs:
     'sampling'), for the tests and benchmarks.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, timed: bool = False) -> None:
         self._copies: dict[tuple[str, int], tuple[np.ndarray, object]] = {}
         self._outputs: dict[tuple, object] = {}
         self.uploads: dict[str, int] = {"model": 0, "task": 0, "sampling": 0}
+        self.collapses = 0  # the tables collapsed on the device (`collapsed_table`)
+        self._versions: dict[tuple[str, int], int] = {}  # uploads per array: what a device copy holds
+        self._collapsed: tuple[tuple[int, int], object] | None = None  # (the rows' and weights' versions, table)
+        # with `timed`, each call's phases in ms from CUDA events: what was uploaded, the table collapse, the
+        # rollout kernel, the copies back (a benchmark's split; it synchronises once more per plan)
+        self.timed = timed
+        self.phase_ms: dict[str, list[float]] = {"upload": [], "collapse": [], "kernel": [], "download": []}
 
     def bundle(self, name: str, args: tuple) -> tuple:
         """A bundle's tuple with its arrays replaced by their device copies (scalars as they are)."""
@@ -207,12 +230,34 @@ class DeviceInputs:
             if source is host or (small and source.shape == host.shape and source.dtype == host.dtype
                                   and np.array_equal(source, host)):
                 return device
-        device = cuda.to_device(host)
+            if device.shape == host.shape and device.dtype == host.dtype:
+                # into the copy already there: a new device array per plan would cost an allocation each time
+                device.copy_to_device(host)
+            else:
+                device = cuda.to_device(host)
+        else:
+            device = cuda.to_device(host)
         # keep a large array itself (its identity is the test, and holding it keeps its id from being reused), a
         # copy of a small one (its content is the test, even if the caller reuses the array)
         self._copies[key] = (host if host.nbytes > _COMPARE_BYTES else host.copy(), device)
         self.uploads[name] += 1
+        self._versions[key] = self._versions.get(key, 0) + 1
         return device
+
+    def collapsed_table(self, src: np.ndarray, collapse_w: np.ndarray) -> object:
+        """The device's table collapsed from the per-terrain rows `src` with `collapse_w` (`gp_table.collapse_weights`):
+        `src` uploaded once, the collapse run again only when the weights' bytes change."""
+        d_src = self._array("model", M_TABLE_SRC, src)
+        d_w = self._array("model", M_COLLAPSE_W, collapse_w)
+        held = (self._versions[("model", M_TABLE_SRC)], self._versions[("model", M_COLLAPSE_W)])
+        if self._collapsed is not None and self._collapsed[0] == held:
+            return self._collapsed[1]
+        table = self.output((src.shape[0], 4), np.dtype(np.float32))
+        blocks = (src.shape[0] + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
+        _collapse_kernel[blocks, THREADS_PER_BLOCK](d_src, d_w, table)
+        self._collapsed = (held, table)
+        self.collapses += 1
+        return table
 
     def output(self, shape: tuple, dtype: np.dtype) -> object:
         """A device array for an output of this shape, allocated once."""
@@ -231,18 +276,38 @@ def cuda_rollouts(
     `device` keeps the inputs on the device between calls (a planner holds one); None uploads everything."""
     if model[M_DYN_MODE] == DYN_GP and model[M_GP_MODE] == GP_EXACT:
         raise ValueError("the CUDA backend evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
-    if model[M_LAZY][0] != 0:
-        raise ValueError("the model's GP table is collapsed lazily (a CPU planner's); the CUDA kernel reads a table "
-                         "collapsed whole (table_collapse='whole')")
     device = device if device is not None else DeviceInputs()
+    events = [cuda.event() for _ in range(5)] if device.timed else None
+    if events:
+        events[0].record()
     eps, costs, xy = out[O_EPS], out[O_COST], out[O_XY]
     d_out = (device.output(eps.shape, eps.dtype), device.output(costs.shape, costs.dtype),
              device.output(xy.shape if xy.size else (0, eps.shape[1] + 1, 2), xy.dtype))
+    lazy = model[M_LAZY][0] != 0
+    per_terrain = model[M_TABLE_SRC].shape[0] > 1  # the host collapses lazily: the device collapses its own
+    if not per_terrain and lazy:
+        raise ValueError("the model's GP table is marked lazily collapsed but carries no per-terrain rows")
+    placeholders = {M_LAZY: _NO_LAZY, M_TABLE: _NO_TABLE} if per_terrain else {}
+    d_model = device.bundle("model", tuple(placeholders.get(i, a) for i, a in enumerate(model)))
+    d_task, d_sampling = device.bundle("task", task), device.bundle("sampling", sampling)
+    if events:
+        events[1].record()
+    if per_terrain:
+        table = device.collapsed_table(model[M_TABLE_SRC], model[M_COLLAPSE_W])
+        d_model = tuple(table if i == M_TABLE else a for i, a in enumerate(d_model))
+    if events:
+        events[2].record()
     blocks = (eps.shape[0] + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
     # (under the simulator numpy runs the uint64 hash and warns about its intended wrap-around)
-    _rollout_kernel[blocks, THREADS_PER_BLOCK](device.bundle("model", model), device.bundle("task", task),
-                                               device.bundle("sampling", sampling), cost, d_out)
+    _rollout_kernel[blocks, THREADS_PER_BLOCK](d_model, d_task, d_sampling, cost, d_out)
+    if events:
+        events[3].record()
     d_out[O_EPS].copy_to_host(eps)
     d_out[O_COST].copy_to_host(costs)
     if xy.size:
         d_out[O_XY].copy_to_host(xy)
+    if events:
+        events[4].record()
+        events[4].synchronize()
+        for name, a, b in (("upload", 0, 1), ("collapse", 1, 2), ("kernel", 2, 3), ("download", 3, 4)):
+            device.phase_ms[name].append(events[a].elapsed_time(events[b]))

@@ -129,10 +129,11 @@ class Planner:
                 "inv_step": np.ascontiguousarray(np.asarray(g.inv_step, dtype=np.float64)[TABLE_AXES]),
                 **ModelBundle.collapsed_whole(),
             }
-            if self.backend == "cpu" and c.table_collapse == "lazy":
+            if c.table_collapse == "lazy":
                 self._lazy_collapse = True
                 # collapsed lazily, slab by slab as the rollouts reach them (`gp_table.ensure_block`), into one
-                # table kept for the planner's life; the CUDA kernel reads a table collapsed whole, new per weights
+                # table kept for the planner's life; on CUDA the host reads only the nominal's slabs, and the
+                # device collapses its own table whole from the same per-terrain rows (`cuda_backend`)
                 self._grid.update(table=np.empty((int(np.prod(dims)), 4), dtype=np.float32),
                                   table_src=self._table_full, lazy=lazy_state(dims), collapse_w=np.zeros(4 + 4 * m))
         if self._dyn == DYN_GP and self._gp_mode == GP_EXACT:
@@ -257,7 +258,7 @@ class Planner:
                                       self._grid["dims"], self._table_version - 1, self._table_version,
                                       numba.get_num_threads())
                 lazy[0] = self._table_version
-            elif lazy[0] != 0 and self._planned_with_weights:
+            elif lazy[0] != 0 and self._planned_with_weights and self.backend == "cpu":
                 # the weights held for a second plan: collapse the rest of the table now (the slabs already current
                 # get the same bits again), and the rollouts skip their slab checks until the weights move
                 collapse_into(self._table_full, self._grid["collapse_w"], self._grid["table"])
