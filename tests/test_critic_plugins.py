@@ -122,9 +122,9 @@ def plugin_runs(
         d = tmp_path_factory.mktemp(f"plugin-{backend}")
         script = d / "turning_critic.py"
         script.write_text(PLUGIN)
-        env = dict(os.environ, NUMBA_CACHE_DIR=str(d / "cache"), PYTHONWARNINGS="ignore::RuntimeWarning")
-        if backend == "cuda":  # the simulator, or the GPU where the tests run on one (tests/cuda_mode.py)
-            env = cuda_env(**env)
+        settings = {"NUMBA_CACHE_DIR": str(d / "cache"), "PYTHONWARNINGS": "ignore::RuntimeWarning"}
+        # CUDA: the simulator, or the GPU where the tests run on one (tests/cuda_mode.py)
+        env = cuda_env(**settings) if backend == "cuda" else dict(os.environ, **settings)
         with (d / "stdout").open("w") as out, (d / "stderr").open("w") as err:  # files: no pipe fills up
             runs[backend] = subprocess.Popen([sys.executable, str(script), backend], cwd=REPO, env=env, stdout=out,
                                              stderr=err, text=True)

@@ -3,8 +3,6 @@ those with the table collapsed whole, slabs that match the whole collapse, and a
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -23,7 +21,6 @@ from gpmppi.mppi.gp_table import (
 from gpmppi.mppi.planner import Planner
 from gpmppi.scenarios import circle_lane
 
-REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def model():
@@ -169,5 +166,3 @@ def test_a_lookup_outside_the_cells_writes_nothing(model) -> None:
         ensure_block(grid["lazy"], grid["table_src"], grid["collapse_w"], grid["table"], grid["dims"], *cell)
     np.testing.assert_array_equal(grid["lazy"], lazy_before)
     np.testing.assert_array_equal(grid["table"], table_before)
-
-

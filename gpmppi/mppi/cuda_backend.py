@@ -14,6 +14,7 @@ nothing about what numba's CUDA target accepts).
 from __future__ import annotations
 
 import math
+import time
 
 import numba
 import numpy as np
@@ -179,7 +180,8 @@ def _rollout_kernel(model, task, sampling, cost, out):
 
 @cuda.jit(cache=True)
 def _collapse_kernel(src, collapse_w, out):
-    """One row of the collapsed table per thread (`gp_table.collapse_rows`: the same sum in the same order)."""
+    """One row of the collapsed table per thread (`gp_table.collapse_rows`: the same sum in the same order; NVVM fuses
+    its multiply-adds, so a value may differ from the host's collapse in the float32 table's last bit)."""
     i = cuda.grid(1)
     if i < src.shape[0]:
         _collapse_rows(src, collapse_w, out, i, i + 1)
@@ -200,9 +202,10 @@ class DeviceInputs:
     After MPPI-Generic, which copies each component's parameters to the GPU once: the model (its GP table above
     all, tens of MB) and the task's lookup grids stay on the device, and a plan uploads only what is new (the
     start state, the nominal sequence, the tightened bounds). A small array (up to `_COMPARE_BYTES`) counts as
-    unchanged when its content is; a large one when it is the same host array, which the planner never writes in
-    place (new weights collapse into a new table). `uploads` counts the uploads per bundle ('model', 'task',
-    'sampling'), for the tests and benchmarks.
+    unchanged when its content is; a large one when it is the same host array. So a large array the host rewrites
+    in place must never come here: the host's lazily collapsed table and its slab marks are the two, and
+    `cuda_rollouts` puts placeholders in their place (the device collapses its own table, `collapsed_table`).
+    `uploads` counts the uploads per bundle ('model', 'task', 'sampling'), for the tests and benchmarks.
     """
 
     def __init__(self, timed: bool = False) -> None:
@@ -211,11 +214,14 @@ class DeviceInputs:
         self.uploads: dict[str, int] = {"model": 0, "task": 0, "sampling": 0}
         self.collapses = 0  # the tables collapsed on the device (`collapsed_table`)
         self._versions: dict[tuple[str, int], int] = {}  # uploads per array: what a device copy holds
-        self._collapsed: tuple[tuple[int, int], object] | None = None  # (the rows' and weights' versions, table)
-        # with `timed`, each call's phases in ms from CUDA events: what was uploaded, the table collapse, the
-        # rollout kernel, the copies back (a benchmark's split; it synchronises once more per plan)
+        # (the rows' and weights' versions it was collapsed from, the device's collapsed table)
+        self._collapsed: tuple[tuple[int, int], object] | None = None
+        # with `timed`, each call's phases in ms between CUDA events on the GPU's timeline (host work between two
+        # events counts too: the uploads' comparisons, the launch's argument handling), and the host's own time
+        # for the bundles and for the launch call (a benchmark's split; it synchronises once more per plan)
         self.timed = timed
-        self.phase_ms: dict[str, list[float]] = {"upload": [], "collapse": [], "kernel": [], "download": []}
+        self.phase_ms: dict[str, list[float]] = {"upload": [], "collapse": [], "kernel": [], "download": [],
+                                                 "host_bundles": [], "host_launch": []}
 
     def bundle(self, name: str, args: tuple) -> tuple:
         """A bundle's tuple with its arrays replaced by their device copies (scalars as they are)."""
@@ -252,7 +258,9 @@ class DeviceInputs:
         held = (self._versions[("model", M_TABLE_SRC)], self._versions[("model", M_COLLAPSE_W)])
         if self._collapsed is not None and self._collapsed[0] == held:
             return self._collapsed[1]
-        table = self.output((src.shape[0], 4), np.dtype(np.float32))
+        table = self._collapsed[1] if self._collapsed is not None else None
+        if table is None or table.shape[0] != src.shape[0]:
+            table = cuda.device_array((src.shape[0], 4), dtype=np.float32)
         blocks = (src.shape[0] + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
         _collapse_kernel[blocks, THREADS_PER_BLOCK](d_src, d_w, table)
         self._collapsed = (held, table)
@@ -276,6 +284,10 @@ def cuda_rollouts(
     `device` keeps the inputs on the device between calls (a planner holds one); None uploads everything."""
     if model[M_DYN_MODE] == DYN_GP and model[M_GP_MODE] == GP_EXACT:
         raise ValueError("the CUDA backend evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
+    per_terrain = model[M_TABLE_SRC].shape[0] > 1  # the host collapses lazily: the device collapses its own
+    if not per_terrain and model[M_LAZY][0] != 0:
+        raise ValueError("the model's GP table is marked lazily collapsed but carries no per-terrain rows "
+                         "(table_src) to collapse it from")
     device = device if device is not None else DeviceInputs()
     events = [cuda.event() for _ in range(5)] if device.timed else None
     if events:
@@ -283,13 +295,11 @@ def cuda_rollouts(
     eps, costs, xy = out[O_EPS], out[O_COST], out[O_XY]
     d_out = (device.output(eps.shape, eps.dtype), device.output(costs.shape, costs.dtype),
              device.output(xy.shape if xy.size else (0, eps.shape[1] + 1, 2), xy.dtype))
-    lazy = model[M_LAZY][0] != 0
-    per_terrain = model[M_TABLE_SRC].shape[0] > 1  # the host collapses lazily: the device collapses its own
-    if not per_terrain and lazy:
-        raise ValueError("the model's GP table is marked lazily collapsed but carries no per-terrain rows")
     placeholders = {M_LAZY: _NO_LAZY, M_TABLE: _NO_TABLE} if per_terrain else {}
+    t0 = time.perf_counter()
     d_model = device.bundle("model", tuple(placeholders.get(i, a) for i, a in enumerate(model)))
     d_task, d_sampling = device.bundle("task", task), device.bundle("sampling", sampling)
+    t1 = time.perf_counter()
     if events:
         events[1].record()
     if per_terrain:
@@ -299,7 +309,9 @@ def cuda_rollouts(
         events[2].record()
     blocks = (eps.shape[0] + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
     # (under the simulator numpy runs the uint64 hash and warns about its intended wrap-around)
+    t2 = time.perf_counter()
     _rollout_kernel[blocks, THREADS_PER_BLOCK](d_model, d_task, d_sampling, cost, d_out)
+    t3 = time.perf_counter()
     if events:
         events[3].record()
     d_out[O_EPS].copy_to_host(eps)
@@ -311,3 +323,5 @@ def cuda_rollouts(
         events[4].synchronize()
         for name, a, b in (("upload", 0, 1), ("collapse", 1, 2), ("kernel", 2, 3), ("download", 3, 4)):
             device.phase_ms[name].append(events[a].elapsed_time(events[b]))
+        device.phase_ms["host_bundles"].append((t1 - t0) * 1e3)
+        device.phase_ms["host_launch"].append((t3 - t2) * 1e3)

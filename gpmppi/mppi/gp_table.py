@@ -1,9 +1,10 @@
 """The GP residual table of the rollouts: the ensemble collapse and its interpolation (multilinear, simplex).
 
 `collapse_table` re-weights the model's (G, G, G, G, 4M) grid table with the current terrain weights
-into a (G, G, G, G, 4) float32 table [mean_v, mean_w, var_v, var_w]; on the CPU the planner collapses it
-lazily instead, slab by slab as the rollouts reach them ("lazy collapse" below). `interp4` /
-`interp4_simplex` read it at a GP input. The rollout kernels inline these.
+into a (G, G, G, G, 4) float32 table [mean_v, mean_w, var_v, var_w]; the planner collapses it lazily
+instead, slab by slab as the rollouts reach them ("lazy collapse" below; on CUDA the host's copy, for the
+nominal, while the device collapses its own whole). `interp4` / `interp4_simplex` read it at a GP input.
+The rollout kernels inline these.
 """
 
 from __future__ import annotations
@@ -65,7 +66,8 @@ def collapse_table(
 def collapse_rows(src: np.ndarray, collapse_w: np.ndarray, out: np.ndarray, start: int, stop: int) -> None:
     """Rows start .. stop - 1 of the collapsed table from the `terrain_rows` rows `src` and the
     `collapse_weights` factors: out[i, c] = start_c + sum over terrains t of factor_tc src[i, 4t + c], summed in
-    terrain order in float64 (whoever collapses a row, lazily or whole, gets the same bits)."""
+    terrain order in float64 (whoever collapses a row on the CPU, lazily or whole, gets the same bits; the CUDA
+    twin's fused multiply-adds may differ in the last bit)."""
     m = src.shape[1] // 4
     for i in range(start, stop):
         a0 = collapse_w[0]
@@ -98,7 +100,7 @@ def collapse_into(src: np.ndarray, collapse_w: np.ndarray, out: np.ndarray) -> N
 # ------------------------------------------------------------------------------------------- lazy collapse
 # New terrain weights arrive every cycle, and collapsing the whole table for them cost about as much as the plan
 # itself (it reads every node of every terrain). A plan reads only the nodes near the velocities and commands its
-# rollouts reach. So on the CPU the planner only marks the table stale (`lazy[0]`, the weights' version, goes up)
+# rollouts reach. So the planner only marks the table stale (`lazy[0]`, the weights' version, goes up)
 # and the readers collapse the slabs they are about to read. A slab is the nodes that share the three outer indices
 # (v, omega, v_ref in `TABLE_AXES` order): `dims[3]` consecutive rows, slab s holding rows s * dims[3] on, and
 # `lazy[1 + s]` is the version it holds. (Slabs of 8 or 16 rows measured slower: the checks cost more than the
