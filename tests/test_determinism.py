@@ -21,6 +21,11 @@ folders can show it. Four histories:
   kernels against them;
 - fully cached: `plan` in the first case's cache loads every kernel from disk.
 
+The first case compiles in one process (`GPMPPI_COMPILE_AHEAD=0`); the two helpers-first cases compile the rollout
+kernel in a second process while the first compiles the rest (`gpmppi.mppi.compile_ahead`, the default on a cold
+cache) and load it from the cache. Each case prints how its process got the rollout kernel (compiled, loaded), and
+the test checks that each history was the one meant.
+
 Each run first drives a closed loop (GP-MPPI on the physics plant, terrain weights moving every cycle, the
 command latency predicted ahead), which in an empty cache compiles the kernels in the order the services do; a
 difference in the last bit grows there from cycle to cycle. It prints every cycle's command and weights. Then it
@@ -50,6 +55,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 HELPERS_CACHED = "helpers compiled and cached"
+KERNEL = "rollout kernel:"
 LOOP_S = 3.0  # [s] of closed loop: 30 planner cycles
 PLAN_LINES = 30 + 30  # the closed loop's cycles, then 3 models x 10 iterations
 
@@ -58,6 +64,7 @@ import sys
 import numpy as np
 
 HELPERS_CACHED = "@HELPERS_CACHED@"
+KERNEL = "@KERNEL@"
 LOOP_S = @LOOP_S@
 
 if sys.argv[1] == "helpers_first":
@@ -153,6 +160,11 @@ for dyn in ("edd5", "unicycle", "gp"):
         r = p.plan(x, sc.task, w)
         print(dyn, r.controls.tobytes().hex(), np.float64(r.cost).tobytes().hex())
         x = r.states[1].copy()
+
+from gpmppi.mppi.cpu_backend import rollout_worker
+
+# how this process got the rollout kernel: compiled it, or loaded it from the cache
+print(KERNEL, "compiled" if rollout_worker._cache_misses else "loaded" if rollout_worker._cache_hits else "unused")
 """
 
 
@@ -164,11 +176,13 @@ class Case:
     log: Path
 
 
-def start_case(mode: str, cache: Path, copy_helpers_cache_to: Path | None = None) -> Case:
+def start_case(mode: str, cache: Path, copy_helpers_cache_to: Path | None = None, ahead: bool = True) -> Case:
     """One case of SCRIPT in a fresh process whose numba cache is `cache`: mode `plan` or `helpers_first`;
-    `copy_helpers_cache_to` (helpers_first only): where to copy the cache once the helpers are compiled."""
-    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache))
-    script = SCRIPT.replace("@HELPERS_CACHED@", HELPERS_CACHED).replace("@LOOP_S@", repr(LOOP_S))
+    `copy_helpers_cache_to` (helpers_first only): where to copy the cache once the helpers are compiled; `ahead`:
+    whether a cold rollout kernel is compiled in a second process (`gpmppi.mppi.compile_ahead`)."""
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), GPMPPI_COMPILE_AHEAD="1" if ahead else "0")
+    script = (SCRIPT.replace("@HELPERS_CACHED@", HELPERS_CACHED).replace("@KERNEL@", KERNEL)
+              .replace("@LOOP_S@", repr(LOOP_S)))
     args = [sys.executable, "-c", script, mode]
     if copy_helpers_cache_to is not None:
         args.append(str(copy_helpers_cache_to))
@@ -188,11 +202,13 @@ def wait_helpers_cached(case: Case) -> None:
                              f"{case.log.read_text()[-3000:]}")
 
 
-def case_output(case: Case) -> str:
-    """The case's plans (hex lines) once it has finished."""
+def case_output(case: Case, kernel: str) -> str:
+    """The case's plans (hex lines) once it has finished; its process must have got the rollout kernel as
+    `kernel` says (compiled, loaded)."""
     out, _ = case.proc.communicate(timeout=1800)  # compiling on a loaded machine takes long
     assert case.proc.returncode == 0, case.log.read_text()[-3000:]
-    plans = out.replace(HELPERS_CACHED + "\n", "")
+    plans, _, how = out.replace(HELPERS_CACHED + "\n", "").rpartition(KERNEL)
+    assert how.strip() == kernel, f"the rollout kernel was {how.strip()!r} in this process, not {kernel!r}"
     assert plans.count("\n") == PLAN_LINES, out[-500:]
     return plans
 
@@ -209,16 +225,18 @@ def test_plans_do_not_depend_on_compile_order_or_cache(tmp_path: Path) -> None:
     empty, helpers_first, helpers_cached = tmp_path / "empty", tmp_path / "helpers_first", tmp_path / "helpers_cached"
     cases: list[Case] = []
     try:
-        cases.append(fresh := start_case("plan", empty))
+        cases.append(fresh := start_case("plan", empty, ahead=False))
         cases.append(other_order := start_case("helpers_first", helpers_first, copy_helpers_cache_to=helpers_cached))
         wait_helpers_cached(other_order)
         assert any(helpers_cached.rglob("*.nbi")), "compiling the helpers wrote no numba cache"
         cases.append(other_first := start_case("helpers_first", helpers_cached))
-        out_fresh = case_output(fresh)
+        out_fresh = case_output(fresh, "compiled")
         cases.append(from_cache := start_case("plan", empty))
-        same(case_output(other_order), out_fresh, "the helpers and delay predictor compiled first")
-        same(case_output(other_first), out_fresh, "kernels compiled against cached helpers")
-        same(case_output(from_cache), out_fresh, "kernels loaded from the cache")
+        same(case_output(other_order, "loaded"), out_fresh,
+             "the helpers and delay predictor compiled first, the rollout kernel in a second process")
+        same(case_output(other_first, "loaded"), out_fresh,
+             "kernels compiled against cached helpers, the rollout kernel in a second process")
+        same(case_output(from_cache, "loaded"), out_fresh, "kernels loaded from the cache")
     finally:  # a failed or timed-out case leaves no compiling process behind
         for case in cases:
             if case.proc.poll() is None:

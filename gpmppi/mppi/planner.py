@@ -18,8 +18,8 @@ import numba
 import numpy as np
 
 from gpmppi.gp.model_file import GPModel
-from gpmppi.mppi import backends
-from gpmppi.mppi.bundles import ModelBundle, SamplingBundle, TaskBundle
+from gpmppi.mppi import backends, compile_ahead
+from gpmppi.mppi.bundles import ModelBundle, Outputs, SamplingBundle, TaskBundle
 from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.mppi.critics.base import TASK_KINDS
@@ -156,6 +156,7 @@ class Planner:
         self._lateral = np.zeros(2)
         self._lane_key: tuple | None = None
         self._lane: LaneLookup | None = None
+        self._may_compile_ahead = self.backend == "cpu"  # until the first plan (`compile_ahead`)
         self.reset()
 
     def reset(self) -> None:
@@ -372,19 +373,19 @@ class Planner:
             x, cov0 = self._predict_ahead(x, cov0, delay_s, model)
         t0 = time.perf_counter()
         nominal = self._nominal
+        ahead = self._start_compile_ahead(x, task, model) if self._may_compile_ahead else None
         prev_states, prev_covs, _ = self._propagate(x, nominal, model, cov0)
         bounds, clamped_before = self._bounds(task, prev_states, prev_covs)
         t1 = time.perf_counter()
 
         is_lane = isinstance(task, LaneTask)
-        if is_lane:
-            lane = self._lane_lookup(task)
-            task_bundle = TaskBundle.for_lane(lane, float(task.half_width), bounds, float(task.speed_target))
-        else:
-            task_bundle = TaskBundle.for_goal(task.goal, task.obstacles, bounds, self._goal_field(task, x))
+        task_bundle = self._task_bundle(task, bounds, x)
         n_xy = min(c.sample_output, c.samples)
         sampling = self._sampling(x, nominal, self._lane_std if is_lane else self._std)
         cost = self._costs["lane" if is_lane else "goal"]
+        if ahead is not None:  # the per-critic scorer compiled here while the child compiles the rollout kernel
+            backends.critic_costs(model, task_bundle, sampling, cost)
+            ahead.wait()
         eps, costs, xy = backends.rollouts(self.backend, model, task_bundle, sampling, cost, c.samples, n_xy,
                                            self.device)
         # exact GP: the kernels' variance cost is latent; the noise adds the same to every rollout (the update
@@ -453,6 +454,29 @@ class Planner:
             effective_samples=effective_samples,
             temperature=temperature,
         )
+
+    def _task_bundle(self, task: LaneTask | GoalTask, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
+        if isinstance(task, LaneTask):
+            lane = self._lane_lookup(task)
+            return TaskBundle.for_lane(lane, float(task.half_width), bounds, float(task.speed_target))
+        return TaskBundle.for_goal(task.goal, task.obstacles, bounds, self._goal_field(task, x))
+
+    def _start_compile_ahead(
+        self, x: np.ndarray, task: LaneTask | GoalTask, model: ModelBundle
+    ) -> compile_ahead.CompileAhead | None:
+        """On the first plan, when the rollout kernel is not cached: compile it in a second process, with this plan's
+        inputs (the bounds of an untightened plan, which have the same types), while this one compiles the rest."""
+        self._may_compile_ahead = False
+        if not compile_ahead.enabled() or compile_ahead.rollout_kernel_cached():
+            return None
+        c = self.config
+        bounds, _ = self._bounds(task, np.repeat(x[None, :], c.horizon + 1, axis=0), np.zeros((c.horizon + 1, 5, 5)))
+        std = self._lane_std if isinstance(task, LaneTask) else self._std
+        out = Outputs.allocate(c.samples, c.horizon, min(c.sample_output, c.samples))
+        cost = self._costs["lane" if isinstance(task, LaneTask) else "goal"]
+        args = (model.args(), self._task_bundle(task, bounds, x).args(), self._sampling(x, self._nominal, std).args(),
+                cost.args(), out.args())
+        return compile_ahead.start(args)
 
     def _sampling(self, x: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray) -> SamplingBundle:
         c = self.config
