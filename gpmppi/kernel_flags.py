@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 
 from llvmlite import ir
@@ -94,6 +95,48 @@ def fetch_add(typingctx, counter, amount):  # noqa: ANN001, ANN201 - numba intri
         return builder.atomic_rmw("add", ptr, val, "seq_cst")
 
     return sig, codegen
+
+
+def _copy_inlined_ir_with_one_scope() -> None:
+    """Have numba's inliner copy a callee's IR with one copy of its scope, not one per block.
+
+    `InlineWorker.inline_ir` copies the callee's IR block by block, each with a `copy.deepcopy` of its own; every
+    block holds the function's scope, so each block's copy copied the whole scope (every variable of the function)
+    again: blocks x variables new `Var`s per copy, two copies per call site, ~2.5 million `Var`s in one planner
+    configuration's compile. Here the blocks of one copy share one copy of the scope, as the blocks of the IR they
+    are copied from share theirs."""
+    import copy as copy_module
+
+    from numba.core import inline_closurecall
+
+    inline_ir = getattr(getattr(inline_closurecall, "InlineWorker", None), "inline_ir", None)
+    code = getattr(inline_ir, "__code__", None)
+    copy_ir = next((c for c in (code.co_consts if code else ()) if getattr(c, "co_name", "") == "copy_ir"), None)
+    if copy_ir is None or not isinstance(getattr(inline_closurecall, "copy", None), type(copy_module)):
+        return  # not the inliner this was written against: numba's own copies
+    current: list = [None, None]  # the IR being copied now (kept alive, so its id is not reused) and its memo
+
+    class _Copy:
+        """numba's `copy` module for the inliner, with `deepcopy` sharing one memo within one `copy_ir` call."""
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(copy_module, name)
+
+        @staticmethod
+        def deepcopy(x: object, memo: dict | None = None) -> object:
+            if memo is None:
+                frame = sys._getframe(1)
+                if frame.f_code is copy_ir:
+                    target = frame.f_locals.get("kernel_copy")
+                    if current[0] is not target:
+                        current[0], current[1] = target, {}
+                    memo = current[1]
+            return copy_module.deepcopy(x, memo)
+
+    inline_closurecall.copy = _Copy()
+
+
+_copy_inlined_ir_with_one_scope()
 
 
 # numba's own flag that puts `noalias` on a function's pointer arguments (so on every array's data): its

@@ -21,10 +21,11 @@ folders can show it. Four histories:
   kernels against them;
 - fully cached: `plan` in the first case's cache loads every kernel from disk.
 
-The first case compiles in one process (`GPMPPI_COMPILE_AHEAD=0`); the two helpers-first cases compile the rollout
-kernel in a second process while the first compiles the rest (`gpmppi.mppi.compile_ahead`, the default on a cold
-cache) and load it from the cache. Each case prints how its process got the rollout kernel (compiled, loaded), and
-the test checks that each history was the one meant.
+The first case compiles in one process (`GPMPPI_COMPILE_AHEAD=0`) and with numba's inliner as shipped (it copies
+a callee's IR block by block, `gpmppi.kernel_flags._copy_inlined_ir_with_one_scope` with one scope); the two
+helpers-first cases compile the rollout kernel in a second process while the first compiles the rest
+(`gpmppi.mppi.compile_ahead`, the default on a cold cache) and load it from the cache. Each case prints how its
+process got the rollout kernel (compiled, loaded), and the test checks that each history was the one meant.
 
 Each run first drives a closed loop (GP-MPPI on the physics plant, terrain weights moving every cycle, the
 command latency predicted ahead), which in an empty cache compiles the kernels in the order the services do; a
@@ -176,13 +177,18 @@ class Case:
     log: Path
 
 
+# numba's inliner as shipped: its own `copy` module back (`gpmppi.kernel_flags._copy_inlined_ir_with_one_scope`)
+NUMBAS_OWN_IR_COPIES = "import copy, gpmppi.kernel_flags, numba.core.inline_closurecall as m; m.copy = copy\n"
+
+
 def start_case(mode: str, cache: Path, copy_helpers_cache_to: Path | None = None, ahead: bool = True) -> Case:
     """One case of SCRIPT in a fresh process whose numba cache is `cache`: mode `plan` or `helpers_first`;
     `copy_helpers_cache_to` (helpers_first only): where to copy the cache once the helpers are compiled; `ahead`:
-    whether a cold rollout kernel is compiled in a second process (`gpmppi.mppi.compile_ahead`)."""
+    whether a cold rollout kernel is compiled in a second process (`gpmppi.mppi.compile_ahead`); without it, with
+    numba's inliner as shipped too."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), GPMPPI_COMPILE_AHEAD="1" if ahead else "0")
-    script = (SCRIPT.replace("@HELPERS_CACHED@", HELPERS_CACHED).replace("@KERNEL@", KERNEL)
-              .replace("@LOOP_S@", repr(LOOP_S)))
+    script = (("" if ahead else NUMBAS_OWN_IR_COPIES) + SCRIPT.replace("@HELPERS_CACHED@", HELPERS_CACHED)
+              .replace("@KERNEL@", KERNEL).replace("@LOOP_S@", repr(LOOP_S)))
     args = [sys.executable, "-c", script, mode]
     if copy_helpers_cache_to is not None:
         args.append(str(copy_helpers_cache_to))
@@ -232,10 +238,10 @@ def test_plans_do_not_depend_on_compile_order_or_cache(tmp_path: Path) -> None:
         cases.append(other_first := start_case("helpers_first", helpers_cached))
         out_fresh = case_output(fresh, "compiled")
         cases.append(from_cache := start_case("plan", empty))
-        same(case_output(other_order, "loaded"), out_fresh,
-             "the helpers and delay predictor compiled first, the rollout kernel in a second process")
-        same(case_output(other_first, "loaded"), out_fresh,
-             "kernels compiled against cached helpers, the rollout kernel in a second process")
+        same(case_output(other_order, "loaded"), out_fresh, "the helpers and delay predictor compiled first, the "
+             "rollout kernel in a second process, numba's inliner with one scope per copy")
+        same(case_output(other_first, "loaded"), out_fresh, "kernels compiled against cached helpers, the rollout "
+             "kernel in a second process, numba's inliner with one scope per copy")
         same(case_output(from_cache, "loaded"), out_fresh, "kernels loaded from the cache")
     finally:  # a failed or timed-out case leaves no compiling process behind
         for case in cases:
