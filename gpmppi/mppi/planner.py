@@ -369,11 +369,11 @@ class Planner:
         cov0 = self._state_covariance(state_cov)
         model, collapse_ms = self._terrain_setup(w)
         self._planned_with_weights = True
+        ahead = self._start_compile_ahead(x, task, model) if self._may_compile_ahead else None
         if delay_s != 0.0:
             x, cov0 = self._predict_ahead(x, cov0, delay_s, model)
         t0 = time.perf_counter()
         nominal = self._nominal
-        ahead = self._start_compile_ahead(x, task, model) if self._may_compile_ahead else None
         prev_states, prev_covs, _ = self._propagate(x, nominal, model, cov0)
         bounds, clamped_before = self._bounds(task, prev_states, prev_covs)
         t1 = time.perf_counter()
