@@ -8,5 +8,5 @@ python3 -m venv .venv
 .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[dev]'
 # numba compiles the kernels on first use and caches them (per source version): compiled here, the services
 # of `gpmppi demo` / `gpmppi launch` start in seconds instead of compiling at start
-echo "warming the planner kernel cache (about 40 s, once)..."
+echo "warming the planner kernel cache (about 30 s, once)..."
 .venv/bin/gpmppi warm

@@ -1,5 +1,5 @@
 """Whether a planner configuration's numba kernels are in the on-disk cache, so a service can say that it has to
-compile before it does (about half a minute on a small machine, once) instead of sitting silent.
+compile before it does (about 20 s on a small machine, once) instead of sitting silent.
 
 Which kernels (and which type signatures) a configuration uses is only known once it has planned: after its
 first warm-up the service records them in a small manifest next to numba's own cache files
@@ -22,10 +22,10 @@ from pathlib import Path
 from numba.core import config as numba_config
 from numba.core.dispatcher import Dispatcher
 
-# one planner configuration compiled cold from an empty cache: 25 s of CPU (27.5 s wall on a shared machine),
-# `NUMBA_CACHE_DIR=$(mktemp -d) gpmppi bench planner --backend cpu --iters 5` on a 2-core machine; used until this
-# machine has measured its own
-REFERENCE_COMPILE_S = 25.0
+# a planner's first cycle on an empty cache (the delay prediction, the plan, the per-critic split; the rollout kernel
+# compiled in a second process, `compile_ahead`): `gpmppi warm`'s "planner on circle" took 20-25 s wall on an idle
+# 2-core machine (2026-12-04); used until this machine has measured its own
+REFERENCE_COMPILE_S = 22.0
 _MANIFEST_DIR = "gpmppi-kernels"
 
 Counts = dict[str, tuple[dict[str, int], dict[str, int]]]  # kernel -> (loads by signature, compiles by signature)
