@@ -198,13 +198,14 @@ def test_a_port_that_is_no_ray_cluster_fails_within_the_probe_timeout() -> None:
     threading.Thread(target=accept, daemon=True).start()
     t = time.perf_counter()
     try:
-        with pytest.raises(RayBackendError, match=f"127.0.0.1:{port}.*not as a Ray cluster"):
+        with pytest.raises(RayBackendError, match=f"127.0.0.1:{port}.*not as a Ray cluster: no HTTP/2 "):
             connect(f"127.0.0.1:{port}")
     finally:
         server.close()
         for c in conns:
             c.close()
-    assert time.perf_counter() - t < 45.0
+    # the HTTP/2 handshake probe's 2 s, not Ray's own GCS client (~15 s), with Ray's import before it
+    assert time.perf_counter() - t < 12.0
 
 
 def test_missing_ray_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -23,6 +23,11 @@ INSTALL_HINT = "pip install -e '.[ray]' (or pip install 'ray>=2.40')"
 # Ray's own connect retries for minutes where no Ray cluster answers; the probes before it bound that. Each may
 # take this long (a refused connection answers at once, a dropped one waits; the GCS handshake retries ~3 times)
 PROBE_TIMEOUT_S = 5.0
+# a Ray cluster's GCS is a gRPC server, so HTTP/2: it answers a client's connection preface with its SETTINGS frame
+# at once. A port that answers TCP but not that fails within this, before Ray's own GCS client (which waited ~15 s)
+HANDSHAKE_TIMEOUT_S = 2.0
+_H2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])  # + an empty SETTINGS frame
+_H2_SETTINGS = 4  # the frame type of SETTINGS (RFC 9113, 6.5)
 
 
 class RayBackendError(RuntimeError):
@@ -79,14 +84,19 @@ def probe(address: str, resolved: str) -> None:
     hostport = _split_host_port(resolved.removeprefix("ray://"))
     if hostport is None:
         raise RayBackendError(f"--ray {address}: expected HOST:PORT, ray://HOST:PORT or auto")
+    where = address if address == resolved else f"{address} ({resolved})"
     try:
-        with socket.create_connection(hostport, timeout=PROBE_TIMEOUT_S):
-            pass
+        conn = socket.create_connection(hostport, timeout=PROBE_TIMEOUT_S)
     except OSError as e:
-        where = address if address == resolved else f"{address} ({resolved})"
         raise _not_found(where, e.strerror or type(e).__name__) from e
-    if resolved.startswith("ray://"):
-        return  # a Ray Client server, not a GCS: ray.init's own handshake decides there
+    with conn:
+        if resolved.startswith("ray://"):
+            return  # a Ray Client server, not a GCS: ray.init's own handshake decides there
+        if os.environ.get("RAY_USE_TLS", "0").lower() not in ("1", "true"):  # TLS: the GCS client below decides
+            frame = _http2_first_frame(conn)
+            if frame is None or frame[3] != _H2_SETTINGS:
+                raise _not_found(where, "the port answers, but not as a Ray cluster: no HTTP/2 (gRPC) handshake "
+                                        f"within {HANDSHAKE_TIMEOUT_S:.0f} s")
     try:
         from ray._raylet import InnerGcsClient
 
@@ -96,8 +106,24 @@ def probe(address: str, resolved: str) -> None:
     try:
         standalone(resolved, None, int(PROBE_TIMEOUT_S * 1000))
     except Exception as e:  # Ray's RpcError has no stable public name across versions
-        where = address if address == resolved else f"{address} ({resolved})"
         raise _not_found(where, f"the port answers, but not as a Ray cluster: {e}") from e
+
+
+def _http2_first_frame(conn: socket.socket) -> bytes | None:
+    """The 9-byte header of the first frame a server sends after an HTTP/2 client preface, or None when it sends
+    none within `HANDSHAKE_TIMEOUT_S` (or closes the connection)."""
+    conn.settimeout(HANDSHAKE_TIMEOUT_S)
+    header = b""
+    try:
+        conn.sendall(_H2_PREFACE)
+        while len(header) < 9:
+            chunk = conn.recv(9 - len(header))
+            if not chunk:
+                return None
+            header += chunk
+    except OSError:  # a timeout, or the connection reset
+        return None
+    return header
 
 
 def connect(address: str) -> Any:
