@@ -63,3 +63,11 @@ def test_a_child_given_bad_arguments_fails_without_caching_anything(tmp_path: Pa
     with pytest.warns(RuntimeWarning, match="compiling it here instead"):
         assert compile_ahead.CompileAhead(proc).wait() is False
     assert proc.returncode not in (0, compile_ahead._CRITICS_DIFFER)
+
+
+def test_no_interpreter_to_start_means_compiling_here(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setattr(compile_ahead, "enabled", lambda: True)
+    monkeypatch.setattr(compile_ahead, "rollout_kernel_cached", lambda: False)
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "no-python"))
+    with pytest.warns(RuntimeWarning, match="could not start a second process .* compiling it here"):
+        assert compile_ahead.start(()) is None

@@ -98,11 +98,19 @@ def start(kernel_args: tuple) -> CompileAhead | None:
     root = str(Path(__file__).resolve().parents[2])  # the folder that holds this gpmppi package
     path = os.pathsep.join([root, *filter(None, [os.environ.get("PYTHONPATH")])])
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache_folder()), PYTHONPATH=path)
-    proc = subprocess.Popen([sys.executable, "-m", "gpmppi.mppi.compile_ahead"], stdin=subprocess.PIPE,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "gpmppi.mppi.compile_ahead"], stdin=subprocess.PIPE,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+    except OSError as e:  # no interpreter to start (an embedded Python): compile here, as without it
+        warnings.warn(f"could not start a second process to compile the rollout kernel ({e}); compiling it here",
+                      RuntimeWarning, stacklevel=2)
+        return None
     assert proc.stdin is not None
-    proc.stdin.write(payload)
-    proc.stdin.close()
+    try:
+        proc.stdin.write(payload)
+        proc.stdin.close()
+    except OSError:  # the child ended at once: its exit status and message say why (`CompileAhead.wait`)
+        pass
     proc.stdin = None  # written and closed: `communicate` must not touch it again
     return CompileAhead(proc)
 
