@@ -464,11 +464,10 @@ class Planner:
     def _start_compile_ahead(
         self, x: np.ndarray, task: LaneTask | GoalTask, model: ModelBundle
     ) -> compile_ahead.CompileAhead | None:
-        """On the first plan, when the rollout kernel is not cached: compile it in a second process, with this plan's
-        inputs (the bounds of an untightened plan, which have the same types), while this one compiles the rest."""
+        """On the first plan: compile the rollout kernel in a second process when it is not cached
+        (`compile_ahead.start` decides), with this plan's inputs (the bounds of an untightened plan, which have the
+        same types), while this one compiles the rest."""
         self._may_compile_ahead = False
-        if not compile_ahead.enabled() or compile_ahead.rollout_kernel_cached():
-            return None
         c = self.config
         bounds, _ = self._bounds(task, np.repeat(x[None, :], c.horizon + 1, axis=0), np.zeros((c.horizon + 1, 5, 5)))
         std = self._lane_std if isinstance(task, LaneTask) else self._std
