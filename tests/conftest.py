@@ -82,3 +82,58 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
     with _run_lock(item.get_closest_marker("exclusive") is not None):
         yield
 
+
+
+# light tests that open each worker's queue but the first: between two exclusive tests one test of each other
+# worker runs, so these cover the exclusive tests at the start without a long test for them to wait on
+LEAD_IN = 10
+
+
+@pytest.hookimpl(trylast=True)  # after `-m` / `-k` deselected: the queues are cut from what runs
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Run order, so that two workers finish together and the exclusive tests wait on no long test.
+
+    pytest-xdist's work stealing hands each worker a contiguous share of this list (the first worker the first
+    `n // workers` tests, and so on), and an idle worker takes the last half of a busy one's queue. So the list is
+    cut into the workers' shares: the first opens with the `exclusive` tests, the others with `LEAD_IN` light tests;
+    then the modules that hold a `slow(seconds=N)` test, dealt out longest first to the share with the least such
+    seconds so far (a module stays together, so its module-scoped fixtures are set up once), then the light tests.
+    Long tests at the end of a queue were run alone while the other worker idled; an exclusive test among the rest
+    waited 55 s for the determinism test. Every worker sorts the same collection the same way."""
+    workers = max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))
+
+    def seconds(item: pytest.Item) -> float:
+        mark = item.get_closest_marker("slow")
+        return float(mark.kwargs.get("seconds", 0.0)) if mark is not None else 0.0
+
+    exclusive = [item for item in items if item.get_closest_marker("exclusive") is not None]
+    rest = [item for item in items if item.get_closest_marker("exclusive") is None]
+    long_modules: dict[object, list[pytest.Item]] = {}
+    module_seconds: dict[object, float] = {}
+    for item in rest:
+        if seconds(item) > 0.0:
+            module_seconds[item.module] = max(module_seconds.get(item.module, 0.0), seconds(item))
+    for item in rest:
+        if item.module in module_seconds:
+            long_modules.setdefault(item.module, []).append(item)
+    light = [item for item in rest if item.module not in module_seconds]
+
+    # the shares' sizes as xdist deals them: each idle worker the remaining tests over the workers still to serve
+    sizes, left = [], len(items)
+    for k in range(workers):
+        sizes.append(left // (workers - k))
+        left -= sizes[-1]
+    shares: list[list[pytest.Item]] = [list(exclusive)] + [[] for _ in range(workers - 1)]
+    for share in shares[1:]:
+        share.extend(light[:LEAD_IN])
+        del light[:LEAD_IN]
+    load = [sum(seconds(item) for item in exclusive) or 40.0] + [0.0] * (workers - 1)
+    for module in sorted(long_modules, key=lambda m: -module_seconds[m]):  # stable: file order among equals
+        k = min(range(workers), key=lambda i: load[i])
+        shares[k].extend(long_modules[module])
+        load[k] += module_seconds[module]
+    for share, size in zip(shares, sizes, strict=True):
+        take = max(0, size - len(share))
+        share.extend(light[:take])
+        del light[:take]
+    items[:] = [item for share in shares for item in share] + light

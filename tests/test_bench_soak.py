@@ -45,8 +45,7 @@ def test_windows_and_memory_from_samples() -> None:
     assert a["growth_pct"] == pytest.approx(100 * (1120 - 1060) / 1060, abs=0.01)
 
 
-@pytest.mark.slow
-@pytest.mark.exclusive
+@pytest.mark.slow(seconds=19)  # not `exclusive`: its bounds (p99 < 1 s, >= 3 Hz, nothing lost) hold beside another test
 def test_short_soak_reports_real_numbers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     port = free_port()

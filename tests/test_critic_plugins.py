@@ -159,7 +159,7 @@ def plugin_runs(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPat
             proc.wait()
 
 
-@pytest.mark.slow  # the kernels compiled with the plug-in in a fresh cache (the CUDA run in the CPU run's)
+@pytest.mark.slow(seconds=30)  # the kernels compiled with the plug-in in a fresh cache (the CUDA run in the CPU run's)
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported(
     backend: str, plugin_runs: PluginRuns

@@ -132,7 +132,8 @@ def _same(a: object, b: object) -> bool:
     return a == b
 
 
-@pytest.mark.slow  # compiles the planner kernels where the cache is cold, in this process and in the Ray workers
+# compiles the planner kernels where the cache is cold, in this process and in the Ray workers
+@pytest.mark.slow(seconds=11)
 def test_ray_tasks_give_the_local_runs_scores_seed_by_seed(ray_head: str, local_results: list[tuple]) -> None:
     ray = connect(ray_head)
     try:

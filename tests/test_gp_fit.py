@@ -4,6 +4,7 @@ paper's Jackal data (skips without it), and `gpmppi train` warns when a GP is wo
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -187,7 +188,9 @@ PAPER = {("asphalt", "v"): (0.0169, -2.35), ("asphalt", "omega"): (0.0082, -3.01
          ("tile", "v"): (0.0221, -2.29), ("tile", "omega"): (0.0092, -3.08)}
 
 
-PAPER_SEEDS = (0, 1, 2)
+# the held-out splits fitted: seed 0 by default (~30 s of CPU a seed, the suite's largest single cost after the
+# determinism test); `GPMPPI_PAPER_FIT_SEEDS=0,1,2` fits those, side by side (docs/development.md)
+PAPER_SEEDS = tuple(int(s) for s in os.environ.get("GPMPPI_PAPER_FIT_SEEDS", "0").split(","))
 
 
 def _paper_fit(jackal: Path, seed: int):
@@ -209,32 +212,32 @@ def _one_torch_thread() -> None:
     torch.set_num_threads(1)
 
 
-@pytest.fixture(scope="module")
-def paper_fits(jackal: Path) -> dict:
-    """The three seeds' fits side by side, a process each: each fit is mostly serial Python and torch work of
-    ~23 s on one core (one after the other they took ~70 s of a 2-core machine's suite)."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+@pytest.mark.slow(seconds=27)
+def test_paper_data_fit_matches_the_papers_own(jackal: Path) -> None:
+    """Each seed's fit (its own held-out split) on the paper's test set: no worse than nominal, RMSE within 5% of
+    the paper's, NLL within 0.1 of it. Several seeds' fits run side by side, a spawned process each (each is mostly
+    serial Python and torch work on one core); one test for them all, so that the parallel workers cannot split
+    them up."""
+    if len(PAPER_SEEDS) == 1:
+        reports = {PAPER_SEEDS[0]: _paper_fit(jackal, PAPER_SEEDS[0])}
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
 
-    # one torch thread each: the processes share the cores, and idle intra-op threads only contend for them
-    with ProcessPoolExecutor(len(PAPER_SEEDS), mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_one_torch_thread) as pool:
-        futures = {seed: pool.submit(_paper_fit, jackal, seed) for seed in PAPER_SEEDS}
-        return {seed: f.result() for seed, f in futures.items()}
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("seed", PAPER_SEEDS)
-def test_paper_data_fit_matches_the_papers_own(paper_fits: dict, seed: int) -> None:
-    report = paper_fits[seed]
-    assert report.held_out and not report.gp_worse_than_nominal()
-    for f in report.terrains:
-        for o, out in enumerate(("v", "omega")):
-            rmse, nll = PAPER[(f.terrain, out)]
-            where = (f.terrain, out, f.rmse_nominal[o], f.rmse_gp[o], f.nll[o])
-            assert f.rmse_gp[o] <= f.rmse_nominal[o], where
-            assert f.rmse_gp[o] <= 1.05 * rmse, where
-            assert f.nll[o] <= nll + 0.1, where
+        # one torch thread each: the processes share the cores, and idle intra-op threads only contend for them
+        with ProcessPoolExecutor(len(PAPER_SEEDS), mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=_one_torch_thread) as pool:
+            futures = {seed: pool.submit(_paper_fit, jackal, seed) for seed in PAPER_SEEDS}
+            reports = {seed: f.result() for seed, f in futures.items()}
+    for seed, report in reports.items():
+        assert report.held_out and not report.gp_worse_than_nominal(), seed
+        for f in report.terrains:
+            for o, out in enumerate(("v", "omega")):
+                rmse, nll = PAPER[(f.terrain, out)]
+                where = (seed, f.terrain, out, f.rmse_nominal[o], f.rmse_gp[o], f.nll[o])
+                assert f.rmse_gp[o] <= f.rmse_nominal[o], where
+                assert f.rmse_gp[o] <= 1.05 * rmse, where
+                assert f.nll[o] <= nll + 0.1, where
 
 
 @pytest.mark.parametrize(

@@ -64,7 +64,7 @@ def _in_process_rmse(duration_s: float, latency_s: float) -> float:
     return float(np.mean(rmse))
 
 
-@pytest.mark.slow  # the whole stack over Zenoh for several seconds
+@pytest.mark.slow(seconds=28)  # the whole stack over Zenoh for several seconds
 def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     port = free_port()

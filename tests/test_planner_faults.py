@@ -61,7 +61,7 @@ def _state(
     return State(x=x, y=y, theta=theta, v=v, omega=omega, header=Header(stamp_ns=stamp_ns or time.time_ns()))
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=12)
 def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp_path: Path) -> None:
     from gpmppi.gp.model_file import load_default_model
 

@@ -5,6 +5,7 @@ a `PlannerCycle` driven directly with the same states, bit for bit. Plus the cac
 from __future__ import annotations
 
 import math
+import shutil
 import time
 from pathlib import Path
 
@@ -34,13 +35,33 @@ def _states(n: int) -> list[np.ndarray]:
     return [np.array([20.0, 0.1 * k, math.pi / 2, 1.0, 0.05]) for k in range(n)]
 
 
+def _cache_without_propagate(folder: Path) -> Path:
+    """A copy of this process's kernel cache without `dynamics.propagate`, one kernel of the configuration.
+
+    The service finds the configuration not cached and compiles that one kernel (seconds) against the rest, loaded:
+    the notice and the compile are those of a cold cache, without the ~25 s of CPU a whole compile costs (where
+    this process's cache is empty, it compiles everything). The rollout kernel is not the one taken out: on a cold
+    cache it is compiled in a second process (`gpmppi.mppi.compile_ahead`, tested on its own)."""
+    from gpmppi.mppi.dynamics import propagate
+
+    source = kernel_cache.cache_folder()
+    if source.is_dir():
+        shutil.copytree(source, folder)
+    else:
+        folder.mkdir()
+    index = Path(propagate._cache._cache_file._index_path)
+    stem = index.name.removesuffix(".nbi")
+    for path in (folder / index.parent.relative_to(source)).glob(f"{stem}.*"):
+        path.unlink()  # the index and its data files
+    return folder
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(1800)  # one cold compile in the service: minutes, more on a loaded machine
 def test_planner_service_announces_a_cold_compile_and_plans_as_the_cycle(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    cache = tmp_path / "numba"
-    cache.mkdir()
+    cache = _cache_without_propagate(tmp_path / "numba")
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))  # the services' cache (this process has its own already)
     port = free_port()
     cfg = settings("planner", port, heartbeat_hz=5.0, compensate_delay=False, planner={"samples": 64, "backend": "cpu"})
@@ -128,3 +149,21 @@ def test_cache_check_needs_the_manifest_and_every_kernel_it_lists(
     assert not kernel_cache.is_cached(label)
     manifest.write_text(text.replace(":rollout_worker", ":no_such_kernel"))
     assert not kernel_cache.is_cached(label)
+
+
+def test_compile_estimate_is_the_largest_compile_not_the_last(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(kernel_cache, "cache_folder", lambda: tmp_path)
+    label = "gp/grid on cpu"
+
+    def use(n: int) -> kernel_cache.KernelUse:
+        out = kernel_cache.KernelUse()
+        out.compiled.update({f"m:k{i}": ["(float64,)"] for i in range(n)})
+        return out
+
+    kernel_cache.record(label, use(5), 21.0)  # a whole cold compile
+    assert kernel_cache.compile_estimate_s(label)[0] == 21.0
+    kernel_cache.record(label, use(1), 0.5)  # one kernel missing, compiled alone
+    kernel_cache.record(label, kernel_cache.KernelUse(), None)  # everything loaded
+    assert kernel_cache.compile_estimate_s(label)[0] == 21.0
+    kernel_cache.record(label, use(5), 18.0)  # the next whole compile is the new measurement
+    assert kernel_cache.compile_estimate_s(label)[0] == 18.0

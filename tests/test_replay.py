@@ -416,7 +416,7 @@ def _add_metadata(raw: Path, out: Path, launch: dict, launch_text: str) -> None:
         w.finish()
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=26)
 def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -418,7 +418,7 @@ def test_the_secured_build_gives_each_session_its_identity_and_the_default_is_un
 
 
 # ---- the whole stack, secured ---------------------------------------------------------------------------------
-@pytest.mark.slow
+@pytest.mark.slow(seconds=13)
 def test_secured_stack_drives(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     secrets = tmp_path / "secrets"

@@ -15,9 +15,10 @@ import pytest
 from tests.zenoh_helpers import Collector, ServiceProcess, client, free_port, heartbeats, router, settings, wait_for
 from tools.bench_view import transport_stall_numbers
 
-pytestmark = [pytest.mark.slow, pytest.mark.exclusive]
+pytestmark = pytest.mark.slow
 
 
+@pytest.mark.exclusive  # it compares latencies: a test beside it would be load it measures
 def test_stopped_viewer_does_not_delay_or_drop_the_control_path() -> None:
     r = transport_stall_numbers(window_s=4.0, windows=1, port=free_port(), rate_hz=50.0, samples=16)
     for phase in ("running", "stopped"):

@@ -94,7 +94,14 @@ def record(label: str, use: KernelUse, compile_s: float | None) -> None:
         for name, sigs in old.items():
             if isinstance(sigs, list):
                 kernels[name] = sorted({*kernels.get(name, []), *map(str, sigs)})
-    entry = {"kernels": kernels, "compile_s": compile_s if compile_s is not None else previous.get("compile_s")}
+    # the estimate is the compile that compiled the most kernels (a whole cold compile), not the last one: a start
+    # that compiled one missing kernel in a second would otherwise announce the next cold compile as "about 1 s"
+    entry = {"kernels": kernels, "compile_s": previous.get("compile_s"),
+             "compiled_kernels": previous.get("compiled_kernels", 0)}
+    n_compiled = len(use.compiled)
+    old_n = entry["compiled_kernels"] if isinstance(entry["compiled_kernels"], int) else 0
+    if compile_s is not None and (n_compiled >= old_n or not isinstance(entry["compile_s"], int | float)):
+        entry["compile_s"], entry["compiled_kernels"] = compile_s, n_compiled
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(entry, indent=1))
