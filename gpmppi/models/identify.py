@@ -31,8 +31,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.signal import savgol_filter
 
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.models.edd5 import TRACK_B, WHEEL_R
@@ -84,6 +82,8 @@ def _smooth(x: np.ndarray, window: int) -> np.ndarray:
     """Savitzky-Golay (quadratic) smoothing; windows below 3 or longer than the segment leave it as is."""
     if window < 3 or len(x) < window:
         return x
+    from scipy.signal import savgol_filter  # here: scipy.signal costs ~0.35 s to import, and every CLI start paid it
+
     return savgol_filter(x, window, min(3, window - 1), mode="interp")
 
 
@@ -158,6 +158,8 @@ def refine_theta(
 
     lower = np.array([1e-3, 1e-3, -np.inf, -np.inf, -np.inf, -np.inf])
     start = np.maximum(np.asarray(theta0, dtype=float), lower + 1e-3)
+    from scipy.optimize import least_squares
+
     sol = least_squares(residual, start, bounds=(lower, np.full(6, np.inf)), x_scale="jac")
     return sol.x
 
@@ -215,6 +217,8 @@ def identify_edd5(
     # y_r < 0 < y_l keeps the ICR ordering (right ICR on the right) and the model non-singular
     lower = np.array([1e-3, 1e-3, -5.0, 1e-3] + ([-5.0] if lat is not None else []))
     upper = np.array([5.0, 5.0, -1e-3, 5.0] + ([5.0] if lat is not None else []))
+    from scipy.optimize import least_squares
+
     sol = least_squares(residual, np.clip(q0, lower + 1e-6, upper - 1e-6), bounds=(lower, upper),
                         loss="soft_l1", f_scale=0.05)
     return full(sol.x)
