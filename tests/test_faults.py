@@ -167,6 +167,17 @@ def _last_command(obs: Observer, t_zero: float | None) -> float | None:
     return max((t for t, _ in obs.cmds() if t < t_zero), default=None)
 
 
+def _late_zero_detail(obs: Observer, out: TimedLog, since: float, last_cmd: float, t_zero: float) -> str:
+    """What a late watchdog zero looked like, to tell a stalled egress from a stalled transport: when egress's log
+    line of the zero reached this process (its stdout, not Zenoh), and the longest gap in the base stream (egress
+    repeats the last command at its rate) between the last command and the zero, as this process received them."""
+    logged = out.after(since, "output zero: watchdog")
+    arrivals = [last_cmd] + [t for t, _ in obs.base(last_cmd) if t <= t_zero]
+    gap = max((b - a for a, b in zip(arrivals, arrivals[1:], strict=False)), default=0.0)
+    log_s = f"{logged[0] - last_cmd:.3f} s" if logged else "never"
+    return f"egress's log of it after {log_s}; longest gap in the base stream before it {gap:.3f} s"
+
+
 def _standing(obs: Observer, t0: float, t1: float) -> list[float]:
     """Measured speeds of the states that arrived in [t0, t1]."""
     return [abs(m.v) for t, m in obs.states(t0) if t <= t1]
@@ -212,7 +223,8 @@ def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPat
                 check(not between, f"planner SIGKILL: non-watchdog output while the planner was gone: {between[:3]}")
                 # egress's watchdog is a timer at its deadline (gpmppi/safety.py SafetyCycle), not the next tick
                 check(t_zero - last_cmd <= WATCHDOG_S + DEADLINE_SLACK_S,
-                      f"planner SIGKILL: zero {t_zero - last_cmd:.3f} s after the last command")
+                      f"planner SIGKILL: zero {t_zero - last_cmd:.3f} s after the last command ("
+                      f"{_late_zero_detail(obs, out, t_kill, last_cmd, t_zero)})")
                 # driving resumed (t_drive is not None): the 2 s goal (warm cache) is the planner's start-up on an
                 # idle machine, see docs/faults.md; on 2 shared cores under load its imports alone took 5 s and
                 # more, so no bound on it here
@@ -240,7 +252,8 @@ def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPat
                 timings["planner_stop_zero_after_last_cmd_s"] = t_zero - last_cmd
                 timings["planner_cont_resume_s"] = t_drive - t_cont
                 check(t_zero - last_cmd <= WATCHDOG_S + DEADLINE_SLACK_S,
-                      f"planner SIGSTOP: zero {t_zero - last_cmd:.3f} s after the last command")
+                      f"planner SIGSTOP: zero {t_zero - last_cmd:.3f} s after the last command ("
+                      f"{_late_zero_detail(obs, out, t_stop, last_cmd, t_zero)})")
                 moving = [m for t, m in obs.base(t_zero) if t < t_cont and m.v != 0.0]
                 check(not moving, f"planner SIGSTOP: moving output while it was frozen: {moving[:3]}")
             check(frozen_ok and launcher.child("planner").restarts == 1, "planner SIGSTOP: it must not be restarted")
