@@ -108,15 +108,17 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
     exclusive = [item for item in items if item.get_closest_marker("exclusive") is not None]
     rest = [item for item in items if item.get_closest_marker("exclusive") is None]
-    long_modules: dict[object, list[pytest.Item]] = {}
     module_seconds: dict[object, float] = {}
     for item in rest:
         if seconds(item) > 0.0:
             module_seconds[item.module] = max(module_seconds.get(item.module, 0.0), seconds(item))
+    long_modules: dict[object, list[pytest.Item]] = {module: [] for module in module_seconds}
+    light: list[pytest.Item] = []
     for item in rest:
-        if item.module in module_seconds:
-            long_modules.setdefault(item.module, []).append(item)
-    light = [item for item in rest if item.module not in module_seconds]
+        if item.module in long_modules:
+            long_modules[item.module].append(item)
+        else:
+            light.append(item)
 
     # the shares' sizes as xdist deals them: each idle worker the remaining tests over the workers still to serve
     sizes, left = [], len(items)
@@ -127,7 +129,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for share in shares[1:]:
         share.extend(light[:LEAD_IN])
         del light[:LEAD_IN]
-    load = [sum(seconds(item) for item in exclusive) or 40.0] + [0.0] * (workers - 1)
+    load = [sum(seconds(item) for item in exclusive)] + [0.0] * (workers - 1)  # the exclusive tests open share 0
     for module in sorted(long_modules, key=lambda m: -module_seconds[m]):  # stable: file order among equals
         k = min(range(workers), key=lambda i: load[i])
         shares[k].extend(long_modules[module])

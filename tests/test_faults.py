@@ -183,7 +183,7 @@ def _standing(obs: Observer, t0: float, t1: float) -> list[float]:
     return [abs(m.v) for t, m in obs.states(t0) if t <= t1]
 
 
-@pytest.mark.slow
+@pytest.mark.slow(seconds=25)
 @pytest.mark.exclusive
 def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)

@@ -18,6 +18,7 @@ from tools.bench_view import transport_stall_numbers
 pytestmark = pytest.mark.slow
 
 
+@pytest.mark.slow(seconds=10)
 @pytest.mark.exclusive  # it compares latencies: a test beside it would be load it measures
 def test_stopped_viewer_does_not_delay_or_drop_the_control_path() -> None:
     r = transport_stall_numbers(window_s=4.0, windows=1, port=free_port(), rate_hz=50.0, samples=16)

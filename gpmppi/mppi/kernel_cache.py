@@ -96,12 +96,11 @@ def record(label: str, use: KernelUse, compile_s: float | None) -> None:
                 kernels[name] = sorted({*kernels.get(name, []), *map(str, sigs)})
     # the estimate is the compile that compiled the most kernels (a whole cold compile), not the last one: a start
     # that compiled one missing kernel in a second would otherwise announce the next cold compile as "about 1 s"
-    entry = {"kernels": kernels, "compile_s": previous.get("compile_s"),
-             "compiled_kernels": previous.get("compiled_kernels", 0)}
-    n_compiled = len(use.compiled)
-    old_n = entry["compiled_kernels"] if isinstance(entry["compiled_kernels"], int) else 0
-    if compile_s is not None and (n_compiled >= old_n or not isinstance(entry["compile_s"], int | float)):
-        entry["compile_s"], entry["compiled_kernels"] = compile_s, n_compiled
+    best_s, best_n = previous.get("compile_s"), previous.get("compiled_kernels")
+    measured = isinstance(best_s, int | float) and isinstance(best_n, int)
+    if compile_s is not None and (not measured or len(use.compiled) >= best_n):
+        best_s, best_n = compile_s, len(use.compiled)
+    entry = {"kernels": kernels, "compile_s": best_s, "compiled_kernels": best_n if isinstance(best_n, int) else 0}
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(f".{os.getpid()}.tmp")
     tmp.write_text(json.dumps(entry, indent=1))
