@@ -3,7 +3,10 @@
 Every sample draws its own noise inside the rollout kernel from a hash of its counter, so the
 result does not depend on how threads (CPU) or blocks (CUDA) are scheduled, and the CPU
 and CUDA backends draw exactly the same numbers. The hash is SplitMix64's finaliser; one 64-bit
-hash gives two 32-bit uniforms, and Box-Muller turns them into the two control-noise normals.
+hash gives two 32-bit uniforms, and Box-Muller turns them into the two control-noise normals. Its logarithm, cosine
+and sine are polynomials in plain arithmetic (`_log_of_count`, `_cos_sin_of_fraction`), accurate to ~1e-15, not
+library calls: a loop over a group of samples then compiles to vector code (the CPU kernel's `_unit_noise`), which
+library calls never did (numba's CPU target has no vector math library here).
 
 The CUDA backend compiles the same Python source as device functions
 (`gpmppi.gp.cuda_kernels.device_version`).
@@ -26,8 +29,63 @@ _S30 = np.uint64(30)
 _S27 = np.uint64(27)
 _S31 = np.uint64(31)
 _S32 = np.uint64(32)
-_INV_2_32 = 1.0 / 4294967296.0
-_TWO_PI = 2.0 * math.pi
+_LN2 = math.log(2.0)
+_SQRT2 = math.sqrt(2.0)
+_QUARTER = 1073741824.0  # 2^30: a quarter turn in units of the angle's 32-bit fraction
+_RAD_PER_UNIT = 2.0 * math.pi / 4294967296.0  # radians per unit of the angle's 32-bit fraction
+
+
+@njit(cache=True, inline="always")
+def _halved_below(x: float, e: float, p: float, b: float) -> tuple[float, float]:
+    """(x / p, e + b) where x >= p = 2^b, else (x, e): an exact step of taking a power of two out of x."""
+    big = x >= p
+    return (x * (1.0 / p) if big else x), (e + b if big else e)
+
+
+@njit(cache=True, inline="always")
+def _log_of_count(t: float, shift: float) -> float:
+    """ln(t / 2^shift) of an integer-valued float t in [1, 2^34) and an integer-valued `shift`, to ~1e-15.
+
+    Branch-free arithmetic (selects and one division), so that a loop over samples compiles to vector code: the power
+    of two is taken out by exact halvings, ln of the rest (in [sqrt(2)/2, sqrt(2)]) by the series
+    ln x = 2 atanh(s), s = (x - 1) / (x + 1), |s| <= 0.172, whose first omitted term is below 1e-14 of ln x. The
+    powers of two are subtracted as integers, before ln 2 multiplies them: ln t - shift ln 2 of t near 2^shift would
+    cancel to a few digits."""
+    x, e = _halved_below(t, 0.0, 4294967296.0, 32.0)
+    x, e = _halved_below(x, e, 65536.0, 16.0)
+    x, e = _halved_below(x, e, 256.0, 8.0)
+    x, e = _halved_below(x, e, 16.0, 4.0)
+    x, e = _halved_below(x, e, 4.0, 2.0)
+    x, e = _halved_below(x, e, 2.0, 1.0)
+    big = x > _SQRT2  # x in [1, 2): above sqrt(2), halve once more
+    x = 0.5 * x if big else x
+    e = e + 1.0 if big else e
+    s = (x - 1.0) / (x + 1.0)
+    s2 = s * s
+    series = 1.0 + s2 * (1.0 / 3.0 + s2 * (1.0 / 5.0 + s2 * (1.0 / 7.0 + s2 * (1.0 / 9.0 + s2 * (
+        1.0 / 11.0 + s2 * (1.0 / 13.0 + s2 * (1.0 / 15.0 + s2 * (1.0 / 17.0))))))))
+    return 2.0 * s * series + (e - shift) * _LN2
+
+
+@njit(cache=True, inline="always")
+def _cos_sin_of_fraction(f: float) -> tuple[float, float]:
+    """cos and sin of 2 pi f / 2^32 for an integer-valued float f in [0, 2^32), to ~1e-15.
+
+    The nearest quarter turn q is taken out exactly (f - q 2^30 is an integer below 2^31), the rest (within an eighth of
+    a turn) goes through Taylor polynomials, and selects turn the pair back by q quarter turns (branch-free, as
+    `_log_of_count`)."""
+    q = math.floor(f * (1.0 / _QUARTER) + 0.5)  # 0 .. 4
+    a = (f - q * _QUARTER) * _RAD_PER_UNIT  # [-pi/4, pi/4]
+    a2 = a * a
+    c = 1.0 + a2 * (-1.0 / 2.0 + a2 * (1.0 / 24.0 + a2 * (-1.0 / 720.0 + a2 * (1.0 / 40320.0 + a2 * (
+        -1.0 / 3628800.0 + a2 * (1.0 / 479001600.0 + a2 * (-1.0 / 87178291200.0)))))))
+    s = a * (1.0 + a2 * (-1.0 / 6.0 + a2 * (1.0 / 120.0 + a2 * (-1.0 / 5040.0 + a2 * (1.0 / 362880.0 + a2 * (
+        -1.0 / 39916800.0 + a2 * (1.0 / 6227020800.0 + a2 * (-1.0 / 1307674368000.0))))))))
+    turn = q - 4.0 * math.floor(0.25 * q)  # q mod 4: 4 quarter turns are a whole one
+    odd = turn == 1.0 or turn == 3.0  # a quarter or three: cos and sin trade places
+    c1 = s if odd else c
+    s1 = c if odd else s
+    return (-c1 if turn == 1.0 or turn == 2.0 else c1), (-s1 if turn == 2.0 or turn == 3.0 else s1)
 
 
 @njit(cache=True, inline="always")
@@ -42,14 +100,11 @@ def normal_pair(seed: int, counter: int) -> tuple[float, float]:
     z = (z ^ (z >> _S30)) * _MIX1
     z = (z ^ (z >> _S27)) * _MIX2
     z = z ^ (z >> _S31)
-    u1 = (float(z >> _S32) + 0.5) * _INV_2_32  # in (0, 1): log is finite
-    u2 = float(z & _LOW32) * _INV_2_32
-    # single precision transcendentals: ~3x faster on CPU, and noise needs no more digits
-    r = math.sqrt(-2.0 * math.log(np.float32(u1)))
-    c = math.cos(np.float32(_TWO_PI * u2))
-    s = math.sqrt(fmax(1.0 - c * c, 0.0))  # sin from cos: one transcendental fewer; sin < 0 on (pi, 2 pi)
-    if u2 >= 0.5:
-        s = -s
+    # u1 = (high 32 bits + 1/2) / 2^32 = t / 2^33 with t = 2 high + 1, in (0, 1): its log is finite and below 0;
+    # the angle is 2 pi (low 32 bits) / 2^32
+    t = 2.0 * float(z >> _S32) + 1.0
+    r = math.sqrt(-2.0 * _log_of_count(t, 33.0))
+    c, s = _cos_sin_of_fraction(float(z & _LOW32))
     return r * c, r * s
 
 
@@ -83,6 +138,16 @@ def sampled_command(
     became random walks of the limit's size, the time-correlated exploration that tracked worse
     (docs/smooth_commands.md), and the next plan limits its own first command anyway."""
     z0, z1 = normal_pair(seed, counter)
+    return command_from_normals(z0, z1, nominal, k, noise_std, u_lo, u_hi, ar, d0, d1, first_step)
+
+
+@njit(cache=True, inline="always")
+def command_from_normals(
+    z0: float, z1: float, nominal: np.ndarray, k: int, noise_std: np.ndarray, u_lo: np.ndarray, u_hi: np.ndarray,
+    ar: tuple, d0: float, d1: float, first_step: tuple,
+) -> tuple[float, float, float, float]:
+    """`sampled_command` given the step's two standard normals (z0, z1) = `normal_pair(seed, counter)`: the CPU
+    kernel draws a group's normals in a loop of their own (vector code) and then makes the commands with this."""
     memory, innovation = ar
     if memory > 0.0 and k > 0:
         z0 = memory * d0 + innovation * z0
