@@ -10,7 +10,8 @@ path; timed apart as `prepare`) and the state then to `plan` (`--collapse-in-pla
 the same process and the moving / fixed ratio of the plans' p50 is reported.
 With `--vs pytorch-mppi` the same kinematic-unicycle problem (same S, N, dt,
 noise, lambda; a simple quadratic lane-tracking cost) runs through pytorch_mppi in the same
-process, interleaved with our plain (unicycle) and our chosen-model iterations.
+process, interleaved with our plain (unicycle) and our chosen-model iterations, in a new seeded order each
+iteration.
 """
 
 from __future__ import annotations
@@ -172,9 +173,14 @@ def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: s
         runners["plain"] = _Ours(PlannerConfig(dynamics="unicycle", **common), model, weights)
         runners["peer"] = _Peer(samples, horizon, cfg.dt, cfg.noise_std, cfg.temperature)
     times: dict[str, list[float]] = {k: [] for k in runners}
+    # interleaved, so that machine load hits all alike, in a new (seeded) order each iteration: in one fixed order
+    # each runner always ran right after the same one, in the caches that one left (ours after pytorch_mppi, whose
+    # tensors had evicted our GP table: docs/benchmarks.md)
+    names = list(runners)
+    order = np.random.default_rng(0)
     for i in range(warmup + iters):
-        for name, r in runners.items():  # interleaved, so machine load hits all alike
-            t = r.step()  # type: ignore[attr-defined]
+        for name in order.permutation(names):
+            t = runners[name].step()  # type: ignore[attr-defined]
             if i >= warmup:
                 times[name].append(t)
     out = {"samples": samples, "horizon": horizon, "model": model_choice, "gp": gp, "table_collapse": table_collapse,
