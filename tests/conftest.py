@@ -45,6 +45,19 @@ def paper_model_file(jackal: Path, tmp_path_factory: pytest.TempPathFactory) -> 
     return out
 
 
+# ------------------------------------------------------------------------------------------- how many workers
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
+    """`-n auto` (pyproject.toml's `addopts`): one worker more than the cores this process may run on.
+
+    The suite waits about a third of its time (service processes starting, sockets, timed phases): on 2 cores two
+    workers kept the CPU 62% busy in `-m "not slow"`, and three ran it in 116 s against 134 s, the whole suite in
+    285-311 s against 340-359 s (docs/development.md). `PYTEST_XDIST_AUTO_NUM_WORKERS` still decides where set,
+    and `--maxprocesses` caps either."""
+    if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
+        return None  # pytest-xdist's own hook reads it
+    return len(os.sched_getaffinity(0)) + 1
+
+
 # ------------------------------------------------------------------------------------- tests that run alone
 # The suite runs on several workers (pytest-xdist, `addopts` in pyproject.toml). A few tests compare wall-clock
 # times (the egress watchdog within 20 ms of its deadline, a stopped viewer against a running one, a soak's
