@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 
 from gpmppi.kernel_flags import fmax, fmin
+from gpmppi.trig import nearest, quarter_turned
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -72,20 +73,9 @@ def _cos_sin_of_fraction(f: float) -> tuple[float, float]:
     """cos and sin of 2 pi f / 2^32 for an integer-valued float f in [0, 2^32), to ~1e-15.
 
     The nearest quarter turn q is taken out exactly (f - q 2^30 is an integer below 2^31), the rest (within an eighth of
-    a turn) goes through Taylor polynomials, and selects turn the pair back by q quarter turns (branch-free, as
-    `_log_of_count`)."""
-    q = math.floor(f * (1.0 / _QUARTER) + 0.5)  # 0 .. 4
-    a = (f - q * _QUARTER) * _RAD_PER_UNIT  # [-pi/4, pi/4]
-    a2 = a * a
-    c = 1.0 + a2 * (-1.0 / 2.0 + a2 * (1.0 / 24.0 + a2 * (-1.0 / 720.0 + a2 * (1.0 / 40320.0 + a2 * (
-        -1.0 / 3628800.0 + a2 * (1.0 / 479001600.0 + a2 * (-1.0 / 87178291200.0)))))))
-    s = a * (1.0 + a2 * (-1.0 / 6.0 + a2 * (1.0 / 120.0 + a2 * (-1.0 / 5040.0 + a2 * (1.0 / 362880.0 + a2 * (
-        -1.0 / 39916800.0 + a2 * (1.0 / 6227020800.0 + a2 * (-1.0 / 1307674368000.0))))))))
-    turn = q - 4.0 * math.floor(0.25 * q)  # q mod 4: 4 quarter turns are a whole one
-    odd = turn == 1.0 or turn == 3.0  # a quarter or three: cos and sin trade places
-    c1 = s if odd else c
-    s1 = c if odd else s
-    return (-c1 if turn == 1.0 or turn == 2.0 else c1), (-s1 if turn == 2.0 or turn == 3.0 else s1)
+    a turn) goes to `trig.quarter_turned` (branch-free, as `_log_of_count`)."""
+    q = nearest(f * (1.0 / _QUARTER))  # 0 .. 4
+    return quarter_turned((f - q * _QUARTER) * _RAD_PER_UNIT, q)  # f - q 2^30 is exact; the angle in [-pi/4, pi/4]
 
 
 @njit(cache=True, inline="always")
