@@ -431,7 +431,7 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     command to the rate limits too) as the kernels clip a sampled command.
 
     Serial, one rollout with the model's own step (`step_state`), compiled with the kernels' flags (without them
-    the float32 cos/sin and table reads round differently and the sum strayed 5e-9 from the kernel's cost): the
+    the float32 table reads and the pose step round differently and the sum strayed 5e-9 from the kernel's cost): the
     kernels add the critics of a step into one cost, this keeps them apart; their sum is the kernels' cost.
     """
     kind = task[T_KIND]
