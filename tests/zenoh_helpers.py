@@ -24,10 +24,28 @@ from services.node import ZenohSettings
 REPO = Path(__file__).resolve().parents[1]
 
 
+# Ports the tests listen on: below the OS's ephemeral range (32768-60999 on Linux), which it hands to every outgoing
+# connection, the tests' own Zenoh clients included; a port the OS had just reported free (bind to port 0) could be
+# taken by one of those before the test's router bound it ("Address already in use", seen on three workers). Each
+# pytest-xdist worker has a slice of its own, and takes its ports in turn from a start that differs per process.
+_PORT_BASE = 20000
+_PORT_SLICE = 1500
+_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+_next_port = iter(range(os.getpid() % _PORT_SLICE, os.getpid() % _PORT_SLICE + 100 * _PORT_SLICE))
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A loopback TCP port free now that no other worker of this run is given (tried by binding it)."""
+    first = _PORT_BASE + _PORT_SLICE * (_WORKER % 8)
+    for _ in range(_PORT_SLICE):
+        port = first + next(_next_port) % _PORT_SLICE
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue  # in use (another run, a socket still closing): the next one
+            return port
+    raise RuntimeError(f"no free loopback port in {first}-{first + _PORT_SLICE - 1}")
 
 
 def endpoint(port: int) -> str:

@@ -75,11 +75,11 @@ from gpmppi.mppi.dynamics import (
     gp_inputs,
     gp_residual,
     gp_scratch,
-    step_state,
     velocity_coefficients,
 )
 from gpmppi.mppi.gp_table import block_keys, cell32, ensure_block_at, simplex_corner, simplex_params
-from gpmppi.mppi.rng import clip, command_from_normals, normal_pair, rate_limited
+from gpmppi.mppi.rng import command_from_normals, normal_pair
+from gpmppi.mppi.step import sample_step
 
 __all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", "softmax_update"]
 
@@ -432,9 +432,10 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     """Each critic's cost (`CRITICS` order) of the sampling bundle's nominal sequence, clipped to its limits (its first
     command to the rate limits too) as the kernels clip a sampled command.
 
-    Serial, one rollout with the model's own step (`step_state`), compiled with the kernels' flags (without them
-    the float32 table reads and the pose step round differently and the sum strayed 5e-9 from the kernel's cost): the
-    kernels add the critics of a step into one cost, this keeps them apart; their sum is the kernels' cost.
+    Serial, one rollout by the kernels' own step (`step.sample_step`) with zero noise, so that the nominal is
+    clipped exactly as a sample is, compiled with the kernels' flags (without them the float32 table reads and the
+    pose step round differently and the sum strayed 5e-9 from the kernel's cost): the kernels add the critics of a
+    step into one cost, this keeps them apart; their sum is the kernels' cost.
     """
     kind = task[T_KIND]
     tightened_hw = task[T_TIGHTENED_HW]
@@ -442,8 +443,10 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], task[T_FIELD], task[T_ORIGIN], task[T_INV_CELL],
            task[T_HALF_WIDTH], task[T_SPEED_TARGET], task[T_GOAL], task[T_OBSTACLES])
     nominal = sampling[S_NOMINAL]
-    u_lo = sampling[S_U_LO]
-    u_hi = sampling[S_U_HI]
+    horizon = nominal.shape[0]
+    # the sampling bundle's own limits, but no noise: whatever its noise std, the sequence scored is the nominal
+    limits = (nominal, np.zeros(2), sampling[S_U_LO], sampling[S_U_HI], (0.0, 1.0),
+              (sampling[S_U_PREV], sampling[S_RATE_STEP]))
     dt = sampling[S_DT]
     dyn = (model[M_DYN_MODE], velocity_coefficients(model[M_THETA], model[M_LATERAL]), model[M_EDD5])
     gp = gp_inputs(model)
@@ -452,17 +455,14 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     discount = cost_w[K_EXIT_DISCOUNT]
     x0 = sampling[S_X0]
     s = (x0[0], x0[1], x0[2], x0[3], x0[4])
+    d = (0.0, 0.0)
     out = np.zeros(len(CRITICS))
     discount_k = 1.0
-    for k in range(nominal.shape[0]):
-        u = (clip(nominal[k, 0], u_lo[0], u_hi[0]), clip(nominal[k, 1], u_lo[1], u_hi[1]))
-        if k == 0:
-            u = rate_limited(u[0], u[1], sampling[S_U_PREV], sampling[S_RATE_STEP])
-        px, py, yaw, v, w, _mv, _mw, var_v, var_w = step_state(dyn, gp, scratch, dt, s, u, 1.0)
-        s = (px, py, yaw, v, w)
-        stage_critics(kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, (var_v, var_w), out)
+    for k in range(horizon):
+        u, d, s, variances = sample_step(sampling[S_SEED], k, k, limits, dyn, gp, scratch, dt, s, d)
+        stage_critics(kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, variances, out)
         discount_k *= discount
-    terminal_critics(kind, cost_w, geo, tightened_hw[nominal.shape[0]], radii[nominal.shape[0]], s, out)
+    terminal_critics(kind, cost_w, geo, tightened_hw[horizon], radii[horizon], s, out)
     return out
 
 

@@ -22,18 +22,15 @@ from numba import cuda
 
 from gpmppi.gp.cuda_kernels import device_version, set_device_version
 from gpmppi.mppi import costs as critic
-from gpmppi.mppi import dynamics, gp_table, rng
+from gpmppi.mppi import dynamics, gp_table, step
 from gpmppi.mppi.bundles import (
     K_EXIT_DISCOUNT,
     M_COLLAPSE_W,
-    M_DIMS,
     M_DYN_MODE,
     M_EDD5,
     M_GP_MODE,
-    M_INV_STEP,
     M_LATERAL,
     M_LAZY,
-    M_LO,
     M_TABLE,
     M_TABLE_SRC,
     M_THETA,
@@ -72,11 +69,25 @@ from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX
 THREADS_PER_BLOCK = 128
 
 
-_sampled_command = device_version(rng.sampled_command)
 _interp4 = device_version(gp_table.interp4)
 _interp4_simplex = device_version(gp_table.interp4_simplex)
-_advance = device_version(dynamics.advance)
 _collapse_rows = device_version(gp_table.collapse_rows)
+
+
+@cuda.jit(device=True, inline=True)
+def _grid_residual(gp, scratch, v_ref, w_ref, v, w):  # noqa: ANN001, ANN202 - a CUDA device function
+    """The device twin of `dynamics.gp_residual`: the grid table's lookup alone. The CUDA backend runs no exact GP
+    (`Planner` refuses it) and the device collapses its table whole (`DeviceInputs.collapsed_table`), so neither the
+    exact GP nor the lazy slabs (host atomics) is compiled for it."""
+    gp_mode = gp[0]
+    if gp_mode == GP_SIMPLEX:
+        return _interp4_simplex(gp[1], gp[2], gp[3], gp[4], v, w, v_ref, w_ref)
+    return _interp4(gp[1], gp[2], gp[3], gp[4], v, w, v_ref, w_ref)
+
+
+set_device_version(dynamics.gp_residual, _grid_residual)
+_sample_step = device_version(step.sample_step)
+_gp_inputs = device_version(dynamics.gp_inputs)
 # the critics' sums from the terms' device twins (the CPU sums are closures, which `device_version` cannot rebuild)
 for _kind, _sums in build_sums(cuda.jit(device=True, inline=True), device_version).items():
     set_device_version(getattr(critic, f"_{_kind}_stage"), _sums.stage)
@@ -95,34 +106,20 @@ def _rollout_kernel(model, task, sampling, cost, out):
     samples = eps_out.shape[0]
     if s >= samples:
         return
-    dyn_mode = model[M_DYN_MODE]
     theta = model[M_THETA]
     lateral = model[M_LATERAL]
-    edd5_p = model[M_EDD5]
-    gp_mode = model[M_GP_MODE]
-    table = model[M_TABLE]
-    dims = model[M_DIMS]
-    lo = model[M_LO]
-    inv_step = model[M_INV_STEP]
     task_kind = task[T_KIND]
-    field = task[T_FIELD]
-    grid_origin = task[T_ORIGIN]
-    inv_cell = task[T_INV_CELL]
     tightened_hw = task[T_TIGHTENED_HW]
-    goal = task[T_GOAL]
     radii = task[T_RADII]
-    geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], field, grid_origin, inv_cell, task[T_HALF_WIDTH],
-           task[T_SPEED_TARGET], goal, task[T_OBSTACLES])
+    geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], task[T_FIELD], task[T_ORIGIN], task[T_INV_CELL],
+           task[T_HALF_WIDTH], task[T_SPEED_TARGET], task[T_GOAL], task[T_OBSTACLES])
     x0 = sampling[S_X0]
     nominal = sampling[S_NOMINAL]
-    noise_std = sampling[S_NOISE_STD]
-    u_lo = sampling[S_U_LO]
-    u_hi = sampling[S_U_HI]
     dt = sampling[S_DT]
     seed = sampling[S_SEED]
-    iteration = sampling[S_ITERATION]
     memory = sampling[S_NOISE_MEMORY]
-    ar = (memory, math.sqrt(1.0 - memory * memory))
+    limits = (nominal, sampling[S_NOISE_STD], sampling[S_U_LO], sampling[S_U_HI],
+              (memory, math.sqrt(1.0 - memory * memory)), (sampling[S_U_PREV], sampling[S_RATE_STEP]))
     cost_w = cuda.local.array(N_COST_TERMS, numba.float64)
     _fill_weight_vector(cost, cost_w)
     discount = cost_w[K_EXIT_DISCOUNT]
@@ -136,43 +133,29 @@ def _rollout_kernel(model, task, sampling, cost, out):
     coef[5] = 1.0 / theta[1]
     coef[6] = lateral[0]
     coef[7] = lateral[1]
+    dyn = (model[M_DYN_MODE], coef, model[M_EDD5])
+    gp = _gp_inputs(model)
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
-    px = x0[0]
-    py = x0[1]
-    yaw = x0[2]
-    v = x0[3]
-    w = x0[4]
+    st = (x0[0], x0[1], x0[2], x0[3], x0[4])
     if s < n_xy:
-        xy_out[s, 0, 0] = px
-        xy_out[s, 0, 1] = py
+        xy_out[s, 0, 0] = st[0]
+        xy_out[s, 0, 1] = st[1]
     total = 0.0
     discount_k = 1.0
-    base = (iteration * samples + s) * horizon
-    d0 = 0.0  # the unit noise of the last step (`rng.sampled_command`)
-    d1 = 0.0
-    first_step = (sampling[S_U_PREV], sampling[S_RATE_STEP])
+    base = (sampling[S_ITERATION] * samples + s) * horizon
+    d = (0.0, 0.0)  # the unit noise of the last step (`rng.sampled_command`)
     for k in range(horizon):
-        u0, u1, d0, d1 = _sampled_command(seed, base + k, nominal, k, noise_std, u_lo, u_hi, ar, d0, d1, first_step)
-        eps_out[s, k, 0] = u0 - nominal[k, 0]
-        eps_out[s, k, 1] = u1 - nominal[k, 1]
-        mv = 0.0
-        mw = 0.0
-        cv = 0.0
-        cw = 0.0
-        if dyn_mode == DYN_GP:
-            if gp_mode == GP_SIMPLEX:
-                mv, mw, cv, cw = _interp4_simplex(table, dims, lo, inv_step, v, w, u0, u1)
-            else:
-                mv, mw, cv, cw = _interp4(table, dims, lo, inv_step, v, w, u0, u1)
-        px, py, yaw, v, w = _advance(dyn_mode, dt, coef, edd5_p, (px, py, yaw, v, w), (u0, u1), mv, mw)
+        # the step every backend takes (`step.sample_step`); the exact GP's work arrays: none on the device
+        u, d, st, variances = _sample_step(seed, base + k, k, limits, dyn, gp, (), dt, st, d)
+        eps_out[s, k, 0] = u[0] - nominal[k, 0]
+        eps_out[s, k, 1] = u[1] - nominal[k, 1]
         if s < n_xy:
-            xy_out[s, k + 1, 0] = px
-            xy_out[s, k + 1, 1] = py
-        total += _stage_cost(task_kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k,
-                             (px, py, yaw, v, w), (u0, u1), (cv, cw))
+            xy_out[s, k + 1, 0] = st[0]
+            xy_out[s, k + 1, 1] = st[1]
+        total += _stage_cost(task_kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, st, u, variances)
         discount_k *= discount
-    total += _terminal_cost(task_kind, cost_w, geo, tightened_hw[horizon], radii[horizon], (px, py, yaw, v, w))
+    total += _terminal_cost(task_kind, cost_w, geo, tightened_hw[horizon], radii[horizon], st)
     if math.isnan(total) or math.isinf(total):
         total = math.inf
     cost_out[s] = total
