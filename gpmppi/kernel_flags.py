@@ -156,6 +156,12 @@ def phase(func: Callable) -> Callable:
     return njit(cache=True, fastmath=FASTMATH, _nrt=False, noalias=True)(func)
 
 
+def vector_phase(func: Callable) -> Callable:
+    """A `phase` with numpy's error model: a float division is not checked for zero, a check whose branch keeps
+    LLVM from vectorising the loop around it. Only for phases whose divisors cannot be zero."""
+    return njit(cache=True, fastmath=FASTMATH, _nrt=False, noalias=True, error_model="numpy")(func)
+
+
 def _int64_vector(array: types.Type) -> bool:
     return isinstance(array, types.Array) and array.ndim == 1 and array.dtype == types.int64
 

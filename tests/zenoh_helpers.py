@@ -3,6 +3,7 @@ router-mode session, clients, a collector of everything under a key, and a servi
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -31,7 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 _PORT_BASE = 20000
 _PORT_SLICE = 1500
 _WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-_next_port = iter(range(os.getpid() % _PORT_SLICE, os.getpid() % _PORT_SLICE + 100 * _PORT_SLICE))
+_next_port = itertools.count(os.getpid() % _PORT_SLICE)
 
 
 def free_port() -> int:

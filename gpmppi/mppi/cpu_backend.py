@@ -22,7 +22,7 @@ import numba
 import numpy as np
 from numba import njit
 
-from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row
+from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row, vector_phase
 from gpmppi.mppi.bundles import (
     CRITICS,
     K_EXIT_DISCOUNT,
@@ -90,14 +90,14 @@ __all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", 
 GROUP = 64
 
 
-@njit(cache=True, fastmath=FASTMATH, _nrt=False, noalias=True, error_model="numpy")
+@vector_phase
 def _unit_normals(seed: int, counter0: int, horizon: int, k: int, first: int, n_in: int, normals: np.ndarray) -> None:
     """Step k's standard normals of the group's samples first .. first + n_in - 1 (`rng.normal_pair`) into `normals`
     (2, GROUP).
 
-    A phase (`kernel_flags.phase`) of its own, free of anything but the generator's arithmetic, and with numpy's
-    error model (a division is not checked for zero, which would branch; the generator's never divides by less
-    than 1.7), so that it compiles to vector code: 8 samples at a time, about half the time of a sample at a time."""
+    A phase of its own, free of anything but the generator's arithmetic, and a `vector_phase` (the generator never
+    divides by less than 1.7), so that it compiles to vector code: 8 samples at a time, about half the time of a
+    sample at a time."""
     for j in range(n_in):
         z0, z1 = normal_pair(seed, (counter0 + first + j) * horizon + k)
         normals[0, j] = z0

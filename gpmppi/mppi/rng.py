@@ -5,7 +5,7 @@ result does not depend on how threads (CPU) or blocks (CUDA) are scheduled, and 
 and CUDA backends draw exactly the same numbers. The hash is SplitMix64's finaliser; one 64-bit
 hash gives two 32-bit uniforms, and Box-Muller turns them into the two control-noise normals. Its logarithm, cosine
 and sine are polynomials in plain arithmetic (`_log_of_count`, `_cos_sin_of_fraction`), accurate to ~1e-15, not
-library calls: a loop over a group of samples then compiles to vector code (the CPU kernel's `_unit_noise`), which
+library calls: a loop over a group of samples then compiles to vector code (the CPU kernel's `_unit_normals`), which
 library calls never did (numba's CPU target has no vector math library here).
 
 The CUDA backend compiles the same Python source as device functions
