@@ -307,10 +307,11 @@ class BayesTerrainEstimator:
         a step does not start at the last one's end: a skipped transition); its residual against the measured next
         velocity is averaged exponentially over `response_smoothing_steps` and scored against `response_spread`,
         while the commands are smooth (`response_max_roughness`; `du` is the change since the previous command,
-        unknown on the `first` step).
+        unknown on the `first` step) and on the map's measured grid (`TerrainResponse.covers`).
         """
         if self._response is None:
             return np.zeros(self._m)
+        off_grid = not self._response.covers(u)
         if self._response_pred is None or self._response_at is None or not np.array_equal(x, self._response_at):
             self._response_pred = np.tile(x[3:5], (self._m, 1))
         self._response_pred = self._response.step(self._response_pred, u)
@@ -319,6 +320,12 @@ class BayesTerrainEstimator:
             self._roughness_sum = 0.9 * self._roughness_sum + np.abs(du) / self.model.dt
             self._roughness_weight = 0.9 * self._roughness_weight + 1.0
             self._roughness_seen += 1
+        if off_grid:
+            # off the measured grid (a pivot at -2.5 rad/s against a grid to -2) the clamped map is off by tens of
+            # nats a step for the terrains it gets wrong: no residual from such a step, and the free run starts
+            # again from the measured velocity once back on the grid
+            self._response_pred = None
+            return np.zeros(self._m)
         if self._roughness_seen < ROUGHNESS_WARMUP_STEPS or np.any(
             self._roughness_sum / max(self._roughness_weight, 1e-12) > self._max_roughness
         ):

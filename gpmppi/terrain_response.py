@@ -68,6 +68,12 @@ class TerrainResponse:
         idx = [self.terrains.index(t) for t in names]
         return TerrainResponse(self.v_ref, self.omega_ref, tuple(names), self.steady[idx], self.rate[idx])
 
+    def covers(self, command: np.ndarray) -> bool:
+        """Whether the held `command` (2,) lies on the measured grid (off it `steady_at` clamps, so it is wrong by as
+        much as the command lies beyond the grid)."""
+        return bool(self.v_ref[0] <= command[0] <= self.v_ref[-1]
+                    and self.omega_ref[0] <= command[1] <= self.omega_ref[-1])
+
     def steady_at(self, command: np.ndarray) -> np.ndarray:
         """(M, 2) every terrain's steady (v, omega) under the held `command` (2,), bilinear; clamped to the grid."""
         v = float(np.clip(command[0], self.v_ref[0], self.v_ref[-1]))

@@ -33,6 +33,8 @@ def test_steady_map_is_bilinear_like_scipy_and_clamped_to_the_grid() -> None:
         expected = np.stack([RegularGridInterpolator((r.v_ref, r.omega_ref), r.steady[i])(u)[0] for i in range(2)])
         np.testing.assert_allclose(r.steady_at(u), expected, rtol=0, atol=1e-12)
     np.testing.assert_allclose(r.steady_at(np.array([5.0, -9.0])), r.steady[:, -1, 0])  # clamped, not extrapolated
+    assert r.covers(np.array([2.0, -2.0])) and r.covers(np.array([0.0, 0.3]))
+    assert not r.covers(np.array([1.0, -2.01])) and not r.covers(np.array([2.1, 0.0]))
     p = np.array([[0.1, 0.2], [0.3, 0.4]])
     u = np.array([1.0, 0.5])
     np.testing.assert_allclose(r.step(p, u), p + r.rate * (r.steady_at(u) - p))
@@ -119,7 +121,7 @@ def test_bad_response_files_fail_naming_the_file_and_the_fix(tmp_path: Path) -> 
     with pytest.raises(ValueError, match=r"terrain response file .*bad.yaml.*gpmppi evaluate terrain-response"):
         load_response(bad)
     text = SHIPPED_RESPONSE.read_text()
-    bad.write_text(text.replace("rate: [0.2828", "rate: [1.5", 1))
+    bad.write_text(text.replace("rate: [0.2867", "rate: [1.5", 1))
     with pytest.raises(ValueError, match=r"bad.yaml.*rate must lie in \(0, 1\]"):
         load_response(bad)
     only = tmp_path / "only_asphalt.yaml"
@@ -156,3 +158,41 @@ def test_jittery_commands_leave_the_response_unscored() -> None:
         smooth.observe(*row)
         plain.observe(*row)
     assert not np.array_equal(smooth.estimate().weights, plain.estimate().weights)
+
+
+def test_the_shipped_grid_covers_the_planners_commands() -> None:
+    # off the grid the map is clamped; a pivot at the planner's yaw-rate limit must still be on it
+    from gpmppi.mppi.planner import PlannerConfig
+
+    cfg, r = PlannerConfig(), load_response()
+    for v in cfg.v_limits:
+        for w in cfg.omega_limits:
+            assert r.covers(np.array([v, w])), (v, w)
+
+
+def test_a_command_off_the_grid_adds_no_response_evidence(tmp_path: Path) -> None:
+    # a map measured to +-1 rad/s, a turn held at 1.6 rad/s: the clamped map would be off by ~0.5 rad/s, tens of nats a
+    # step; instead the step scores nothing, the residual built so far stays, and the free run starts again from the
+    # measured velocity at the next step on the grid
+    shipped = load_response()
+    keep = np.abs(shipped.omega_ref) <= 1.0 + 1e-9
+    narrow = TerrainResponse(shipped.v_ref, shipped.omega_ref[keep], shipped.terrains, shipped.steady[:, :, keep],
+                             shipped.rate)
+    path = tmp_path / "narrow.yaml"
+    path.write_text(narrow.to_yaml())
+    model = load_default_model()
+    est = make_estimator(model, EstimatorConfig(response_file=str(path)))
+    assert isinstance(est, BayesTerrainEstimator)
+    for row in _held_drive("tile", (1.0, 0.6), 5.0, seed=7):
+        est.observe(*row)
+    built = est._response_residual.copy()
+    assert np.any(built != 0.0)
+    x, _, x1 = _held_drive("tile", (1.0, 1.6), 3.0, seed=7)[-1]
+    u_off = np.array([1.0, 1.6])
+    np.testing.assert_array_equal(est._response_loglik(x, u_off, x1, np.zeros(2), False), np.zeros(3))
+    np.testing.assert_array_equal(est._response_residual, built)
+    assert est._response_pred is None
+    u_on = np.array([1.0, 0.9])
+    est._response_loglik(x1, u_on, x1, u_on - u_off, False)
+    np.testing.assert_allclose(est._response_pred, narrow.select(list(model.terrains)).step(np.tile(x1[3:5], (3, 1)),
+                                                                                         u_on))

@@ -172,7 +172,7 @@ def register(ev: typer.Typer) -> None:
                                 gp_model=None if gp_model is None else str(gp_model))
         dt = 0.1
         v_ref = np.round(np.arange(0.0, 2.0 + 1e-9, 0.2), 4)
-        omega_ref = np.round(np.arange(-2.0, 2.0 + 1e-9, 0.2), 4) + 0.0  # no -0.0
+        omega_ref = np.round(np.arange(-3.2, 3.2 + 1e-9, 0.2), 4) + 0.0  # no -0.0; covers the planner's +-pi
         model = cached_gp_model(settings.gp_model)
         names = list(model.terrains)
         steady = np.zeros((len(names), len(v_ref), len(omega_ref), 2))
