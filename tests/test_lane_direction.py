@@ -50,6 +50,22 @@ def test_direction_turns_smoothly_across_a_corner_bisector_and_stays_bounded_off
     assert np.isfinite(d) and np.hypot(tx, ty) <= 1.0 + 1e-12
 
 
+def test_direction_turns_over_two_metres_of_arc_around_a_corner() -> None:
+    # the chord over 1 m of arc either side of the projection: the sides' own directions from 1 m on, the bisector at
+    # the vertex, rotating in between, so a rollout turning into the corner earns speed along the lane there
+    lane = build_lane_lookup(square_lane().task.centerline, True, margin=3.0, cell=0.1)
+    assert _query(lane, 18.95, 0.0)[1:] == pytest.approx((1.0, 0.0), abs=1e-9)  # 1.05 m before the corner (20, 0)
+    assert _query(lane, 20.0, 1.05)[1:] == pytest.approx((0.0, 1.0), abs=1e-9)  # 1.05 m after it
+    # (to the blend of the four cell centres around the point)
+    assert _query(lane, 20.0, 0.0)[1:] == pytest.approx((2 ** -0.5, 2 ** -0.5), abs=0.02)
+    _, tx, ty = _query(lane, 19.5, 0.0)  # 0.5 m before: the chord from (18.5, 0) to (20, 0.5)
+    assert (tx, ty) == pytest.approx(np.array([1.5, 0.5]) / np.hypot(1.5, 0.5), abs=0.02)
+    # an open lane's ends keep the end segments' directions
+    open_lane = build_lane_lookup(np.array([[0.0, 0.0], [5.0, 0.0], [5.0, 5.0]]), False, margin=2.0, cell=0.1)
+    assert _query(open_lane, 0.05, 0.0)[1:] == pytest.approx((1.0, 0.0), abs=1e-9)
+    assert _query(open_lane, 5.0, 4.95)[1:] == pytest.approx((0.0, 1.0), abs=1e-9)
+
+
 def _lane_step_cost(lane: LaneLookup, yaw: float, along: bool) -> float:
     w = np.zeros(N_COST_TERMS)
     w[layout().weight_index("speed")] = 1.0

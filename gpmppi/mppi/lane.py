@@ -6,8 +6,10 @@ that can be nearest to any point of the cell (see `_cell_candidates`). A query m
 distance to those only, so it is exact, and costs a handful of segment distances near the lane.
 Nothing here assumes a particular shape: circles, squares and chicanes are all just polylines.
 
-The polyline's point order is the driving direction: the grid also stores the unit tangent of the
-nearest segment at every cell centre, so a cost can measure speed along the lane (`lane_query`).
+The polyline's point order is the driving direction: the grid also stores the lane's direction at every
+cell centre (the chord over `TANGENT_HALF_WINDOW` of arc either side of the centre's projection: the tangent
+on straights and circles, turning over 2 m around a corner), so a cost can measure speed along the lane
+(`lane_query`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from gpmppi.mppi.recent import Recent
 
 # segment rows: [ax, ay, dx, dy, 1/|d|^2]
 SEG_COLS = 5
+# the lane direction at a point is the chord over this much arc [m] either side of its projection
+TANGENT_HALF_WINDOW = 1.0
 
 
 @dataclass(frozen=True)
@@ -75,7 +79,7 @@ def _cell_candidates(
     seg: np.ndarray, origin: np.ndarray, cell: float, h: int, w: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """CSR lists (cell i's candidates are cand[start[i]:start[i + 1]]) and the (h, w, 3) field at the cell
-    centres: distance, and the unit direction of the nearest segment.
+    centres: distance, and where the centre projects on the polyline (nearest segment's index + fraction; 0).
 
     For a point p in a cell with centre c (|p - c| <= cell / sqrt 2) the nearest segment j* obeys
     d(c, j*) <= d(p, j*) + |p - c| <= d(p, j_c) + |p - c| <= d_min(c) + sqrt(2) cell, so every
@@ -98,10 +102,11 @@ def _cell_candidates(
                 best = d2
                 nearest = j
         dmin[i] = np.sqrt(best)
-        inv_len = np.sqrt(seg[nearest, 4])
         field[i, 0] = dmin[i]
-        field[i, 1] = seg[nearest, 2] * inv_len
-        field[i, 2] = seg[nearest, 3] * inv_len
+        # where along the polyline the centre projects (segment index + fraction), for `_smoothed_tangents`
+        t = ((x - seg[nearest, 0]) * seg[nearest, 2] + (y - seg[nearest, 1]) * seg[nearest, 3]) * seg[nearest, 4]
+        field[i, 1] = nearest + min(max(t, 0.0), 1.0)
+        field[i, 2] = 0.0
         limit = (dmin[i] + slack) ** 2
         c = 0
         for j in range(n_seg):
@@ -137,7 +142,43 @@ def build_lane_lookup(
     w = max(int(np.ceil(size[0] / cell)), 1)
     h = max(int(np.ceil(size[1] / cell)), 1)
     start, cand, field = _cell_candidates(seg, lo, cell, h, w)
+    field[:, :, 1], field[:, :, 2] = _smoothed_tangents(seg, closed, field[:, :, 1], TANGENT_HALF_WINDOW)
     return LaneLookup(seg, start, cand, field, lo, 1.0 / cell, w, h)
+
+
+def _smoothed_tangents(
+    seg: np.ndarray, closed: bool, position: np.ndarray, half_window: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unit lane directions at the points whose projections on the polyline are `position` (segment index +
+    fraction): the chord from `half_window` [m] of arc before the projection to as far after it.
+
+    On a straight stretch and on a circle (by symmetry) that is the tangent itself; at a corner it turns over
+    2 * half_window of arc instead of at the vertex. With the nearest segment's own direction a rollout that
+    reached a square's corner still heading along the old side had no speed along the lane at all, whatever its
+    speed, so near corners speed earned nothing while it still cost lane deviation: the planner crept into the
+    corner at 0.2 m/s and turned on the spot (asphalt square, 42.5 mm against 27.6 with 4096 samples).
+    """
+    lengths = 1.0 / np.sqrt(seg[:, 4])
+    arc = np.concatenate([[0.0], np.cumsum(lengths)])  # arc length at each segment's start; arc[-1] the total
+    vertices = np.vstack([seg[:, :2], seg[-1:, :2] + seg[-1:, 2:4]])
+    j = np.minimum(np.floor(position).astype(np.int64), len(lengths) - 1)
+    s = arc[j] + (position - j) * lengths[j]
+    total = arc[-1]
+    if closed:
+        ahead = np.mod(s + half_window, total)
+        behind = np.mod(s - half_window, total)
+    else:
+        ahead = np.minimum(s + half_window, total)
+        behind = np.maximum(s - half_window, 0.0)
+    dx = np.interp(ahead, arc, vertices[:, 0]) - np.interp(behind, arc, vertices[:, 0])
+    dy = np.interp(ahead, arc, vertices[:, 1]) - np.interp(behind, arc, vertices[:, 1])
+    norm = np.hypot(dx, dy)
+    # a lane shorter than the window (or a hairpin) can give a zero chord: the segment's own direction there
+    own = norm < 1e-9
+    dx = np.where(own, seg[j, 2], dx)
+    dy = np.where(own, seg[j, 3], dy)
+    norm = np.hypot(dx, dy)
+    return dx / norm, dy / norm
 
 
 _LOOKUPS: Recent[LaneLookup] = Recent()
@@ -201,9 +242,9 @@ def lane_query(
     the comparison with the threshold is always exact and elsewhere the value is an approximation
     (error ~1e-4 m on smooth stretches, up to sqrt(2) * cell on the centre line's medial axis).
 
-    The direction is the bilinear blend of the nearest segments' unit tangents at the four cell
-    centres (clamped to the grid's edge outside it): a unit vector along straight stretches, turning
-    smoothly over one cell where the nearest segment changes (a corner's bisector).
+    The direction is the bilinear blend of the lane directions at the four cell centres (clamped to the
+    grid's edge outside it; `_smoothed_tangents`): a unit vector along straight stretches and circles,
+    turning over 2 * `TANGENT_HALF_WINDOW` of arc around a corner.
     """
     r, c, r1, c1, tx, ty, out_c, out_r = grid_cell_at(field, origin, inv_cell, x, y)
     inside = out_c == 0.0 and out_r == 0.0
