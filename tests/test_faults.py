@@ -142,6 +142,19 @@ class Observer:
         wait_for(lambda: self.driving_since(since) is not None, timeout, 0.05)
         return self.driving_since(since)
 
+    def commanding_steadily(self, steady_s: float, max_gap_s: float = 0.2) -> bool:
+        """Whether the planner's commands have arrived for the last `steady_s` with no gap over `max_gap_s` and the
+        base follows them: only then does a planner fault start the watchdog's count from a command egress acted on
+        (a planner that stalls before the fault, as one did right after its first commands, has been zeroed already)."""
+        now = time.monotonic()
+        arrivals = [t for t, _ in self.cmds(now - steady_s - max_gap_s)]
+        if not arrivals or arrivals[0] > now - steady_s or now - arrivals[-1] > max_gap_s:
+            return False
+        if any(b - a > max_gap_s for a, b in zip(arrivals, arrivals[1:], strict=False)):
+            return False
+        base = self.base(now - max_gap_s)
+        return bool(base) and base[-1][1].reason == "planner"
+
     def first_zero(self, since: float, reason: str | None = None) -> float | None:
         return next(
             (t for t, m in self.base(since) if m.v == 0.0 and m.omega == 0.0 and reason in (None, m.reason)), None
@@ -202,6 +215,7 @@ def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPat
         try:
             assert obs.wait_driving(time.monotonic(), 60.0), "the robot never drove"
             time.sleep(1.0)
+            assert wait_for(lambda: obs.commanding_steadily(1.0), 30.0, 0.02), "the planner never commanded steadily"
 
             # ---- SIGKILL planner: zero within the watchdog + 20 ms, restarted, driving again
             t_kill = time.monotonic()
