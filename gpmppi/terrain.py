@@ -185,6 +185,13 @@ class BayesTerrainEstimator:
     is right there by construction. Scored only while the commands are smooth (`response_max_roughness`): under
     jittery ones its average is biased, and the command-change term carries the evidence instead.
 
+    Neither model holds during a start from rest: the plant's PI integrators and torque limit are far from where the
+    training drives had them, so the first second reads as asphalt on every terrain (the response's first-order rate
+    and the GP's command-change gains both lag or lead the torque-limited ramp differently per terrain). A step whose
+    v command exceeds the measured speed by more than `gp_max_speed_gap` adds no GP evidence, and a response channel
+    whose measured velocity lies further than `response_max_transient` from any terrain's steady state is not scored
+    (its free run restarts from the measured velocity), so the evidence starts once the robot is up to speed.
+
     The weights are the posterior of a hidden terrain that changes with probability `switch_prob` per step (a
     hidden Markov model's forward filter), published with hysteresis on which terrain leads (`_published`):
 
@@ -212,6 +219,7 @@ class BayesTerrainEstimator:
         self._response = None
         self._response_spread = np.asarray(config.response_spread, dtype=np.float64)
         self._max_roughness = np.asarray(config.response_max_roughness, dtype=np.float64)
+        self._max_transient = np.asarray(config.response_max_transient, dtype=np.float64)
         if config.response == "steady_map":
             path = config.response_file or SHIPPED_RESPONSE
             self._response = load_response(path).select(list(model.terrains), source=f"response_file {path}")
@@ -290,6 +298,8 @@ class BayesTerrainEstimator:
             var = np.broadcast_to(prior @ var, var.shape)
         r = y[None, :] - pred
         loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
+        if u[0] - x[3] > self.config.gp_max_speed_gap:  # a start from rest: see EstimatorConfig.gp_max_speed_gap
+            loglik = np.zeros(self._m)
         loglik = loglik + self._response_loglik(x, u, x1, du, first)
         log_post = np.log(prior) + loglik
         p = np.exp(log_post - log_post.max())
@@ -331,8 +341,12 @@ class BayesTerrainEstimator:
         ):
             return np.zeros(self._m)
         beta = 1.0 / self.config.response_smoothing_steps
-        self._response_residual = (1.0 - beta) * self._response_residual + beta * (x1[None, 3:5] - self._response_pred)
-        return -0.5 * np.sum((self._response_residual / self._response_spread) ** 2, axis=1)
+        steady = self._response.steady_at(u)
+        scored = np.max(np.abs(steady - x1[None, 3:5]), axis=0) <= self._max_transient  # (2,) per channel
+        self._response_residual[:, scored] = ((1.0 - beta) * self._response_residual[:, scored]
+                                              + beta * (x1[None, 3:5] - self._response_pred)[:, scored])
+        self._response_pred[:, ~scored] = x1[None, 3:5][:, ~scored]
+        return -0.5 * np.sum(((self._response_residual / self._response_spread) ** 2)[:, scored], axis=1)
 
     def _command_part(self, du: np.ndarray) -> np.ndarray:
         """(M, 2) the residual each terrain expects from the change of command `du` since the previous step."""

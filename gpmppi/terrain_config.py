@@ -43,7 +43,7 @@ class EstimatorConfig(BaseModel):
         "shared", description="bayes: score every terrain against the same predictive spread (the weighted mean of "
         "the terrains'), or each against its own")
     hysteresis: float = Field(
-        0.2, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
+        0.3, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
         "the current top terrain's by this much (0: none)")
     adapt_noise: bool = Field(True, description="bayes: fit the extra residual spread online")
     command_change: Literal["per_terrain", "online", "none"] = Field(
@@ -70,6 +70,15 @@ class EstimatorConfig(BaseModel):
         "roughness (mean |du|/dt over the last ~10 steps; v [m/s^2], omega [rad/s^2]) stays below this: under "
         "jittery commands (the paper's update: ~5 and ~19) a first-order response is biased, under the smooth "
         "default (~0.5 and ~1.3) it is not")
+    response_max_transient: tuple[float, float] = Field(
+        (0.1, float("inf")), description="bayes, response steady_map: each channel of the response (v [m/s], omega "
+        "[rad/s]) is scored only while the measured velocity lies within this of every terrain's steady state under "
+        "the command; further off (the start from rest: the plant's PI integrators and torque limit, which a "
+        "first-order rate leaves out) the channel's free run starts again from the measured velocity. inf: always")
+    gp_max_speed_gap: float = Field(
+        0.3, gt=0, description="bayes: no GP evidence from a step whose v command exceeds the measured speed by more "
+        "than this [m/s] (the start from rest: the plant's hidden states, which the GP's inputs lack, are far from "
+        "where its training drives had them). inf: never")
     response_spread: tuple[float, float] = Field(
         (0.08, 0.016), description="bayes, response steady_map: the spread (v [m/s], omega [rad/s]) the averaged "
         "response residual is scored against (smaller: trust it more)")
@@ -82,6 +91,8 @@ class EstimatorConfig(BaseModel):
             raise ValueError(f"extra_noise_std must be two finite numbers >= 0, got {list(self.extra_noise_std)}")
         if any(not (np.isfinite(s) and s > 0) for s in self.response_spread):
             raise ValueError(f"response_spread must be two finite numbers > 0, got {list(self.response_spread)}")
+        if any(not (s > 0) for s in self.response_max_transient):  # inf allowed: always score
+            raise ValueError(f"response_max_transient must be two numbers > 0, got {list(self.response_max_transient)}")
         if any(not (s > 0) for s in self.response_max_roughness):  # inf allowed: always score
             raise ValueError(f"response_max_roughness must be two numbers > 0, got {list(self.response_max_roughness)}")
         return self

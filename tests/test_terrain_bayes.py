@@ -20,8 +20,9 @@ from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.terrain import BayesTerrainEstimator, EstimatorConfig, TerrainEstimator, make_estimator
 
 # the synthetic steps have no command-change part (the physics plant's motor lag): no gains for it; and each starts
-# from a random state, so there is no response to follow (the physics plant's, gpmppi/terrain_response.py)
-BAYES = EstimatorConfig(method="bayes", command_change="none", response="none")
+# from a random state, so there is no response to follow (the physics plant's, gpmppi/terrain_response.py) and no
+# start from rest (their commands are drawn apart from their speeds: no start gate either)
+BAYES = EstimatorConfig(method="bayes", command_change="none", response="none", gp_max_speed_gap=float("inf"))
 
 
 @lru_cache(maxsize=1)
@@ -168,7 +169,10 @@ def test_short_history_keeps_the_starting_weights() -> None:
      ({"hysteresis": 1.0}, "hysteresis"), ({"variance": "own"}, "variance"), ({"response": "map"}, "response"),
      ({"response_spread": (0.0, 0.01)}, "response_spread"), ({"response_spread": (0.01, float("nan"))},
                                                             "response_spread"),
-     ({"response_smoothing_steps": 0.5}, "response_smoothing_steps")],
+     ({"response_smoothing_steps": 0.5}, "response_smoothing_steps"),
+     ({"response_max_transient": (0.0, 1.0)}, "response_max_transient"),
+     ({"response_max_transient": (0.1, float("nan"))}, "response_max_transient"),
+     ({"gp_max_speed_gap": 0.0}, "gp_max_speed_gap")],
 )
 def test_bad_settings_fail_naming_the_setting(fields: dict, named: str) -> None:
     with pytest.raises(ValidationError, match=named):
@@ -182,13 +186,13 @@ def test_the_paper_method_stays_available() -> None:
 
 @lru_cache(maxsize=6)
 def _closed_loop_steps(terrain: str, update: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[str, ...]]:
-    """A GP-MPPI closed loop on the physics plant (the evaluation's runner, 20 m of the circle lane, 256 samples, the
+    """A GP-MPPI closed loop on the physics plant (the evaluation's runner, 40 m of the circle lane, 256 samples, the
     planner's `update`): its times, measured states, the commands the base held over each cycle (the time average of
     egress's outputs: its limits change some of the planner's) and terrains."""
     from gpmppi.evaluation.runner import EvalSettings, Job, run_job
     from gpmppi.scenarios import circle_lane
 
-    settings = EvalSettings(samples=256, lane_distance_m=20.0, planner_overrides=(("update", update),))
+    settings = EvalSettings(samples=256, lane_distance_m=40.0, planner_overrides=(("update", update),))
     _, trajs = run_job(Job("tracking", circle_lane(), terrain, "gp", (3,), record=True, label="circle"), settings)
     tr = trajs[0]
     held = np.zeros_like(tr.commands)
@@ -202,16 +206,20 @@ def _closed_loop_steps(terrain: str, update: str) -> tuple[np.ndarray, np.ndarra
 
 # Smooth commands (the default update) drive close to steady state, where the GP's one-step evidence alone reads
 # asphalt as tile (0.14 here): the response evidence (gpmppi/terrain_response.py) identifies it (0.93). The paper's
-# jittery update carries the information in the command changes, and the response is not scored under it. A 20 m
-# run lasts ~15 s, 12 after the settling time: one change of the top terrain is 5 a minute.
+# jittery update carries the information in the command changes, and the response is not scored under it; its
+# commands run ahead of the speed by more than the start gate's gap on many steps at speed, so it is replayed with
+# that gate off (`gp_max_speed_gap: .inf`, as docs/terrain_identification.md advises for it: with the gate, asphalt
+# 0.73 here). A 40 m run lasts ~30 s, 27 after the settling time: one change of the top terrain is 2.2 a minute; on
+# asphalt, which the start no longer hands a lead, the smooth update's steps change to tile and back (4.5 a minute).
 @pytest.mark.slow
 @pytest.mark.parametrize("update", ["smooth", "paper"])
 @pytest.mark.parametrize("terrain", ["tile", "asphalt", "grass"])
 def test_recorded_physics_plant_transitions_identify_the_training_terrain(terrain: str, update: str) -> None:
     model = load_default_model()
     times, states, cmds, driven = _closed_loop_steps(terrain, update)
-    weights = replay(make_estimator(model), states, cmds)
+    config = EstimatorConfig() if update == "smooth" else EstimatorConfig(gp_max_speed_gap=float("inf"))
+    weights = replay(make_estimator(model, config), states, cmds)
     assert true_weight_mean(times, weights, list(driven), list(model.terrains)) >= 0.8
-    assert weight_switches_per_min(times, weights) <= 6.0  # at most one change of mind
-    again = replay(make_estimator(model), states, cmds)
+    assert weight_switches_per_min(times, weights) <= 6.0  # at most two changes of mind
+    again = replay(make_estimator(model, config), states, cmds)
     np.testing.assert_array_equal(weights, again)  # the same steps give the same weights

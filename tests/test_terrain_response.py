@@ -196,3 +196,71 @@ def test_a_command_off_the_grid_adds_no_response_evidence(tmp_path: Path) -> Non
     est._response_loglik(x1, u_on, x1, u_on - u_off, False)
     np.testing.assert_allclose(est._response_pred, narrow.select(list(model.terrains)).step(np.tile(x1[3:5], (3, 1)),
                                                                                          u_on))
+
+
+def _start_from_rest(terrain: str, accel: float, seed: int) -> list:
+    """(state, command, next state) steps of the physics plant (sensor noise on) starting from rest under a v command
+    ramped at `accel` [m/s^2] to 1.5 m/s, straight, for 1.5 s: the start of every closed-loop run."""
+    plant = PhysicsPlant(load_terrains(), terrain, seed=seed)
+    plant.reset(np.zeros(5))
+    x = plant.measure()
+    rows = []
+    for k in range(15):
+        u = np.array([min(1.5, accel * 0.1 * (k + 1)), 0.0])
+        plant.step(u, 0.1)
+        x1 = plant.measure()
+        rows.append((x, u, x1))
+        x = x1
+    return rows
+
+
+UNGATED = {"response_max_transient": (float("inf"), float("inf")), "gp_max_speed_gap": float("inf")}
+
+
+@pytest.mark.parametrize("terrain", ["grass", "tile"])
+@pytest.mark.parametrize("accel", [1.5, 3.0])
+def test_a_start_from_rest_is_not_read_as_asphalt(terrain: str, accel: float) -> None:
+    # while the robot accelerates from rest its PI integrators and torque limit are far from where the GP and the
+    # response were fitted: scored anyway, the first 1.5 s read as asphalt on every terrain (ungated below); gated
+    # (the default), they add little evidence and none of it points away from the terrain driven on
+    model = load_default_model()
+    i_true, i_asphalt = list(model.terrains).index(terrain), list(model.terrains).index("asphalt")
+    posteriors = {}
+    for name, fields in (("default", {}), ("ungated", UNGATED)):
+        est = make_estimator(model, EstimatorConfig(**fields))
+        assert isinstance(est, BayesTerrainEstimator)
+        for seed in range(3):
+            est.reset()
+            for row in _start_from_rest(terrain, accel, seed):
+                est.observe(*row)
+            posteriors.setdefault(name, []).append(est._posterior.copy())
+    if accel == 1.5:  # the planner's own start; a faster ramp is torque-limited on grass and reads less one-sided
+        for p in posteriors["ungated"]:
+            assert p[i_asphalt] > p[i_true] + 0.02, p
+    for p in posteriors["default"]:
+        assert p[i_asphalt] <= 0.4 and p[i_asphalt] < p[i_true] + 0.03, p
+
+
+def test_the_start_gates_score_nothing_until_the_robot_is_up_to_speed() -> None:
+    model = load_default_model()
+    est = make_estimator(model)
+    ungated = make_estimator(model, EstimatorConfig(**UNGATED))
+    assert isinstance(est, BayesTerrainEstimator) and isinstance(ungated, BayesTerrainEstimator)
+    rows = _start_from_rest("tile", 100.0, seed=1)  # a step command: 1.5 m/s from the first step
+    for x, u, x1 in rows[:3]:  # the response's warm-up: the GP evidence alone, which the speed gap gates
+        assert u[0] - x[3] > est.config.gp_max_speed_gap
+        est.observe(x, u, x1)
+        ungated.observe(x, u, x1)
+    np.testing.assert_array_equal(est._posterior, np.full(3, 1.0 / 3.0))
+    assert not np.allclose(ungated._posterior, 1.0 / 3.0)
+    x, u, x1 = rows[3]
+    response = load_response().select(list(model.terrains))
+    assert np.max(np.abs(response.steady_at(u)[:, 0] - x1[3])) > est.config.response_max_transient[0]
+    est.observe(x, u, x1)
+    np.testing.assert_array_equal(est._response_pred[:, 0], np.full(3, x1[3]))  # v's free run restarts from here
+    np.testing.assert_array_equal(est._response_residual[:, 0], np.zeros(3))  # and nothing of v is scored yet
+    for row in rows[4:]:
+        est.observe(*row)
+    x, u, x1 = rows[-1]
+    assert np.max(np.abs(response.steady_at(u)[:, 0] - x1[3])) <= est.config.response_max_transient[0]
+    assert np.any(est._response_residual[:, 0] != 0.0)  # up to speed, v's response is scored again
