@@ -160,7 +160,10 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     # while the stack lagged (43-46 against 25-29 mm)
     assert over_zenoh <= 1.2 * reference, f"over Zenoh {over_zenoh:.0f} mm vs in-process {reference:.0f} mm"
     # the terrain service reads the sim's asphalt from the drive (issue "Evaluate what the robot runs": 0.67 in the
-    # stack before; 0.95 with the response evidence in 40 s launches): the recorded weights, after the first 3 s
+    # stack before; 0.95 with the response evidence in 40 s launches): the recorded weights, after the first 3 s.
+    # Asphalt on top and >= 0.7, not 0.8: since the estimator takes no evidence from the start from rest (which read
+    # asphalt on every terrain), this 15 s run tells asphalt from tile only as the circle's yaw response accumulates
+    # (0.77, tile 0.14, at 5fc2bd9; the 100 m evaluation's asphalt circle 0.90; docs/terrain_identification.md)
     from tools.stack_terrain import load, scores
 
     log = load(record)
@@ -168,7 +171,8 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     stamps = [stamp for stamp, _, _ in log["states"]]
     weights = {stamp: np.array([w[n] for n in names]) for stamp, w in log["weights"] if set(w) == set(names)}
     identified = scores(stamps, weights, ["asphalt"] * len(stamps), names)
-    assert identified["true_weight_mean"] >= 0.8, identified
+    assert identified["true_weight_mean"] >= 0.7, identified
+    assert int(np.argmax(identified["mean_weights"])) == names.index("asphalt"), identified
     assert identified["switches_per_min"] <= 5.0, identified  # 12 s after the settling time: one change at most
     assert summary.planner_rate_hz is not None and summary.planner_rate_hz > 2.0
     assert summary.latency_p99_ms is not None and "lane, RMSE" in result["log"]
