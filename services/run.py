@@ -6,8 +6,10 @@ Every service module defines `Settings` (a `NodeSettings`) and `run(settings) ->
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import logging
+import signal
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -48,6 +50,9 @@ def run_service(kind: str, config: str | Path | None = None) -> int:
         print(f"gpmppi service {kind}: bad configuration ({config}): {exc}", file=sys.stderr)
         return 2
     setup_logging(settings.service, settings.log_level, settings.log_json)
+    # `kill -USR1 PID` prints every thread's stack to stderr (the service's log) and the service runs on: where a
+    # service that does not stop, or stops answering, is stuck
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         apply_process_settings(settings)
         return int(module.run(settings) or 0)

@@ -65,6 +65,9 @@ def _in_process_rmse(duration_s: float, latency_s: float) -> float:
 
 
 @pytest.mark.slow(seconds=28)  # the whole stack over Zenoh for several seconds
+# alone: it compares its tracking with the in-process run at the latency it measured, and a test beside it is load
+# that moves the stack's latency tails (17 mm against 13 once, 10.5-11.4 alone)
+@pytest.mark.exclusive
 def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     port = free_port()
@@ -160,10 +163,12 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     # while the stack lagged (43-46 against 25-29 mm)
     assert over_zenoh <= 1.2 * reference, f"over Zenoh {over_zenoh:.0f} mm vs in-process {reference:.0f} mm"
     # the terrain service reads the sim's asphalt from the drive (issue "Evaluate what the robot runs": 0.67 in the
-    # stack before; 0.95 with the response evidence in 40 s launches): the recorded weights, after the first 3 s.
-    # Asphalt on top and >= 0.7, not 0.8: since the estimator takes no evidence from the start from rest (which read
-    # asphalt on every terrain), this 15 s run tells asphalt from tile only as the circle's yaw response accumulates
-    # (0.77, tile 0.14, at 5fc2bd9; the 100 m evaluation's asphalt circle 0.90; docs/terrain_identification.md)
+    # stack before; 0.95 with the response evidence in 40 s launches): the recorded weights. This 15 s run drives
+    # ~10 s, and since the estimator takes no evidence from the start from rest (which read asphalt on every terrain)
+    # it tells asphalt from tile only as the circle's yaw response accumulates, so the mean over the run moves with
+    # the run (0.64 / 0.82 / 0.69 / 0.70 after 3 s in four runs at 5fc2bd9, tile second) while where it ends does not:
+    # asphalt 0.89-0.96 over the last 2 s, on top in every update of the last 5 s. The window metrics (>= 0.8, <= 2
+    # changes a minute) are the evaluation's, over 100 m (asphalt circle 0.90, 1.17; docs/terrain_identification.md)
     from tools.stack_terrain import load, scores
 
     log = load(record)
@@ -171,9 +176,13 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     stamps = [stamp for stamp, _, _ in log["states"]]
     weights = {stamp: np.array([w[n] for n in names]) for stamp, w in log["weights"] if set(w) == set(names)}
     identified = scores(stamps, weights, ["asphalt"] * len(stamps), names)
-    assert identified["true_weight_mean"] >= 0.7, identified
     assert int(np.argmax(identified["mean_weights"])) == names.index("asphalt"), identified
-    assert identified["switches_per_min"] <= 5.0, identified  # 12 s after the settling time: one change at most
+    updates = sorted((stamp, w) for stamp, w in weights.items() if stamp >= stamps[0])
+    end_ns = updates[-1][0]
+    last_2s = np.mean([w for stamp, w in updates if stamp > end_ns - 2e9], axis=0)
+    assert last_2s[names.index("asphalt")] >= 0.85, (last_2s, identified)
+    tops = {names[int(np.argmax(w))] for stamp, w in updates if stamp > end_ns - 5e9}
+    assert tops == {"asphalt"}, (tops, identified)
     assert summary.planner_rate_hz is not None and summary.planner_rate_hz > 2.0
     assert summary.latency_p99_ms is not None and "lane, RMSE" in result["log"]
     # the planner's own stamp -> publish latency comes before any session receives the command (one clock)

@@ -67,7 +67,8 @@ def test_restarted_service_first_output_is_from_the_new_process(tmp_path: Path) 
         assert r.first_output_s is not None and 0.0 < r.first_output_s < 30.0
         assert r.stop_s >= 0.0
         # the old process had published for the settling time; the new one counts from 0 again
-        assert r.old_last_seq is not None and r.old_last_seq >= 5
+        # (>= 2, not 5: 15 at 10 Hz over the settling time on an idle machine, 4 once at a load average of 6)
+        assert r.old_last_seq is not None and r.old_last_seq >= 2
         assert r.first_seq is not None and r.first_seq < r.old_last_seq
     rows = result.per_service()
     assert list(rows) == ["sim"] and rows["sim"]["n"] == 2 and rows["sim"]["timeouts"] == 0

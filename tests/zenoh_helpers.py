@@ -134,9 +134,15 @@ class ServiceProcess:
             try:
                 self.process.wait(timeout)
             except subprocess.TimeoutExpired:
+                # where it is stuck: every thread's stack (services.run registers SIGUSR1 with faulthandler)
+                self.process.send_signal(signal.SIGUSR1)
+                time.sleep(2.0)
                 self.process.kill()
                 self.process.wait()
-                raise AssertionError(f"service did not exit within {timeout} s of SIGINT") from None
+                self._log.close()
+                raise AssertionError(
+                    f"service did not exit within {timeout} s of SIGINT; its log's end:\n{self.log()[-6000:]}"
+                ) from None
         self._log.close()
         return self.process.returncode
 
