@@ -143,8 +143,12 @@ def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp
             drive(1.0, weights=w)
             t_silent = time.monotonic()
             drive(2.5)
-            fresh = [p for t, p in plans() if t_w + 0.3 < t < t_silent]
-            assert fresh and all(p.terrain_weights == pytest.approx(w) and not p.weights_stale for p in fresh)
+            # from the first plan on the new weights, every one until the silence is on them and fresh
+            fresh = [(t, p) for t, p in plans() if t_w < t < t_silent]
+            on_w = [p.terrain_weights == pytest.approx(w) and not p.weights_stale for _, p in fresh]
+            assert True in on_w, [(round(t - t_w, 2), p.terrain_weights) for t, p in fresh]
+            assert fresh[on_w.index(True)][0] < t_w + 0.8 and all(on_w[on_w.index(True):]), [
+                (round(t - t_w, 2), p.weights_stale, p.terrain_weights) for t, p in fresh]
             kept = [p for t, p in plans() if t_silent + 0.6 + 0.2 < t < t_silent + 1.6 - 0.2]
             assert kept and all(p.terrain_weights == pytest.approx(w) and p.weights_stale for p in kept), [
                 (round(t - t_silent, 2), p.weights_stale, p.terrain_weights) for t, p in plans() if t > t_silent]
@@ -159,8 +163,14 @@ def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp
             back = [p for t, p in plans() if t > t_back + 0.3]
             t_end = time.monotonic()
             assert back and not back[-1].weights_stale and back[-1].terrain_weights == pytest.approx(w)
-            beats = [decode(Heartbeat, p) for t, p, _ in col.on("gpmppi/r1/health/planner") if t_back + 0.3 < t < t_end]
-            assert beats and all(h.status == "ok" and not h.flags["weights_stale"] for h in beats)
+            # from the first heartbeat that is ok again, every one is (not from a fixed delay: on a loaded machine a
+            # heartbeat written before the planner took the weights arrived later than t_back + 0.3 s once)
+            beats = [(t, decode(Heartbeat, p)) for t, p, _ in col.on("gpmppi/r1/health/planner") if t_back < t < t_end]
+            healthy = [h.status == "ok" and not h.flags["weights_stale"] for _, h in beats]
+            assert True in healthy, [(round(t - t_back, 2), h.status, h.flags) for t, h in beats]
+            first_ok = healthy.index(True)
+            assert beats[first_ok][0] < t_back + 0.8 and all(healthy[first_ok:]), [
+                (round(t - t_back, 2), h.status, h.flags) for t, h in beats]
 
             # an odometry jump (relocalised 5 m away) resets the warm start, once; small steps do not
             assert hb()[-1].counts.get("odom_jump", 0) == 0
