@@ -279,6 +279,7 @@ def _stamped(v: float, omega: float, age_s: float = 0.0) -> bytes:
     return encode(Command(v_ref=v, omega_ref=omega, header=Header(stamp_ns=time.time_ns() - int(age_s * NS))))
 
 
+@pytest.mark.exclusive  # alone: it times the zero at the observer to 120 ms (a test beside it is load)
 def test_egress_process_zeroes_250_ms_after_the_last_command_and_refuses_stale_ones(tmp_path: Path) -> None:
     port = free_port()
     with router(port):
@@ -350,6 +351,7 @@ def wait_for_hb(col: Collector, predicate: Callable[[Heartbeat], bool], timeout:
     return False
 
 
+@pytest.mark.exclusive  # alone: it times the stop at the observer to 170 ms (a test beside it is load)
 def test_sim_base_stops_by_itself_250_ms_after_its_last_command(tmp_path: Path) -> None:
     """The sim models the base's own timeout (Jackal ROS 1 cmd_vel_timeout 0.25 s): egress dead, robot stops."""
     port = free_port()

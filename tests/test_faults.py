@@ -445,7 +445,8 @@ def test_service_waits_for_a_late_router_and_survives_its_restart(tmp_path: Path
     ep = endpoint(port)
     svc = ServiceProcess("egress", settings("egress", port, robot=ROBOT, heartbeat_hz=10.0), tmp_path)
     try:
-        time.sleep(2.0)
+        # the router starts once the service has said it waits for it (a fixed 2 s was not enough for a loaded start)
+        assert wait_for(lambda: "waiting for router" in svc.log(), 60.0), svc.log()
         assert svc.alive(), svc.log()
         first = ServiceProcess("router", {"service": "router", "listen": [ep]}, tmp_path)
         session = None

@@ -62,6 +62,9 @@ def _state(
 
 
 @pytest.mark.slow(seconds=12)
+# alone: its phases are timed at the observer against 0.6 / 1.6 s staleness clocks; beside a compile, a heartbeat
+# after the terrain came back was unhealthy once in CI (not reproduced alone or beside the compile tests)
+@pytest.mark.exclusive
 def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp_path: Path) -> None:
     from gpmppi.gp.model_file import load_default_model
 
@@ -96,7 +99,7 @@ def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp
                     time.sleep(0.1)
 
             def counted(name: str, n: int = 1) -> bool:
-                return wait_for(lambda: any(h.counts.get(name, 0) >= n for h in hb()), 3.0)
+                return wait_for(lambda: any(h.counts.get(name, 0) >= n for h in hb()), 15.0)  # a heartbeat carries it
 
             # it plans from good states; the terrain service's first message is the prior (uniform)
             uniform = [1.0 / len(terrains)] * len(terrains)
@@ -167,10 +170,10 @@ def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp
             # heartbeat written before the planner took the weights arrived later than t_back + 0.3 s once)
             beats = [(t, decode(Heartbeat, p)) for t, p, _ in col.on("gpmppi/r1/health/planner") if t_back < t < t_end]
             healthy = [h.status == "ok" and not h.flags["weights_stale"] for _, h in beats]
-            assert True in healthy, [(round(t - t_back, 2), h.status, h.flags) for t, h in beats]
+            listed = "\n".join(f"{t - t_back:.2f} s: {h.status} {h.flags} {h.last_error}" for t, h in beats)
+            assert True in healthy, listed
             first_ok = healthy.index(True)
-            assert beats[first_ok][0] < t_back + 0.8 and all(healthy[first_ok:]), [
-                (round(t - t_back, 2), h.status, h.flags) for t, h in beats]
+            assert beats[first_ok][0] < t_back + 0.8 and all(healthy[first_ok:]), listed
 
             # an odometry jump (relocalised 5 m away) resets the warm start, once; small steps do not
             assert hb()[-1].counts.get("odom_jump", 0) == 0

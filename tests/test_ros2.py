@@ -145,7 +145,7 @@ def test_ingress_turns_ros2_odometry_into_state(tmp_path: Path) -> None:
             stamp = time.time_ns()
             pub.put(_odometry(3.0, -4.0, 2.5, 1.25, -0.5, stamp))
             assert wait_for(lambda: bool(col.on("gpmppi/r1/state")), 5.0), ingress.log()
-            assert wait_for(lambda: any(h.rejected >= 2 for h in heartbeats(col, "r1", "ingress")), 3.0)
+            assert wait_for(lambda: any(h.rejected >= 2 for h in heartbeats(col, "r1", "ingress")), 15.0)
         finally:
             assert ingress.stop() == 0
             observer.close()

@@ -178,6 +178,7 @@ def test_egress_survives_bad_input_and_never_publishes_non_finite(tmp_path: Path
     assert log.count("rejected input") >= 5 and "schema_version" in log and "exceeds" in log
 
 
+@pytest.mark.exclusive  # alone: its windows are fixed offsets at the observer (0.45 s after the last command)
 def test_egress_watchdog_limits_and_estop(tmp_path: Path) -> None:
     port = free_port()
     with router(port):

@@ -78,7 +78,9 @@ def test_killed_recorder_leaves_a_readable_file(tmp_path: Path) -> None:
         try:
             assert wait_for(lambda: bool(heartbeats(col, "r1", "recorder")), 15.0), rec.log()
             _publish_burst(port, 500)
-            time.sleep(1.0)  # > flush_interval_s: the data is on disk
+            # on disk before the kill (flush_interval_s 0.2): waited for, not a fixed second (delivery lags under load)
+            on_disk = lambda: sum(k == "gpmppi/r1/cmd" for k, _, _ in read_messages(path)) == 500  # noqa: E731
+            assert wait_for(on_disk, 15.0, step=0.2), rec.log()
             rec.process.kill()  # no chance to finish the file
             rec.process.wait(5)
         finally:
@@ -110,7 +112,7 @@ def test_ingress_sim_source_rejects_bad_odometry(tmp_path: Path) -> None:
             good = State(header=Header(stamp_ns=time.time_ns(), frame_id="odom"), x=1, y=2, theta=4.0, v=1, omega=0)
             pub.put(encode(good))
             assert wait_for(lambda: bool(col.on("gpmppi/r1/state")), 5.0), ingress.log()
-            assert wait_for(lambda: any(h.rejected >= 4 for h in heartbeats(col, "r1", "ingress")), 3.0)
+            assert wait_for(lambda: any(h.rejected >= 4 for h in heartbeats(col, "r1", "ingress")), 15.0)
         finally:
             assert ingress.stop() == 0
             observer.close()
@@ -205,6 +207,7 @@ def test_hostile_payloads_go_to_quarantine_and_every_channel_validates(tmp_path:
     assert not [1 for topic, _, _ in raw if topic == "gpmppi/r1/task"]
 
 
+@pytest.mark.exclusive  # alone: the publisher's rate is a claim about this machine, not about a test beside it
 def test_recorder_loses_nothing_at_5000_messages_per_second(tmp_path: Path) -> None:
     """Published vs recorded counts at >= 5000 msg/s for 2 s over loopback (numbers printed; the machine may be
     shared, so the rate is only required of the publisher, and the count must match exactly)."""

@@ -73,7 +73,7 @@ def client(port: int) -> zenoh.Session:
 def matched_publisher(session: zenoh.Session, key: str, **kwargs) -> zenoh.Publisher:
     """A publisher that already has a matching subscriber (so the first put is not lost to routing)."""
     pub = session.declare_publisher(key, **kwargs)
-    assert wait_for(lambda: pub.matching_status.matching, 5.0), f"no subscriber for {key}"
+    assert wait_for(lambda: pub.matching_status.matching, 15.0), f"no subscriber for {key}"
     return pub
 
 
