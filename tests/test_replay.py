@@ -239,6 +239,8 @@ def test_window_filters_robot_rename_keep_stamps_and_quarantine(tmp_path: Path) 
             listener = Listener(s)
             # 0.2 s .. 0.6 s of the log, states only, under another robot, stamps kept
             result = play(log, port, start_s=0.2, end_s=0.6, keys=r"/state$", robot="other", keep_stamps=True)
+            # samples may still be on their way when play() returns: wait for the window, then 0.3 s for any extra
+            wait_for(lambda: len(listener.on("gpmppi/other/state")) >= 21, 10.0)
             time.sleep(0.3)
         finally:
             s.close()
@@ -353,6 +355,7 @@ def test_truncated_file_replays_what_was_recovered(tmp_path: Path) -> None:
         try:
             listener = Listener(s)
             result = play(log, port, speed=0.0)
+            wait_for(lambda: len(listener.got) >= result["play"].published, 10.0)  # still on their way, maybe
             time.sleep(0.3)
         finally:
             s.close()
