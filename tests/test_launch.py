@@ -64,7 +64,7 @@ def _in_process_rmse(duration_s: float, latency_s: float) -> float:
     return float(np.mean(rmse))
 
 
-@pytest.mark.slow(seconds=28)  # the whole stack over Zenoh for several seconds
+@pytest.mark.slow(seconds=60)  # the whole stack over Zenoh for 30 s
 # alone: it compares its tracking with the in-process run at the latency it measured, and a test beside it is load
 # that moves the stack's latency tails (17 mm against 13 once, 10.5-11.4 alone)
 @pytest.mark.exclusive
@@ -115,7 +115,7 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 
     side = threading.Thread(target=outside_client, daemon=True)
     side.start()
-    code, summary = run_launch(None, duration=15.0, record=str(record), rerun=["save", str(rrd)], port=port, out=out)
+    code, summary = run_launch(None, duration=30.0, record=str(record), rerun=["save", str(rrd)], port=port, out=out)
     side.join(5)
     result["log"] = out.getvalue()
     assert code == 0, result["log"][-4000:]
@@ -160,15 +160,16 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     # 1.2x (issue "Evaluate what the robot runs"): with the smooth update, the applied-command pairing and the
     # retrained model the stack tracks as the reference does: 10.5 / 11.4 / 11.0 mm over Zenoh against 13.1 mm in
     # process, three runs (0.80-0.87x); the deployed-path evaluation of the same seconds gave 13.0 mm. It was 2x
-    # while the stack lagged (43-46 against 25-29 mm)
+    # while the stack lagged (43-46 against 25-29 mm). Over 30 s at 5fc2bd9: 10.0-13.1 mm in six runs, against 12.5
     assert over_zenoh <= 1.2 * reference, f"over Zenoh {over_zenoh:.0f} mm vs in-process {reference:.0f} mm"
     # the terrain service reads the sim's asphalt from the drive (issue "Evaluate what the robot runs": 0.67 in the
-    # stack before; 0.95 with the response evidence in 40 s launches): the recorded weights. This 15 s run drives
-    # ~10 s, and since the estimator takes no evidence from the start from rest (which read asphalt on every terrain)
-    # it tells asphalt from tile only as the circle's yaw response accumulates, so the mean over the run moves with
-    # the run (0.64 / 0.82 / 0.69 / 0.70 after 3 s in four runs at 5fc2bd9, tile second) while where it ends does not:
-    # asphalt 0.89-0.96 over the last 2 s, on top in every update of the last 5 s. The window metrics (>= 0.8, <= 2
-    # changes a minute) are the evaluation's, over 100 m (asphalt circle 0.90, 1.17; docs/terrain_identification.md)
+    # stack before; 0.95 with the response evidence in 40 s launches): the recorded weights. Since the estimator takes
+    # no evidence from the start from rest (which read asphalt on every terrain), it tells asphalt from tile only as
+    # the circle's yaw response accumulates: in one 15 s run tile led from 6 to 11 s and asphalt took the top for
+    # good at 14.6 s (0.79 over the last 2 s). So 30 s, and where the identification ends, not the window mean, which
+    # moves run to run (six 30 s runs at 5fc2bd9: mean 0.77-0.87 after 3 s; over the last 2 s 0.95-0.96, asphalt
+    # >= 0.93 through the last 5 s). The window metrics (>= 0.8, <= 2 changes a minute) are the evaluation's, over
+    # 100 m (asphalt circle 0.90, 1.17; docs/terrain_identification.md)
     from tools.stack_terrain import load, scores
 
     log = load(record)
