@@ -45,7 +45,10 @@ def test_windows_and_memory_from_samples() -> None:
     assert a["growth_pct"] == pytest.approx(100 * (1120 - 1060) / 1060, abs=0.01)
 
 
-@pytest.mark.slow(seconds=19)  # not `exclusive`: its bounds (p99 < 1 s, >= 3 Hz, nothing lost) hold beside another test
+@pytest.mark.slow(seconds=19)
+# alone: its per-window command rates are counted at an observer, and beside other tests a planner that fell
+# behind delivered its late commands in the next window (13.3 Hz in 4.6-7.0 s after 6.8 Hz before it, 2026-12-05)
+@pytest.mark.exclusive
 def test_short_soak_reports_real_numbers(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     port = free_port()
