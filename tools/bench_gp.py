@@ -12,6 +12,8 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from tools.cli_checks import fail
+
 INTERPOLATIONS = ("simplex", "multilinear")  # the planner's default first
 
 
@@ -112,32 +114,27 @@ def register(app: typer.Typer) -> None:
 
     @app.command("gp")
     def bench_gp_cmd(
-        model: Annotated[Path | None, typer.Option(help="model file (default: the shipped model)")] = None,
-        points: Annotated[int, typer.Option(help="random in-domain inputs")] = 100_000,
-        seed: Annotated[int, typer.Option(help="seed of the inputs")] = 0,
+        model: Annotated[Path | None, typer.Option(
+            "--gp-model", help="GP model file (default: the shipped model)")] = None,
+        points: Annotated[int, typer.Option(
+            min=1, max=10_000_000, help="random in-domain inputs")] = 100_000,
+        seed: Annotated[int, typer.Option(min=0, help="seed of the inputs")] = 0,
         spacing: Annotated[float | None, typer.Option(
+            min=0.001, max=10.0,
             help="rebuild the table with this node spacing (fraction of each axis's smallest lengthscale)")] = None,
-        nodes: Annotated[int | None, typer.Option(help="rebuild the table with this many nodes on every axis")] = None,
+        nodes: Annotated[int | None, typer.Option(
+            min=2, max=200, help="rebuild the table with this many nodes on every axis")] = None,
         as_json: Annotated[bool, typer.Option("--json", help="print JSON instead of a table")] = False,
     ) -> None:
         """Grid vs exact predictor: RMS mean/variance error (% of RMS) per task, table size and predictions/s."""
         from gpmppi.gp.model_file import ModelFileError
 
-        err = Console(stderr=True, soft_wrap=True)
-        if points < 1:
-            err.print("[red]error:[/red] --points must be at least 1")
-            raise typer.Exit(code=2)
         if spacing is not None and nodes is not None:
-            err.print("[red]error:[/red] give --spacing or --nodes, not both")
-            raise typer.Exit(code=2)
-        if (spacing is not None and not spacing > 0) or (nodes is not None and nodes < 2):
-            err.print("[red]error:[/red] --spacing must be positive and --nodes at least 2")
-            raise typer.Exit(code=2)
+            fail("give --spacing or --nodes, not both")
         try:
             r = bench_gp(model, points, seed, spacing, nodes)
         except ModelFileError as e:
-            err.print(f"[red]error:[/red] {e}", highlight=False)
-            raise typer.Exit(code=2) from None
+            fail(str(e))
         if as_json:
             typer.echo(json.dumps(r, indent=1))
             return

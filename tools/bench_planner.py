@@ -27,6 +27,7 @@ import typer
 from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.scenarios import circle_lane
 from tools.choices import ModelName
+from tools.cli_checks import fail
 
 
 class GpChoice(str, Enum):
@@ -214,14 +215,15 @@ def register(app: typer.Typer) -> None:
 
     @app.command("planner")
     def planner_cmd(
-        samples: Annotated[int, typer.Option("--samples", min=1, help="Samples S")] = 1024,
-        horizon: Annotated[int, typer.Option("--horizon", min=1, help="Horizon N")] = 40,
-        model: Annotated[ModelName, typer.Option("--model", help="Rollout model")] = ModelName.gp,
+        samples: Annotated[int, typer.Option("--samples", min=1, max=1 << 20, help="Samples S")] = 1024,
+        horizon: Annotated[int, typer.Option("--horizon", min=1, max=1000, help="Horizon N")] = 40,
+        model: Annotated[ModelName, typer.Option("--model", "-m", help="Rollout model")] = ModelName.gp,
         gp: Annotated[GpChoice, typer.Option("--gp", help="GP evaluation")] = GpChoice.grid,
         backend: Annotated[BackendChoice, typer.Option("--backend", help="Kernel backend")] = BackendChoice.auto,
         vs: Annotated[Peer | None, typer.Option("--vs", help="Also time a peer MPPI on the same problem")] = None,
         as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object")] = False,
-        iters: Annotated[int, typer.Option("--iters", min=1, help="Timed iterations (after 5 warm-up)")] = 50,
+        iters: Annotated[int, typer.Option(
+            "--iters", min=1, max=1_000_000, help="Timed iterations (after 5 warm-up)")] = 50,
         online_weights: Annotated[
             bool, typer.Option("--online-weights", help="Move the terrain weights every iteration (table collapse)")
         ] = False,
@@ -240,8 +242,7 @@ def register(app: typer.Typer) -> None:
                             online_weights=online_weights, prepare=not collapse_in_plan,
                             table_collapse=table_collapse.value)
         except ValueError as e:  # e.g. --backend cuda on a machine without a GPU
-            typer.echo(f"error: {e}", err=True)
-            raise typer.Exit(2) from e
+            fail(str(e))
         if as_json:
             typer.echo(json.dumps(res))
             return

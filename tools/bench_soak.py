@@ -35,6 +35,7 @@ from mcap.reader import make_reader
 from services.launcher import Launcher, run_launch
 from services.mcap_io import REJECTED_SUFFIX, recording_files
 from services.monitor import Monitor, Summary
+from tools.cli_checks import OUT_FILE
 
 
 def rss_kib(pid: int) -> int | None:
@@ -311,11 +312,19 @@ def print_report(r: dict) -> None:
 def register(bench_app: typer.Typer) -> None:
     @bench_app.command("soak")
     def bench_soak(
-        duration: float = typer.Option(600.0, min=5.0, help="seconds of running once every service is up"),
-        port: int = typer.Option(7463, help="router port on 127.0.0.1"),
-        warmup: float | None = typer.Option(None, help="seconds excluded from memory and rate (default: 20 %, <= 60)"),
-        window: float | None = typer.Option(None, help="planner window [s] (default: a tenth after warm-up)"),
-        record: Path | None = typer.Option(None, help="keep the recording here (default: a temporary file)"),
+        duration: float = typer.Option(
+            600.0, min=5.0, max=7 * 86400.0, help="seconds of running once every service is up"
+        ),
+        port: int = typer.Option(7463, min=1, max=65535, help="router port on 127.0.0.1"),
+        warmup: float | None = typer.Option(
+            None, min=0.0, help="seconds excluded from memory and rate (default: 20 %, <= 60)"
+        ),
+        window: float | None = typer.Option(
+            None, min=0.1, help="planner window [s] (default: a tenth after warm-up)"
+        ),
+        record: Path | None = typer.Option(
+            None, metavar=OUT_FILE, help="keep the recording here (default: a temporary file)"
+        ),
         viewer: bool = typer.Option(False, help="run the viewer too (saving an .rrd to a temporary file)"),
         launch_file: Path | None = typer.Option(None, help="launch YAML (default: the simulated Jackal)"),
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),

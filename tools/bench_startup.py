@@ -162,11 +162,15 @@ def register(bench_app: typer.Typer) -> None:
     @bench_app.command("startup")
     def bench_startup(
         services: str = typer.Option(",".join(RESTARTABLE), help="comma-separated services to restart, in order"),
-        repeats: int = typer.Option(3, min=1, help="restarts of each service"),
-        settle: float = typer.Option(3.0, min=0.0, help="seconds to wait after start-up and after each restart"),
-        timeout: float = typer.Option(60.0, min=1.0, help="give up on a restarted service's first output after"),
+        repeats: int = typer.Option(3, min=1, max=1000, help="restarts of each service"),
+        settle: float = typer.Option(
+            3.0, min=0.0, max=3600.0, help="seconds to wait after start-up and after each restart"
+        ),
+        timeout: float = typer.Option(
+            60.0, min=1.0, max=3600.0, help="give up on a restarted service's first output after"
+        ),
         launch_file: Path | None = typer.Option(None, help="launch YAML (default: the simulated Jackal)"),
-        port: int = typer.Option(7462, help="router port on 127.0.0.1"),
+        port: int = typer.Option(7462, min=1, max=65535, help="router port on 127.0.0.1"),
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
         show_logs: bool = typer.Option(False, help="print the services' logs too"),
     ) -> None:

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from tools.cli_checks import fail
+
 # the demo stack's rates [Hz]: state, odom/raw, terrain/label, cmd, plan at the planner's 10 Hz, the base command
 # at egress's 20 Hz, terrain weights about 7 Hz, one heartbeat a second from each of 7 services
 RATES = {"state": 10.0, "base": 20.0, "weights": 7.0}
@@ -346,16 +348,29 @@ def transport_stall_numbers(
     return result
 
 
+def parse_minutes(text: str) -> list[float]:
+    """'1,5' -> [1.0, 5.0]; UserError naming --minutes for anything but positive finite numbers."""
+    try:
+        values = [float(m) for m in text.split(",")]
+    except ValueError:
+        values = []
+    if not values or not all(math.isfinite(v) and 0 < v <= 600 for v in values):
+        fail(f"--minutes {text!r}: expected run lengths in minutes, comma-separated, each in (0, 600], e.g. 1,5")
+    return values
+
+
 def register(bench_app: typer.Typer) -> None:
     @bench_app.command("view")
     def bench_view(
         log: Path | None = typer.Option(None, help="tile this recording to length (default: a synthetic demo log)"),
         minutes: str = typer.Option("1,5", help="run lengths [min], comma-separated"),
-        samples: int = typer.Option(16, help="rollouts per plan in the synthetic log (the planner's default)"),
+        samples: int = typer.Option(
+            16, min=0, max=4096, help="rollouts per plan in the synthetic log (the planner's default)"
+        ),
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
     ) -> None:
         """MCAP -> .rrd conversion speed (x real time) and .rrd bytes per minute for 1- and 5-minute runs."""
-        result = view_numbers(log, [float(m) for m in minutes.split(",")], samples)
+        result = view_numbers(log, parse_minutes(minutes), samples)
         if as_json:
             typer.echo(json.dumps(result))
             return
@@ -381,17 +396,20 @@ def register(bench_app: typer.Typer) -> None:
         ),
         window: float = typer.Option(
             8.0,
+            min=0.5, max=3600.0,
             help="seconds per window (viewer running / stopped); under 10 s keeps "
             "the stopped viewer's session alive at the router",
         ),
-        windows: int = typer.Option(3, help="pairs of windows"),
-        rate: float = typer.Option(100.0, help="transport mode: states per second"),
+        windows: int = typer.Option(3, min=1, max=1000, help="pairs of windows"),
+        rate: float = typer.Option(100.0, min=0.1, max=100_000.0, help="transport mode: states per second"),
         samples: int = typer.Option(
-            16, help="transport mode: rollouts per plan (plans at 10 Hz; the planner sends 16)"
+            16, min=0, max=4096,
+            help="transport mode: rollouts per plan (plans at 10 Hz; the planner sends 16)",
         ),
-        port: int = typer.Option(7463, help="router port on 127.0.0.1"),
+        port: int = typer.Option(7463, min=1, max=65535, help="router port on 127.0.0.1"),
         drop_wait_us: int | None = typer.Option(
-            None, help="transport mode: the router's wait before dropping for a full queue [us] (default: zenoh's)"
+            None, min=0,
+            help="transport mode: the router's wait before dropping for a full queue [us] (default: zenoh's)"
         ),
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
         show_logs: bool = typer.Option(False, help="stack mode: print the services' logs too"),

@@ -8,6 +8,7 @@ from __future__ import annotations
 import io
 import json
 import os
+from pathlib import Path
 
 import typer
 
@@ -15,9 +16,11 @@ import typer
 def register(bench_app: typer.Typer) -> None:
     @bench_app.command("zenoh")
     def bench_zenoh(
-        launch: str | None = typer.Argument(None, help="launch file (default: the simulated Jackal's)"),
-        duration: float = typer.Option(20.0, help="seconds of closed-loop running"),
-        port: int = typer.Option(7461, help="router port on 127.0.0.1"),
+        launch: Path | None = typer.Option(
+            None, "--launch-file", help="launch YAML (default: the simulated Jackal)"
+        ),
+        duration: float = typer.Option(20.0, min=1.0, max=86400.0, help="seconds of closed-loop running"),
+        port: int = typer.Option(7461, min=1, max=65535, help="router port on 127.0.0.1"),
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
         show_logs: bool = typer.Option(False, help="print the services' logs too"),
     ) -> None:

@@ -26,6 +26,7 @@ from gpmppi.plant.terrains import TerrainFileError, load_terrains
 from schemas.keys import DEFAULT_ROBOT, key_for
 from schemas.messages import Command, Header, State, TerrainLabel
 from services.mcap_io import McapWriter, read_messages
+from tools.cli_checks import OUT_FILE, fail
 
 DATASET_DT = 0.1
 TERRAIN_GAP_S = 1.0
@@ -116,14 +117,17 @@ def register(app: typer.Typer) -> None:
 
     @app.command("dataset")
     def dataset(
-        output: Path = typer.Option(..., "-o", "--output", help="MCAP file to write (replaced atomically)"),
+        output: Path = typer.Option(
+            ..., "-o", "--output", metavar=OUT_FILE, help="MCAP file to write (written atomically)"
+        ),
         terrain: list[str] = typer.Option(
-            list(DEFAULT_TERRAINS), "--terrain", help="terrain to drive on (repeat for several)"
+            list(DEFAULT_TERRAINS), "--terrain", "-t", help="terrain to drive on (repeat for several)"
         ),
         terrain_file: Path | None = typer.Option(None, "--terrain-file", help="terrain set YAML (default: shipped)"),
         distance: float = typer.Option(2000.0, "--distance", min=1.0, help="metres driven per terrain"),
-        seed: int = typer.Option(0, "--seed", help="seed of the excitation and the sensor noise"),
+        seed: int = typer.Option(0, "--seed", min=0, help="seed of the excitation and the sensor noise"),
         robot: str = typer.Option(DEFAULT_ROBOT, "--robot", help="robot name in the key expressions"),
+        force: bool = typer.Option(False, "--force", help="replace an existing --output file"),
     ) -> None:
         """Drive the physics plant with random excitation over terrains; record state, cmd and labels."""
         console = Console()
@@ -132,8 +136,7 @@ def register(app: typer.Typer) -> None:
             for name in terrain:
                 terrains.get(name)
         except (TerrainFileError, KeyError) as exc:
-            console.print(f"[red]error:[/red] {exc.args[0]}")
-            raise typer.Exit(2) from exc
+            fail(str(exc.args[0]))
         started = time.perf_counter()
         with Progress(
             TextColumn("[bold]{task.description:>10}"), BarColumn(), MofNCompleteColumn(),
@@ -162,7 +165,7 @@ def register(app: typer.Typer) -> None:
         fit_on: list[str] = typer.Option(
             [], "--fit-on", help="terrains whose data identify theta (repeat; default: all in the file)"
         ),
-        terrain: str | None = typer.Option(None, "--terrain", help="terrain name of an unlabelled log"),
+        terrain: str | None = typer.Option(None, "--terrain", "-t", help="terrain name of an unlabelled log"),
         robot: str = typer.Option(DEFAULT_ROBOT, "--robot", help="robot name in the key expressions"),
     ) -> None:
         """Identify theta and print the nominal model's one-step residual statistics per terrain."""
@@ -170,12 +173,10 @@ def register(app: typer.Typer) -> None:
         try:
             runs = read_dataset(path, robot=robot, terrain=terrain)
         except (ValueError, FileNotFoundError) as exc:
-            console.print(f"[red]error:[/red] {exc}")
-            raise typer.Exit(2) from exc
+            fail(str(exc))
         unknown = sorted(set(fit_on) - set(runs))
         if unknown:
-            console.print(f"[red]error:[/red] --fit-on {unknown} not in {path} (it has {sorted(runs)})")
-            raise typer.Exit(2)
+            fail(f"--fit-on {unknown} not in {path} (it has {sorted(runs)})")
         fit_runs = [r for name in (fit_on or list(runs)) for r in runs[name]]
         theta = theta_from_runs(fit_runs)
         console.print(f"theta (fit on {fit_on or sorted(runs)}): {np.array2string(theta, precision=4)}")

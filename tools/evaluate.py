@@ -39,6 +39,7 @@ from gpmppi.scenarios import (
 )
 from tools import terrain_cmd
 from tools.choices import ModelName
+from tools.cli_checks import OUT_DIR, check_output_dir, fail
 
 
 class PlantName(str, Enum):
@@ -53,7 +54,7 @@ TrialsOpt = Annotated[
     typer.Option("--trials", "-n", min=1,
                  help="Trials per cell (different seeds); default 100 per scene and, in `table`, 3 per lane."),
 ]
-SeedOpt = Annotated[int, typer.Option("--seed", help="First seed; trial i uses seed + i.")]
+SeedOpt = Annotated[int, typer.Option("--seed", min=0, help="First seed; trial i uses seed + i.")]
 PlantOpt = Annotated[PlantName, typer.Option("--plant", help="physics (default) or the paper's residual-net.")]
 PlantFileOpt = Annotated[Path | None, typer.Option("--plant-file", help="Residual-net JSON (e.g. fcnn.json).")]
 TerrainFileOpt = Annotated[Path | None, typer.Option("--terrain-file", help="Terrain set YAML for the physics plant.")]
@@ -62,25 +63,36 @@ LaneFileOpt = Annotated[list[Path] | None, typer.Option("--lane-file", help="Lan
 GpModelOpt = Annotated[Path | None, typer.Option("--gp-model", help="GP model file (default: the shipped one).")]
 QuickOpt = Annotated[bool, typer.Option("--quick", help="Reduced run: one terrain, few trials, 25 m of lane.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object {results: {task: {terrain: {model}}}}.")]
-OutOpt = Annotated[Path | None, typer.Option("--output", "-o", help="Write table, CSV, JSON and figures here.")]
-WorkersOpt = Annotated[int, typer.Option("--workers", "-j", min=1, help="Worker processes (without --ray).")]
+OutOpt = Annotated[
+    Path | None,
+    typer.Option("--output", "-o", metavar=OUT_DIR,
+                 help="Write table, CSV, JSON and figures into this folder (`table`: default evaluation/)."),
+]
+ForceOpt = Annotated[bool, typer.Option("--force", help="Write into an --output folder that already holds files.")]
+WorkersOpt = Annotated[
+    int, typer.Option("--workers", "-j", min=1, max=256, help="Worker processes (without --ray).")
+]
 RayOpt = Annotated[
     str | None,
     typer.Option("--ray", metavar="auto|ADDRESS",
                  help="Run the trials as Ray tasks on an existing Ray cluster: auto (the cluster this machine is "
                       "part of, or RAY_ADDRESS) or the head's HOST:PORT. Needs the ray extra."),
 ]
-SamplesOpt = Annotated[int, typer.Option("--samples", min=16, help="MPPI samples per step.")]
-DistanceOpt = Annotated[float | None, typer.Option("--distance", min=1.0, help="Lane distance in m (100).")]
-LatencyOpt = Annotated[float, typer.Option("--latency", min=0.0, help="Command latency in seconds.")]
-LatencyCyclesOpt = Annotated[int, typer.Option("--latency-cycles", min=0, help="Latency in planner cycles.")]
+SamplesOpt = Annotated[int, typer.Option("--samples", min=16, max=1 << 20, help="MPPI samples per step.")]
+DistanceOpt = Annotated[
+    float | None, typer.Option("--distance", min=1.0, max=1e5, help="Lane distance in m (100; lanes only).")
+]
+LatencyOpt = Annotated[float, typer.Option("--latency", min=0.0, max=10.0, help="Command latency in seconds.")]
+LatencyCyclesOpt = Annotated[
+    int, typer.Option("--latency-cycles", min=0, max=100, help="Latency in planner cycles.")
+]
 CompensateOpt = Annotated[
     bool, typer.Option("--compensate/--no-compensate", help="Planners plan for the state their command meets.")
 ]
 NoiseOpt = Annotated[bool, typer.Option("--noise/--no-noise", help="Physics plant sensor noise.")]
 DeployOpt = Annotated[
     Path | None,
-    typer.Option("--deploy", help="Launch file whose egress limits and terrain cycle (command_source, dt gating, "
+    typer.Option("--launch-file", help="Launch file whose egress limits and terrain cycle (command_source, dt gating, "
                  "estimator) the closed loop runs (default: the default launch)."),
 ]
 RandomOpt = Annotated[bool, typer.Option("--random-scenes", help="Avoidance: a random scene per trial.")]
@@ -101,11 +113,6 @@ SwitchOpt = Annotated[
 ]
 
 
-def _fail(message: str) -> None:
-    Console(stderr=True).print(f"[red]error:[/red] {message}")
-    raise typer.Exit(2)
-
-
 def _default_terrains(settings: EvalSettings) -> list[str]:
     if settings.plant == "residual-net":
         return list(PAPER_NET_TERRAINS)
@@ -118,17 +125,31 @@ def _check_terrains(settings: EvalSettings, terrains: list[str]) -> None:
     if settings.plant == "residual-net":
         bad = [t for t in terrains if t not in PAPER_NET_TERRAINS]
         if bad:
-            _fail(f"the residual-net plant knows terrains {PAPER_NET_TERRAINS}, not {bad}")
+            fail(f"the residual-net plant knows terrains {PAPER_NET_TERRAINS}, not {bad}")
         return
     from gpmppi.plant.terrains import TerrainFileError, load_terrains
 
     try:
         names = load_terrains(settings.terrain_file).names
     except TerrainFileError as e:
-        _fail(str(e))
+        fail(str(e))
     bad = [t for t in terrains if t not in names]
     if bad:
-        _fail(f"unknown terrain(s) {bad}; the terrain set has {names} (see --terrain-file)")
+        fail(f"unknown terrain(s) {bad}; the terrain set has {names} (see --terrain-file)")
+
+
+def _check_applies(
+    kind: str, scene_file: list[Path] | None, lane_file: list[Path] | None, random_scenes: bool,
+    distance: float | None,
+) -> None:
+    """An option the chosen command would ignore is an error: the user believes their file was evaluated."""
+    lanes_only = {"--lane-file": bool(lane_file), "--distance": distance is not None}
+    scenes_only = {"--scene-file": bool(scene_file), "--random-scenes": random_scenes}
+    ignored = [o for o, on in lanes_only.items() if on] if kind == "avoidance" else []
+    ignored += [o for o, on in scenes_only.items() if on] if kind == "tracking" else []
+    if ignored:
+        other = "tracking" if kind == "avoidance" else "avoidance"
+        fail(f"{', '.join(ignored)}: does not apply to `evaluate {kind}`; use `evaluate {other}` or `evaluate table`")
 
 
 def _parse_switches(items: list[str] | None) -> tuple[tuple[float, str], ...]:
@@ -138,9 +159,9 @@ def _parse_switches(items: list[str] | None) -> tuple[tuple[float, str], ...]:
         try:
             out.append((float(t), name))
         except ValueError:
-            _fail(f"--switch {item!r}: expected TIME:TERRAIN, e.g. 20:sand")
+            fail(f"--switch {item!r}: expected TIME:TERRAIN, e.g. 20:sand")
         if not name:
-            _fail(f"--switch {item!r}: missing terrain name")
+            fail(f"--switch {item!r}: missing terrain name")
     return tuple(out)
 
 
@@ -154,13 +175,13 @@ def _parse_overrides(items: list[str] | None) -> tuple[tuple[str, object], ...]:
     for item in items or []:
         key, sep, value = item.partition("=")
         if not sep or key not in PlannerConfig.model_fields or key in ("dynamics", "seed", "edd5_terrain"):
-            _fail(f"--set {item!r}: expected KEY=VALUE, KEY a planner setting (not dynamics, seed, edd5_terrain)")
+            fail(f"--set {item!r}: expected KEY=VALUE, KEY a planner setting (not dynamics, seed, edd5_terrain)")
         parsed = yaml.safe_load(value)
         out[key] = tuple(parsed) if isinstance(parsed, list) else parsed
     try:
         PlannerConfig(**out)
     except ValidationError as e:
-        _fail(f"--set: {e.errors()[0]['loc']}: {e.errors()[0]['msg']}")
+        fail(f"--set: {e.errors()[0]['loc']}: {e.errors()[0]['msg']}")
     return tuple(out.items())
 
 
@@ -171,10 +192,10 @@ def _settings(
     deploy: Path | None = None,
 ) -> EvalSettings:
     if plant is PlantName.residual_net and plant_file is None:
-        _fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
+        fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
     for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), ("--gp-model", gp_model)):
         if f is not None and not f.is_file():
-            _fail(f"{label} {f}: file not found")
+            fail(f"{label} {f}: file not found")
     if gp_model is not None:
         from gpmppi.evaluation.runner import cached_gp_model
         from gpmppi.gp.model_file import ModelFileError
@@ -182,13 +203,13 @@ def _settings(
         try:
             cached_gp_model(str(gp_model))
         except (ModelFileError, OSError) as e:
-            _fail(f"--gp-model {gp_model}: {e}")
+            fail(f"--gp-model: {e}")
     lane_m = distance if distance is not None else (25.0 if quick else 100.0)
     planner_overrides = _parse_overrides(overrides)
     try:
         estimator_fields = terrain_cmd.estimator_settings(estimator or [])
     except ValueError as e:
-        _fail(f"--estimator: {e}")
+        fail(f"--estimator: {e}")
     # the deployed command path: egress's limits, the terrain service's cycle and estimator of the launch file
     from gpmppi.evaluation.deployed import DeployFileError, deployed_path
     from services.launch_file import DEFAULT_LAUNCH
@@ -196,7 +217,7 @@ def _settings(
     try:
         deployed = deployed_path(deploy or DEFAULT_LAUNCH)
     except DeployFileError as e:
-        _fail(f"--deploy: {e}")
+        fail(f"--launch-file: {e}")
     estimator_fields = (*deployed.estimator.model_dump(exclude_unset=True).items(), *estimator_fields)
     return EvalSettings(
         plant=plant.value,  # type: ignore[arg-type]
@@ -222,7 +243,7 @@ def _lanes(lane_files: list[Path] | None) -> dict[str, Scenario]:
     try:
         return {f.stem: load_lane(f) for f in lane_files}
     except ScenarioFileError as e:
-        _fail(str(e))
+        fail(str(e))
     raise AssertionError
 
 
@@ -232,7 +253,7 @@ def _scenes(scene_files: list[Path] | None) -> dict[str, Scenario]:
     try:
         return {("avoidance" if len(scene_files) == 1 else f.stem): load_scene(f) for f in scene_files}
     except ScenarioFileError as e:
-        _fail(str(e))
+        fail(str(e))
     raise AssertionError
 
 
@@ -274,7 +295,7 @@ def _execute(
         try:
             ray = connect(ray_address)
         except RayBackendError as e:
-            _fail(str(e))
+            fail(str(e))
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                TimeRemainingColumn())
     with Progress(*columns, console=console, transient=False) as progress:
@@ -370,8 +391,12 @@ def _run(
     workers: int, samples: int, distance: float | None, latency: float, latency_cycles: int, compensate: bool,
     noise: bool, random_scenes: bool, switch: list[str] | None, overrides: list[str] | None,
     estimator: list[str] | None = None, oracle: bool = False, ray_address: str | None = None,
-    deploy: Path | None = None,
+    deploy: Path | None = None, force: bool = False,
 ) -> None:
+    _check_applies(kind, scene_file, lane_file, random_scenes, distance)
+    if out is not None and out.is_dir() and any(out.iterdir()) and not force:
+        fail(f"--output {out}: the folder holds files already; choose an empty or new folder, or add --force to "
+             "write over its tables and figures")
     settings = _settings(plant, plant_file, terrain_file, gp_model, samples, distance, quick, latency,
                          latency_cycles, compensate, noise, overrides, estimator, oracle, deploy)
     terrains = terrain or _default_terrains(settings)
@@ -405,13 +430,14 @@ def register(app: typer.Typer) -> None:
             latency_cycles: LatencyCyclesOpt = 0, compensate: CompensateOpt = True, noise: NoiseOpt = True,
             random_scenes: RandomOpt = False, switch: SwitchOpt = None, set_: SetOpt = None,
             estimator: EstimatorOpt = None, oracle: OracleOpt = False, ray: RayOpt = None,
-            deploy: DeployOpt = None,
+            deploy: DeployOpt = None, force: ForceOpt = False,
         ) -> None:
             if kind == "table" and out is None:
                 out = Path("evaluation")
+                check_output_dir("--output", out)
             _run(kind, terrain, model, trials, seed, plant, plant_file, terrain_file, scene_file, lane_file,
                  gp_model, quick, as_json, out, workers, samples, distance, latency, latency_cycles, compensate,
-                 noise, random_scenes, switch, set_, estimator, oracle, ray, deploy)
+                 noise, random_scenes, switch, set_, estimator, oracle, ray, deploy, force)
 
         command.__doc__ = doc
         return command

@@ -12,6 +12,7 @@ import numpy as np
 import typer
 from rich.console import Console
 
+from tools.cli_checks import OUT_FILE, fail
 from tools.train import INPUT_COLUMNS, DataError, csv_inputs, read_csv_columns
 
 
@@ -38,17 +39,17 @@ def register(app: typer.Typer) -> None:
 
     @gp_app.command("predict")
     def predict_cmd(
-        model_path: Annotated[Path, typer.Argument(metavar="MODEL", help="model file from `gpmppi train`")],
         inputs: Annotated[Path, typer.Argument(help=f"CSV with columns {','.join(INPUT_COLUMNS)} (or gp_ip_*)")],
-        output: Annotated[Path, typer.Option("--output", "-o", help="CSV to write")],
+        model_path: Annotated[Path, typer.Option("--gp-model", help="GP model file from `gpmppi train`")],
+        output: Annotated[Path, typer.Option("--output", "-o", metavar=OUT_FILE, help="CSV to write")],
         mode: Annotated[str, typer.Option(help="exact | grid")] = "exact",
+        force: Annotated[bool, typer.Option("--force", help="replace an existing --output file")] = False,
     ) -> None:
         """Predict each task's mean and latent variance (no noise) at the inputs."""
         from gpmppi.gp.exact import ExactPredictor
         from gpmppi.gp.grid import GridPredictor
         from gpmppi.gp.model_file import GPModel
 
-        err = Console(stderr=True, soft_wrap=True)
         try:
             if mode not in ("exact", "grid"):
                 raise DataError(f"--mode must be 'exact' or 'grid', got {mode!r}")
@@ -56,8 +57,7 @@ def register(app: typer.Typer) -> None:
             model = GPModel.load(model_path)
             x = csv_inputs(read_csv_columns(inputs), inputs)
         except ValueError as e:
-            err.print(f"[red]error:[/red] {e}", highlight=False)
-            raise typer.Exit(code=2) from None
+            fail(str(e))
         predictor = ExactPredictor(model) if m == "exact" else GridPredictor(model)
         mean, var = predictor.predict(x)
         header = list(INPUT_COLUMNS)

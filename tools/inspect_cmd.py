@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from services.mcap_inspect import InspectError, inspect_recording, recover, report_lines
+from tools.cli_checks import OUT_FILE
 
 
 def register(app: typer.Typer) -> None:
@@ -20,7 +21,7 @@ def register(app: typer.Typer) -> None:
         as_json: Annotated[bool, typer.Option("--json", help="print one JSON object instead of text")] = False,
         recover_to: Annotated[
             Path | None,
-            typer.Option("--recover", metavar="OUT.mcap", help="write every readable message to a complete file"),
+            typer.Option("--recover", metavar=OUT_FILE, help="write every readable message to a complete .mcap file"),
         ] = None,
     ) -> None:
         """Channels (topic, schema, count, rate, first/last time, largest gap), duration, metadata, attachments,

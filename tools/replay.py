@@ -1,6 +1,6 @@
 """`gpmppi replay LOG.mcap`: a recording back onto Zenoh with its timing, optionally with live services in place
 of recorded ones (`--replace planner`) and their commands compared with the recorded ones (`--compare`); or
-converted offline for rerun (`--rerun save OUT.rrd | spawn | connect URL | serve`)."""
+converted offline for rerun (`--rerun save --rerun-target OUT.rrd | spawn | connect --rerun-target URL | serve`)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,7 @@ from typing import Any
 
 import typer
 
+from tools.cli_checks import check_output_file, fail
 from tools.replay_live import ReplaceError
 
 RERUN_MODES = ("save", "spawn", "connect", "serve")
@@ -294,10 +295,11 @@ def register(app: typer.Typer) -> None:
     @app.command("replay")
     def replay(
         log: Path = typer.Argument(..., help="the MCAP recording (rotated parts _001, _002 ... follow)"),
-        rerun_target: str | None = typer.Argument(None, help="with --rerun save: OUT.rrd; with connect: URL"),
-        speed: float = typer.Option(1.0, help="playback speed (2: twice as fast; 0: as fast as Zenoh takes them)"),
-        start: float | None = typer.Option(None, help="begin this many seconds into the log"),
-        end: float | None = typer.Option(None, help="stop this many seconds into the log"),
+        speed: float = typer.Option(
+            1.0, min=0.0, help="playback speed (2: twice as fast; 0: as fast as Zenoh takes them)"
+        ),
+        start: float | None = typer.Option(None, min=0.0, help="begin this many seconds into the log"),
+        end: float | None = typer.Option(None, min=0.0, help="stop this many seconds into the log"),
         keys: str | None = typer.Option(None, help="replay only keys matching this regular expression"),
         exclude: str | None = typer.Option(None, help="do not replay keys matching this regular expression"),
         loop: bool = typer.Option(False, help="start over at the end (until Ctrl-C)"),
@@ -311,11 +313,18 @@ def register(app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json", help="print one JSON object (compare results, timing)"),
         connect: str | None = typer.Option(None, help="router endpoint (default: tcp/127.0.0.1:7447; with "
                                            "--replace a router is started)"),
-        port: int | None = typer.Option(None, help="start a router on 127.0.0.1:PORT for the replay"),
-        delay: float = typer.Option(0.5, help="wait this long after joining before the first message [s]"),
-        ready_timeout: float = typer.Option(600.0, help="wait this long for live services to come up [s]"),
-        rerun: str | None = typer.Option(None, help="convert offline for rerun: save OUT.rrd | spawn | connect URL "
-                                         "| serve (no Zenoh)"),
+        port: int | None = typer.Option(
+            None, min=1, max=65535, help="start a router on 127.0.0.1:PORT for the replay"
+        ),
+        delay: float = typer.Option(0.5, min=0.0, help="wait this long after joining before the first message [s]"),
+        ready_timeout: float = typer.Option(
+            600.0, min=0.1, help="wait this long for live services to come up [s]"
+        ),
+        rerun: str | None = typer.Option(None, help="convert offline for rerun (no Zenoh): save | spawn | connect | "
+                                         "serve"),
+        rerun_target: str | None = typer.Option(
+            None, "--rerun-target", help="with --rerun save: the .rrd file to write; with --rerun connect: the URL"
+        ),
         quiet: bool = typer.Option(False, help="no progress bar"),
         lockstep: bool = typer.Option(False, help="with --compare: put each state only after the live planner "
                                       "answered the one before (for a live planner slower than the recorded one)"),
@@ -324,12 +333,25 @@ def register(app: typer.Typer) -> None:
         (`--replace`, like `dora replay --replace`), or convert it for rerun (`--rerun`)."""
         from services.player_log import LogError
 
+        if start is not None and end is not None and end <= start:
+            fail(f"--end {end}: must be after --start {start}")
+        if rerun is not None:
+            live_only = {"--speed": speed != 1.0, "--loop": loop, "--robot": robot is not None,
+                         "--keep-stamps": keep_stamps, "--replace": replace is not None, "--set": bool(set_),
+                         "--config": bool(config), "--compare": compare, "--connect": connect is not None,
+                         "--port": port is not None, "--delay": delay != 0.5, "--ready-timeout": ready_timeout != 600.0,
+                         "--lockstep": lockstep}
+            given = [name for name, on in live_only.items() if on]
+            if given:
+                fail(f"{', '.join(given)}: only for a replay onto Zenoh, not with --rerun (an offline conversion)")
+            if rerun == "save" and rerun_target is not None:
+                check_output_file("--rerun-target", Path(rerun_target))
         try:
             if rerun is not None:
                 if rerun not in RERUN_MODES:
                     raise ValueError(f"--rerun {rerun!r}: expected one of {', '.join(RERUN_MODES)}")
                 if rerun in ("save", "connect") and rerun_target is None:
-                    raise ValueError(f"--rerun {rerun} needs a target: --rerun save OUT.rrd / --rerun connect URL")
+                    raise ValueError(f"--rerun {rerun} needs --rerun-target (save: OUT.rrd; connect: URL)")
                 try:
                     from tools.replay_rerun import convert
                 except ImportError as exc:
@@ -342,7 +364,7 @@ def register(app: typer.Typer) -> None:
                            f"log) in {stats.get('wall_s', 0):.2f} s")
                 return
             if rerun_target is not None:
-                raise ValueError(f"unexpected argument {rerun_target!r} (only --rerun save/connect take a target)")
+                raise ValueError(f"--rerun-target {rerun_target!r}: only with --rerun save or --rerun connect")
             if port is not None and connect is not None:
                 raise ValueError("give --connect ENDPOINT (an existing router) or --port N (start one), not both")
             req = ReplayRequest(log, speed, start, end, keys, exclude, loop, robot, keep_stamps, replace, list(set_),

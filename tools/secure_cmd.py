@@ -6,6 +6,8 @@ from pathlib import Path
 
 import typer
 
+from tools.cli_checks import DIR, OUT_DIR
+
 ROS2_CMD_KEY = "0/cmd_vel/*/*"  # rmw_zenoh: <domain>/<topic>/<type>/<hash>, Twist or TwistStamped
 ROS2_ODOM_KEY = "0/odometry/filtered/*/*"
 
@@ -16,7 +18,9 @@ def register(app: typer.Typer) -> None:
 
     @secure_app.command("init")
     def init(
-        directory: Path = typer.Argument(..., help="folder to write the secrets to (created, mode 700)"),
+        directory: Path = typer.Argument(
+            ..., metavar=OUT_DIR, help="folder to write the secrets to (created, mode 700)"
+        ),
         robot: str = typer.Option("jackal", "--robot", help="robot name in every key the rules name"),
         tls: bool = typer.Option(
             False,
@@ -65,7 +69,7 @@ def register(app: typer.Typer) -> None:
 
     @secure_app.command("check")
     def check(
-        directory: Path = typer.Argument(..., help="secrets folder made by `gpmppi secure init`"),
+        directory: Path = typer.Argument(..., metavar=DIR, help="secrets folder made by `gpmppi secure init`"),
         robot: str = typer.Option("jackal", "--robot", help="robot name the launch drives"),
     ) -> None:
         """Check a secrets folder as a launch does (files, users, certificates, access control)."""

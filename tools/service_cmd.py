@@ -3,11 +3,63 @@
 from __future__ import annotations
 
 import json
+from enum import Enum
 from pathlib import Path
 
 import typer
 
-PASS_THROUGH = {"allow_extra_args": True, "ignore_unknown_options": True, "help_option_names": []}
+from tools.cli_checks import OUT_DIR, AtomicOutput, fail
+
+SERVICE_NAMES = ("router", "sim", "ingress", "terrain", "planner", "egress", "recorder", "viewer")
+DurationOpt = typer.Option(
+    None, "--duration", min=0.1, max=30 * 86400.0, help="stop after this many seconds once every service is up"
+)
+PortOpt = typer.Option(None, "--port", min=1, max=65535, help="router port on 127.0.0.1 (overrides the file)")
+
+
+class RerunMode(str, Enum):
+    """Where the viewer service sends the run (`--rerun`)."""
+
+    spawn = "spawn"
+    save = "save"
+    connect = "connect"
+    serve = "serve"
+    off = "off"
+
+
+def _launch(
+    launch_file: Path | None, duration: float | None, record: Path | None, rerun: list[str] | None,
+    port: int | None, secrets: Path | None = None,
+) -> int:
+    """Run a launch file through the launcher; a launch that cannot start is one line and exit 2."""
+    from services.launcher import main
+
+    argv = [str(launch_file)] if launch_file is not None else []
+    if duration is not None:
+        argv += ["--duration", repr(duration)]
+    if record is not None:
+        argv += ["--record", str(record)]
+    if rerun:
+        argv += ["--rerun", *rerun]
+    if port is not None:
+        argv += ["--port", str(port)]
+    if secrets is not None:
+        argv += ["--secrets", str(secrets)]
+    return main(argv)
+
+
+def _rerun_args(mode: RerunMode | None, target: str | None) -> list[str] | None:
+    if mode is None:
+        if target is not None:
+            fail(f"--rerun-target {target!r}: only with --rerun save (a .rrd file) or --rerun connect (a URL)")
+        return None
+    if mode in (RerunMode.save, RerunMode.connect):
+        if target is None:
+            fail(f"--rerun {mode.value} needs --rerun-target ({'FILE.rrd' if mode is RerunMode.save else 'URL'})")
+        return [mode.value, target]
+    if target is not None:
+        fail(f"--rerun-target: --rerun {mode.value} takes no target")
+    return [mode.value]
 
 
 def register(app: typer.Typer) -> None:
@@ -15,57 +67,84 @@ def register(app: typer.Typer) -> None:
 
     @app.command("service")
     def service(
-        name: str = typer.Argument(..., help="router, sim, ingress, terrain, planner, egress, recorder or viewer"),
+        name: str = typer.Argument(..., help=", ".join(SERVICE_NAMES)),
         config: Path | None = typer.Option(None, "--config", help="YAML settings file"),
     ) -> None:
         """Run one service (what the launcher and systemd units call)."""
         from services.run import SERVICES, run_service
 
         if name not in SERVICES:
-            raise typer.BadParameter(f"unknown service {name!r}; known: {', '.join(SERVICES)}")
+            fail(f"unknown service {name!r}; known: {', '.join(SERVICES)}")
         raise typer.Exit(run_service(name, config))
 
-    @app.command("launch", context_settings=PASS_THROUGH)
-    def launch(ctx: typer.Context) -> None:
-        """Run a launch file: [LAUNCH.yaml] [--duration S] [--record FILE.mcap]
-        [--rerun spawn|save FILE|connect URL|serve|off] [--port N] [--secrets DIR]. No file: the simulated Jackal on the
-        circle lane. --secrets DIR (from `gpmppi secure init DIR`) runs it with authentication and access control."""
-        from services.launcher import main
-
-        raise typer.Exit(main(list(ctx.args)))
+    @app.command("launch")
+    def launch(
+        launch_file: Path | None = typer.Argument(
+            None, metavar="LAUNCH_FILE", help="launch YAML (default: the simulated Jackal on the circle lane)"
+        ),
+        duration: float | None = DurationOpt,
+        record: Path | None = typer.Option(
+            None, "--record", metavar="FILE.mcap|DIR",
+            help="record everything to this MCAP file; an existing file is never replaced (a free -N name is "
+                 "used and said), a folder gets a run-TIME.mcap inside",
+        ),
+        rerun: RerunMode | None = typer.Option(None, "--rerun", help="send the run to rerun"),
+        rerun_target: str | None = typer.Option(
+            None, "--rerun-target", help="with --rerun save: the .rrd file; with --rerun connect: the viewer's URL"
+        ),
+        port: int | None = PortOpt,
+        secrets: Path | None = typer.Option(
+            None, "--secrets", metavar="DIR",
+            help="run with authentication and access control, with the identities of `gpmppi secure init DIR`",
+        ),
+    ) -> None:
+        """Run a launch file: every service as its own process, restarted on a crash, stopped on Ctrl-C; then a
+        summary."""
+        if launch_file is not None and launch_file.suffix == ".rrd":
+            fail(f"LAUNCH_FILE {launch_file}: a rerun file, not a launch file; to save the view give "
+                 f"--rerun save --rerun-target {launch_file}")
+        if record is not None and not record.is_dir() and not record.absolute().parent.is_dir():
+            fail(f"--record {record}: folder {record.absolute().parent} does not exist; create it first")
+        raise typer.Exit(_launch(launch_file, duration, record, _rerun_args(rerun, rerun_target), port, secrets))
 
     @app.command("demo")
     def demo(
-        duration: float = typer.Option(20.0, help="seconds to run"),
-        out_dir: Path = typer.Option(Path("runs"), help="where demo.mcap and demo.rrd go"),
-        port: int | None = typer.Option(None, help="router port on 127.0.0.1 (default 7447)"),
+        duration: float = typer.Option(20.0, "--duration", min=0.1, max=86400.0, help="seconds to run"),
+        out_dir: Path = typer.Option(
+            Path("runs"), "--output", "-o", metavar=OUT_DIR,
+            help="where demo.mcap and demo.rrd go (an earlier demo's files are kept: a free -N name is used)",
+        ),
+        port: int | None = PortOpt,
     ) -> None:
         """The main job: the simulated Jackal on the circle lane for ~20 s, recorded to runs/demo.mcap and
         saved for rerun in runs/demo.rrd, then a summary."""
-        from services.launcher import main
-
         out_dir.mkdir(parents=True, exist_ok=True)
-        argv = ["--duration", str(duration), "--record", str(out_dir / "demo.mcap")]
-        argv += ["--rerun", "save", str(out_dir / "demo.rrd")]
-        if port is not None:
-            argv += ["--port", str(port)]
-        code = main(argv)
-        typer.echo(f"recording: {out_dir / 'demo.mcap'}  rerun: {out_dir / 'demo.rrd'} (open with `rerun FILE`)")
+        code = _launch(None, duration, out_dir / "demo.mcap", ["save", str(out_dir / "demo.rrd")], port)
+        typer.echo(f"recording and rerun file in {out_dir} (the summary names them; open the .rrd with `rerun FILE`)")
         raise typer.Exit(code)
 
     schemas_app = typer.Typer(help="Message schemas.", no_args_is_help=True)
 
     @schemas_app.command("export")
-    def export(out_dir: Path = typer.Argument(..., help="folder to write <Model>.schema.json files to")) -> None:
+    def export(
+        out_dir: Path = typer.Argument(..., metavar=OUT_DIR, help="folder to write <Model>.schema.json files to"),
+        force: bool = typer.Option(False, "--force", help="replace schema files already in the folder"),
+    ) -> None:
         """Write the JSON Schema of every message and a keys.json (key template -> message)."""
         from schemas import KEYS
         from schemas.messages import MODELS
 
-        out_dir.mkdir(parents=True, exist_ok=True)
-        for name, model in MODELS.items():
-            (out_dir / f"{name}.schema.json").write_text(json.dumps(model.model_json_schema(), indent=2) + "\n")
-        keys = {template: model.__name__ for template, model in KEYS.values()}
-        (out_dir / "keys.json").write_text(json.dumps(keys, indent=2) + "\n")
+        files = {f"{name}.schema.json": json.dumps(model.model_json_schema(), indent=2) + "\n"
+                 for name, model in MODELS.items()}
+        files["keys.json"] = json.dumps({t: m.__name__ for t, m in KEYS.values()}, indent=2) + "\n"
+        existing = [n for n in files if (out_dir / n).exists()]
+        if existing and not force:
+            fail(f"{out_dir}: holds {', '.join(existing[:3])}{' ...' if len(existing) > 3 else ''} already; "
+                 "add --force to replace them, or choose another folder")
+        out_dir.mkdir(exist_ok=True)
+        for name, text in files.items():
+            with AtomicOutput(out_dir / name) as tmp:
+                tmp.write_text(text)
         typer.echo(f"wrote {len(MODELS)} schemas and keys.json to {out_dir}")
 
     app.add_typer(schemas_app, name="schemas")

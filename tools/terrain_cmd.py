@@ -22,6 +22,8 @@ import typer
 import yaml
 from rich.console import Console
 
+from tools.cli_checks import OUT_DIR, OUT_FILE
+
 SCENARIOS = ("circle", "square", "avoidance")
 DEFAULT_ESTIMATORS = (
     "paper",
@@ -63,8 +65,11 @@ def estimator_settings(items: list[str]) -> tuple[tuple[str, object], ...]:
     out: dict[str, object] = {}
     for item in items:
         key, sep, value = item.partition("=")
-        if not sep or key not in EstimatorConfig.model_fields:
-            raise ValueError(f"{item!r}: expected KEY=VALUE, KEY one of {sorted(EstimatorConfig.model_fields)}")
+        if not sep:
+            raise ValueError(f"{item!r}: expected KEY=VALUE (e.g. method=bayes)")
+        if key not in EstimatorConfig.model_fields:
+            raise ValueError(f"{item!r}: no estimator setting {key!r}; the settings are "
+                             f"{', '.join(sorted(EstimatorConfig.model_fields))}")
         parsed = yaml.safe_load(value)
         out[key] = tuple(parsed) if isinstance(parsed, list) else parsed
     try:
@@ -81,7 +86,7 @@ def _estimator_fields(spec: str) -> tuple[tuple[str, object], ...]:
     try:
         return estimator_settings([f"method={method}"] + [i for i in rest.split(",") if i])
     except ValueError as e:
-        raise typer.BadParameter(f"--estimator {spec!r}: {e}") from None
+        raise typer.BadParameter(f"--candidate {spec!r}: {e}") from None
 
 
 def _replay_scores(model, rec: dict, spec: str) -> dict:
@@ -106,10 +111,11 @@ def register(ev: typer.Typer) -> None:
 
     @ev.command("terrain-gains")
     def gains_cmd(
-        distance: Annotated[float, typer.Option("--distance", min=10.0, help="Excitation distance per terrain in m.")
-                            ] = 400.0,
-        seed: Annotated[int, typer.Option("--seed", help="Excitation and plant seed.")] = 5,
-        out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the YAML here.")] = None,
+        distance: Annotated[float, typer.Option(
+            "--distance", min=10.0, max=1e5, help="Excitation distance per terrain in m.")] = 400.0,
+        seed: Annotated[int, typer.Option("--seed", min=0, help="Excitation and plant seed.")] = 5,
+        out: Annotated[Path | None, typer.Option("--output", "-o", metavar=OUT_FILE, help="Write the YAML here.")
+                       ] = None,
     ) -> None:
         """Fit the terrain estimator's per-terrain command-change gains on excitation drives of the physics plant.
 
@@ -139,20 +145,22 @@ def register(ev: typer.Typer) -> None:
 
     @ev.command("terrain-response")
     def response_cmd(
-        settle: Annotated[float, typer.Option("--settle", min=0.5, help="Seconds each held command runs before its "
-                                              "velocities are averaged.")] = 2.5,
-        average: Annotated[float, typer.Option("--average", min=0.1, help="Seconds of measured velocity averaged "
-                                               "per held command.")] = 1.5,
-        distance: Annotated[float, typer.Option("--distance", min=10.0, help="Excitation distance per terrain in m "
-                                                "(for the rates).")] = 400.0,
-        seed: Annotated[int, typer.Option("--seed", help="Excitation and plant seed.")] = 5,
+        settle: Annotated[float, typer.Option(
+            "--settle", min=0.5, max=60.0, help="Seconds each held command runs before its velocities are averaged.")
+        ] = 2.5,
+        average: Annotated[float, typer.Option(
+            "--average", min=0.1, max=60.0, help="Seconds of measured velocity averaged per held command.")] = 1.5,
+        distance: Annotated[float, typer.Option(
+            "--distance", min=10.0, max=1e5, help="Excitation distance per terrain in m (for the rates).")] = 400.0,
+        seed: Annotated[int, typer.Option("--seed", min=0, help="Excitation and plant seed.")] = 5,
         plant: Annotated[str, typer.Option("--plant", help="physics (default) or residual-net (the paper's "
                                            "simulator, with --plant-file).")] = "physics",
         plant_file: Annotated[Path | None, typer.Option("--plant-file", help="Residual-net JSON (the paper's "
                                                         "fcnn.json).")] = None,
         gp_model: Annotated[Path | None, typer.Option("--gp-model", help="GP model whose terrains to fit (and, "
                                                       "for residual-net, whose nominal model).")] = None,
-        out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the YAML here.")] = None,
+        out: Annotated[Path | None, typer.Option("--output", "-o", metavar=OUT_FILE, help="Write the YAML here.")
+                       ] = None,
     ) -> None:
         """Fit each terrain's velocity response (gpmppi.terrain_response) on drives of the plant.
 
@@ -208,17 +216,20 @@ def register(ev: typer.Typer) -> None:
     def separability_cmd(
         terrain: Annotated[list[str] | None, typer.Option("--terrain", "-t", help="Terrain(s) (repeat).")] = None,
         scenario: Annotated[list[str] | None, typer.Option("--scenario", help="circle, square, avoidance.")] = None,
-        seed: Annotated[int, typer.Option("--seed", help="Planner and plant seed.")] = 0,
-        distance: Annotated[float, typer.Option("--distance", min=1.0, help="Lane distance in m.")] = 40.0,
-        record_dir: Annotated[Path, typer.Option("--record-dir", help="Recordings (reused when present).")] = Path(
-            "terrain_runs"),
+        seed: Annotated[int, typer.Option("--seed", min=0, help="Planner and plant seed.")] = 0,
+        distance: Annotated[float, typer.Option("--distance", min=1.0, max=1e5, help="Lane distance in m.")] = 40.0,
+        record_dir: Annotated[Path, typer.Option(
+            "--record-dir", metavar=OUT_DIR, help="Recordings (reused when present).")] = Path("terrain_runs"),
         estimator: Annotated[list[str] | None, typer.Option(
-            "--estimator", help="Estimators to replay: METHOD[:KEY=VALUE,...] (repeat).")] = None,
+            "--candidate", help="Estimators to replay and compare: METHOD[:KEY=VALUE,...] (repeat).")] = None,
         drive_with: Annotated[str, typer.Option(
             "--drive-with", help="Estimator the recorded closed loops run with.")] = "paper",
-        window: Annotated[list[int] | None, typer.Option("--window", help="Window lengths in steps (repeat).")] = None,
-        out: Annotated[Path | None, typer.Option("--output", "-o", help="Write the JSON result here.")] = None,
-        md: Annotated[Path | None, typer.Option("--markdown", help="Write Markdown tables here.")] = None,
+        window: Annotated[list[int] | None, typer.Option(
+            "--window", min=1, help="Window lengths in steps (repeat).")] = None,
+        out: Annotated[Path | None, typer.Option(
+            "--output", "-o", metavar=OUT_FILE, help="Write the JSON result here.")] = None,
+        md: Annotated[Path | None, typer.Option(
+            "--markdown", metavar=OUT_FILE, help="Write Markdown tables here.")] = None,
         switch: Annotated[list[str] | None, typer.Option(
             "--switch", help="Switch the plant's terrain mid-run: TIME:TERRAIN (repeat).")] = None,
     ) -> None:

@@ -15,6 +15,7 @@ from rich.console import Console
 from rich.table import Table
 
 from gpmppi.gp.grid_table import DEFAULT_SPACING
+from tools.cli_checks import OUT_FILE, fail
 
 INPUT_COLUMNS = ("cmd_lin", "cmd_ang", "curr_lin", "curr_ang")
 PAPER_PREFIX = "gp_ip_"
@@ -23,6 +24,15 @@ _TARGET_RE = re.compile(r"^(?P<terrain>.+)_(?P<out>Lin|Ang)_Error$", re.IGNORECA
 
 class DataError(ValueError):
     """Training or prediction data that cannot be used; the message says what, where, and what to do."""
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def is_mcap(path: Path) -> bool:
+    """True when the file starts with MCAP's magic bytes."""
+    with open(path, "rb") as f:
+        return f.read(len(MCAP_MAGIC)) == MCAP_MAGIC
 
 
 # ---- CSV ----------------------------------------------------------------------------------------
@@ -253,6 +263,9 @@ def build_training_sets(
             edd5 = {t: identify_edd5(x[:, 0], x[:, 1], s.next_vw[:, 0], s.next_vw[:, 1], seed=seed)
                     for t, s in sets.items()}
         return sets, theta, edd5
+    if data.suffix.lower() != ".csv" and not is_mcap(data):
+        raise DataError(f"{data}: not an MCAP file (nor a .csv); give a log recorded by `gpmppi launch --record` "
+                        "or `gpmppi dataset`, or a residual CSV")
     series = read_log_series(data, dt, terrain[0] if terrain and len(terrain) == 1 else None, robot)
     terrains = _select(sorted(series), terrain, str(data))
     th = _theta_from_json(theta_json, theta_path) if theta_json is not None else None
@@ -285,29 +298,32 @@ def register(app: typer.Typer) -> None:
     @app.command("train")
     def train_cmd(
         data: Annotated[Path, typer.Argument(help="MCAP log (state, cmd, terrain labels) or residual CSV")],
-        output: Annotated[Path, typer.Option("--output", "-o", help="model file to write (.npz)")],
+        output: Annotated[Path, typer.Option("--output", "-o", metavar=OUT_FILE, help="model file to write (.npz)")],
         terrain: Annotated[list[str] | None, typer.Option(
-            help="terrain name of an unlabeled log; or, repeated, the terrains to keep")] = None,
+            "--terrain", "-t", help="terrain name of an unlabeled log; or, repeated, the terrains to keep")] = None,
         hyperparameters: Annotated[Path | None, typer.Option(
             help="fixed hyperparameters (layout of gp_hyperparameters.json) instead of fitting")] = None,
         theta: Annotated[Path | None, typer.Option(help="nominal parameters JSON (layout of theta.json)")] = None,
         edd5: Annotated[Path | None, typer.Option(help="EDD5 parameters per terrain JSON (edd5.json layout)")] = None,
         test_data: Annotated[Path | None, typer.Option(help="residual CSV to report the fit on")] = None,
         holdout: Annotated[float | None, typer.Option(
-            help="fraction held out of training for the fit report and its warnings "
+            min=0.0, help="fraction held out of training for the fit report and its warnings "
                  "(default: 0.2; 0 with --test-data, which is then the held-out set, and with --hyperparameters)")
         ] = None,
-        points: Annotated[int, typer.Option(help="number of shared GP training inputs")] = 300,
-        iters: Annotated[int, typer.Option(help="Adam iterations of the hyperparameter fit")] = 200,
-        seed: Annotated[int, typer.Option(help="seed of k-means, the holdout split and the fit")] = 0,
-        dt: Annotated[float, typer.Option(help="sampling step of the data [s]")] = 0.1,
+        points: Annotated[int, typer.Option(min=1, help="number of shared GP training inputs")] = 300,
+        iters: Annotated[int, typer.Option(min=0, help="Adam iterations of the hyperparameter fit")] = 200,
+        seed: Annotated[int, typer.Option(min=0, help="seed of k-means, the holdout split and the fit")] = 0,
+        dt: Annotated[float, typer.Option(min=0.001, max=10.0, help="sampling step of the data [s]")] = 0.1,
         robot: Annotated[str | None, typer.Option(help="robot name in the log keys (auto when only one)")] = None,
         grid_nodes: Annotated[int | None, typer.Option(
+            min=0, max=200,
             help="grid predictor nodes on every axis of the stored table (0: store none, build on first use; "
                  "default: each axis sized from its smallest lengthscale, see --grid-spacing)")] = None,
         grid_spacing: Annotated[float, typer.Option(
+            min=0.001, max=10.0,
             help="node spacing of the stored grid table as a fraction of each axis's smallest lengthscale")
         ] = DEFAULT_SPACING,
+        force: Annotated[bool, typer.Option("--force", help="replace an existing --output file")] = False,
     ) -> None:
         """Train the per-terrain residual GPs and write the model file."""
         from gpmppi.gp.grid_table import build_grid
@@ -346,8 +362,7 @@ def register(app: typer.Typer) -> None:
             if grid_nodes != 0:
                 model.set_grid(build_grid(model, grid_nodes, spacing=grid_spacing))
         except ValueError as e:
-            Console(stderr=True, soft_wrap=True).print(f"[red]error:[/red] {e}", highlight=False)
-            raise typer.Exit(code=2) from None
+            fail(str(e))
         model.save(output)
         print_report(report, console)
         for line in model.fit_warnings():
