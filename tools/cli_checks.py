@@ -11,6 +11,8 @@ without a line of its own:
 - a path whose metavar is `OUT_FILE` is an output file: not a folder, its folder exists and is writable, and it is
   not an existing file unless the command's `--force` is given;
 - a path whose metavar is `OUT_DIR` is an output folder: not a file, its parent folder exists;
+- a path whose metavar is `RECORDING` is a recording's destination: a writable folder, or a file whose folder
+  exists (an existing file is kept: the launcher records to a free name beside it);
 - every other path is an input: it exists, and is a folder where the metavar says `DIR`, else a readable file.
 
 Only typer's public names are used (`typer.TyperException` is the base of its usage errors, whichever click it
@@ -33,6 +35,7 @@ from typer.core import TyperGroup
 
 OUT_FILE = "OUT_FILE"
 OUT_DIR = "OUT_DIR"
+RECORDING = "OUT.mcap|DIR"  # a recording: never replaces a file (the launcher picks a free name), a folder gets one
 DIR = "DIR"
 
 # Domain errors raised on bad user input (files of the wrong kind or content, unreachable peers). Named, not
@@ -212,6 +215,8 @@ def check_value(param: Any, value: Any, force: bool = False) -> None:
             check_output_file(label, value, force)
         elif kind == OUT_DIR:
             check_output_dir(label, value)
+        elif kind == RECORDING:
+            check_recording(label, value)
         else:
             check_input(label, value, want_dir=kind == DIR)
 
@@ -220,12 +225,12 @@ def check_input(label: str, path: Path, want_dir: bool = False) -> None:
     if str(path) == "":
         fail(f"{label}: empty path; give a {'folder' if want_dir else 'file'}")
     if not path.exists():
-        fail(f"{label} {path}: no such {'folder' if want_dir else 'file'}")
+        fail(f"{label} {path}: does not exist (no such {'folder' if want_dir else 'file'})")
     if want_dir and not path.is_dir():
-        fail(f"{label} {path}: not a folder")
+        fail(f"{label} {path}: is a file, not a folder; give a folder")
     if not want_dir:
         if path.is_dir():
-            fail(f"{label} {path}: is a folder; give a file")
+            fail(f"{label} {path}: is a folder, not a file; give a file")
         if not os.access(path, os.R_OK):
             fail(f"{label} {path}: not readable")
 
@@ -249,6 +254,16 @@ def check_output_dir(label: str, path: Path) -> None:
         _check_parent(label, path)
     elif not os.access(path, os.W_OK):
         fail(f"{label} {path}: folder not writable")
+
+
+def check_recording(label: str, path: Path) -> None:
+    if str(path) == "":
+        fail(f"{label}: empty path; give an .mcap file or a folder")
+    if path.is_dir():
+        if not os.access(path, os.W_OK):
+            fail(f"{label} {path}: folder not writable")
+        return
+    _check_parent(label, path)
 
 
 def _check_parent(label: str, path: Path) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import typer
 
-from tools.cli_checks import OUT_DIR, AtomicOutput, fail
+from tools.cli_checks import OUT_DIR, RECORDING, AtomicOutput, fail
 
 SERVICE_NAMES = ("router", "sim", "ingress", "terrain", "planner", "egress", "recorder", "viewer")
 DurationOpt = typer.Option(
@@ -84,7 +84,7 @@ def register(app: typer.Typer) -> None:
         ),
         duration: float | None = DurationOpt,
         record: Path | None = typer.Option(
-            None, "--record", metavar="FILE.mcap|DIR",
+            None, "--record", metavar=RECORDING,
             help="record everything to this MCAP file; an existing file is never replaced (a free -N name is "
                  "used and said), a folder gets a run-TIME.mcap inside",
         ),
@@ -103,8 +103,6 @@ def register(app: typer.Typer) -> None:
         if launch_file is not None and launch_file.suffix == ".rrd":
             fail(f"LAUNCH_FILE {launch_file}: a rerun file, not a launch file; to save the view give "
                  f"--rerun save --rerun-target {launch_file}")
-        if record is not None and not record.is_dir() and not record.absolute().parent.is_dir():
-            fail(f"--record {record}: folder {record.absolute().parent} does not exist; create it first")
         raise typer.Exit(_launch(launch_file, duration, record, _rerun_args(rerun, rerun_target), port, secrets))
 
     @app.command("demo")
