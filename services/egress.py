@@ -19,8 +19,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from gpmppi.safety import ZERO_REASONS, Reason, Safety, SafetyConfig, SafetyCycle, SafetyOutput  # noqa: F401 - re-exported
 from schemas import BaseCommand, Command, EStop
-from services import ros2
-from services.node import Node, NodeSettings
+from services.codec import ros2
+from services.runtime.node import Node, NodeSettings
 
 
 class Ros2Output(BaseModel):

@@ -14,7 +14,7 @@ from pathlib import Path
 import zenoh
 from pydantic import Field
 
-from services.node import DEFAULT_ROUTER, NodeSettings, setup_logging
+from services.runtime.node import DEFAULT_ROUTER, NodeSettings, setup_logging
 
 log = logging.getLogger("gpmppi.router")
 

@@ -9,8 +9,8 @@ import numpy as np
 from pydantic import Field
 
 from schemas import TerrainLabel
-from services.convert import state_from_array
-from services.node import Node, NodeSettings
+from services.codec.convert import state_from_array
+from services.runtime.node import Node, NodeSettings
 
 
 class Settings(NodeSettings):

@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from schemas import BaseCommand, Command, DecodeError, State, Task, decode
 from schemas.messages import MODELS
-from services import ros2
+from services.codec import ros2
 
 FUZZ = settings(
     max_examples=80, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)

@@ -32,9 +32,9 @@ import typer
 import zenoh
 from mcap.reader import make_reader
 
-from services.launcher import Launcher, run_launch
-from services.mcap_io import REJECTED_SUFFIX, recording_files
-from services.monitor import Monitor, Summary
+from services.launch.launcher import Launcher, run_launch
+from services.launch.monitor import Monitor, Summary
+from services.recording.mcap_io import REJECTED_SUFFIX, recording_files
 
 
 def rss_kib(pid: int) -> int | None:

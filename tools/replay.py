@@ -61,10 +61,9 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
     Raises LogError / ReplaceError / ValueError for bad input, before anything is started."""
     import zenoh
 
-    from services.launcher import Launcher, LaunchFile, wait_for_endpoint
-    from services.node import DEFAULT_ROUTER, ZenohSettings
-    from services.player import Player, PlayOptions, copy_payloads, drain
-    from services.player_log import (
+    from services.launch.launcher import Launcher, LaunchFile, wait_for_endpoint
+    from services.recording.player import Player, PlayOptions, copy_payloads, drain
+    from services.recording.player_log import (
         LogError,
         check_log,
         iter_records,
@@ -73,6 +72,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         read_run_info,
         robots_in,
     )
+    from services.runtime.node import DEFAULT_ROUTER, ZenohSettings
     from tools import replay_live as rl
 
     parts = check_log(req.log)
@@ -322,7 +322,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Replay a recording onto Zenoh (like `ros2 bag play`), with live services in place of recorded ones
         (`--replace`, like `dora replay --replace`), or convert it for rerun (`--rerun`)."""
-        from services.player_log import LogError
+        from services.recording.player_log import LogError
 
         try:
             if rerun is not None:

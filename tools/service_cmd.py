@@ -30,7 +30,7 @@ def register(app: typer.Typer) -> None:
         """Run a launch file: [LAUNCH.yaml] [--duration S] [--record FILE.mcap]
         [--rerun spawn|save FILE|connect URL|serve|off] [--port N] [--secrets DIR]. No file: the simulated Jackal on the
         circle lane. --secrets DIR (from `gpmppi secure init DIR`) runs it with authentication and access control."""
-        from services.launcher import main
+        from services.launch.launcher import main
 
         raise typer.Exit(main(list(ctx.args)))
 
@@ -42,7 +42,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """The main job: the simulated Jackal on the circle lane for ~20 s, recorded to runs/demo.mcap and
         saved for rerun in runs/demo.rrd, then a summary."""
-        from services.launcher import main
+        from services.launch.launcher import main
 
         out_dir.mkdir(parents=True, exist_ok=True)
         argv = ["--duration", str(duration), "--record", str(out_dir / "demo.mcap")]
