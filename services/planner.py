@@ -29,7 +29,8 @@ from gpmppi.mppi.config import PlannerConfig  # not the planner module: run() im
 from gpmppi.mppi.cycle import CycleConfig, Event, Planned, PlannerCycle
 from schemas import Command, DecodeError, Plan, State, decode
 from services.codec.convert import state_to_array, task_from_message, task_to_message
-from services.runtime.node import Node, NodeSettings, TypedSubscription
+from services.runtime.node import Node, TypedSubscription
+from services.runtime.node_settings import NodeSettings
 from services.runtime.scheduling import process_age_s
 
 if TYPE_CHECKING:

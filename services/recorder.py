@@ -25,7 +25,8 @@ from pydantic import Field
 
 from services.recording.mcap_io import REJECTED_SUFFIX, McapWriter
 from services.recording.recorder_meta import RunRecord, ServiceConfig, resolve_run_record
-from services.runtime.node import Node, NodeSettings
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
 
 
 class Settings(NodeSettings):

@@ -10,7 +10,8 @@ from pydantic import Field
 
 from schemas import TerrainLabel
 from services.codec.convert import state_from_array
-from services.runtime.node import Node, NodeSettings
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
 
 
 class Settings(NodeSettings):

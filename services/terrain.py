@@ -16,7 +16,8 @@ from gpmppi.terrain_config import EstimatorConfig
 from gpmppi.terrain_cycle import TerrainCycle, TerrainCycleConfig, WeightsUpdate
 from schemas import BaseCommand, Command, TerrainWeights
 from services.codec.convert import state_to_array
-from services.runtime.node import Node, NodeSettings
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
 
 if TYPE_CHECKING:
     from gpmppi.gp.model_file import GPModel

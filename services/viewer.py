@@ -20,7 +20,8 @@ import zenoh
 from pydantic import Field
 
 from schemas import DecodeError, decode, model_for_key
-from services.runtime.node import Node, NodeSettings
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
 from services.view.rerun_map import RerunMapper, ViewOptions
 from services.view.rerun_stream import open_stream
 

@@ -27,8 +27,9 @@ import zenoh
 from zenoh_helpers import Collector, ServiceProcess, client, endpoint, free_port, settings, wait_for
 
 from schemas import BaseCommand, Command, Heartbeat, State, TerrainWeights, decode, key_for
-from services.launch.launcher import Launcher, RouterUnreachable, run_launch
+from services.launch.launcher import RouterUnreachable, run_launch
 from services.launch.monitor import Monitor
+from services.launch.supervisor import Launcher
 from services.recording.mcap_io import read_messages
 
 REPO = Path(__file__).resolve().parents[1]
@@ -522,7 +523,7 @@ def test_a_router_that_refuses_the_session_is_not_waited_for(tmp_path: Path) -> 
     error that says so after a few attempts instead of waiting for ever."""
     import logging
 
-    from services.runtime.node import ZenohSettings
+    from services.runtime.node_settings import ZenohSettings
     from services.runtime.session import open_session
 
     port = free_port()

@@ -98,7 +98,8 @@ def test_ros2_odometry_decoder_returns_a_reading_or_a_value_error(data: bytes) -
 def test_egress_safety_output_is_finite_and_within_limits_for_any_command(
     commands: list[tuple[float, float, float]], estop: list[bool]
 ) -> None:
-    from services.egress import Safety, Settings
+    from gpmppi.safety import Safety
+    from services.egress import Settings
 
     s = Settings()
     safety = Safety(s)

@@ -19,8 +19,9 @@ import zenoh
 from zenoh_helpers import REPO, ServiceProcess, endpoint, free_port, settings, wait_for
 
 from schemas import BaseCommand, Command, Heartbeat, decode, encode
-from services.launch.launcher import LaunchFile, build, main, run_launch
-from services.runtime.node import ZenohSettings
+from services.launch.launch_file import LaunchFile
+from services.launch.launcher import build, main, run_launch
+from services.runtime.node_settings import ZenohSettings
 from services.security.secure import ROLES, SecretsError, init_secrets
 from services.security.secure_check import acl_allows, check_secrets
 from services.security.secure_tls import make_tls
@@ -30,7 +31,7 @@ P = f"gpmppi/{ROBOT}"
 
 
 def _router_process(secrets: Path, listen: list[str], tmp_path: Path) -> ServiceProcess:
-    from services.launch.launcher import wait_for_endpoint
+    from services.launch.supervisor import wait_for_endpoint
 
     cfg = {"service": "router", "listen": listen, "router_config_file": str(secrets / "router.json5")}
     proc = ServiceProcess("router", cfg, tmp_path)

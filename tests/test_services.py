@@ -26,7 +26,8 @@ from zenoh_helpers import (
 )
 
 from schemas import BaseCommand, Command, EStop, Header, State, decode, encode
-from services.runtime.node import Node, NodeSettings, ZenohSettings
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings, ZenohSettings
 
 
 # ---- node-level tests (in-process sessions) ------------------------------------------------------

@@ -375,7 +375,8 @@ def test_a_recorded_stack_run_validates_quarantines_and_carries_its_metadata(tmp
     import io
 
     from gpmppi.gp.model_file import DEFAULT_MODEL_PATH
-    from services.launch.launcher import DEFAULT_LAUNCH, run_launch
+    from services.launch.launch_file import DEFAULT_LAUNCH
+    from services.launch.launcher import run_launch
     from services.run import settings_class
 
     port = free_port()
@@ -434,7 +435,8 @@ def test_the_launcher_tells_the_recorder_what_ran_and_the_metadata_resolves(tmp_
     import shutil
 
     from gpmppi.gp.model_file import DEFAULT_MODEL_PATH
-    from services.launch.launcher import DEFAULT_LAUNCH, LaunchFile, build
+    from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile
+    from services.launch.launcher import build
     from services.recorder import Settings as RecorderSettings
     from services.recording.recorder_meta import resolve_run_record
 

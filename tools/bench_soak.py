@@ -32,8 +32,9 @@ import typer
 import zenoh
 from mcap.reader import make_reader
 
-from services.launch.launcher import Launcher, run_launch
+from services.launch.launcher import run_launch
 from services.launch.monitor import Monitor, Summary
+from services.launch.supervisor import Launcher
 from services.recording.mcap_io import REJECTED_SUFFIX, recording_files
 
 

@@ -234,7 +234,7 @@ def transport_stall_numbers(
     import yaml
     import zenoh
 
-    from services.runtime.node import ZenohSettings
+    from services.runtime.node_settings import ZenohSettings
 
     endpoint = f"tcp/127.0.0.1:{port}"
     config = zenoh.Config()

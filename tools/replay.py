@@ -61,7 +61,8 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
     Raises LogError / ReplaceError / ValueError for bad input, before anything is started."""
     import zenoh
 
-    from services.launch.launcher import Launcher, LaunchFile, wait_for_endpoint
+    from services.launch.launch_file import LaunchFile
+    from services.launch.supervisor import Launcher, wait_for_endpoint
     from services.recording.player import Player, PlayOptions, copy_payloads, drain
     from services.recording.player_log import (
         LogError,
@@ -72,7 +73,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         read_run_info,
         robots_in,
     )
-    from services.runtime.node import DEFAULT_ROUTER, ZenohSettings
+    from services.runtime.node_settings import DEFAULT_ROUTER, ZenohSettings
     from tools import replay_live as rl
 
     parts = check_log(req.log)

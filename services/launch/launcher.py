@@ -21,17 +21,9 @@ from typing import IO, Any
 
 import zenoh
 
-from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile, RouterEntry, ServiceEntry  # noqa: F401 - re-exported
+from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile, ServiceEntry
 from services.launch.monitor import Monitor, Summary, summarize
-from services.launch.supervisor import (  # noqa: F401 - re-exported: the launcher's public names
-    REPO_ROOT,
-    Child,
-    Launcher,
-    RestartEvent,
-    exit_cause,
-    readable,
-    wait_for_endpoint,
-)
+from services.launch.supervisor import Launcher
 from services.runtime.node_settings import ZenohSettings
 from services.runtime.session import StoppedWhileWaiting
 from services.security.secure_check import check_launch_secrets

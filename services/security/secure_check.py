@@ -252,7 +252,7 @@ def _check_tls(config: dict[str, Any], path: Path, side: str) -> None:
 
 
 def check_launch_secrets(launch: Any, directory: str | Path, record: str | None, rerun: list[str] | None) -> Secrets:
-    """Check `directory` for a launch file (services.launch.launcher.LaunchFile): the identities its sessions use are
+    """Check `directory` for a launch file (services.launch.launch_file.LaunchFile): the identities its sessions use are
     each enabled service's kind, the recorder and viewer when asked for, and the launcher's own monitor."""
     kinds = [e.kind or e.name for e in launch.services if e.enabled]
     kinds += ["recorder"] * bool(record) + ["viewer"] * bool(rerun and rerun[0] != "off")
