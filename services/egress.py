@@ -17,10 +17,11 @@ from typing import Literal, get_args
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from gpmppi.safety import ZERO_REASONS, Reason, Safety, SafetyConfig, SafetyCycle, SafetyOutput  # noqa: F401 - re-exported
+from gpmppi.safety import ZERO_REASONS, Reason, Safety, SafetyConfig, SafetyCycle
 from schemas import BaseCommand, Command, EStop
-from services import ros2
-from services.node import Node, NodeSettings
+from services.codec import ros2
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
 
 
 class Ros2Output(BaseModel):

@@ -13,9 +13,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas import State
-from services import ros2
-from services.convert import state_from_array, state_to_array
-from services.node import Node, NodeSettings
+from services.codec import ros2
+from services.codec.convert import state_from_array, state_to_array
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
 
 
 class Ros2Source(BaseModel):

@@ -28,9 +28,10 @@ from pydantic import Field, ValidationError
 from gpmppi.mppi.config import PlannerConfig  # not the planner module: run() imports it alongside the model load
 from gpmppi.mppi.cycle import CycleConfig, Event, Planned, PlannerCycle
 from schemas import Command, DecodeError, Plan, State, decode
-from services.convert import state_to_array, task_from_message, task_to_message
-from services.node import Node, NodeSettings, TypedSubscription
-from services.scheduling import process_age_s
+from services.codec.convert import state_to_array, task_from_message, task_to_message
+from services.runtime.node import Node, TypedSubscription
+from services.runtime.node_settings import NodeSettings
+from services.runtime.scheduling import process_age_s
 
 if TYPE_CHECKING:
     import zenoh

@@ -5,7 +5,7 @@
   schema'd channel. Keys with no registered model are recorded as schema-less JSON on their own key.
 - Record fields: log time = receive time, publish time = header stamp, sequence = header seq.
 - Run metadata (`gpmppi.run`), each service's resolved settings (`gpmppi.settings.<name>`) and attachments
-  (`launch.yaml`, `model/<file>`): see `services.recorder_meta`.
+  (`launch.yaml`, `model/<file>`): see `services.recording.recorder_meta`.
 - The subscription is a FIFO channel, which never drops: when it is full Zenoh waits for us instead.
   Chunks are flushed at least every `flush_interval_s`, so a SIGKILL loses at most about that long;
   SIGINT / SIGTERM finish the file (summary and index). Files rotate by size or duration.
@@ -23,9 +23,10 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import zenoh
 from pydantic import Field
 
-from services.mcap_io import REJECTED_SUFFIX, McapWriter
-from services.node import Node, NodeSettings
-from services.recorder_meta import RunRecord, ServiceConfig, resolve_run_record
+from services.recording.mcap_io import REJECTED_SUFFIX, McapWriter
+from services.recording.recorder_meta import RunRecord, ServiceConfig, resolve_run_record
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
 
 
 class Settings(NodeSettings):

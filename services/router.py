@@ -14,7 +14,8 @@ from pathlib import Path
 import zenoh
 from pydantic import Field
 
-from services.node import DEFAULT_ROUTER, NodeSettings, setup_logging
+from services.runtime.node import setup_logging
+from services.runtime.node_settings import DEFAULT_ROUTER, NodeSettings
 
 log = logging.getLogger("gpmppi.router")
 

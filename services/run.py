@@ -16,8 +16,8 @@ from types import ModuleType
 
 from pydantic import ValidationError
 
-from services.node import setup_logging
-from services.scheduling import apply_process_settings
+from services.runtime.node import setup_logging
+from services.runtime.scheduling import apply_process_settings
 
 SERVICES: dict[str, str] = {
     "router": "services.router",

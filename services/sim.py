@@ -9,8 +9,9 @@ import numpy as np
 from pydantic import Field
 
 from schemas import TerrainLabel
-from services.convert import state_from_array
-from services.node import Node, NodeSettings
+from services.codec.convert import state_from_array
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
 
 
 class Settings(NodeSettings):

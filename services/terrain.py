@@ -15,8 +15,9 @@ from pydantic import Field
 from gpmppi.terrain_config import EstimatorConfig
 from gpmppi.terrain_cycle import TerrainCycle, TerrainCycleConfig, WeightsUpdate
 from schemas import BaseCommand, Command, TerrainWeights
-from services.convert import state_to_array
-from services.node import Node, NodeSettings
+from services.codec.convert import state_to_array
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
 
 if TYPE_CHECKING:
     from gpmppi.gp.model_file import GPModel

@@ -1,6 +1,6 @@
 """viewer: streams states, plans, the task and health to rerun (spawned viewer, an .rrd file, or a gRPC URL).
 
-The mapping lives in `services.rerun_map` (shared with the offline converter, `gpmppi replay --rerun`).
+The mapping lives in `services.view.rerun_map` (shared with the offline converter, `gpmppi replay --rerun`).
 
 Newest-wins: the viewer never slows the control path. Its subscription's callback only appends to a bounded
 ring (`queue` samples; when the viewer falls behind, the oldest waiting samples are dropped and counted as
@@ -20,9 +20,10 @@ import zenoh
 from pydantic import Field
 
 from schemas import DecodeError, decode, model_for_key
-from services.node import Node, NodeSettings
-from services.rerun_map import RerunMapper, ViewOptions
-from services.rerun_stream import open_stream
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
+from services.view.rerun_map import RerunMapper, ViewOptions
+from services.view.rerun_stream import open_stream
 
 
 class Settings(NodeSettings):

@@ -237,3 +237,16 @@ def test_debug_shows_the_traceback_of_a_user_error() -> None:
     env = {**os.environ, "GPMPPI_DEBUG": "1"}
     result = runner.invoke(app, ["launch", "--duration", "nan"], env=env)
     assert result.exit_code == 2 and "Traceback" in result.output
+
+
+def test_the_user_errors_named_by_the_error_path_exist() -> None:
+    """The error path names its expected errors (importing them would load numba before `--help`): each name must
+    still be a class where it says, or that error would come out as a traceback."""
+    import importlib
+
+    from tools.cli_checks import USER_ERRORS
+
+    for dotted in USER_ERRORS:
+        module, _, name = dotted.rpartition(".")
+        cls = getattr(importlib.import_module(module), name)
+        assert isinstance(cls, type) and issubclass(cls, Exception), dotted

@@ -20,7 +20,7 @@ from gpmppi.terrain_config import EstimatorConfig
 from gpmppi.terrain_cycle import TerrainCycleConfig
 from schemas import BaseCommand, Command, Header, State, TerrainWeights, decode, encode
 from services import egress, terrain
-from services.node import Node
+from services.runtime.node import Node
 
 EVAL = EvalSettings(samples=256)
 

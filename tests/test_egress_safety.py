@@ -23,8 +23,9 @@ from zenoh_helpers import (
     wait_for,
 )
 
+from gpmppi.safety import ZERO_REASONS, Safety
 from schemas import BaseCommand, Command, EStop, Header, Heartbeat, State, decode, encode
-from services.egress import ZERO_REASONS, Safety, Settings
+from services.egress import Settings
 
 NS = 1_000_000_000
 T0_NS = 1_700_000_000 * NS  # the wall clock of these tests; `now` (monotonic) starts at 0

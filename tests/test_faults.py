@@ -27,9 +27,10 @@ import zenoh
 from zenoh_helpers import Collector, ServiceProcess, client, endpoint, free_port, settings, wait_for
 
 from schemas import BaseCommand, Command, Heartbeat, State, TerrainWeights, decode, key_for
-from services.launcher import Launcher, RouterUnreachable, run_launch
-from services.mcap_io import read_messages
-from services.monitor import Monitor
+from services.launch.launcher import RouterUnreachable, run_launch
+from services.launch.monitor import Monitor
+from services.launch.supervisor import Launcher
+from services.recording.mcap_io import read_messages
 
 REPO = Path(__file__).resolve().parents[1]
 ROBOT = "jackal"
@@ -491,7 +492,7 @@ def _client_when_up(port: int) -> zenoh.Session:
 def test_launch_without_a_router_says_what_to_start(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`gpmppi launch` of a file that starts no router, with none up: one line naming the endpoint, no traceback,
     and no service started."""
-    from services.launcher import main
+    from services.launch.launcher import main
 
     port = free_port()
     robot = yaml.safe_load((REPO / "deploy" / "robot.yaml").read_text())
@@ -522,8 +523,8 @@ def test_a_router_that_refuses_the_session_is_not_waited_for(tmp_path: Path) -> 
     error that says so after a few attempts instead of waiting for ever."""
     import logging
 
-    from services.node import ZenohSettings
-    from services.session import open_session
+    from services.runtime.node_settings import ZenohSettings
+    from services.runtime.session import open_session
 
     port = free_port()
     users = tmp_path / "users.txt"

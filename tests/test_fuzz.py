@@ -48,7 +48,7 @@ from schemas import (
     key_for,
     model_for_key,
 )
-from services import ros2
+from services.codec import ros2
 
 pytestmark = pytest.mark.slow  # eight service processes: ~1 min (they still run in CI)
 

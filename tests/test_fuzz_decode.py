@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from schemas import BaseCommand, Command, DecodeError, State, Task, decode
 from schemas.messages import MODELS
-from services import ros2
+from services.codec import ros2
 
 FUZZ = settings(
     max_examples=80, deadline=None, derandomize=True, database=None, suppress_health_check=list(HealthCheck)
@@ -98,7 +98,8 @@ def test_ros2_odometry_decoder_returns_a_reading_or_a_value_error(data: bytes) -
 def test_egress_safety_output_is_finite_and_within_limits_for_any_command(
     commands: list[tuple[float, float, float]], estop: list[bool]
 ) -> None:
-    from services.egress import Safety, Settings
+    from gpmppi.safety import Safety
+    from services.egress import Settings
 
     s = Settings()
     safety = Safety(s)

@@ -44,7 +44,7 @@ def synthetic_runs(n: int, seed: int) -> dict[str, dict[str, np.ndarray]]:
 
 def write_log(path: Path, runs: dict[str, dict[str, np.ndarray]], labels: bool) -> None:
     from schemas.messages import Command, Header, State, TerrainLabel
-    from services.mcap_io import McapWriter
+    from services.recording.mcap_io import McapWriter
 
     t0 = 0
     with McapWriter(path) as w:

@@ -17,8 +17,8 @@ from mcap.writer import Writer
 from typer.testing import CliRunner
 
 from schemas import Command, Header, State
-from services.mcap_inspect import inspect_recording, recover
-from services.mcap_io import McapWriter, read_messages, recording_files
+from services.recording.mcap_inspect import inspect_recording, recover
+from services.recording.mcap_io import McapWriter, read_messages, recording_files
 from tools import inspect_cmd
 
 REPO = Path(__file__).resolve().parents[1]
@@ -206,7 +206,7 @@ def test_foreign_schemas_and_non_json_channels(tmp_path: Path, caplog: pytest.Lo
         "gpmppi/r1/cmd": ("geometry_msgs/msg/Twist", "cdr", 10),
     }
     assert data["files"][0]["library"] == "other" and data["messages"] == 40
-    with caplog.at_level(logging.WARNING, logger="services.mcap_io"):
+    with caplog.at_level(logging.WARNING, logger="services.recording.mcap_io"):
         assert list(read_messages(path)) == []
     warnings = [r.getMessage() for r in caplog.records if "skipped" in r.getMessage()]
     assert len(warnings) == 4 and any("skipped 10 message(s) on gpmppi/r1/cmd" in w for w in warnings)

@@ -21,8 +21,9 @@ from zenoh_helpers import client, free_port, wait_for
 from gpmppi.evaluation.metrics import lane_rmse_mm
 from gpmppi.scenarios import circle_lane
 from schemas import KEYS, EStop, encode, key_for
-from services.launcher import DEFAULT_LAUNCH, LaunchFile, run_launch
-from services.mcap_io import read_messages
+from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile
+from services.launch.launcher import run_launch
+from services.recording.mcap_io import read_messages
 from services.run import settings_class
 
 REPO = Path(__file__).resolve().parents[1]
@@ -242,7 +243,7 @@ def test_shipped_launch_and_deploy_files_validate(monkeypatch: pytest.MonkeyPatc
 
 
 def test_monitor_summary_reads_json_logs() -> None:
-    from services.launcher import readable
+    from services.launch.supervisor import readable
 
     line = json.dumps({"t": 1.0, "level": "WARNING", "service": "x", "logger": "l", "msg": "hello", "n": 3})
     assert readable(line) == "WARNING hello n=3"

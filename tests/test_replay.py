@@ -18,8 +18,8 @@ from typer.testing import CliRunner
 from zenoh_helpers import client, endpoint, free_port, router, wait_for
 
 from schemas import Command, State, Task, TerrainWeights, encode
-from services.mcap_io import schema_name
-from services.player_log import LogError, check_log, read_run_info
+from services.recording.mcap_io import schema_name
+from services.recording.player_log import LogError, check_log, read_run_info
 from tools.replay import ReplayRequest, run_replay
 from tools.replay_live import ReplaceError, apply_overrides, finalize, live_services, resolve_path
 
@@ -427,7 +427,7 @@ def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
 
     import yaml
 
-    from services.launcher import run_launch
+    from services.launch.launcher import run_launch
 
     monkeypatch.chdir(tmp_path)
     port = free_port()
@@ -477,7 +477,7 @@ def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
 
 
 def _raw(path: Path) -> list[tuple[str, int, dict, str | None]]:
-    from services.player_log import iter_records
+    from services.recording.player_log import iter_records
 
     return [(r.key, r.log_time_ns, json.loads(r.data), r.schema) for r in iter_records(check_log(path))]
 

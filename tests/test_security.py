@@ -19,18 +19,19 @@ import zenoh
 from zenoh_helpers import REPO, ServiceProcess, endpoint, free_port, settings, wait_for
 
 from schemas import BaseCommand, Command, Heartbeat, decode, encode
-from services.launcher import LaunchFile, build, main, run_launch
-from services.node import ZenohSettings
-from services.secure import ROLES, SecretsError, init_secrets
-from services.secure_check import acl_allows, check_secrets
-from services.secure_tls import make_tls
+from services.launch.launch_file import LaunchFile
+from services.launch.launcher import build, main, run_launch
+from services.runtime.node_settings import ZenohSettings
+from services.security.secure import ROLES, SecretsError, init_secrets
+from services.security.secure_check import acl_allows, check_secrets
+from services.security.secure_tls import make_tls
 
 ROBOT = "r1"
 P = f"gpmppi/{ROBOT}"
 
 
 def _router_process(secrets: Path, listen: list[str], tmp_path: Path) -> ServiceProcess:
-    from services.launcher import wait_for_endpoint
+    from services.launch.supervisor import wait_for_endpoint
 
     cfg = {"service": "router", "listen": listen, "router_config_file": str(secrets / "router.json5")}
     proc = ServiceProcess("router", cfg, tmp_path)
@@ -221,7 +222,7 @@ def test_a_put_on_a_key_that_is_not_yours_never_reaches_its_subscriber(
     time.sleep(0.3)
     assert payload not in inbox.payloads()
     if identity == "monitor":  # it publishes nothing, so it is not even told of subscribers (the others are:
-        assert not pub.matching_status.matching  # hearing of one grants no data, see services/secure.py)
+        assert not pub.matching_status.matching  # hearing of one grants no data, see services/security/secure.py)
 
 
 def test_monitor_commands_never_reach_the_simulated_base(

@@ -26,7 +26,8 @@ from zenoh_helpers import (
 )
 
 from schemas import BaseCommand, Command, EStop, Header, State, decode, encode
-from services.node import Node, NodeSettings, ZenohSettings
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings, ZenohSettings
 
 
 # ---- node-level tests (in-process sessions) ------------------------------------------------------
@@ -237,7 +238,7 @@ def test_a_service_prints_its_threads_stacks_on_sigusr1_and_runs_on(tmp_path: Pa
             egress.process.send_signal(signal.SIGUSR1)
             # the main thread's frames, down to the service's entry point (the dump is written as it is read)
             dumped = wait_for(lambda: "Current thread" in (log := egress.log()) and "services/run.py" in log, 10.0)
-            assert dumped and "services/node.py" in egress.log(), egress.log()[-3000:]
+            assert dumped and "services/runtime/node.py" in egress.log(), egress.log()[-3000:]
             beats = len(heartbeats(col, "r1", "egress"))
             assert wait_for(lambda: len(heartbeats(col, "r1", "egress")) > beats + 2, 10.0)  # it runs on
         finally:

@@ -32,7 +32,7 @@ from zenoh_helpers import (
 )
 
 from schemas import Command, Header, State, decode, encode
-from services.mcap_io import read_messages, recording_files
+from services.recording.mcap_io import read_messages, recording_files
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -256,7 +256,7 @@ def _steady_publisher(port: int, stop: threading.Event, sent: list[tuple[float, 
 
 
 def test_sigkill_loses_at_most_the_last_second_and_sigterm_writes_the_summary(tmp_path: Path) -> None:
-    from services.mcap_inspect import inspect_recording
+    from services.recording.mcap_inspect import inspect_recording
 
     port = free_port()
     with router(port):
@@ -328,7 +328,7 @@ class _LimitedRecorder(ServiceProcess):
 
 
 def test_a_file_size_limit_is_one_error_a_readable_file_and_a_failing_heartbeat(tmp_path: Path) -> None:
-    from services.mcap_inspect import inspect_recording
+    from services.recording.mcap_inspect import inspect_recording
 
     port = free_port()
     path = tmp_path / "full.mcap"
@@ -375,7 +375,8 @@ def test_a_recorded_stack_run_validates_quarantines_and_carries_its_metadata(tmp
     import io
 
     from gpmppi.gp.model_file import DEFAULT_MODEL_PATH
-    from services.launcher import DEFAULT_LAUNCH, run_launch
+    from services.launch.launch_file import DEFAULT_LAUNCH
+    from services.launch.launcher import run_launch
     from services.run import settings_class
 
     port = free_port()
@@ -434,9 +435,10 @@ def test_the_launcher_tells_the_recorder_what_ran_and_the_metadata_resolves(tmp_
     import shutil
 
     from gpmppi.gp.model_file import DEFAULT_MODEL_PATH
-    from services.launcher import DEFAULT_LAUNCH, LaunchFile, build
+    from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile
+    from services.launch.launcher import build
     from services.recorder import Settings as RecorderSettings
-    from services.recorder_meta import resolve_run_record
+    from services.recording.recorder_meta import resolve_run_record
 
     launcher, _ = build(
         LaunchFile.load(DEFAULT_LAUNCH), str(tmp_path / "r.mcap"), None, free_port(), launch_path=DEFAULT_LAUNCH
@@ -463,7 +465,7 @@ def test_the_launcher_tells_the_recorder_what_ran_and_the_metadata_resolves(tmp_
 
 
 def test_secret_settings_are_masked_in_the_metadata() -> None:
-    from services.recorder_meta import mask_secrets
+    from services.recording.recorder_meta import mask_secrets
 
     settings = {"zenoh": {"password": "hunter2", "user": "robot", "tls": {"private_key": "/k.pem"}}, "list": [{}]}
     assert mask_secrets(settings) == {

@@ -16,7 +16,8 @@ import pytest
 from zenoh_helpers import REPO, Collector, ServiceProcess, client, endpoint, free_port, router, settings, wait_for
 
 from schemas import BaseCommand, Command, State, TerrainWeights, decode, encode
-from services.node import Node, NodeSettings, ZenohSettings
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings, ZenohSettings
 
 
 def _node(name: str, port: int, **extra: object) -> Node:
@@ -71,8 +72,8 @@ def test_fifo_subscription_keeps_every_message_in_order_past_its_capacity() -> N
 def test_process_settings_lower_priority_and_set_numba_threads() -> None:
     code = (
         "import os\n"
-        "from services.node import NodeSettings\n"
-        "from services.scheduling import apply_process_settings\n"
+        "from services.runtime.node_settings import NodeSettings\n"
+        "from services.runtime.scheduling import apply_process_settings\n"
         "before = os.nice(0)\n"
         "apply_process_settings(NodeSettings(nice=3, numba_threads=-1))\n"
         "print(os.nice(0) - before, os.environ['NUMBA_NUM_THREADS'])\n"

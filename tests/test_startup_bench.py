@@ -95,13 +95,13 @@ def test_process_age_counts_from_process_creation() -> None:
     import subprocess
     import sys
 
-    from services.scheduling import process_age_s
+    from services.runtime.scheduling import process_age_s
 
     before = process_age_s()
     time.sleep(0.3)
     after = process_age_s()
     assert before is not None and after is not None and 0.25 <= after - before <= 5.0
     # this test process was created before the test began; a new one reports an age smaller than ours
-    code = "from services.scheduling import process_age_s; print(process_age_s())"
+    code = "from services.runtime.scheduling import process_age_s; print(process_age_s())"
     fresh = float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
     assert 0.0 <= fresh < after

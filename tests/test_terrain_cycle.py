@@ -201,7 +201,7 @@ def test_the_services_settings_carry_the_cycles_checks() -> None:
 def test_gpmppi_launch_refuses_a_bad_setting_before_starting_anything(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], service: str, config: dict, says: str
 ) -> None:
-    from services.launcher import main
+    from services.launch.launcher import main
 
     path = tmp_path / "bad.yaml"
     path.write_text(yaml.safe_dump({"router": {"enabled": False}, "services": [{"name": service, "config": config}]}))

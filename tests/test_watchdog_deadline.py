@@ -14,7 +14,7 @@ from zenoh_helpers import Collector, client, free_port, matched_publisher, route
 from gpmppi.safety import SafetyConfig, SafetyCycle
 from schemas import BaseCommand, Command, Header, decode, encode
 from services.egress import Settings, serve
-from services.node import Node
+from services.runtime.node import Node
 
 NS = 1_000_000_000
 T0_NS = 1_700_000_000 * NS

@@ -20,7 +20,7 @@ import yaml
 import zenoh
 
 from schemas import Heartbeat, decode
-from services.node import ZenohSettings
+from services.runtime.node_settings import ZenohSettings
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -32,9 +32,10 @@ import typer
 import zenoh
 from mcap.reader import make_reader
 
-from services.launcher import Launcher, run_launch
-from services.mcap_io import REJECTED_SUFFIX, recording_files
-from services.monitor import Monitor, Summary
+from services.launch.launcher import run_launch
+from services.launch.monitor import Monitor, Summary
+from services.launch.supervisor import Launcher
+from services.recording.mcap_io import REJECTED_SUFFIX, recording_files
 from tools.cli_checks import OUT_FILE
 
 

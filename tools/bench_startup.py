@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from services.launcher import Launcher, run_launch
-from services.monitor import PRIMARY_OUTPUT, Monitor, Summary
+from services.launch.launcher import run_launch
+from services.launch.monitor import PRIMARY_OUTPUT, Monitor, Summary
+from services.launch.supervisor import Launcher
 
 RESTARTABLE = list(PRIMARY_OUTPUT)  # sim, ingress, terrain, planner, egress
 

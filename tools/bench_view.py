@@ -33,7 +33,7 @@ def synthetic_log(path: Path, duration_s: float, robot: str = "jackal", samples:
     """Write a log of `duration_s` seconds as the demo stack records it (circle lane, plans with `samples`
     rollouts of 41 steps); returns the number of messages."""
     from schemas import BaseCommand, Command, Heartbeat, Plan, State, Task, TerrainLabel, TerrainWeights
-    from services.mcap_io import McapWriter
+    from services.recording.mcap_io import McapWriter
 
     rng = np.random.default_rng(seed)
     radius, half_width, speed, dt, steps = 10.0, 1.75, 1.5, 0.1, 41
@@ -100,7 +100,7 @@ def synthetic_log(path: Path, duration_s: float, robot: str = "jackal", samples:
 
 def tiled_log(source: Path, path: Path, duration_s: float) -> int:
     """A real recording repeated (times shifted) to `duration_s` seconds; returns the number of messages."""
-    from services.mcap_io import McapWriter, read_messages
+    from services.recording.mcap_io import McapWriter, read_messages
 
     msgs = list(read_messages(source))
     if not msgs:
@@ -153,7 +153,7 @@ def view_numbers(log: Path | None, minutes: list[float], samples: int) -> dict:
 
 
 def stall_numbers(duration_s: float, windows: int, port: int, logs: io.StringIO) -> dict:
-    from services.launcher import run_launch
+    from services.launch.launcher import run_launch
 
     phases: list[tuple[str, int, int, int, int]] = []  # (phase, delivery from, to, planner-latency from, to)
 
@@ -236,7 +236,7 @@ def transport_stall_numbers(
     import yaml
     import zenoh
 
-    from services.node import ZenohSettings
+    from services.runtime.node_settings import ZenohSettings
 
     endpoint = f"tcp/127.0.0.1:{port}"
     config = zenoh.Config()

@@ -25,7 +25,7 @@ def register(bench_app: typer.Typer) -> None:
         show_logs: bool = typer.Option(False, help="print the services' logs too"),
     ) -> None:
         """Planner rate and stamp -> command latency over Zenoh (timings are noisy on a shared machine)."""
-        from services.launcher import run_launch
+        from services.launch.launcher import run_launch
 
         logs = io.StringIO()
         load_before = os.getloadavg()[0]

@@ -212,7 +212,7 @@ def _settings(
         fail(f"--estimator: {e}")
     # the deployed command path: egress's limits, the terrain service's cycle and estimator of the launch file
     from gpmppi.evaluation.deployed import DeployFileError, deployed_path
-    from services.launch_file import DEFAULT_LAUNCH
+    from services.launch.launch_file import DEFAULT_LAUNCH
 
     try:
         deployed = deployed_path(deploy or DEFAULT_LAUNCH)

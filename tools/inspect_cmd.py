@@ -1,4 +1,5 @@
-"""`gpmppi inspect LOG.mcap [--json] [--recover OUT.mcap]`: what is in a recording (see services.mcap_inspect)."""
+"""`gpmppi inspect LOG.mcap [--json] [--recover OUT.mcap]`: what is in a recording
+(see services.recording.mcap_inspect)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from services.mcap_inspect import InspectError, inspect_recording, recover, report_lines
+from services.recording.mcap_inspect import InspectError, inspect_recording, recover, report_lines
 from tools.cli_checks import OUT_FILE
 
 

@@ -62,10 +62,10 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
     Raises LogError / ReplaceError / ValueError for bad input, before anything is started."""
     import zenoh
 
-    from services.launcher import Launcher, LaunchFile, wait_for_endpoint
-    from services.node import DEFAULT_ROUTER, ZenohSettings
-    from services.player import Player, PlayOptions, copy_payloads, drain
-    from services.player_log import (
+    from services.launch.launch_file import LaunchFile
+    from services.launch.supervisor import Launcher, wait_for_endpoint
+    from services.recording.player import Player, PlayOptions, copy_payloads, drain
+    from services.recording.player_log import (
         LogError,
         check_log,
         iter_records,
@@ -74,6 +74,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         read_run_info,
         robots_in,
     )
+    from services.runtime.node_settings import DEFAULT_ROUTER, ZenohSettings
     from tools import replay_live as rl
 
     parts = check_log(req.log)
@@ -331,7 +332,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Replay a recording onto Zenoh (like `ros2 bag play`), with live services in place of recorded ones
         (`--replace`, like `dora replay --replace`), or convert it for rerun (`--rerun`)."""
-        from services.player_log import LogError
+        from services.recording.player_log import LogError
 
         if start is not None and end is not None and end <= start:
             fail(f"--end {end}: must be after --start {start}")

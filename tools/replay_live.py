@@ -14,7 +14,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ValidationError
 
-from services.player_log import RunInfo
+from services.recording.player_log import RunInfo
 
 # what each kind of service publishes (relative to gpmppi/{robot}/), besides its heartbeat health/<name>
 OUTPUTS: dict[str, tuple[str, ...]] = {

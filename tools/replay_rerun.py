@@ -1,6 +1,6 @@
 """Offline conversion of a gpmppi MCAP log to rerun (`gpmppi replay LOG.mcap --rerun save OUT.rrd | spawn |
 connect URL | serve`), with no Zenoh: the same message -> rerun mapping as the live viewer service
-(`services.rerun_map`), fed from the log. Time series go as columns (`send_columns`), so it runs far faster
+(`services.view.rerun_map`), fed from the log. Time series go as columns (`send_columns`), so it runs far faster
 than real time.
 
 Also runnable on its own: `python -m tools.replay_rerun LOG.mcap OUT.rrd [--keys REGEX] [--exclude REGEX]`.
@@ -52,7 +52,7 @@ def _topics(path: Path) -> tuple[list[str] | None, int | None]:
     """The log's topics and first log time from its summary, or (None, None) when it has none (truncated)."""
     from mcap.reader import make_reader
 
-    from services.mcap_io import recording_files
+    from services.recording.mcap_io import recording_files
 
     topics: set[str] = set()
     start: int | None = None
@@ -88,12 +88,12 @@ def convert(
     (target: a viewer's gRPC URL) or 'serve' (a gRPC server on port target, default 9876; blocks until Ctrl-C
     so viewers can connect).
     start_s / end_s: seconds into the log (log time). keys / exclude: regexes searched in the topic.
-    options: a `services.rerun_map.ViewOptions` (decimation), default the viewer's defaults.
+    options: a `services.view.rerun_map.ViewOptions` (decimation), default the viewer's defaults.
     Returns {"messages", "log_duration_s", "wall_s"} plus "skipped" (topic -> messages not converted, with a
     reason each in "skipped_reasons") and "output" (save mode)."""
-    from services import mcap_io
-    from services.rerun_map import RerunMapper, ViewOptions
-    from services.rerun_stream import open_stream
+    from services.recording import mcap_io
+    from services.view.rerun_map import RerunMapper, ViewOptions
+    from services.view.rerun_stream import open_stream
 
     path = Path(path)
     if mode not in MODES:

@@ -46,8 +46,8 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Write a users dictionary, one client config per identity, a router config with deny-by-default
         access control, and (--tls) certificates. Re-running with --force rotates everything."""
-        from services.secure import ROLES, SecretsError, init_secrets
-        from services.secure_check import check_secrets
+        from services.security.secure import ROLES, SecretsError, init_secrets
+        from services.security.secure_check import check_secrets
 
         keys = {"cmd": ros2_cmd_key, "odom": ros2_odom_key} if ros2 else None
         try:
@@ -73,8 +73,8 @@ def register(app: typer.Typer) -> None:
         robot: str = typer.Option("jackal", "--robot", help="robot name the launch drives"),
     ) -> None:
         """Check a secrets folder as a launch does (files, users, certificates, access control)."""
-        from services.secure import SecretsError
-        from services.secure_check import check_secrets
+        from services.security.secure import SecretsError
+        from services.security.secure_check import check_secrets
 
         try:
             found = check_secrets(directory, robot)

@@ -32,7 +32,7 @@ def _launch(
     port: int | None, secrets: Path | None = None,
 ) -> int:
     """Run a launch file through the launcher; a launch that cannot start is one line and exit 2."""
-    from services.launcher import main
+    from services.launch.launcher import main
 
     argv = [str(launch_file)] if launch_file is not None else []
     if duration is not None:

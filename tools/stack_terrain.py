@@ -30,7 +30,7 @@ from gpmppi.gp.model_file import load_default_model
 from gpmppi.terrain import make_estimator
 from gpmppi.terrain_config import EstimatorConfig
 from gpmppi.terrain_cycle import TerrainCycle, TerrainCycleConfig
-from services.mcap_io import read_messages
+from services.recording.mcap_io import read_messages
 
 
 def load(path: Path) -> dict:

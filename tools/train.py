@@ -113,7 +113,7 @@ def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | Non
     stamped at or before t_k (+dt/4 for clock jitter) and at most 2 dt old; a terrain label the same.
     A segment ends where a tick is missing, the command is stale, or the label changes.
     """
-    from services.mcap_io import read_messages
+    from services.recording.mcap_io import read_messages
 
     states: dict[str, list[tuple[int, float, float, float, float, float]]] = {}
     cmds: dict[str, list[tuple[int, float, float]]] = {}

@@ -27,7 +27,7 @@ EVALUATION_DYNAMICS = ("edd5", "unicycle")
 
 def shipped_planner_configs() -> Iterator[tuple[str, dict]]:
     """(launch file name, planner entry's config) for every enabled planner entry of the shipped launch files."""
-    from services.launch_file import LaunchFile
+    from services.launch.launch_file import LaunchFile
 
     for path in SHIPPED_LAUNCH_FILES:
         launch = LaunchFile.load(path)

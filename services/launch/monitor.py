@@ -26,11 +26,11 @@ from schemas import (
     decode,
     model_for_key,
 )
-from services.node_settings import ZenohSettings
-from services.session import open_session
+from services.runtime.node_settings import ZenohSettings
+from services.runtime.session import open_session
 
 if TYPE_CHECKING:
-    from services.supervisor import Launcher, RestartEvent
+    from services.launch.supervisor import Launcher, RestartEvent
 
 
 # the key each service's first real output appears on (start-up time is measured to it)
@@ -231,7 +231,7 @@ def score_task(s: Summary, task: Task, states: np.ndarray) -> None:
 def _from_recording(
     record: str, robot: str, states: np.ndarray, task: Task | None
 ) -> tuple[np.ndarray, Task | None, dict[str, int]]:
-    from services.mcap_io import read_messages
+    from services.recording.mcap_io import read_messages
 
     counts: Counter[str] = Counter()
     rec_states: list[tuple[int, float, float]] = []

@@ -29,7 +29,7 @@ import numpy as np
 import zenoh
 
 from schemas.codec import ENCODING
-from services.player_log import QUARANTINE_SUFFIX, Record
+from services.recording.player_log import QUARANTINE_SUFFIX, Record
 
 
 @dataclass

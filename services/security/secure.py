@@ -13,8 +13,8 @@ The ACL is seen from the router: `ingress` is what a session sends to the router
 to it. Under deny-by-default a publication needs four allows (ingress put for the publisher, ingress
 declare_subscriber for the subscriber, egress put to the subscriber, egress declare_subscriber to the publisher),
 and across the subjects a session matches any allow wins, so every rule names one identity and the keys that
-drive the robot (`cmd`, `base/cmd`, `state`) appear in exactly one identity's put rule. `services/secure_check.py`
-re-checks a DIR (possibly edited by hand) before a launch.
+drive the robot (`cmd`, `base/cmd`, `state`) appear in exactly one identity's put rule.
+`services/security/secure_check.py` re-checks a DIR (possibly edited by hand) before a launch.
 
 The router's own in-process session is not subject to the ACL's ingress checks, so no service ever runs inside
 the router process (services/router.py is a process of its own).
@@ -262,7 +262,7 @@ def init_secrets(
     client_tls: dict[str, dict[str, str]] = {}
     listen = [endpoint]
     if tls:
-        from services.secure_tls import make_tls
+        from services.security.secure_tls import make_tls
 
         files = make_tls(directory / TLS_DIR, identities, hosts or ["localhost", "127.0.0.1"])
         written += [p for pair in files.values() for p in pair]

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import zenoh
 
 if TYPE_CHECKING:
-    from services.node_settings import NodeSettings
+    from services.runtime.node_settings import NodeSettings
 
 
 class Inbox:

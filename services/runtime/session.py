@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import zenoh
 
 if TYPE_CHECKING:
-    from services.node_settings import ZenohSettings
+    from services.runtime.node_settings import ZenohSettings
 
 
 class StoppedWhileWaiting(KeyboardInterrupt):

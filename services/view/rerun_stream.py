@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from services.rerun_map import EVENTS
+from services.view.rerun_map import EVENTS
 
 if TYPE_CHECKING:
     import rerun as rr

@@ -28,7 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 import gpmppi
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 RUN_METADATA = "gpmppi.run"
 SETTINGS_METADATA_PREFIX = "gpmppi.settings."
 LAUNCH_ATTACHMENT = "launch.yaml"
@@ -132,7 +132,7 @@ def _settings_in_subprocess(configs: dict[str, dict[str, str]]) -> dict[str, Any
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO_ROOT), os.environ.get("PYTHONPATH", "")])}
     try:
         out = subprocess.run(
-            [sys.executable, "-m", "services.recorder_meta"], input=json.dumps(configs), capture_output=True,
+            [sys.executable, "-m", "services.recording.recorder_meta"], input=json.dumps(configs), capture_output=True,
             text=True, timeout=300, env=env, check=True,
         )
         return json.loads(out.stdout.strip().splitlines()[-1])

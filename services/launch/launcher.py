@@ -21,20 +21,12 @@ from typing import IO, Any
 
 import zenoh
 
-from services.launch_file import DEFAULT_LAUNCH, LaunchFile, RouterEntry, ServiceEntry  # noqa: F401 - re-exported
-from services.monitor import Monitor, Summary, summarize
-from services.node_settings import ZenohSettings
-from services.secure_check import check_launch_secrets
-from services.session import StoppedWhileWaiting
-from services.supervisor import (  # noqa: F401 - re-exported: the launcher's public names
-    REPO_ROOT,
-    Child,
-    Launcher,
-    RestartEvent,
-    exit_cause,
-    readable,
-    wait_for_endpoint,
-)
+from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile, ServiceEntry
+from services.launch.monitor import Monitor, Summary, summarize
+from services.launch.supervisor import Launcher
+from services.runtime.node_settings import ZenohSettings
+from services.runtime.session import StoppedWhileWaiting
+from services.security.secure_check import check_launch_secrets
 
 
 class RouterUnreachable(RuntimeError):
@@ -53,7 +45,7 @@ def build(
         endpoint = f"tcp/127.0.0.1:{port}"
         launch.router.listen = [endpoint]
         launch.zenoh.connect = [endpoint]
-    # --secrets: checked before anything starts; each session then joins as its own identity (services/secure.py)
+    # --secrets: checked before anything starts; each session joins as its own identity (services/security/secure.py)
     secured = check_launch_secrets(launch, secrets, record, rerun) if secrets is not None else None
     launcher = Launcher(launch)
     common = {"robot": launch.robot, "zenoh": launch.zenoh.model_dump()}

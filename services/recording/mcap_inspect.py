@@ -25,7 +25,7 @@ from mcap.records import Attachment, Channel, Footer, Header, McapRecord, Messag
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from services.mcap_io import recording_files
+from services.recording.mcap_io import recording_files
 
 MAGIC = b"\x89MCAP0\r\n"
 

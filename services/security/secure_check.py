@@ -17,7 +17,7 @@ from typing import Any
 
 import zenoh
 
-from services.secure import (
+from services.security.secure import (
     EXCLUSIVE_PUTS,
     MANIFEST_FILE,
     ROLES,
@@ -238,7 +238,7 @@ def check_secrets(directory: str | Path | None, robot: str, identities: list[str
 
 
 def _check_tls(config: dict[str, Any], path: Path, side: str) -> None:
-    from services.secure_tls import check_pair
+    from services.security.secure_tls import check_pair
 
     tls = _get(config, "transport.link.tls") or {}
     cert, key, ca = tls.get(f"{side}_certificate"), tls.get(f"{side}_private_key"), tls.get("root_ca_certificate")
@@ -252,7 +252,7 @@ def _check_tls(config: dict[str, Any], path: Path, side: str) -> None:
 
 
 def check_launch_secrets(launch: Any, directory: str | Path, record: str | None, rerun: list[str] | None) -> Secrets:
-    """Check `directory` for a launch file (services.launcher.LaunchFile): the identities its sessions use are
+    """Check `directory` for a launch file (services.launch.launch_file.LaunchFile): the identities its sessions use are
     each enabled service's kind, the recorder and viewer when asked for, and the launcher's own monitor."""
     kinds = [e.kind or e.name for e in launch.services if e.enabled]
     kinds += ["recorder"] * bool(record) + ["viewer"] * bool(rerun and rerun[0] != "off")

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from schemas import BaseCommand, Command, EStop, Heartbeat, Message, Plan, State, Task, TerrainWeights
-from services import rerun_geometry as geo
+from services.view import rerun_geometry as geo
 
 if TYPE_CHECKING:
     import rerun as rr

@@ -1,6 +1,6 @@
 """Reading a recording for replay: checked opening, raw records in log-time order, run metadata and attachments.
 
-Built on `services.mcap_io` (its rotated-part listing and its reader, which recovers the complete chunks of an
+Built on `services.recording.mcap_io` (its rotated-part listing and its reader, which recovers the complete chunks of an
 unfinished file). What is added here is what a player needs and the recorder's reader does not give: the raw
 payload with its log time (republished as recorded, not re-encoded), a clear error for a file that is not a
 recording at all, and the metadata / attachments the recorder stores (`gpmppi.run`, `gpmppi.settings.<name>`,
@@ -19,7 +19,7 @@ from mcap.reader import make_reader
 from mcap.records import Attachment, Metadata
 from mcap.stream_reader import StreamReader
 
-from services.mcap_io import _iter_raw, recording_files
+from services.recording.mcap_io import _iter_raw, recording_files
 
 log = logging.getLogger(__name__)
 

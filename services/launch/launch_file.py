@@ -1,6 +1,6 @@
 """The launch file: which router and services a launch starts, how they join, and the restart policy.
 
-Its own module so that the supervision (`services.supervisor`) can take a launch file without importing the
+Its own module so that the supervision (`services.launch.supervisor`) can take a launch file without importing the
 launcher, which builds on the supervision."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from typing import Any
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from services.node_settings import ZenohSettings
+from services.runtime.node_settings import ZenohSettings
 
-DEFAULT_LAUNCH = Path(__file__).resolve().parent / "launch" / "default.yaml"
+DEFAULT_LAUNCH = Path(__file__).resolve().parent / "default.yaml"
 
 
 class RouterEntry(BaseModel):

@@ -20,7 +20,7 @@ from rosbags.typesys import Stores, get_typestore
 from zenoh import ZBytes
 from zenoh.ext import Int64, z_deserialize, z_serialize
 
-from services.convert import yaw_from_quaternion
+from services.codec.convert import yaw_from_quaternion
 
 TYPE_HASH_UNSUPPORTED = "TypeHashNotSupported"
 GID_SIZE = 16

@@ -1,5 +1,5 @@
-"""The shared runtime of every gpmppi service: Zenoh session, typed pub/sub, heartbeat, logs (and, re-exported from
-`services.node_settings`, the settings every service shares).
+"""The shared runtime of every gpmppi service: Zenoh session, typed pub/sub, heartbeat, logs (the settings every
+service shares are in `services.runtime.node_settings`).
 
 A service is a short event loop over a `Node`:
 
@@ -34,9 +34,9 @@ import zenoh
 
 from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_for
 from schemas.codec import ENCODING
-from services.node_settings import DEFAULT_ROUTER, NodeSettings, ZenohSettings  # noqa: F401 - re-exported
-from services.scheduling import Inbox
-from services.session import StoppedWhileWaiting, open_session  # noqa: F401 - re-exported
+from services.runtime.node_settings import NodeSettings
+from services.runtime.scheduling import Inbox
+from services.runtime.session import open_session
 
 M = TypeVar("M", bound=Message)
 LIVELINESS_PREFIX = "gpmppi/{robot}/alive/{service}"

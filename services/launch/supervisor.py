@@ -1,6 +1,6 @@
 """The launcher's supervision: each service a child process, its output prefixed, its death seen at once (a
 thread waits on each process) and answered with a restart after a backoff; a stop in reverse order.
-`services.launcher` builds a `Launcher` from a launch file and runs it."""
+`services.launch.launcher` builds a `Launcher` from a launch file and runs it."""
 
 from __future__ import annotations
 
@@ -21,9 +21,9 @@ import yaml
 from services.run import SERVICES
 
 if TYPE_CHECKING:
-    from services.launch_file import LaunchFile
+    from services.launch.launch_file import LaunchFile
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @dataclass
