@@ -29,7 +29,15 @@ from zenoh_helpers import REPO, Collector, endpoint, free_port, router, wait_for
 from schemas import BaseCommand, Header, Heartbeat
 from services import supervisor
 from services.config_file import ConfigFileError, read_yaml
-from services.launcher import DEFAULT_LAUNCH, LaunchFile, LaunchFileError, build, main, run_launch
+from services.launcher import (
+    DEFAULT_LAUNCH,
+    LaunchFile,
+    LaunchFileError,
+    build,
+    main,
+    run_launch,
+    wait_for_endpoint,
+)
 from services.mcap_io import McapWriter, read_messages
 from services.output_files import OutputPathError, free_name, resolve_output
 from services.run import LAUNCHER_PID_ENV
@@ -238,13 +246,21 @@ def test_a_child_started_from_a_thread_outlives_the_thread(tmp_path: Path) -> No
         starter = threading.Thread(target=launcher.start_all)
         starter.start()
         starter.join(30)
-        restarter = threading.Thread(target=launcher.restart, args=("router",))
+        old = launcher.child("router").process
+
+        def restart_and_wait() -> None:
+            # the thread lives on until the new router has armed its PR_SET_PDEATHSIG (at the start of its main,
+            # before it listens), then ends: a child forked by this thread would get SIGTERM now
+            launcher.restart("router")
+            wait_for_endpoint(endpoint(port), 60.0)
+
+        restarter = threading.Thread(target=restart_and_wait)
         restarter.start()
-        restarter.join(30)
+        restarter.join(90)
         process = launcher.child("router").process
-        assert process is not None
+        assert process is not None and process is not old
         time.sleep(1.5)
-        assert process.poll() is None, launcher.out.getvalue()
+        assert process.poll() is None, f"exit {process.returncode}: {launcher.out.getvalue()}"
     finally:
         launcher.stop_all()
 
