@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import errno
 import signal
 import time
 from concurrent import futures
@@ -49,11 +50,22 @@ class Settings(NodeSettings):
     )
 
 
-def _write_failure(path: str, reason: str, written: int) -> str:
-    return (
-        f"cannot write {path}: {reason}: the disk is full or a file-size limit was reached; recording stopped "
-        f"(the {written} messages written so far read back: gpmppi inspect {path})"
-    )
+def _write_failure(path: str, reason: str, written: int, code: int | None = None) -> str:
+    """The one error line of a recorder that cannot write; the cause by errno, not guessed."""
+    causes = {
+        errno.EEXIST: "the file exists and a recording never overwrites one: give a new name or folder",
+        errno.EISDIR: "that is a folder: give a file name (gpmppi launch --record DIR picks one inside DIR)",
+        errno.ENOENT: "its folder does not exist: create it first",
+        errno.EACCES: "no permission to write there: give another path",
+        errno.EROFS: "the file system is read-only: give another path",
+        errno.ENOSPC: "the disk is full",
+        errno.EDQUOT: "the disk quota is used up",
+        errno.EFBIG: "a file-size limit was reached",
+    }
+    cause = causes.get(code or 0, "the disk is full or a file-size limit was reached" if written else "")
+    cause = f": {cause}" if cause else ""
+    kept = f" (the {written} messages written so far read back: gpmppi inspect {path})" if written else ""
+    return f"cannot write {path}: {reason}{cause}; recording stopped{kept}"
 
 
 def run(settings: Settings) -> int:
@@ -73,7 +85,7 @@ def run(settings: Settings) -> int:
             compression=settings.compression,
         )
     except OSError as exc:
-        failure = _write_failure(settings.path, exc.strerror or str(exc), 0)
+        failure = _write_failure(settings.path, exc.strerror or str(exc), 0, exc.errno)
     # the run's metadata is resolved off the loop (the services' settings in a child process, since loading
     # them imports their modules), so recording starts at once; it is written when it is ready
     pool = ThreadPoolExecutor(1, thread_name_prefix="recorder-meta")
@@ -89,7 +101,9 @@ def run(settings: Settings) -> int:
             def failed(exc: OSError) -> None:
                 nonlocal failure
                 assert writer is not None
-                failure = _write_failure(settings.path, writer.failed or str(exc), writer.messages_written)
+                failure = _write_failure(
+                    settings.path, writer.failed or str(exc), writer.messages_written, writer.failed_errno or exc.errno
+                )
                 node.error(failure)  # the one error line
                 with node.counters.lock:
                     node.counters.status = "failing"

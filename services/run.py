@@ -9,8 +9,11 @@ import argparse
 import faulthandler
 import importlib
 import logging
+import os
 import signal
 import sys
+import threading
+import time
 from pathlib import Path
 from types import ModuleType
 
@@ -31,6 +34,42 @@ SERVICES: dict[str, str] = {
 }
 
 
+# set by the launcher in each child's environment: the launcher's pid (services.launch.supervisor)
+LAUNCHER_PID_ENV = "GPMPPI_LAUNCHER_PID"
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def follow_launcher() -> None:
+    """A service started by a launcher stops when that launcher dies, however it dies (SIGKILL included), so no
+    service runs on as an orphan, driving the robot with no one supervising it.
+
+    Linux: the kernel sends this process SIGTERM (its graceful stop) when the launcher dies (PR_SET_PDEATHSIG);
+    if the launcher died before that was set, the parent is no longer the launcher and the process exits at
+    once. Elsewhere a thread checks the parent twice a second. Nothing happens without `GPMPPI_LAUNCHER_PID`
+    (a service run by hand, or by systemd)."""
+    launcher = os.environ.get(LAUNCHER_PID_ENV)
+    if not launcher or not launcher.isdigit():
+        return
+    launcher_pid = int(launcher)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
+            print(f"services.run: prctl(PR_SET_PDEATHSIG) failed: errno {ctypes.get_errno()}", file=sys.stderr)
+    if os.getppid() != launcher_pid:
+        print(f"services.run: the launcher (pid {launcher_pid}) is gone; not starting", file=sys.stderr)
+        os._exit(0)
+    if not sys.platform.startswith("linux"):
+
+        def watch() -> None:
+            while os.getppid() == launcher_pid:
+                time.sleep(0.5)
+            os.kill(os.getpid(), signal.SIGTERM)
+
+        threading.Thread(target=watch, name="launcher-watch", daemon=True).start()
+
+
 def service_module(kind: str) -> ModuleType:
     if kind not in SERVICES:
         raise KeyError(f"unknown service {kind!r}; known: {', '.join(SERVICES)}")
@@ -46,8 +85,9 @@ def run_service(kind: str, config: str | Path | None = None) -> int:
     module = service_module(kind)
     try:
         settings = settings_class(kind).load(config)
-    except (ValidationError, FileNotFoundError) as exc:
-        print(f"gpmppi service {kind}: bad configuration ({config}): {exc}", file=sys.stderr)
+    except (ValidationError, FileNotFoundError, ValueError) as exc:
+        # a ConfigFileError is one line, FILE:LINE:COL: problem
+        print(f"gpmppi service {kind}: bad configuration: {exc}", file=sys.stderr)
         return 2
     setup_logging(settings.service, settings.log_level, settings.log_json)
     # `kill -USR1 PID` prints every thread's stack to stderr (the service's log) and the service runs on: where a
@@ -65,6 +105,7 @@ def run_service(kind: str, config: str | Path | None = None) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    follow_launcher()
     parser = argparse.ArgumentParser(prog="python -m services.run", description="Run one gpmppi service.")
     parser.add_argument("name", choices=sorted(SERVICES))
     parser.add_argument("--config", type=Path, default=None, help="YAML settings file")

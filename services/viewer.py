@@ -12,14 +12,17 @@ runs out the router closes the stopped session.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import deque
+from pathlib import Path
 from typing import Literal
 
 import zenoh
 from pydantic import Field
 
 from schemas import DecodeError, decode, model_for_key
+from services.recording.output_files import create_exclusive
 from services.runtime.node import Node
 from services.runtime.node_settings import NodeSettings
 from services.view.rerun_map import RerunMapper, ViewOptions
@@ -84,6 +87,17 @@ class Ring:
 def run(settings: Settings) -> int:
     rec = None
     flush_s = settings.save_flush_s if settings.mode == "save" else settings.flush_s
+    if settings.mode == "save":
+        # the viewer never overwrites a file (an earlier run's .rrd): it claims its own exclusively first
+        try:
+            Path(settings.path).parent.mkdir(parents=True, exist_ok=True)
+            create_exclusive(settings.path)
+        except OSError as exc:
+            logging.getLogger(f"gpmppi.{settings.service}").error(
+                "cannot save the rerun stream to %s: %s; a view is never written over an existing file: give "
+                "a new name or folder", settings.path, exc.strerror or exc,
+            )
+            return 2
     if settings.mode != "off":
         target = settings.path if settings.mode == "save" else settings.url if settings.mode == "connect" else None
         rec = open_stream(settings.mode, target, settings.serve_port, batch_s=flush_s)

@@ -203,7 +203,9 @@ def test_crashing_required_service_fails_the_launch(tmp_path: Path) -> None:
                 "restart_backoff_s": 0.1,
                 "services": [
                     {"name": "egress"},
-                    {"name": "ingress", "config": {"max_age_s": "not a number"}},
+                    # settings that validate (a bad one is refused before anything starts) but fail at the
+                    # service's start: a terrain its terrain set does not have
+                    {"name": "sim", "config": {"terrain": "nowhere"}},
                 ],
             }
         )
@@ -215,9 +217,9 @@ def test_crashing_required_service_fails_the_launch(tmp_path: Path) -> None:
     assert code == 1, log[-3000:]
     # early: before the launch's own end at 30 s; three starts of a failing process fit well inside it
     assert time.monotonic() - t0 < 29.0, "a required service failing for good must stop the launch early"
-    assert summary.restarts.get("ingress") == 2 and summary.failed == ["ingress"]
+    assert summary.restarts.get("sim") == 2 and summary.failed == ["sim"]
     assert "restart 1 in 0.1 s" in log and "restart 2 in 0.2 s" in log and "failed for good" in log
-    assert "bad configuration" in log and "max_age_s" in log
+    assert "service failed" in log and "unknown terrain 'nowhere'" in log
     # everything else was stopped in reverse order, politely
     assert log.index("stopped egress") < log.index("stopped router")
 

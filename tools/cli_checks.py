@@ -48,6 +48,8 @@ USER_ERRORS = frozenset({
     "gpmppi.plant.residual_net.NetworkFileError",
     "gpmppi.plant.terrains.TerrainFileError",
     "services.launch.launcher.RouterUnreachable",
+    "services.recording.output_files.OutputPathError",
+    "services.runtime.config_file.ConfigFileError",
     "services.recording.player_log.LogError",
     "services.security.secure.SecretsError",
     "services.recording.mcap_inspect.InspectError",

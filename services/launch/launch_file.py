@@ -8,9 +8,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from services.runtime.config_file import ConfigFileError, Marks, one_line, read_yaml, validation_problems
 from services.runtime.node_settings import ZenohSettings
 
 DEFAULT_LAUNCH = Path(__file__).resolve().parent / "default.yaml"
@@ -56,10 +56,28 @@ class LaunchFile(BaseModel):
 
     @classmethod
     def load(cls, path: str | Path) -> LaunchFile:
-        path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(f"launch file {path} does not exist")
-        try:
-            return cls.model_validate(yaml.safe_load(path.read_text()) or {})
-        except ValidationError as exc:
-            raise ValueError(f"launch file {path}: {exc}") from exc
+        """The launch file at `path`; `LaunchFileError` (one line, FILE:LINE:COL) if it does not parse or validate."""
+        return load_launch(path)[0]
+
+
+class LaunchFileError(ConfigFileError):
+    """A launch file that cannot run as it is; the message is one line naming the file and the line."""
+
+
+def load_launch(path: str | Path) -> tuple[LaunchFile, Marks]:
+    """(the launch file, the line and column of each of its keys and list items). FileNotFoundError for a missing
+    file; `LaunchFileError` for a YAML syntax error or a launch file that does not validate."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"launch file {path} does not exist")
+    try:
+        data, marks = read_yaml(path)
+    except ConfigFileError as exc:
+        raise LaunchFileError(str(exc)) from None
+    if data is not None and not isinstance(data, dict):
+        raise LaunchFileError(f"{path}:1:1: a launch file is a mapping (robot, router, services, ...), not a "
+                              f"{type(data).__name__}")
+    try:
+        return LaunchFile.model_validate(data or {}), marks
+    except ValidationError as exc:
+        raise LaunchFileError(one_line(validation_problems(exc, path, marks))) from None

@@ -11,6 +11,7 @@ prints a summary with every restart and its cause. Exit status 1 when a required
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 import threading
@@ -21,9 +22,11 @@ from typing import IO, Any
 
 import zenoh
 
-from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile, ServiceEntry
+from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile, LaunchFileError, ServiceEntry, load_launch
 from services.launch.monitor import Monitor, Summary, summarize
 from services.launch.supervisor import Launcher
+from services.recording.output_files import resolve_output
+from services.runtime.config_file import Marks, locate, one_line, validation_problems
 from services.runtime.node_settings import ZenohSettings
 from services.runtime.session import StoppedWhileWaiting
 from services.security.secure_check import check_launch_secrets
@@ -95,30 +98,81 @@ def _describe_run_to_recorders(
     ]
 
 
-# services whose settings are checked before anything starts: the control path's limits and the terrain cycle (a
-# bad value there would otherwise surface as one child's exit, and terrain is optional, so the launch would go on)
-CHECKED_AT_START = ("egress", "terrain")
-
-
-def check_settings(launch: LaunchFile, path: str | Path) -> None:
-    """ValueError naming the launch file, the service entry and the field of the first settings that do not
-    validate (out of range, an unknown command source, an unknown field), for the services in CHECKED_AT_START."""
+def check_launch(
+    launch: LaunchFile, path: str | Path, marks: Marks | None = None, extra: list[ServiceEntry] | None = None
+) -> None:
+    """Every enabled service's settings, as the launcher will write them (the launch file's robot and zenoh under
+    the entry's own config), and the router's, validated before anything starts: `LaunchFileError`, one line with
+    each problem at its line in the user's file (`FILE:LINE:COL: services[2] (planner).config.horizon: ...`),
+    instead of one service's exit at its start, retried, naming a temporary copy. `extra`: services the command
+    line adds (recorder, viewer), which have no place in the file."""
     from pydantic import ValidationError
 
-    from services.run import settings_class
+    from services.run import SERVICES, settings_class
 
-    for i, entry in enumerate(launch.services):
+    marks = marks or {}
+    problems: list[str] = []
+    common = {"robot": launch.robot, "zenoh": launch.zenoh.model_dump()}
+    if launch.router.enabled:
+        try:
+            settings_class("router").model_validate({"listen": launch.router.listen, **launch.router.config})
+        except ValidationError as exc:
+            problems += validation_problems(exc, path, marks, ("router", "config"), "router.config")
+    entries = [(i, e) for i, e in enumerate(launch.services)] + [(None, e) for e in extra or []]
+    for i, entry in entries:
         kind = entry.kind or entry.name
-        if not entry.enabled or kind not in CHECKED_AT_START:
+        label = f"services[{i}] ({entry.name})" if i is not None else f"{entry.name} (from the command line)"
+        if not entry.enabled:
+            continue
+        if kind not in SERVICES:
+            where = locate(marks, ("services", i, "kind" if entry.kind else "name")) if i is not None else None
+            at = f"{path}:{where[0]}:{where[1]}" if where else str(path)
+            problems.append(f"{at}: {label}: unknown service kind {kind!r}; known: {', '.join(SERVICES)}")
             continue
         try:
-            settings_class(kind)(**{**entry.config, "service": entry.name})
+            settings_class(kind).model_validate({**common, **entry.config, "service": entry.name})
         except ValidationError as exc:
-            problems = "; ".join(
-                f"services[{i}] ({entry.name}).config{''.join('.' + str(p) for p in err['loc'])}: {err['msg']} "
-                f"(got {err.get('input')!r})" for err in exc.errors()
-            )
-            raise ValueError(f"launch file {path}: {problems}; fix it in the file") from None
+            for err in exc.errors():
+                # robot and zenoh come from the top of the file unless the entry sets its own
+                top = bool(err["loc"]) and err["loc"][0] in common and err["loc"][0] not in entry.config
+                prefix: tuple = () if top or i is None else ("services", i, "config")
+                one = ValidationError.from_exception_data(exc.title, [err])  # type: ignore[list-item]
+                problems += validation_problems(one, path, marks, prefix, "" if top else f"{label}.config")
+    if problems:
+        raise LaunchFileError(f"{one_line(problems)}; fix it in the launch file")
+
+
+def check_run(duration: float | None, port: int | None) -> None:
+    """The command line's numbers, before anything starts: ValueError naming the setting."""
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise ValueError(
+            f"duration must be a positive number of seconds, got {duration}; leave it out to run until Ctrl-C"
+        )
+    if port is not None and not (isinstance(port, int) and 1 <= port <= 65535):
+        raise ValueError(f"port must be a TCP port number in 1..65535, got {port}")
+
+
+def resolve_outputs(
+    record: str | None, rerun: list[str] | None
+) -> tuple[str | None, list[str] | None, list[str]]:
+    """(the recording's file, the rerun options with the .rrd file, notes): `--record` and `--rerun save` as the
+    files that will be written (services.recording.output_files.resolve_output: never an existing file, a folder gets a
+    file inside it, a missing folder is an error), decided before anything starts."""
+    notes: list[str] = []
+    if record:
+        path, note = resolve_output(record, ".mcap")
+        record = str(path)
+        notes += [f"recording: {note}"] if note else []
+    if rerun and rerun[0] == "save":
+        given = rerun[1] if len(rerun) > 1 else None
+        if given is None:  # the default file, in a folder of our own
+            Path("runs").mkdir(exist_ok=True)
+        path, note = resolve_output(given or "runs/view.rrd", ".rrd")
+        if record and str(path) == record:
+            raise ValueError(f"--record and --rerun save name the same file {path}; give two files")
+        rerun = ["save", str(path)]
+        notes += [f"rerun: {note}"] if note else []
+    return record, rerun, notes
 
 
 def run_launch(
@@ -137,10 +191,16 @@ def run_launch(
 
     `then`, if given, runs in a thread once every service is up, instead of the `duration`; the run ends when
     it returns (it should return soon after `launcher.stop_event` is set). Its exception is raised here."""
-    launch = LaunchFile.load(launch_path or DEFAULT_LAUNCH)
-    check_settings(launch, launch_path or DEFAULT_LAUNCH)
-    launcher, service_names = build(launch, record, rerun, port, secrets, launch_path or DEFAULT_LAUNCH)
+    # everything that can be checked is checked before any process starts (or any file is written)
+    check_run(duration, port)
+    path = launch_path or DEFAULT_LAUNCH
+    launch, marks = load_launch(path)
+    check_launch(launch, path, marks)
+    record, rerun, notes = resolve_outputs(record, rerun)
+    launcher, service_names = build(launch, record, rerun, port, secrets, path)
     launcher.out = out or sys.stdout
+    for note in notes:
+        launcher.say("launch", note)
     interrupted = threading.Event()
 
     def on_signal(signum: int, frame: Any) -> None:
@@ -211,6 +271,8 @@ def run_launch(
         for s, handler in previous.items():
             signal.signal(s, handler)
     summary = summarize(monitor, launcher, service_names, record)
+    summary.rerun_file = rerun[1] if rerun and rerun[0] == "save" else None
+    summary.notes = notes
     for line in summary.lines():
         launcher.say("summary", line)
     if hook_errors:

@@ -133,6 +133,8 @@ class Summary:
     restart_events: list[RestartEvent] = field(default_factory=list)  # every crash restart, with its cause
     failed: list[str] = field(default_factory=list)
     recording: str | None = None
+    rerun_file: str | None = None  # the .rrd written (`--rerun save`)
+    notes: list[str] = field(default_factory=list)  # why an output file is not the path given (it existed, ...)
 
     def lines(self) -> list[str]:
         out = [f"duration {self.duration_s:.1f} s, driven {self.distance_driven_m:.1f} m"]
@@ -162,6 +164,9 @@ class Summary:
             )
         if self.recording:
             out.append(f"recording: {self.recording}")
+        if self.rerun_file:
+            out.append(f"rerun: {self.rerun_file}")
+        out += self.notes
         return out
 
 

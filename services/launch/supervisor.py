@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -18,12 +19,56 @@ from typing import IO, TYPE_CHECKING, Any
 
 import yaml
 
-from services.run import SERVICES
+from services.recording.output_files import free_name
+from services.run import LAUNCHER_PID_ENV, SERVICES
 
 if TYPE_CHECKING:
     from services.launch.launch_file import LaunchFile
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+class _Spawner:
+    """One thread, alive as long as this process, that starts every child process of every launcher.
+
+    Each child asks the kernel for SIGTERM when its parent dies (PR_SET_PDEATHSIG, `services.run.follow_launcher`),
+    and Linux takes the *thread* that forked the child for its parent: a child started from a thread that then
+    ends (a `then` hook calling `Launcher.restart`, a test's helper thread) would be sent SIGTERM at that moment.
+    So no thread but this one, which ends only with the process, forks a child."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._requests: queue.SimpleQueue[tuple[tuple[Any, ...], dict[str, Any], dict[str, Any], threading.Event]] = (
+            queue.SimpleQueue()
+        )
+        self._thread: threading.Thread | None = None
+
+    def popen(self, *args: Any, **kwargs: Any) -> subprocess.Popen:
+        """`subprocess.Popen(*args, **kwargs)`, run on the spawner thread; its exception is raised here."""
+        with self._lock:
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._serve, name="gpmppi-spawner", daemon=True)
+                self._thread.start()
+        box: dict[str, Any] = {}
+        done = threading.Event()
+        self._requests.put((args, kwargs, box, done))
+        done.wait()
+        if "error" in box:
+            raise box["error"]
+        return box["process"]
+
+    def _serve(self) -> None:
+        while True:
+            args, kwargs, box, done = self._requests.get()
+            try:
+                box["process"] = subprocess.Popen(*args, **kwargs)
+            except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread
+                box["error"] = exc
+            finally:
+                done.set()
+
+
+_SPAWNER = _Spawner()
 
 
 @dataclass
@@ -125,7 +170,9 @@ class Launcher:
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
         env["PYTHONUNBUFFERED"] = "1"
-        child.process = subprocess.Popen(
+        # the child stops when this process dies, however it dies (services.run.follow_launcher)
+        env[LAUNCHER_PID_ENV] = str(os.getpid())
+        child.process = _SPAWNER.popen(
             [sys.executable, "-m", "services.run", child.kind, "--config", str(child.config_path)],
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
@@ -169,8 +216,8 @@ class Launcher:
                 if now >= child.restart_at:
                     child.restart_at = None
                     child.restarts += 1
-                    if child.kind == "recorder":
-                        self._recorder_continues(child)
+                    if child.kind == "recorder" or (child.kind == "viewer" and self._saves_a_file(child)):
+                        self._output_continues(child)
                     self._spawn(child)
                 else:
                     next_due = min(next_due, child.restart_at - now)
@@ -203,17 +250,24 @@ class Launcher:
             )
         return next_due
 
-    def _recorder_continues(self, child: Child) -> None:
-        """A restarted recorder must not overwrite what its predecessor wrote: it continues in a new file."""
+    def _output_continues(self, child: Child) -> None:
+        """A restarted recorder (or viewer saving a file) must not overwrite what its predecessor wrote: it
+        continues in a new file, `<name>.restart<N><suffix>` (or the next free name, if that is taken)."""
         config = yaml.safe_load(child.config_path.read_text()) or {}
-        path = Path(config.get("path", "runs/recording.mcap"))
+        default = "runs/recording.mcap" if child.kind == "recorder" else "runs/view.rrd"
+        path = Path(config.get("path", default))
         stem = path.stem.split(".restart")[0]
-        new = path.with_name(f"{stem}.restart{child.restarts}{path.suffix}")
+        new = free_name(path.with_name(f"{stem}.restart{child.restarts}{path.suffix}"))
         config["path"] = str(new)
         child.config_path.write_text(yaml.safe_dump(config, sort_keys=False))
         if self.restart_events and self.restart_events[-1].name == child.name:
             self.restart_events[-1].note = f"continues in {new}"
-        self.say("launch", f"{child.name}: {path} is kept as written; the restarted recorder writes {new}")
+        self.say("launch", f"{child.name}: {path} is kept as written; the restarted {child.kind} writes {new}")
+
+    @staticmethod
+    def _saves_a_file(child: Child) -> bool:
+        config = yaml.safe_load(child.config_path.read_text()) or {}
+        return config.get("mode", "save") == "save"
 
     def stop_all(self) -> None:
         """Reverse start order: SIGINT, wait, SIGTERM, wait, SIGKILL."""

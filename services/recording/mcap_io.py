@@ -74,7 +74,9 @@ def recording_files(path: str | Path) -> list[Path]:
 class McapWriter:
     """Writes gpmppi messages to MCAP; a context manager. Not thread-safe: use it from one thread.
 
-    path: output file (its folder is created). chunk_size: bytes per chunk before it is written out.
+    path: output file (its folder is created); it must not exist: the writer never overwrites (FileExistsError),
+    and a rotated part that exists already stops the writer like a write error (`failed` names it).
+    chunk_size: bytes per chunk before it is written out.
     flush_interval_s: a chunk older than this is written out at the next write, so a slow stream also
     reaches the disk. max_bytes / max_duration_s: rotate to a new file past this size / age (None: never).
     compression: "zstd", "lz4" or "none".
@@ -125,13 +127,16 @@ class McapWriter:
         self.messages_written = 0
         self.quarantined = 0
         self.failed: str | None = None  # why writing stopped (disk full, file-size limit), or None
+        self.failed_errno: int | None = None  # its errno (EEXIST: a rotated part's name was taken)
         self._open()
 
     # ---- file lifecycle -------------------------------------------------------------------
     def _open(self) -> None:
         target = _rotated_path(self.path, self._index)
         target.parent.mkdir(parents=True, exist_ok=True)
-        self._stream = open(target, "wb")  # noqa: SIM115 - closed in _close_file
+        # exclusive create: a recording never overwrites a file (an earlier run's, or a part of one), on rotation
+        # too; FileExistsError names the file
+        self._stream = open(target, "xb")  # noqa: SIM115 - closed in _close_file
         self._writer = Writer(self._stream, chunk_size=self._chunk_size, compression=self._compression)
         self.files.append(target)
         self._guarded(lambda: self._start_part())
@@ -162,7 +167,9 @@ class McapWriter:
 
     def _fail(self, exc: OSError, stream: IO[bytes] | None) -> None:
         """Stop writing after an operating-system error; what reached the file stays readable."""
-        self.failed = f"{exc.strerror or exc} (errno {errno.errorcode.get(exc.errno or 0, exc.errno)})"
+        where = f" {exc.filename}" if exc.filename else ""
+        self.failed = f"{exc.strerror or exc}{where} (errno {errno.errorcode.get(exc.errno or 0, exc.errno)})"
+        self.failed_errno = exc.errno
         self._writer = None
         self._stream = None
         if stream is not None:

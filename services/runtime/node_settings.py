@@ -11,11 +11,12 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
 from schemas.codec import MAX_PAYLOAD_BYTES
 from schemas.keys import DEFAULT_ROBOT
+from services.runtime.config_file import ConfigFileError, one_line, read_yaml, validation_problems
 
 S = TypeVar("S", bound="NodeSettings")
 
@@ -107,5 +108,13 @@ class NodeSettings(BaseSettings):
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"config file {path} does not exist; pass an existing YAML file")
+        # read here first, for one-line errors with the file's own lines (ConfigFileError), not a parser traceback
+        data, marks = read_yaml(path)
+        if data is not None and not isinstance(data, dict):
+            kind = type(data).__name__
+            raise ConfigFileError(f"{path}:1:1: the settings must be a mapping (field: value), not a {kind}")
         bound = type(cls.__name__, (cls,), {"model_config": {**cls.model_config, "yaml_file": str(path)}})
-        return bound(**overrides)
+        try:
+            return bound(**overrides)
+        except ValidationError as exc:
+            raise ConfigFileError(one_line(validation_problems(exc, path, marks))) from None
