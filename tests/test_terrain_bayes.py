@@ -12,15 +12,16 @@ import pytest
 from pydantic import ValidationError
 
 from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
-from gpmppi.evaluation.terrain_ident import replay
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel, load_default_model
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.mppi.synthetic import synthetic_model
-from gpmppi.terrain import BayesTerrainEstimator, EstimatorConfig, TerrainEstimator, make_estimator
+from gpmppi.terrain.estimator import BayesTerrainEstimator, TerrainEstimator, make_estimator
+from gpmppi.terrain.separability import replay
+from gpmppi.terrain.settings import EstimatorConfig
 
 # the synthetic steps have no command-change part (the physics plant's motor lag): no gains for it; and each starts
-# from a random state, so there is no response to follow (the physics plant's, gpmppi/terrain_response.py) and no
+# from a random state, so there is no response to follow (the physics plant's, gpmppi/terrain/response.py) and no
 # start from rest (their commands are drawn apart from their speeds: no start gate either)
 BAYES = EstimatorConfig(method="bayes", command_change="none", response="none", gp_max_speed_gap=float("inf"))
 
@@ -205,7 +206,7 @@ def _closed_loop_steps(terrain: str, update: str) -> tuple[np.ndarray, np.ndarra
 
 
 # Smooth commands (the default update) drive close to steady state, where the GP's one-step evidence alone reads
-# asphalt as tile (0.14 here): the response evidence (gpmppi/terrain_response.py) identifies it (0.93). The paper's
+# asphalt as tile (0.14 here): the response evidence (gpmppi/terrain/response.py) identifies it (0.93). The paper's
 # jittery update carries the information in the command changes, and the response is not scored under it; its
 # commands run ahead of the speed by more than the start gate's gap on many steps at speed, so it is replayed with
 # that gate off (`gp_max_speed_gap: .inf`, as docs/terrain_identification.md advises for it: with the gate, asphalt

@@ -23,7 +23,6 @@ are kept and the estimate says why.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
 
 import cvxpy as cp
 import numpy as np
@@ -31,22 +30,15 @@ import numpy as np
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
-from gpmppi.terrain_config import EstimatorConfig, terrain_command_gains
-from gpmppi.terrain_response import SHIPPED_RESPONSE, load_response
+from gpmppi.terrain.estimate import EstimatorLike, TerrainEstimate
+from gpmppi.terrain.response import SHIPPED_RESPONSE, load_response
+from gpmppi.terrain.settings import EstimatorConfig, terrain_command_gains
 
 # command changes the roughness has seen before the response is scored: a few, so that commands jittery from the
 # start are not scored on a chance small first change, and no more, so that the evidence starts early
 ROUGHNESS_WARMUP_STEPS = 3
 
-__all__ = ["BayesTerrainEstimator", "EstimatorConfig", "TerrainEstimate", "TerrainEstimator", "make_estimator"]
-
-
-@dataclass
-class TerrainEstimate:
-    weights: np.ndarray  # (M,) on the simplex
-    ok: bool  # False: the weights are the previous ones (see message)
-    residual: float  # fit term ||Y - F w||^2 at the returned weights (unnormalised, in (m/s)^2 + (rad/s)^2)
-    message: str
+__all__ = ["BayesTerrainEstimator", "TerrainEstimator", "make_estimator"]
 
 
 def _vector(name: str, value: np.ndarray, n: int) -> np.ndarray:
@@ -178,7 +170,7 @@ class BayesTerrainEstimator:
       what they predict, not by their training noise.
 
     To `l_i` is added the log-likelihood of the terrain's response (`response: steady_map`,
-    gpmppi/terrain_response.py): each terrain's measured steady-state velocity under the commands, run free through
+    gpmppi/terrain/response.py): each terrain's measured steady-state velocity under the commands, run free through
     a first-order rate from the measured velocity, its residual averaged over `response_smoothing_steps` and scored
     against `response_spread`. The GP's inputs lack the plant's hidden states, so at a held command its one-step
     mean is off by as much as the terrains differ, and smooth commands drive close to steady state; the steady map
@@ -405,8 +397,8 @@ class BayesTerrainEstimator:
         return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps")
 
 
-def make_estimator(model: GPModel, config: EstimatorConfig | None = None) -> TerrainEstimator | BayesTerrainEstimator:
-    """The estimator `config.method` names, built for `model`."""
+def make_estimator(model: GPModel, config: EstimatorConfig | None = None) -> EstimatorLike:
+    """The estimator `config.method` names, built for `model` (either satisfies `EstimatorLike`)."""
     cfg = config or EstimatorConfig()
     if cfg.method == "paper":
         return TerrainEstimator(model, history=cfg.history, gamma=cfg.gamma, min_history=cfg.min_history)
