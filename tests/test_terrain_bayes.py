@@ -137,6 +137,42 @@ def test_hysteresis_keeps_the_leader_until_a_challenger_is_clearly_ahead() -> No
     assert est._leader == 1
 
 
+def _publish(est: BayesTerrainEstimator, posterior: list[float]) -> np.ndarray:
+    """The weights the estimator publishes when its posterior is `posterior` (past the warm-up)."""
+    est._posterior = np.asarray(posterior, dtype=np.float64)
+    est._seen = max(est._seen, est.min_history)
+    return est.estimate().weights
+
+
+def test_hysteresis_holds_the_top_through_a_three_way_tie() -> None:
+    # near a uniform posterior a third terrain wanders above the held pair (the leader and the posterior's top): the
+    # leader must stay on top against every terrain above it, not only against the top one; a pair published at its
+    # mean below the third terrain flipped the published top at every such wander (13-17 flips in a few seconds)
+    est = make_estimator(_model(), BAYES.model_copy(update={"hysteresis": 0.3}))
+    assert isinstance(est, BayesTerrainEstimator)
+    first = _publish(est, [0.8, 0.1, 0.1])
+    assert np.argmax(first) == 0
+    wander = [[0.30, 0.36, 0.34], [0.30, 0.34, 0.36], [0.31, 0.35, 0.34], [0.29, 0.35, 0.36],
+              [0.33, 0.32, 0.35], [0.30, 0.37, 0.33], [0.32, 0.33, 0.35], [0.28, 0.36, 0.36]]
+    tops = [0]
+    for p in wander:
+        w = _publish(est, p)
+        assert w.sum() == pytest.approx(1.0)
+        tops.append(int(np.argmax(w)))
+    changes = int(np.count_nonzero(np.diff(tops)))
+    assert changes <= 1, f"the published top changed {changes} times through the tie: {tops}"
+    assert tops[-1] == 0  # the leader held: no challenger was `hysteresis` ahead
+    # the held terrains are published at their mean, the leader just above; a terrain below the leader is unchanged
+    w = _publish(est, [0.30, 0.36, 0.34])
+    np.testing.assert_allclose(w, [0.3333333, 0.3333333, 0.3333333], atol=1e-5)
+    w = _publish(est, [0.30, 0.50, 0.20])
+    assert np.argmax(w) == 0 and w[2] == 0.20
+    # a terrain that is clearly ahead still takes the top, and is then held in turn
+    taken = _publish(est, [0.10, 0.15, 0.75])
+    np.testing.assert_array_equal(taken, [0.10, 0.15, 0.75])
+    assert int(np.argmax(_publish(est, [0.30, 0.36, 0.34]))) == 2
+
+
 def test_same_steps_give_the_same_weights() -> None:
     model = _model()
     rows = _history(model, 1, 40, seed=6, noise=0.02)

@@ -370,17 +370,21 @@ class BayesTerrainEstimator:
     def _published(self, p: np.ndarray) -> np.ndarray:
         """The posterior with hysteresis on which terrain leads.
 
-        Where two terrains explain the steps about equally their posteriors wander about each other, and the top
+        Where terrains explain the steps about equally their posteriors wander about each other, and the top
         terrain would change on every small wander. The terrain that led the last published weights keeps the lead
-        until another's posterior exceeds its own by `hysteresis`; until then the two are published at their mean,
-        the leader 1e-6 above (the sum and every other weight unchanged).
+        until another's posterior exceeds its own by `hysteresis`; until then it and every terrain whose posterior
+        is above its own are published at their mean, the leader on top (1e-6 above each of the others; the sum and
+        every weight below the leader's unchanged). Holding the leader against the posterior's top terrain alone is
+        not enough: near a uniform posterior a third terrain between the two would come out above their mean.
         """
         leader = self._leader
         challenger = int(np.argmax(p))
         w = p.copy()
         if leader is not None and challenger != leader and p[challenger] - p[leader] <= self.config.hysteresis:
-            mid = 0.5 * (p[challenger] + p[leader])
-            w[leader], w[challenger] = mid + 1e-6, mid - 1e-6
+            above = np.flatnonzero(p > p[leader])  # the challenger and any terrain between it and the leader
+            mid = (p[leader] + p[above].sum()) / (above.size + 1)
+            w[above] = mid - 1e-6
+            w[leader] = mid + 1e-6 * above.size
         else:
             leader = challenger
         self._leader = leader
