@@ -1,4 +1,4 @@
-"""terrain: the online terrain-weight estimator. An event loop over `gpmppi.terrain_cycle.TerrainCycle` (pairing
+"""terrain: the online terrain-weight estimator. An event loop over `gpmppi.terrain.cycle.TerrainCycle` (pairing
 states with the commands the base received, dt gating, the estimator, clean-up; the closed-loop evaluation drives
 the same cycle): decode states and commands, cycle, encode `terrain/weights`.
 
@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 
 from pydantic import Field
 
-from gpmppi.terrain_config import EstimatorConfig
-from gpmppi.terrain_cycle import TerrainCycle, TerrainCycleConfig, WeightsUpdate
+from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig, WeightsUpdate
+from gpmppi.terrain.settings import EstimatorConfig
 from schemas import BaseCommand, Command, TerrainWeights
 from services.codec.convert import state_to_array
 from services.runtime.node import Node
@@ -21,7 +21,7 @@ from services.runtime.node_settings import NodeSettings
 
 if TYPE_CHECKING:
     from gpmppi.gp.model_file import GPModel
-    from gpmppi.terrain import BayesTerrainEstimator, TerrainEstimator
+    from gpmppi.terrain.estimate import EstimatorLike
 
 
 class Settings(NodeSettings, TerrainCycleConfig):
@@ -32,7 +32,7 @@ class Settings(NodeSettings, TerrainCycleConfig):
     model_file: str | None = Field(None, description="GP model file (None: the shipped model)")
     estimator: EstimatorConfig = Field(
         default_factory=EstimatorConfig, description="the estimator: method ('bayes', the default, or the paper's "
-        "convex problem 'paper') and its parameters (gpmppi.terrain_config.EstimatorConfig)"
+        "convex problem 'paper') and its parameters (gpmppi.terrain.settings.EstimatorConfig)"
     )
 
 
@@ -50,11 +50,11 @@ def run(settings: Settings) -> int:
         return serve(node, settings, model)
 
 
-def serve(node: Node, settings: Settings, model: GPModel, estimator: object | None = None) -> int:
+def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLike | None = None) -> int:
     """The terrain service's event loop on an open node, until it is stopped: decode, `TerrainCycle`, encode.
     `estimator`: one already built (None: built after the first prior is out, as the service starts)."""
     terrains = list(model.terrains)
-    cycle = TerrainCycle(TerrainCycleConfig.from_settings(settings), len(terrains), estimator)  # type: ignore[arg-type]
+    cycle = TerrainCycle(TerrainCycleConfig.from_settings(settings), len(terrains), estimator)
     out = node.publisher("terrain_weights")
     states = node.subscribe("state", newest_only=False, capacity=64)
     command_sub = node.subscribe(settings.command_source, newest_only=False, capacity=64)
@@ -92,8 +92,8 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: object | No
     return 0
 
 
-def _estimator(model: GPModel, settings: Settings) -> TerrainEstimator | BayesTerrainEstimator:
-    from gpmppi.terrain import make_estimator
+def _estimator(model: GPModel, settings: Settings) -> EstimatorLike:
+    from gpmppi.terrain.estimator import make_estimator
 
     return make_estimator(model, settings.estimator)
 

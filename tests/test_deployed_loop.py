@@ -15,9 +15,9 @@ from gpmppi.evaluation.closed_loop import ClosedLoopConfig, Trajectory, run_clos
 from gpmppi.evaluation.runner import EvalSettings, cached_gp_model, make_planner, make_plant
 from gpmppi.safety import SafetyConfig
 from gpmppi.scenarios import circle_lane
-from gpmppi.terrain import make_estimator
-from gpmppi.terrain_config import EstimatorConfig
-from gpmppi.terrain_cycle import TerrainCycleConfig
+from gpmppi.terrain.cycle import TerrainCycleConfig
+from gpmppi.terrain.estimator import make_estimator
+from gpmppi.terrain.settings import EstimatorConfig
 from schemas import BaseCommand, Command, Header, State, TerrainWeights, decode, encode
 from services import egress, terrain
 from services.runtime.node import Node

@@ -8,7 +8,7 @@ import numpy as np
 from typer.testing import CliRunner
 
 from gpmppi.evaluation.runner import EvalSettings, OracleEstimator, make_terrain_estimator
-from gpmppi.terrain import BayesTerrainEstimator, TerrainEstimator
+from gpmppi.terrain.estimator import BayesTerrainEstimator, TerrainEstimator
 from tools.cli import app
 
 NAMES = ["asphalt", "grass", "tile"]

@@ -177,11 +177,11 @@ def test_the_closed_loop_runs_this_cycle() -> None:
     from gpmppi.plant.physics import PhysicsPlant
     from gpmppi.plant.terrains import load_terrains
     from gpmppi.scenarios import circle_lane
-    from gpmppi.terrain import TerrainEstimator
+    from gpmppi.terrain.estimator import TerrainEstimator
 
     model = load_default_model()
     sc = circle_lane()
-    from gpmppi.terrain_cycle import TerrainCycleConfig
+    from gpmppi.terrain.cycle import TerrainCycleConfig
 
     # pairing by stamp: each transition with the command planned from its first state, as the loop below does
     cfg = ClosedLoopConfig(time_limit_s=1.5, latency_s=0.1, terrain=TerrainCycleConfig(pairing="stamp"))

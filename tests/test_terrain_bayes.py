@@ -12,15 +12,16 @@ import pytest
 from pydantic import ValidationError
 
 from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
-from gpmppi.evaluation.terrain_ident import replay
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel, load_default_model
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.mppi.synthetic import synthetic_model
-from gpmppi.terrain import BayesTerrainEstimator, EstimatorConfig, TerrainEstimator, make_estimator
+from gpmppi.terrain.estimator import BayesTerrainEstimator, TerrainEstimator, make_estimator
+from gpmppi.terrain.separability import replay
+from gpmppi.terrain.settings import EstimatorConfig
 
 # the synthetic steps have no command-change part (the physics plant's motor lag): no gains for it; and each starts
-# from a random state, so there is no response to follow (the physics plant's, gpmppi/terrain_response.py) and no
+# from a random state, so there is no response to follow (the physics plant's, gpmppi/terrain/response.py) and no
 # start from rest (their commands are drawn apart from their speeds: no start gate either)
 BAYES = EstimatorConfig(method="bayes", command_change="none", response="none", gp_max_speed_gap=float("inf"))
 
@@ -136,6 +137,42 @@ def test_hysteresis_keeps_the_leader_until_a_challenger_is_clearly_ahead() -> No
     assert est._leader == 1
 
 
+def _publish(est: BayesTerrainEstimator, posterior: list[float]) -> np.ndarray:
+    """The weights the estimator publishes when its posterior is `posterior` (past the warm-up)."""
+    est._posterior = np.asarray(posterior, dtype=np.float64)
+    est._seen = max(est._seen, est.min_history)
+    return est.estimate().weights
+
+
+def test_hysteresis_holds_the_top_through_a_three_way_tie() -> None:
+    # near a uniform posterior a third terrain wanders above the held pair (the leader and the posterior's top): the
+    # leader must stay on top against every terrain above it, not only against the top one; a pair published at its
+    # mean below the third terrain flipped the published top at every such wander (13-17 flips in a few seconds)
+    est = make_estimator(_model(), BAYES.model_copy(update={"hysteresis": 0.3}))
+    assert isinstance(est, BayesTerrainEstimator)
+    first = _publish(est, [0.8, 0.1, 0.1])
+    assert np.argmax(first) == 0
+    wander = [[0.30, 0.36, 0.34], [0.30, 0.34, 0.36], [0.31, 0.35, 0.34], [0.29, 0.35, 0.36],
+              [0.33, 0.32, 0.35], [0.30, 0.37, 0.33], [0.32, 0.33, 0.35], [0.28, 0.36, 0.36]]
+    tops = [0]
+    for p in wander:
+        w = _publish(est, p)
+        assert w.sum() == pytest.approx(1.0)
+        tops.append(int(np.argmax(w)))
+    changes = int(np.count_nonzero(np.diff(tops)))
+    assert changes <= 1, f"the published top changed {changes} times through the tie: {tops}"
+    assert tops[-1] == 0  # the leader held: no challenger was `hysteresis` ahead
+    # the held terrains are published at their mean, the leader just above; a terrain below the leader is unchanged
+    w = _publish(est, [0.30, 0.36, 0.34])
+    np.testing.assert_allclose(w, [0.3333333, 0.3333333, 0.3333333], atol=1e-5)
+    w = _publish(est, [0.30, 0.50, 0.20])
+    assert np.argmax(w) == 0 and w[2] == 0.20
+    # a terrain that is clearly ahead still takes the top, and is then held in turn
+    taken = _publish(est, [0.10, 0.15, 0.75])
+    np.testing.assert_array_equal(taken, [0.10, 0.15, 0.75])
+    assert int(np.argmax(_publish(est, [0.30, 0.36, 0.34]))) == 2
+
+
 def test_same_steps_give_the_same_weights() -> None:
     model = _model()
     rows = _history(model, 1, 40, seed=6, noise=0.02)
@@ -205,7 +242,7 @@ def _closed_loop_steps(terrain: str, update: str) -> tuple[np.ndarray, np.ndarra
 
 
 # Smooth commands (the default update) drive close to steady state, where the GP's one-step evidence alone reads
-# asphalt as tile (0.14 here): the response evidence (gpmppi/terrain_response.py) identifies it (0.93). The paper's
+# asphalt as tile (0.14 here): the response evidence (gpmppi/terrain/response.py) identifies it (0.93). The paper's
 # jittery update carries the information in the command changes, and the response is not scored under it; its
 # commands run ahead of the speed by more than the start gate's gap on many steps at speed, so it is replayed with
 # that gate off (`gp_max_speed_gap: .inf`, as docs/terrain_identification.md advises for it: with the gate, asphalt

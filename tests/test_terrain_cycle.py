@@ -1,4 +1,4 @@
-"""The terrain service's cycle (`gpmppi.terrain_cycle.TerrainCycle`) with the real estimator and shipped model and
+"""The terrain service's cycle (`gpmppi.terrain.cycle.TerrainCycle`) with the real estimator and shipped model and
 explicit times: pairing by stamp whatever the arrival order, dt gating, the wait for the newest state's command,
 clean-up; and bad settings named by file and field (the cycle's, egress's safety, a launch file's)."""
 
@@ -14,9 +14,9 @@ from pydantic import ValidationError
 from gpmppi.evaluation.deployed import DeployFileError, deployed_path
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.safety import SafetyConfig
-from gpmppi.terrain import make_estimator
-from gpmppi.terrain_config import EstimatorConfig
-from gpmppi.terrain_cycle import TerrainCycle, TerrainCycleConfig
+from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig
+from gpmppi.terrain.estimator import make_estimator
+from gpmppi.terrain.settings import EstimatorConfig
 
 NS = 1_000_000_000
 REPO = Path(__file__).resolve().parents[1]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmppi.evaluation.terrain_ident import (
+from gpmppi.terrain.separability import (
     Transitions,
     confusion,
     separability,

@@ -27,9 +27,9 @@ import numpy as np
 
 from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
 from gpmppi.gp.model_file import load_default_model
-from gpmppi.terrain import make_estimator
-from gpmppi.terrain_config import EstimatorConfig
-from gpmppi.terrain_cycle import TerrainCycle, TerrainCycleConfig
+from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig
+from gpmppi.terrain.estimator import make_estimator
+from gpmppi.terrain.settings import EstimatorConfig
 from services.recording.mcap_io import read_messages
 
 

@@ -1,9 +1,10 @@
-"""`gpmppi evaluate terrain-separability`: can the trained terrains be told apart where the robot drives?
+"""`gpmppi evaluate terrain-separability`: can the trained terrains be told apart where the robot drives? And
+`terrain-gains`, `terrain-response`: the CLI over the estimator's calibration (`gpmppi.terrain.calibration`).
 
 Drives GP-MPPI closed loops on the physics plant (the evaluation's own runner), records each run's measured
 transitions, then measures on them how far apart the terrains' GP predictions are against the predictive spread,
 the log-likelihood ratio of the true terrain against each other over sliding windows, and the confusion of the
-argmax-likelihood terrain (`gpmppi.evaluation.terrain_ident`), and replays terrain estimators (the paper's convex
+argmax-likelihood terrain (`gpmppi.terrain.separability`), and replays terrain estimators (the paper's convex
 problem, the Bayesian filter, variants given by --estimator) on the same recorded transitions, scoring them with the
 evaluation's `true_weight_mean` and `weight_switches_per_min`.
 """
@@ -60,7 +61,7 @@ def estimator_settings(items: list[str]) -> tuple[tuple[str, object], ...]:
     """KEY=VALUE items (EstimatorConfig fields) -> validated ((key, value), ...); ValueError naming what is wrong."""
     from pydantic import ValidationError
 
-    from gpmppi.terrain import EstimatorConfig
+    from gpmppi.terrain.settings import EstimatorConfig
 
     out: dict[str, object] = {}
     for item in items:
@@ -91,8 +92,9 @@ def _estimator_fields(spec: str) -> tuple[tuple[str, object], ...]:
 
 def _replay_scores(model, rec: dict, spec: str) -> dict:
     from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
-    from gpmppi.evaluation.terrain_ident import replay, top_changes
-    from gpmppi.terrain import EstimatorConfig, make_estimator
+    from gpmppi.terrain.estimator import make_estimator
+    from gpmppi.terrain.separability import replay, top_changes
+    from gpmppi.terrain.settings import EstimatorConfig
 
     est = make_estimator(model, EstimatorConfig(**dict(_estimator_fields(spec))))
     w = replay(est, rec["states"], rec["commands"])
@@ -106,211 +108,172 @@ def _fmt(x) -> str:
     return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.2f}"
 
 
+def _written_by() -> str:
+    return "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+
+
+def gains_cmd(
+    distance: Annotated[float, typer.Option(
+        "--distance", min=10.0, max=1e5, help="Excitation distance per terrain in m.")] = 400.0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Excitation and plant seed.")] = 5,
+    out: Annotated[Path | None, typer.Option("--output", "-o", metavar=OUT_FILE, help="Write the YAML here.")
+                   ] = None,
+) -> None:
+    """Fit the terrain estimator's per-terrain command-change gains on excitation drives of the physics plant.
+
+    Drives each terrain of the GP model with the training data's excitation commands (not a controller), and
+    fits per output the least-squares gain of that terrain's GP residual on the change of command since the
+    previous step (`gpmppi.terrain.calibration.fit_command_gain`).
+    """
+    from gpmppi.evaluation.runner import cached_gp_model, cached_terrain_set
+    from gpmppi.plant.physics import PhysicsPlant
+    from gpmppi.terrain.calibration import command_gains_yaml, fit_command_gains
+
+    model = cached_gp_model(None)
+    gains = fit_command_gains(model, lambda t: PhysicsPlant(cached_terrain_set(None), t, seed=seed), distance, seed)
+    text = command_gains_yaml(gains, _written_by())
+    if out is not None:
+        out.write_text(text)
+    print(text, end="")
+
+
+def response_cmd(
+    settle: Annotated[float, typer.Option(
+        "--settle", min=0.5, max=60.0, help="Seconds each held command runs before its velocities are averaged.")
+    ] = 2.5,
+    average: Annotated[float, typer.Option(
+        "--average", min=0.1, max=60.0, help="Seconds of measured velocity averaged per held command.")] = 1.5,
+    distance: Annotated[float, typer.Option(
+        "--distance", min=10.0, max=1e5, help="Excitation distance per terrain in m (for the rates).")] = 400.0,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Excitation and plant seed.")] = 5,
+    plant: Annotated[str, typer.Option("--plant", help="physics (default) or residual-net (the paper's "
+                                       "simulator, with --plant-file).")] = "physics",
+    plant_file: Annotated[Path | None, typer.Option("--plant-file", help="Residual-net JSON (the paper's "
+                                                    "fcnn.json).")] = None,
+    gp_model: Annotated[Path | None, typer.Option("--gp-model", help="GP model whose terrains to fit (and, "
+                                                  "for residual-net, whose nominal model).")] = None,
+    out: Annotated[Path | None, typer.Option("--output", "-o", metavar=OUT_FILE, help="Write the YAML here.")
+                   ] = None,
+) -> None:
+    """Fit each terrain's velocity response (gpmppi.terrain.response) on drives of the plant.
+
+    Per terrain of the GP model (--gp-model; default the shipped one) on --plant: holds every command of a
+    (v_ref, omega_ref) grid from rest for --settle s and
+    averages the measured (sensor-noisy) velocities over the next --average s (the steady map); then fits the
+    one-step rate of approach to it on the training data's excitation commands. On a robot, the same drives:
+    hold each command, log the settled velocities.
+    """
+    from gpmppi.evaluation.runner import EvalSettings, cached_gp_model, make_plant
+    from gpmppi.terrain.calibration import fit_response, response_yaml
+
+    if plant not in ("physics", "residual-net"):
+        raise typer.BadParameter(f"--plant must be physics or residual-net, got {plant!r}")
+    settings = EvalSettings(plant=plant, plant_file=None if plant_file is None else str(plant_file),  # type: ignore[arg-type]
+                            gp_model=None if gp_model is None else str(gp_model))
+    names = list(cached_gp_model(settings.gp_model).terrains)
+    response = fit_response(names, lambda t: make_plant(settings, t, seed), settle, average, distance, seed)
+    text = response_yaml(response, _written_by())
+    if out is not None:
+        out.write_text(text)
+    print(text if out is None else f"wrote {out}: terrains {names}, rates {np.round(response.rate, 3).tolist()}")
+
+
+def separability_cmd(
+    terrain: Annotated[list[str] | None, typer.Option("--terrain", "-t", help="Terrain(s) (repeat).")] = None,
+    scenario: Annotated[list[str] | None, typer.Option("--scenario", help="circle, square, avoidance.")] = None,
+    seed: Annotated[int, typer.Option("--seed", min=0, help="Planner and plant seed.")] = 0,
+    distance: Annotated[float, typer.Option("--distance", min=1.0, max=1e5, help="Lane distance in m.")] = 40.0,
+    record_dir: Annotated[Path, typer.Option(
+        "--record-dir", metavar=OUT_DIR, help="Recordings (reused when present).")] = Path("terrain_runs"),
+    estimator: Annotated[list[str] | None, typer.Option(
+        "--candidate", help="Estimators to replay and compare: METHOD[:KEY=VALUE,...] (repeat).")] = None,
+    drive_with: Annotated[str, typer.Option(
+        "--drive-with", help="Estimator the recorded closed loops run with.")] = "paper",
+    window: Annotated[list[int] | None, typer.Option(
+        "--window", min=1, help="Window lengths in steps (repeat).")] = None,
+    out: Annotated[Path | None, typer.Option(
+        "--output", "-o", metavar=OUT_FILE, help="Write the JSON result here.")] = None,
+    md: Annotated[Path | None, typer.Option(
+        "--markdown", metavar=OUT_FILE, help="Write Markdown tables here.")] = None,
+    switch: Annotated[list[str] | None, typer.Option(
+        "--switch", help="Switch the plant's terrain mid-run: TIME:TERRAIN (repeat).")] = None,
+) -> None:
+    """Record closed loops, measure terrain separability on them and replay estimators (see the module doc)."""
+    from gpmppi.evaluation.runner import cached_gp_model
+
+    model = cached_gp_model(None)
+    names = list(model.terrains)
+    scenarios = scenario or list(SCENARIOS)
+    for s in scenarios:
+        if s not in SCENARIOS:
+            raise typer.BadParameter(f"--scenario {s!r}: one of {SCENARIOS}")
+    windows = tuple(window or (1, 10, 20, 50, 100))
+    specs = list(estimator or DEFAULT_ESTIMATORS)
+    switches = tuple((float(t), name) for t, _, name in (item.partition(":") for item in switch or []))
+    t0 = time.perf_counter()
+    recs = _recordings(record_dir, scenarios, terrain or names, seed, distance, switches, drive_with)
+    result = _separability_result(model, recs, specs, windows)
+    result["wall_time_s"] = round(time.perf_counter() - t0, 1)
+    text = json.dumps(result, indent=1, default=float)
+    if out is not None:
+        out.write_text(text)
+    if md is not None:
+        md.write_text(markdown(json.loads(text), names))
+    print(text)
+    _print_summary(result)
+
+
+def _recordings(record_dir: Path, scenarios: list[str], terrains: list[str], seed: int, distance: float,
+                switches: tuple, drive_with: str) -> dict[str, dict]:
+    """The recorded closed loops ("scenario/terrain" -> arrays), recorded into `record_dir` where not there yet."""
+    console = Console(stderr=True)
+    tag = "".join(f"_to{name}at{t:g}" for t, name in switches)
+    record_dir.mkdir(parents=True, exist_ok=True)
+    recs: dict[str, dict] = {}
+    for s in scenarios:
+        for t in terrains:
+            f = record_dir / f"{s}_{t}{tag}_seed{seed}_{distance:g}m_{drive_with.replace(':', '_')}.npz"
+            if not f.is_file():
+                console.print(f"recording {s} on {t} ...")
+                np.savez(f, **_record(s, t, seed, distance, switches, drive_with))
+            recs[f"{s}/{t}"] = dict(np.load(f))
+    return recs
+
+
+def _separability_result(model, recs: dict[str, dict], specs: list[str], windows: tuple[int, ...]) -> dict:
+    """Per run its closed loop's scores and the replays of `specs`; pooled, the separability measures."""
+    from gpmppi.terrain.separability import pooled_separability, switch_response, top_changes
+
+    names = list(model.terrains)
+    result: dict = {"command": _written_by(), "runs": {}}
+    for key, rec in recs.items():
+        terr = [str(x) for x in rec["terrains"]]
+        result["runs"][key] = {
+            "steps": len(terr), "closed_loop": {k: float(rec[k]) for k in (
+                "rmse_mm", "true_weight_mean", "weight_switches_per_min")},
+            "switch_response": switch_response(rec["times"], rec["weights"], terr, names),
+            "closed_loop_top_changes_after_3s": top_changes(rec["times"], rec["weights"]),
+            "replay": {spec: _replay_scores(model, rec, spec) for spec in specs},
+        }
+    runs = {key: (rec["states"], rec["commands"], [str(x) for x in rec["terrains"]]) for key, rec in recs.items()}
+    result.update(pooled_separability(model, runs, windows))
+    return result
+
+
+def _print_summary(result: dict) -> None:
+    console = Console(stderr=True)
+    for key, run in result["runs"].items():
+        row = "  ".join(f"{spec}: {_fmt(r['true_weight_mean'])}/{_fmt(r['weight_switches_per_min'])}"
+                        for spec, r in run["replay"].items())
+        console.print(f"{key}: closed loop {_fmt(run['closed_loop']['true_weight_mean'])}/"
+                      f"{_fmt(run['closed_loop']['weight_switches_per_min'])}; replay {row}")
+
+
 def register(ev: typer.Typer) -> None:
-    """Add `gpmppi evaluate terrain-separability` and `terrain-gains` to the evaluate group."""
-
-    @ev.command("terrain-gains")
-    def gains_cmd(
-        distance: Annotated[float, typer.Option(
-            "--distance", min=10.0, max=1e5, help="Excitation distance per terrain in m.")] = 400.0,
-        seed: Annotated[int, typer.Option("--seed", min=0, help="Excitation and plant seed.")] = 5,
-        out: Annotated[Path | None, typer.Option("--output", "-o", metavar=OUT_FILE, help="Write the YAML here.")
-                       ] = None,
-    ) -> None:
-        """Fit the terrain estimator's per-terrain command-change gains on excitation drives of the physics plant.
-
-        Drives each terrain of the GP model with the training data's excitation commands (not a controller), and
-        fits per output the least-squares gain of that terrain's GP residual on the change of command since the
-        previous step (`gpmppi.evaluation.terrain_ident.fit_command_gain`).
-        """
-        from gpmppi.evaluation.runner import cached_gp_model, cached_terrain_set
-        from gpmppi.evaluation.terrain_ident import fit_command_gain
-        from gpmppi.plant.excitation import drive
-        from gpmppi.plant.physics import PhysicsPlant
-
-        model = cached_gp_model(None)
-        gains = {}
-        for terrain in model.terrains:
-            run = drive(PhysicsPlant(cached_terrain_set(None), terrain, seed=seed), terrain, distance, seed=seed)
-            # command[k] is applied over [t_k, t_k+1): the last one has no next state
-            g = fit_command_gain(model, run.state, run.command[:-1], terrain)
-            gains[terrain] = [round(float(x), 4) for x in g]
-        command = "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-        text = ("# Per-terrain command-change gains of the terrain estimator (gpmppi/terrain.py, command_change:\n"
-                "# per_terrain): the GP residual per unit change of command since the previous step, [v, omega].\n"
-                f"# Written by: {command}\n" + yaml.safe_dump({"version": 1, "gains": gains}, sort_keys=False))
-        if out is not None:
-            out.write_text(text)
-        print(text, end="")
-
-    @ev.command("terrain-response")
-    def response_cmd(
-        settle: Annotated[float, typer.Option(
-            "--settle", min=0.5, max=60.0, help="Seconds each held command runs before its velocities are averaged.")
-        ] = 2.5,
-        average: Annotated[float, typer.Option(
-            "--average", min=0.1, max=60.0, help="Seconds of measured velocity averaged per held command.")] = 1.5,
-        distance: Annotated[float, typer.Option(
-            "--distance", min=10.0, max=1e5, help="Excitation distance per terrain in m (for the rates).")] = 400.0,
-        seed: Annotated[int, typer.Option("--seed", min=0, help="Excitation and plant seed.")] = 5,
-        plant: Annotated[str, typer.Option("--plant", help="physics (default) or residual-net (the paper's "
-                                           "simulator, with --plant-file).")] = "physics",
-        plant_file: Annotated[Path | None, typer.Option("--plant-file", help="Residual-net JSON (the paper's "
-                                                        "fcnn.json).")] = None,
-        gp_model: Annotated[Path | None, typer.Option("--gp-model", help="GP model whose terrains to fit (and, "
-                                                      "for residual-net, whose nominal model).")] = None,
-        out: Annotated[Path | None, typer.Option("--output", "-o", metavar=OUT_FILE, help="Write the YAML here.")
-                       ] = None,
-    ) -> None:
-        """Fit each terrain's velocity response (gpmppi.terrain_response) on drives of the plant.
-
-        Per terrain of the GP model (--gp-model; default the shipped one) on --plant: holds every command of a
-        (v_ref, omega_ref) grid from rest for --settle s and
-        averages the measured (sensor-noisy) velocities over the next --average s (the steady map); then fits the
-        one-step rate of approach to it on the training data's excitation commands. On a robot, the same drives:
-        hold each command, log the settled velocities.
-        """
-        from gpmppi.evaluation.runner import EvalSettings, cached_gp_model, make_plant
-        from gpmppi.plant.excitation import drive
-        from gpmppi.terrain_response import TerrainResponse, fit_rate
-
-        if plant not in ("physics", "residual-net"):
-            raise typer.BadParameter(f"--plant must be physics or residual-net, got {plant!r}")
-        settings = EvalSettings(plant=plant, plant_file=None if plant_file is None else str(plant_file),  # type: ignore[arg-type]
-                                gp_model=None if gp_model is None else str(gp_model))
-        dt = 0.1
-        v_ref = np.round(np.arange(0.0, 2.0 + 1e-9, 0.2), 4)
-        omega_ref = np.round(np.arange(-3.2, 3.2 + 1e-9, 0.2), 4) + 0.0  # no -0.0; covers the planner's +-pi
-        model = cached_gp_model(settings.gp_model)
-        names = list(model.terrains)
-        steady = np.zeros((len(names), len(v_ref), len(omega_ref), 2))
-        rates = np.zeros((len(names), 2))
-        for m, terrain in enumerate(names):
-            robot = make_plant(settings, terrain, seed)
-            for i, v in enumerate(v_ref):
-                for j, w in enumerate(omega_ref):
-                    robot.reset(np.zeros(5))
-                    u = np.array([v, w])
-                    for _ in range(int(round(settle / dt))):
-                        robot.step(u, dt)
-                    seen = []
-                    for _ in range(max(1, int(round(average / dt)))):
-                        robot.step(u, dt)
-                        seen.append(robot.measure()[3:5])
-                    steady[m, i, j] = np.mean(seen, axis=0)
-            one = TerrainResponse(v_ref, omega_ref, (terrain,), steady[m:m + 1], np.ones((1, 2)))
-            run = drive(make_plant(settings, terrain, seed), terrain, distance, seed=seed, dt=dt)
-            # command[k] is applied over [t_k, t_k+1): the last one has no next state
-            rates[m] = fit_rate(lambda c, one=one: one.steady_at(c)[0], run.state, run.command[:-1])
-        response = TerrainResponse(v_ref, omega_ref, tuple(names), steady, rates)
-        command = "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-        text = response.to_yaml(
-            "# Each terrain's velocity response to a held command (gpmppi/terrain_response.py): the steady (v, omega)\n"
-            "# on a (v_ref, omega_ref) grid and the one-step rate of approach to it. Used by the terrain estimator.\n"
-            f"# Written by: {command}\n")
-        if out is not None:
-            out.write_text(text)
-        print(text if out is None else f"wrote {out}: terrains {names}, rates {np.round(rates, 3).tolist()}")
-
-    @ev.command("terrain-separability")
-    def separability_cmd(
-        terrain: Annotated[list[str] | None, typer.Option("--terrain", "-t", help="Terrain(s) (repeat).")] = None,
-        scenario: Annotated[list[str] | None, typer.Option("--scenario", help="circle, square, avoidance.")] = None,
-        seed: Annotated[int, typer.Option("--seed", min=0, help="Planner and plant seed.")] = 0,
-        distance: Annotated[float, typer.Option("--distance", min=1.0, max=1e5, help="Lane distance in m.")] = 40.0,
-        record_dir: Annotated[Path, typer.Option(
-            "--record-dir", metavar=OUT_DIR, help="Recordings (reused when present).")] = Path("terrain_runs"),
-        estimator: Annotated[list[str] | None, typer.Option(
-            "--candidate", help="Estimators to replay and compare: METHOD[:KEY=VALUE,...] (repeat).")] = None,
-        drive_with: Annotated[str, typer.Option(
-            "--drive-with", help="Estimator the recorded closed loops run with.")] = "paper",
-        window: Annotated[list[int] | None, typer.Option(
-            "--window", min=1, help="Window lengths in steps (repeat).")] = None,
-        out: Annotated[Path | None, typer.Option(
-            "--output", "-o", metavar=OUT_FILE, help="Write the JSON result here.")] = None,
-        md: Annotated[Path | None, typer.Option(
-            "--markdown", metavar=OUT_FILE, help="Write Markdown tables here.")] = None,
-        switch: Annotated[list[str] | None, typer.Option(
-            "--switch", help="Switch the plant's terrain mid-run: TIME:TERRAIN (repeat).")] = None,
-    ) -> None:
-        """Record closed loops, measure terrain separability on them and replay estimators (see the module doc)."""
-        from gpmppi.evaluation.runner import cached_gp_model
-        from gpmppi.evaluation.terrain_ident import (
-            Transitions,
-            calibrated,
-            separability,
-            switch_response,
-            top_changes,
-            transitions,
-        )
-
-        console = Console(stderr=True)
-        model = cached_gp_model(None)
-        names = list(model.terrains)
-        terrains = terrain or names
-        scenarios = scenario or list(SCENARIOS)
-        for s in scenarios:
-            if s not in SCENARIOS:
-                raise typer.BadParameter(f"--scenario {s!r}: one of {SCENARIOS}")
-        windows = tuple(window or (1, 10, 20, 50, 100))
-        specs = list(estimator or DEFAULT_ESTIMATORS)
-        switches = tuple((float(t), name) for t, _, name in (item.partition(":") for item in switch or []))
-        tag = "".join(f"_to{name}at{t:g}" for t, name in switches)
-        record_dir.mkdir(parents=True, exist_ok=True)
-        recs: dict[str, dict] = {}
-        t0 = time.perf_counter()
-        for s in scenarios:
-            for t in terrains:
-                f = record_dir / f"{s}_{t}{tag}_seed{seed}_{distance:g}m_{drive_with.replace(':', '_')}.npz"
-                if not f.is_file():
-                    console.print(f"recording {s} on {t} ...")
-                    np.savez(f, **_record(s, t, seed, distance, switches, drive_with))
-                recs[f"{s}/{t}"] = dict(np.load(f))
-        from gpmppi.terrain_config import EstimatorConfig, terrain_command_gains
-
-        gains = terrain_command_gains(EstimatorConfig(), names)
-        result: dict = {"command": "gpmppi " + " ".join(shlex.quote(a) for a in sys.argv[1:]), "runs": {}}
-        parts = []
-        for key, rec in recs.items():
-            terr = [str(x) for x in rec["terrains"]]
-            tr = transitions(model, rec["states"], rec["commands"], terr)
-            du = np.diff(rec["commands"], axis=0, prepend=rec["commands"][:1])
-            known = [t in names for t in terr]
-            parts.append((key, tr, du, all(known)))
-            result["runs"][key] = {
-                "steps": len(terr), "closed_loop": {k: float(rec[k]) for k in (
-                    "rmse_mm", "true_weight_mean", "weight_switches_per_min")},
-                "switch_response": switch_response(rec["times"], rec["weights"], terr, names),
-                "closed_loop_top_changes_after_3s": top_changes(rec["times"], rec["weights"]),
-                "replay": {spec: _replay_scores(model, rec, spec) for spec in specs},
-            }
-        # pooled over runs: a run's windows never straddle into the next (its terrain label carries the run); runs
-        # on a terrain the model does not know are left out
-        for s_name in sorted({k.split("/")[0] for k in recs} | {"all"}):
-            sel = [(tr, du) for k, tr, du, ok in parts if ok and (s_name == "all" or k.startswith(s_name + "/"))]
-            if not sel:
-                continue
-            pooled = Transitions(np.concatenate([p.y for p, _ in sel]), np.concatenate([p.mean for p, _ in sel]),
-                                 np.concatenate([p.var for p, _ in sel]), sum((p.terrain for p, _ in sel), []),
-                                 np.concatenate([np.full(len(p.terrain), i) for i, (p, _) in enumerate(sel)]))
-            du_all = np.concatenate([du for _, du in sel])
-            result.setdefault("separability", {})[s_name] = separability(pooled, names, windows, du_all)
-            result.setdefault("separability_calibrated", {})[s_name] = separability(
-                calibrated(pooled, du_all, names), names, windows)
-            result.setdefault("separability_terrain_gains", {})[s_name] = separability(
-                calibrated(pooled, du_all, names, gains), names, windows)
-        result["wall_time_s"] = round(time.perf_counter() - t0, 1)
-        text = json.dumps(result, indent=1, default=float)
-        if out is not None:
-            out.write_text(text)
-        if md is not None:
-            md.write_text(markdown(json.loads(text), names))
-        print(text)
-        for key, run in result["runs"].items():
-            row = "  ".join(f"{spec}: {_fmt(r['true_weight_mean'])}/{_fmt(r['weight_switches_per_min'])}"
-                            for spec, r in run["replay"].items())
-            console.print(f"{key}: closed loop {_fmt(run['closed_loop']['true_weight_mean'])}/"
-                          f"{_fmt(run['closed_loop']['weight_switches_per_min'])}; replay {row}")
+    """Add `gpmppi evaluate terrain-gains`, `terrain-response` and `terrain-separability` to the evaluate group."""
+    ev.command("terrain-gains")(gains_cmd)
+    ev.command("terrain-response")(response_cmd)
+    ev.command("terrain-separability")(separability_cmd)
 
 
 def markdown(result: dict, names: list[str]) -> str:

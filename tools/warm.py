@@ -88,7 +88,7 @@ def _warm_sim(log: Callable[[str], None]) -> None:
 
 def _warm_terrain(log: Callable[[str], None]) -> None:
     from gpmppi.gp.model_file import GPModel, load_default_model
-    from gpmppi.terrain import make_estimator
+    from gpmppi.terrain.estimator import make_estimator
     from services.terrain import Settings
 
     t = time.perf_counter()

@@ -6,7 +6,7 @@ The plant advances at its own internal step (its `dt`, inside `Plant.step`), the
 `latency_from_cycles` for planner cycles). Egress (`gpmppi.safety.SafetyCycle` with `ClosedLoopConfig.safety`, the
 deploy file's limits) sends on each accepted command, at its steady rate and at the watchdog's deadline, and the
 plant holds each output until the next (None: the planner's commands reach the plant directly). The terrain
-estimator runs in the terrain service's cycle (`gpmppi.terrain_cycle.TerrainCycle`): it gets each state as the
+estimator runs in the terrain service's cycle (`gpmppi.terrain.cycle.TerrainCycle`): it gets each state as the
 planner does and the commands from `command_source` (egress's first output after accepting a command, stamped with
 its state, or the planner's command), solves once the newest state's command is in (after the plan for that state,
 as in the stack), and its weights reach the planner for the next state.
@@ -36,7 +36,8 @@ from gpmppi.evaluation.metrics import first_collision_index, lane_end_reached
 from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle, PlannerLike
 from gpmppi.safety import SafetyConfig
 from gpmppi.tasks import GoalTask, LaneTask, polyline_length
-from gpmppi.terrain_cycle import EstimatorLike, TerrainCycleConfig
+from gpmppi.terrain.cycle import TerrainCycleConfig
+from gpmppi.terrain.estimate import EstimatorLike
 
 Status = Literal["goal", "collision", "finished", "distance", "time_limit", "planner_error", "plant_error"]
 

@@ -17,7 +17,8 @@ import numpy as np
 
 from gpmppi.mppi.cycle import PlannerCycle
 from gpmppi.safety import SafetyConfig, SafetyCycle
-from gpmppi.terrain_cycle import EstimatorLike, TerrainCycle, TerrainCycleConfig
+from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig
+from gpmppi.terrain.estimate import EstimatorLike
 
 _EPS = 1e-9
 

@@ -16,8 +16,8 @@ import yaml
 from pydantic import BaseModel, ValidationError
 
 from gpmppi.safety import SafetyConfig
-from gpmppi.terrain_config import EstimatorConfig
-from gpmppi.terrain_cycle import TerrainCycleConfig
+from gpmppi.terrain.cycle import TerrainCycleConfig
+from gpmppi.terrain.settings import EstimatorConfig
 
 
 class DeployFileError(ValueError):

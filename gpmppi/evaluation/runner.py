@@ -28,7 +28,8 @@ from gpmppi.evaluation.metrics import (
 from gpmppi.safety import SafetyConfig
 from gpmppi.scenarios import Scenario, infeasibility, random_obstacle_scene
 from gpmppi.tasks import GoalTask, LaneTask, polyline_length
-from gpmppi.terrain_cycle import TerrainCycleConfig
+from gpmppi.terrain.cycle import TerrainCycleConfig
+from gpmppi.terrain.estimate import EstimatorLike, TerrainEstimate
 
 Dynamics = Literal["gp", "edd5", "unicycle"]
 PlantKind = Literal["physics", "residual-net"]
@@ -55,7 +56,7 @@ class EvalSettings:
     compensate_latency: bool = True  # planners plan for the state their command meets (`ClosedLoopConfig`)
     robot_radius: float = 0.0  # collision radius of the robot (0 = point, as the paper scores)
     planner_overrides: tuple[tuple[str, object], ...] = ()  # extra PlannerConfig fields, same for every model
-    terrain_estimator: tuple[tuple[str, object], ...] = ()  # EstimatorConfig fields (gpmppi.terrain), e.g. method
+    terrain_estimator: tuple[tuple[str, object], ...] = ()  # EstimatorConfig fields (gpmppi.terrain.settings)
     oracle_weights: bool = False  # GP-MPPI gets the true terrain's one-hot weights (uniform on an unknown terrain)
     # the deployed command path (`gpmppi.evaluation.deployed.deployed_path` reads them from a launch file): egress's
     # safety between planner and plant (None: commands reach the plant directly), and the terrain service's cycle
@@ -161,19 +162,27 @@ def make_planner(settings: EvalSettings, dynamics: Dynamics, terrain: str, seed:
 class OracleEstimator:
     """Stands in for the terrain estimator with the truth: one-hot weights of the terrain under the plant now.
 
-    On a terrain the model was not trained on (sand) it gives uniform weights, as there is no true weight.
+    On a terrain the model was not trained on (sand) it gives uniform weights, as there is no true weight. An
+    `EstimatorLike` that needs no history.
     """
+
+    min_history = 0
 
     def __init__(self, plant, terrain_names: list[str]) -> None:
         self.plant = plant
         self.names = list(terrain_names)
 
+    @property
+    def weights(self) -> np.ndarray:
+        return self.estimate().weights
+
+    def __len__(self) -> int:
+        return 0
+
     def observe(self, state: np.ndarray, command: np.ndarray, next_state: np.ndarray) -> None:
         pass
 
-    def estimate(self):
-        from gpmppi.terrain import TerrainEstimate
-
+    def estimate(self) -> TerrainEstimate:
         m = len(self.names)
         terrain = getattr(self.plant, "terrain", None)
         if terrain in self.names:
@@ -183,12 +192,13 @@ class OracleEstimator:
         return TerrainEstimate(np.full(m, 1.0 / m), True, 0.0, f"oracle: {terrain!r} is not a model terrain")
 
 
-def make_terrain_estimator(settings: EvalSettings, plant):
+def make_terrain_estimator(settings: EvalSettings, plant) -> EstimatorLike:
     """The terrain estimator of this evaluation (`settings.terrain_estimator`), or the oracle."""
     model = cached_gp_model(settings.gp_model)
     if settings.oracle_weights:
         return OracleEstimator(plant, list(model.terrains))
-    from gpmppi.terrain import EstimatorConfig, make_estimator
+    from gpmppi.terrain.estimator import make_estimator
+    from gpmppi.terrain.settings import EstimatorConfig
 
     return make_estimator(model, EstimatorConfig(**dict(settings.terrain_estimator)))
 

@@ -23,7 +23,6 @@ are kept and the estimate says why.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
 
 import cvxpy as cp
 import numpy as np
@@ -31,22 +30,15 @@ import numpy as np
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
-from gpmppi.terrain_config import EstimatorConfig, terrain_command_gains
-from gpmppi.terrain_response import SHIPPED_RESPONSE, load_response
+from gpmppi.terrain.estimate import EstimatorLike, TerrainEstimate
+from gpmppi.terrain.response import SHIPPED_RESPONSE, load_response
+from gpmppi.terrain.settings import EstimatorConfig, terrain_command_gains
 
 # command changes the roughness has seen before the response is scored: a few, so that commands jittery from the
 # start are not scored on a chance small first change, and no more, so that the evidence starts early
 ROUGHNESS_WARMUP_STEPS = 3
 
-__all__ = ["BayesTerrainEstimator", "EstimatorConfig", "TerrainEstimate", "TerrainEstimator", "make_estimator"]
-
-
-@dataclass
-class TerrainEstimate:
-    weights: np.ndarray  # (M,) on the simplex
-    ok: bool  # False: the weights are the previous ones (see message)
-    residual: float  # fit term ||Y - F w||^2 at the returned weights (unnormalised, in (m/s)^2 + (rad/s)^2)
-    message: str
+__all__ = ["BayesTerrainEstimator", "TerrainEstimator", "make_estimator"]
 
 
 def _vector(name: str, value: np.ndarray, n: int) -> np.ndarray:
@@ -178,7 +170,7 @@ class BayesTerrainEstimator:
       what they predict, not by their training noise.
 
     To `l_i` is added the log-likelihood of the terrain's response (`response: steady_map`,
-    gpmppi/terrain_response.py): each terrain's measured steady-state velocity under the commands, run free through
+    gpmppi/terrain/response.py): each terrain's measured steady-state velocity under the commands, run free through
     a first-order rate from the measured velocity, its residual averaged over `response_smoothing_steps` and scored
     against `response_spread`. The GP's inputs lack the plant's hidden states, so at a held command its one-step
     mean is off by as much as the terrains differ, and smooth commands drive close to steady state; the steady map
@@ -378,17 +370,21 @@ class BayesTerrainEstimator:
     def _published(self, p: np.ndarray) -> np.ndarray:
         """The posterior with hysteresis on which terrain leads.
 
-        Where two terrains explain the steps about equally their posteriors wander about each other, and the top
+        Where terrains explain the steps about equally their posteriors wander about each other, and the top
         terrain would change on every small wander. The terrain that led the last published weights keeps the lead
-        until another's posterior exceeds its own by `hysteresis`; until then the two are published at their mean,
-        the leader 1e-6 above (the sum and every other weight unchanged).
+        until another's posterior exceeds its own by `hysteresis`; until then it and every terrain whose posterior
+        is above its own are published at their mean, the leader on top (1e-6 above each of the others; the sum and
+        every weight below the leader's unchanged). Holding the leader against the posterior's top terrain alone is
+        not enough: near a uniform posterior a third terrain between the two would come out above their mean.
         """
         leader = self._leader
         challenger = int(np.argmax(p))
         w = p.copy()
         if leader is not None and challenger != leader and p[challenger] - p[leader] <= self.config.hysteresis:
-            mid = 0.5 * (p[challenger] + p[leader])
-            w[leader], w[challenger] = mid + 1e-6, mid - 1e-6
+            above = np.flatnonzero(p > p[leader])  # the challenger and any terrain between it and the leader
+            mid = (p[leader] + p[above].sum()) / (above.size + 1)
+            w[above] = mid - 1e-6
+            w[leader] = mid + 1e-6 * above.size
         else:
             leader = challenger
         self._leader = leader
@@ -405,8 +401,8 @@ class BayesTerrainEstimator:
         return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps")
 
 
-def make_estimator(model: GPModel, config: EstimatorConfig | None = None) -> TerrainEstimator | BayesTerrainEstimator:
-    """The estimator `config.method` names, built for `model`."""
+def make_estimator(model: GPModel, config: EstimatorConfig | None = None) -> EstimatorLike:
+    """The estimator `config.method` names, built for `model` (either satisfies `EstimatorLike`)."""
     cfg = config or EstimatorConfig()
     if cfg.method == "paper":
         return TerrainEstimator(model, history=cfg.history, gamma=cfg.gamma, min_history=cfg.min_history)

@@ -1,4 +1,4 @@
-"""Settings of the terrain-weight estimator (gpmppi.terrain): which method and its parameters.
+"""Settings of the terrain-weight estimator (gpmppi.terrain.estimator): which method and its parameters.
 
 Apart from the estimators so a service can validate its settings without importing the solver (cvxpy).
 """
@@ -12,7 +12,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-SHIPPED_COMMAND_GAINS = Path(__file__).resolve().parent / "data" / "terrain_command_gains.yaml"
+SHIPPED_COMMAND_GAINS = Path(__file__).resolve().parents[1] / "data" / "terrain_command_gains.yaml"
 
 
 class EstimatorConfig(BaseModel):
@@ -56,7 +56,7 @@ class EstimatorConfig(BaseModel):
     calibration_steps: float = Field(100.0, ge=2, description="bayes: steps over which the online fits forget")
     response: Literal["steady_map", "none"] = Field(
         "steady_map", description="bayes: also score each terrain by its velocity response to the commands "
-        "(gpmppi.terrain_response: steady-state map and rate, run free from the measured velocity), which is "
+        "(gpmppi.terrain.response: steady-state map and rate, run free from the measured velocity), which is "
         "unbiased at steady driving where the GP's one-step residuals are not; 'none': the GP evidence only")
     response_file: str | None = Field(
         None, description="bayes, response steady_map: the terrain response YAML; None: the shipped one "

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-SHIPPED_RESPONSE = Path(__file__).resolve().parent / "data" / "terrain_response.yaml"
+SHIPPED_RESPONSE = Path(__file__).resolve().parents[1] / "data" / "terrain_response.yaml"
 FIT_COMMAND = "gpmppi evaluate terrain-response"
 
 
@@ -120,17 +120,3 @@ def load_response(path: Path | str = SHIPPED_RESPONSE) -> TerrainResponse:
         raise ValueError(f"terrain response file {path}: {e} (expected version, v_ref, omega_ref and per terrain "
                          f"rate, v, omega; write one with `{FIT_COMMAND}`)") from e
 
-
-def fit_rate(steady_at, states: np.ndarray, commands: np.ndarray) -> np.ndarray:
-    """(2,) least-squares one-step rate of `v_{k+1} - v_k = rate (S(u_k) - v_k)` per output on one terrain's drive.
-
-    `steady_at(u) -> (2,)` is that terrain's steady map; `states` (T+1, 5) measured, `commands` (T, 2) applied between
-    them. Clipped to (0, 1].
-    """
-    x = np.asarray(states, dtype=np.float64)[:, 3:5]
-    u = np.asarray(commands, dtype=np.float64)
-    if x.shape[0] != u.shape[0] + 1:
-        raise ValueError(f"need states (T+1, 5) and commands (T, 2); got {np.shape(states)}, {np.shape(commands)}")
-    gap = np.array([steady_at(c) for c in u]) - x[:-1]
-    rate = np.sum((x[1:] - x[:-1]) * gap, axis=0) / np.maximum(np.sum(gap * gap, axis=0), 1e-12)
-    return np.clip(rate, 1e-3, 1.0)

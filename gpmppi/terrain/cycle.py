@@ -26,10 +26,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Literal
 
 import numpy as np
 from pydantic import BaseModel, Field, model_validator
+
+from gpmppi.terrain.estimate import EstimatorLike
 
 CommandSource = Literal["base_cmd", "cmd"]
 Pairing = Literal["stamp", "applied"]
@@ -80,14 +82,6 @@ class TerrainCycleConfig(BaseModel):
         """The cycle's fields of the terrain service's settings (an object or a service entry's `config` dict)."""
         values = settings if isinstance(settings, dict) else settings.model_dump()
         return cls.model_validate({k: v for k, v in values.items() if k in cls.model_fields})
-
-
-class EstimatorLike(Protocol):
-    min_history: int
-
-    def observe(self, state: np.ndarray, command: np.ndarray, next_state: np.ndarray) -> None: ...
-    def estimate(self): ...
-    def __len__(self) -> int: ...
 
 
 @dataclass

@@ -13,7 +13,13 @@ nominal model's step) is compared with every terrain's exact GP prediction: mean
 - calibration: the mean of `((y - m_true) / s_true)^2`, 1 when the GP's predictive variance is the residuals' real
   spread, above 1 when the real residuals scatter more (sensor noise, motor states the GP inputs do not carry);
 - the confusion matrix of the argmax over terrains of the window log-likelihood (rows: true terrain, columns:
-  chosen), and the same for the squared-error fit the paper's estimator minimises (no predictive variance).
+  chosen), and the same for the squared-error fit the paper's estimator minimises (no predictive variance);
+- `pooled_separability`: all of it over a set of recorded runs, as the GP has it, with the noise model made honest
+  (`calibrated`) and with the shipped per-terrain command-change gains.
+
+And replaying an estimator on recorded steps as the closed loop feeds it (`replay`), with what to score the weights
+by beyond the evaluation's metrics: how fast they follow a change of ground (`switch_response`) and how often the
+top terrain changes after the settling time (`top_changes`).
 """
 
 from __future__ import annotations
@@ -25,6 +31,8 @@ import numpy as np
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
+from gpmppi.terrain.estimate import EstimatorLike
+from gpmppi.terrain.settings import EstimatorConfig, terrain_command_gains
 
 
 @dataclass
@@ -177,7 +185,7 @@ def separability(
     }
 
 
-def replay(estimator, states: np.ndarray, commands: np.ndarray) -> np.ndarray:
+def replay(estimator: EstimatorLike, states: np.ndarray, commands: np.ndarray) -> np.ndarray:
     """Feed recorded steps to a terrain estimator as the closed loop does; (T, M) the weights after each step.
 
     Row k holds the weights the plan of cycle k would have used: the estimate after observing steps 0..k-1 (row 0
@@ -252,14 +260,38 @@ def top_changes(times: np.ndarray, weights: np.ndarray, after_s: float = 3.0) ->
     return int(np.count_nonzero(t[changed] >= t[0] + after_s))
 
 
-def fit_command_gain(model: GPModel, states: np.ndarray, commands: np.ndarray, terrain: str) -> np.ndarray:
-    """(2,) least-squares gain of `terrain`'s GP residual on the change of command since the previous step.
 
-    `states` (T+1, 5) measured, `commands` (T, 2) applied between them, all on `terrain`: the gain per output of
-    `y - m_terrain` on `du_k = u_k - u_{k-1}` (the first step's du is 0).
+def pooled_separability(
+    model: GPModel, runs: dict[str, tuple[np.ndarray, np.ndarray, list[str]]], windows: tuple[int, ...],
+) -> dict:
+    """`separability` of recorded runs pooled per scenario and over all: `runs` maps "scenario/terrain" to (measured
+    states (T+1, 5), commands (T, 2), the terrain per step). A run's windows never straddle into the next (its
+    terrain label carries the run); runs on a terrain the model does not know are left out.
+
+    Three views, each {scope: separability} with the scopes "all" and each scenario in sorted order:
+    `separability` (the GP's variance as trained), `separability_calibrated` (one command-change gain for all
+    terrains removed, spread fitted: `calibrated`) and `separability_terrain_gains` (each terrain's shipped gain in
+    its prediction, spread fitted). Empty when no run is on a known terrain.
     """
-    u = np.asarray(commands, dtype=np.float64)
-    tr = transitions(model, states, u, [terrain] * u.shape[0])
-    e = tr.y - tr.mean[:, list(model.terrains).index(terrain)]
-    du = np.diff(u, axis=0, prepend=u[:1])
-    return np.sum(du * e, axis=0) / np.maximum(np.sum(du * du, axis=0), 1e-12)
+    names = list(model.terrains)
+    gains = terrain_command_gains(EstimatorConfig(), names)
+    parts = []
+    for key, (states, commands, terr) in runs.items():
+        tr = transitions(model, states, commands, terr)
+        du = np.diff(commands, axis=0, prepend=commands[:1])
+        parts.append((key, tr, du, all(t in names for t in terr)))
+    result: dict = {}
+    for s_name in sorted({k.split("/")[0] for k in runs} | {"all"}):
+        sel = [(tr, du) for k, tr, du, ok in parts if ok and (s_name == "all" or k.startswith(s_name + "/"))]
+        if not sel:
+            continue
+        pooled = Transitions(np.concatenate([p.y for p, _ in sel]), np.concatenate([p.mean for p, _ in sel]),
+                             np.concatenate([p.var for p, _ in sel]), sum((p.terrain for p, _ in sel), []),
+                             np.concatenate([np.full(len(p.terrain), i) for i, (p, _) in enumerate(sel)]))
+        du_all = np.concatenate([du for _, du in sel])
+        result.setdefault("separability", {})[s_name] = separability(pooled, names, windows, du_all)
+        result.setdefault("separability_calibrated", {})[s_name] = separability(
+            calibrated(pooled, du_all, names), names, windows)
+        result.setdefault("separability_terrain_gains", {})[s_name] = separability(
+            calibrated(pooled, du_all, names, gains), names, windows)
+    return result

@@ -1,0 +1,38 @@
+"""What a terrain estimator publishes (`TerrainEstimate`) and what every estimator is (`EstimatorLike`).
+
+Free of the estimators themselves (and of cvxpy), so the terrain service's cycle can hold one by its protocol.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+
+@dataclass
+class TerrainEstimate:
+    weights: np.ndarray  # (M,) on the simplex
+    ok: bool  # False: the weights are the previous ones (see message)
+    residual: float  # fit term ||Y - F w||^2 at the returned weights (unnormalised, in (m/s)^2 + (rad/s)^2)
+    message: str
+
+
+class EstimatorLike(Protocol):
+    """A terrain-weight estimator: observes steps, estimates weights over the model's terrains."""
+
+    min_history: int  # steps observed before the first estimate (before: the starting weights, ok False)
+
+    @property
+    def weights(self) -> np.ndarray:
+        """(M,) the weights of the last estimate (before one: the starting weights)."""
+        ...
+
+    def observe(self, state: np.ndarray, command: np.ndarray, next_state: np.ndarray) -> None:
+        """Add one step: state (5,) at t, command (2,) applied over [t, t + dt), next_state (5,) at t + dt."""
+        ...
+
+    def estimate(self) -> TerrainEstimate: ...
+
+    def __len__(self) -> int: ...
