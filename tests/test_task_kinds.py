@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from gpmppi.evaluation.task_runs import run_for
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.mppi import task_kinds
 from gpmppi.mppi.bundles import TaskBundle
@@ -77,6 +78,8 @@ def test_a_task_of_no_kind_is_refused_not_scored_as_a_goal(model) -> None:  # no
     p = Planner(PlannerConfig(backend="cpu", samples=16), model)
     with pytest.raises(ValueError, match=r"task must be a LaneTask or GoalTask, got WaypointTask"):
         p.plan(np.zeros(5), WaypointTask(np.ones(2)), W)
+    with pytest.raises(ValueError, match="the evaluation runs a LaneTask or GoalTask, got WaypointTask"):
+        run_for(WaypointTask(np.ones(2)))
 
 
 def test_the_kernels_refuse_a_task_kind_they_have_no_critics_for() -> None:

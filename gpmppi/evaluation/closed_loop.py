@@ -32,10 +32,10 @@ from typing import Literal, Protocol
 import numpy as np
 
 from gpmppi.evaluation.command_path import CommandPath
-from gpmppi.evaluation.metrics import first_collision_index, lane_end_reached
+from gpmppi.evaluation.task_runs import run_for
 from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle, PlannerLike
 from gpmppi.safety import SafetyConfig
-from gpmppi.tasks import GoalTask, LaneTask, polyline_length
+from gpmppi.tasks import Task
 from gpmppi.terrain_cycle import EstimatorLike, TerrainCycleConfig
 
 Status = Literal["goal", "collision", "finished", "distance", "time_limit", "planner_error", "plant_error"]
@@ -128,7 +128,7 @@ class Trajectory:
 def run_closed_loop(
     planner: PlannerLike,
     plant: PlantLike,
-    task: LaneTask | GoalTask,
+    task: Task,
     start: np.ndarray,
     n_terrains: int,
     config: ClosedLoopConfig | None = None,
@@ -163,9 +163,7 @@ def run_closed_loop(
     status: Status = "time_limit"
     message = ""
     steps = int(np.ceil(cfg.time_limit_s / dt - eps))
-    # the open lane whose end stops the run (None: no lane end to reach)
-    end_lane = task if isinstance(task, LaneTask) and not task.closed and cfg.stop_at_lane_end else None
-    lane_length = polyline_length(end_lane.centerline, closed=False) if end_lane is not None else 0.0
+    run = run_for(task)  # when the task stops the run: a goal task's goal or collision, an open lane's end
     for k in range(steps):
         t = k * dt
         sim_now[0] = t
@@ -212,21 +210,9 @@ def run_closed_loop(
         if not np.all(np.isfinite(true_state)):
             status, message = "plant_error", f"plant state became non-finite at t={times[-1]:.1f} s"
             break
-        if isinstance(task, GoalTask):
-            hit = first_collision_index(true_state[None, :2], task.obstacles, cfg.robot_radius)
-            if cfg.stop_on_collision and hit is not None:
-                status = "collision"
-                break
-            if cfg.stop_at_goal and np.linalg.norm(true_state[:2] - task.goal) <= task.tolerance:
-                status = "goal"
-                break
-        if (
-            end_lane is not None
-            and driven >= 0.5 * lane_length
-            and lane_end_reached(true_state[None, :2], end_lane.centerline, end_lane.half_width,
-                                 cfg.lane_end_tolerance_m)[0]
-        ):
-            status = "finished"
+        stop = run.stop(true_state, driven, cfg)
+        if stop is not None:
+            status = stop
             break
         if cfg.distance_limit_m is not None and driven >= cfg.distance_limit_m:
             status = "distance"
