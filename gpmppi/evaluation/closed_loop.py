@@ -125,6 +125,46 @@ class Trajectory:
         return self.true_states[:, :2]
 
 
+@dataclass(frozen=True)
+class _Cycle:
+    """What one planner cycle of a run recorded (a `Trajectory` row)."""
+
+    command: np.ndarray  # (2,) the planned command
+    weights: np.ndarray  # (M,) the terrain weights the plan used
+    weights_ok: bool  # whether the estimator produced them
+    planner_ms: float  # wall time of the planner's cycle [ms]
+    tightened: np.ndarray  # the plan's tightened half-widths or inflated radii
+    terrain: str  # the plant's terrain
+    effective_samples: float  # the update's effective sample size
+    plan_xy: np.ndarray | None  # the nominal plan (N+1, 2), if recorded
+
+
+def _trajectory(
+    times: list[float], trues: list[np.ndarray], meas: list[np.ndarray], cycles: list[_Cycle], n_terrains: int,
+    status: Status, message: str, record_plans: bool, path: CommandPath,
+) -> Trajectory:
+    m = len(cycles)
+    return Trajectory(
+        times=np.asarray(times),
+        true_states=np.asarray(trues),
+        measured_states=np.asarray(meas),
+        commands=np.asarray([c.command for c in cycles]).reshape(m, 2),
+        weights=np.asarray([c.weights for c in cycles]).reshape(m, n_terrains),
+        weights_ok=np.asarray([c.weights_ok for c in cycles], dtype=bool),
+        planner_ms=np.asarray([c.planner_ms for c in cycles]),
+        tightened=[c.tightened for c in cycles],
+        terrains=[c.terrain for c in cycles],
+        status=status,
+        message=message,
+        plans_xy=[c.plan_xy for c in cycles] if record_plans else [],
+        effective_samples=np.asarray([c.effective_samples for c in cycles], dtype=np.float64),
+        base_times=np.asarray(path.base_times, dtype=np.float64),
+        base_commands=np.asarray(path.base_commands, dtype=np.float64).reshape(-1, 2),
+        base_reasons=list(path.base_reasons),
+        terrain_solves=list(path.solves),
+    )
+
+
 def run_closed_loop(
     planner: PlannerLike,
     plant: PlantLike,
@@ -156,8 +196,7 @@ def run_closed_loop(
     measured = np.asarray(plant.measure(), dtype=np.float64)
 
     times, trues, meas = [0.0], [true_state.copy()], [measured.copy()]
-    cmds, ws, oks, pms, tights, terrs, plans = [], [], [], [], [], [], []
-    ess: list[float] = []
+    cycles: list[_Cycle] = []
     path = CommandPath(cfg.safety, cfg.terrain, n_terrains, estimator if cfg.adapt_weights else None)
     driven = 0.0
     status: Status = "time_limit"
@@ -180,16 +219,14 @@ def run_closed_loop(
             status, message = "planner_error", f"planner refused at t={t:.1f} s ({out.name}): {out.message}"
             break
         result = out.result
-        pms.append((time.perf_counter() - t0) * 1e3)
+        planner_ms = (time.perf_counter() - t0) * 1e3
         command = np.asarray(result.control, dtype=np.float64).copy()
-        cmds.append(command)
-        ws.append(cycle.weights.copy())
-        oks.append(path.weights_ok)
-        tights.append(np.asarray(result.tightened).copy())
-        terrs.append(terrain)
-        ess.append(float(result.effective_samples))
-        if record_plans:
-            plans.append(np.asarray(result.states)[:, :2].copy())
+        record = _Cycle(
+            command=command, weights=cycle.weights.copy(), weights_ok=path.weights_ok, planner_ms=planner_ms,
+            tightened=np.asarray(result.tightened).copy(), terrain=terrain,
+            effective_samples=float(result.effective_samples),
+            plan_xy=np.asarray(result.states)[:, :2].copy() if record_plans else None,
+        )
         path.on_planned(t, t + cfg.latency_s, stamp_ns, command)
 
         # advance the plant over [t, t + dt): egress's outputs and the terrain solve happen on their own times
@@ -197,10 +234,8 @@ def run_closed_loop(
             true_state = path.advance(plant, t, t + dt, cycle)
         except FloatingPointError as e:
             status, message = "plant_error", f"plant failed in [{t:.2f}, {t + dt:.2f}) s: {e}"
-            cmds.pop(), ws.pop(), oks.pop(), pms.pop(), tights.pop(), terrs.pop(), ess.pop()
-            if record_plans:
-                plans.pop()
-            break
+            break  # the cycle whose plant step failed is not recorded
+        cycles.append(record)
         measured = np.asarray(plant.measure(), dtype=np.float64).copy()
         driven += float(np.linalg.norm(true_state[:2] - trues[-1][:2]))
         times.append((k + 1) * dt)
@@ -218,23 +253,4 @@ def run_closed_loop(
             status = "distance"
             break
 
-    m = len(cmds)
-    return Trajectory(
-        times=np.asarray(times),
-        true_states=np.asarray(trues),
-        measured_states=np.asarray(meas),
-        commands=np.asarray(cmds).reshape(m, 2),
-        weights=np.asarray(ws).reshape(m, n_terrains),
-        weights_ok=np.asarray(oks, dtype=bool),
-        planner_ms=np.asarray(pms),
-        tightened=tights,
-        terrains=terrs,
-        status=status,
-        message=message,
-        plans_xy=plans,
-        effective_samples=np.asarray(ess, dtype=np.float64),
-        base_times=np.asarray(path.base_times, dtype=np.float64),
-        base_commands=np.asarray(path.base_commands, dtype=np.float64).reshape(-1, 2),
-        base_reasons=list(path.base_reasons),
-        terrain_solves=list(path.solves),
-    )
+    return _trajectory(times, trues, meas, cycles, n_terrains, status, message, record_plans, path)
