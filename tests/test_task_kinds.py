@@ -8,7 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from gpmppi.evaluation.task_runs import run_for
+from gpmppi.evaluation import task_runs
+from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+from gpmppi.evaluation.task_runs import TaskRun, run_for
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.mppi import task_kinds
 from gpmppi.mppi.bundles import TaskBundle
@@ -42,11 +44,28 @@ class WaypointKind(TaskKind):
         return TaskBundle.for_goal(np.asarray(task.point, dtype=np.float64), np.zeros((0, 3)), bounds, None)
 
 
+class WaypointRun(TaskRun):
+    """The evaluation of a waypoint: stop within 0.5 m of it, scored by whether it got there."""
+
+    task_type = WaypointTask
+
+    def limits(self, lane_distance_m: float, goal_time_limit_s: float) -> dict:
+        return {"time_limit_s": goal_time_limit_s}
+
+    def stop(self, true_state: np.ndarray, driven_m: float, cfg: ClosedLoopConfig) -> str | None:
+        return "goal" if np.linalg.norm(true_state[:2] - self.task.point) <= 0.5 else None
+
+    def score(self, positions: np.ndarray, times: np.ndarray, status: str, cfg: ClosedLoopConfig) -> dict:
+        return {"success": status == "goal"}
+
+
 @pytest.fixture
 def waypoint_kind(monkeypatch):  # noqa: ANN001, ANN201
-    """WaypointKind registered for this test only."""
+    """WaypointKind (and its evaluation, WaypointRun) registered for this test only."""
     monkeypatch.setattr(task_kinds, "_KINDS", dict(task_kinds._KINDS))
+    monkeypatch.setattr(task_runs, "_RUNS", dict(task_runs._RUNS))
     task_kinds.register(WaypointKind)
+    task_runs.register(WaypointRun)
     return WaypointKind
 
 
@@ -72,6 +91,21 @@ def test_a_new_task_kind_plugs_in(model, waypoint_kind) -> None:  # noqa: ANN001
     assert isinstance(mine.kind(WaypointTask(point)), WaypointKind)
     with pytest.raises(ValueError, match="waypoint must be finite"):
         mine.plan(x_mine, WaypointTask(np.array([np.nan, 0.0])), W)
+
+
+def test_a_new_task_kind_drives_a_closed_loop(model, waypoint_kind) -> None:  # noqa: ANN001
+    """The evaluation's closed loop drives the toy kind to its point and stops there by the kind's own rule."""
+    from gpmppi.evaluation.runner import EvalSettings, make_plant
+
+    settings = EvalSettings(samples=128)
+    planner = Planner(PlannerConfig(backend="cpu", samples=128, seed=1, goal_distance="euclidean"), model)
+    task = WaypointTask(np.array([2.5, 1.5]))
+    limits = run_for(task).limits(settings.lane_distance_m, 12.0)
+    traj = run_closed_loop(planner, make_plant(settings, model.terrains[0], 0), task, np.zeros(5),
+                           len(model.terrains), ClosedLoopConfig(**limits, adapt_weights=False))
+    assert traj.status == "goal", traj.message
+    assert np.linalg.norm(traj.positions[-1] - task.point) <= 0.5
+    assert run_for(task).score(traj.positions, traj.times, traj.status, None) == {"success": True}
 
 
 def test_a_task_of_no_kind_is_refused_not_scored_as_a_goal(model) -> None:  # noqa: ANN001
