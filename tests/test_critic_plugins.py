@@ -94,7 +94,7 @@ for name, scenario in (("lane", circle_lane()), ("goal", paper_obstacle_scene())
     r = p.plan(scenario.start, scenario.task, np.array([0.5, 0.3, 0.2]))
     # the nominal sequence's cost by the CPU rollout kernel, which must count the new critic as the split does
     kernel_cost = float(backends.rollouts("cpu", *scored[-1], 1, 0)[1][0])
-    cost = p._costs[name]
+    cost = p.kind(scenario.task).cost
     out[name] = {"critics": r.critic_costs, "cost": r.cost, "kernel_cost": kernel_cost,
                  "sample_costs": r.sample_costs.tolist(), "weight": cost.weights["turning"]}
     p0 = Planner(PlannerConfig(backend=backend, samples=32, horizon=8, critics={"turning": {"enabled": False}}), model)

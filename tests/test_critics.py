@@ -46,7 +46,8 @@ def test_critic_costs_sum_to_the_plan_cost(
         assert list(r.critic_costs) == list(CRITICS)
         assert r.cost == sum(r.critic_costs.values())
         # the exact GP's likelihood noise adds the same to every rollout: the plan adds it after the kernels
-        noise = p.config.horizon * p._costs[task_name].weights["variance"] * sum(p._exact_noise_var(W))
+        variance_w = p.kind(scenario.task).cost.weights["variance"]
+        noise = p.config.horizon * variance_w * sum(p.terrain.exact_noise_var(W))
         # the serial evaluation reads the float32 GP table in its own order, so the grid GP's rollout differs in
         # the float32 roundings (~1e-9 of the cost); a critic missing or counted twice is off by far more
         assert r.cost == pytest.approx(kernel_cost(scored[-1]) + noise, rel=1e-8, abs=1e-10)
@@ -64,14 +65,15 @@ def _bundles(model, task_name: str) -> tuple:  # noqa: ANN001
     # the paper's update: its first plan wanders enough to leave the narrowed lane (the smooth one stays inside)
     p = Planner(PlannerConfig(backend="cpu", samples=64, seed=5, update="paper"), model)
     r = p.plan(scenario.start, scenario.task, W)
-    bundle, _ = p._terrain_setup(W)
+    bundle = p.terrain.set_weights(W)
     task = scenario.task
     if task_name == "lane":
         # a half-width the plan leaves, so that the lane-exit indicator counts too
-        t = TaskBundle.for_lane(p._lane_lookup(task), 0.3, np.full(r.tightened.shape[0], 0.02), task.speed_target)
+        lane = p.kind(task).lane_lookup(task)
+        t = TaskBundle.for_lane(lane, 0.3, np.full(r.tightened.shape[0], 0.02), task.speed_target)
     else:
-        t = TaskBundle.for_goal(task.goal, task.obstacles, r.tightened, p._goal_field(task, scenario.start))
-    return p, bundle, t, p._sampling(r.states[0], r.controls, np.zeros(2)), p._costs[task_name]
+        t = TaskBundle.for_goal(task.goal, task.obstacles, r.tightened, p.kind(task).goal_field(task, scenario.start))
+    return p, bundle, t, p._sampling(r.states[0], r.controls, np.zeros(2)), p.kind(task).cost
 
 
 @pytest.mark.parametrize("task_name", ["lane", "goal"])

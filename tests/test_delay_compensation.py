@@ -19,7 +19,7 @@ from gpmppi.terrain.estimator import TerrainEstimator
 
 def _model(planner: Planner, w: np.ndarray) -> tuple:
     """The model bundle's tuple `predict_ahead` / `propagate` take, as the planner passes it."""
-    model, _ = planner._terrain_setup(w)
+    model = planner.terrain.set_weights(w)
     return model.args()
 
 

@@ -115,7 +115,7 @@ if sys.argv[1] == "helpers_first":
 
     pl = Planner(PlannerConfig(dynamics="unicycle"), load_default_model())
     tw = np.full(3, 1.0 / 3.0)
-    bundle, _ = pl._terrain_setup(tw)
+    bundle = pl.terrain.set_weights(tw)
     predict_ahead(bundle.args(), np.zeros(5), np.eye(5), np.array([1.0, 0.5]), 0.25, 0.1)
     if len(sys.argv) > 2:  # a copy of the cache as it is now: the helpers compiled, no planner kernel yet
         import os

@@ -101,19 +101,20 @@ def test_planner_blends_the_slide_by_the_terrain_weights() -> None:
     w = np.array([0.5, 0.3, 0.2])
     p = Planner(PlannerConfig(samples=16, horizon=8, backend="cpu"), model)
     p.prepare(w)
-    np.testing.assert_allclose(p._lateral, sum(w[i] * lat[t] for i, t in enumerate(model.terrains)))
+    blended = sum(w[i] * lat[t] for i, t in enumerate(model.terrains))
+    np.testing.assert_allclose(p.terrain.set_weights(w).lateral, blended)
     # the planned states follow the model step with those coefficients
     x0 = np.array([0.0, 0.0, 0.3, 1.2, 0.8])
-    states, _, _ = p._propagate(x0, np.tile([1.2, 1.0], (8, 1)), p._terrain_setup(w)[0], np.zeros((5, 5)))
+    states, _, _ = p._propagate(x0, np.tile([1.2, 1.0], (8, 1)), p.terrain.set_weights(w), np.zeros((5, 5)))
     plain = Planner(PlannerConfig(samples=16, horizon=8, backend="cpu"), synthetic_model())
     plain.prepare(w)
-    states0, _, _ = plain._propagate(x0, np.tile([1.2, 1.0], (8, 1)), plain._terrain_setup(w)[0],
+    states0, _, _ = plain._propagate(x0, np.tile([1.2, 1.0], (8, 1)), plain.terrain.set_weights(w),
                                       np.zeros((5, 5)))
     assert np.linalg.norm(states[-1, :2] - states0[-1, :2]) > 0.01
     np.testing.assert_allclose(states[:, 2:], states0[:, 2:], atol=1e-12)  # heading and velocities unchanged
     edd5 = Planner(PlannerConfig(samples=16, horizon=8, backend="cpu", dynamics="edd5"), model)
     edd5.prepare(w)
-    assert np.all(edd5._lateral == 0.0)  # the baselines are the paper's models
+    assert np.all(edd5.terrain.set_weights(w).lateral == 0.0)  # the baselines are the paper's models
 
 
 def test_model_file_keeps_the_slide_and_old_files_load_without_it(tmp_path) -> None:  # noqa: ANN001

@@ -56,13 +56,13 @@ def test_lazy_plans_are_identical_to_plans_with_the_table_collapsed_whole(
     lazy, plans_lazy = _closed_loop(model, prepare=prepare, grid_interpolation=interpolation)
     whole, plans_whole = _closed_loop(model, grid_interpolation=interpolation, table_collapse="whole")
     # one collapsed lazily (a new version per weights), the other whole
-    assert lazy._lazy_collapse and lazy._table_version > 5 and not whole._lazy_collapse
+    assert lazy.terrain.lazy_collapse and lazy.terrain.version > 5 and not whole.terrain.lazy_collapse
     np.testing.assert_array_equal(plans_lazy, plans_whole)
 
 
 def test_the_slabs_a_plan_made_current_equal_the_whole_collapse_and_the_rest_were_not_touched(model) -> None:
     planner, _ = _closed_loop(model, steps=3)
-    grid = planner._grid
+    grid = planner.terrain.grid
     lazy, dims = grid["lazy"], grid["dims"]
     current = np.flatnonzero(np.abs(lazy[1:]) == lazy[0])
     # the rollouts reach a small part of the table: that is the saving
@@ -107,15 +107,15 @@ def test_weights_held_for_a_second_plan_collapse_the_whole_table_once(model) -> 
     w = np.array([0.2, 0.3, 0.5])
     planner.prepare(w)
     planner.prepare(w)  # no plan ran with them yet: still lazy
-    lazy = planner._grid["lazy"]
+    lazy = planner.terrain.grid["lazy"]
     assert lazy[0] != 0
     planner.plan(sc.start, sc.task, w)
     assert lazy[0] != 0
     planner.plan(sc.start, sc.task, w)
     assert lazy[0] == 0  # the checks are off
-    whole = np.empty_like(planner._grid["table"])
-    collapse_into(planner._grid["table_src"], planner._grid["collapse_w"], whole)
-    np.testing.assert_array_equal(planner._grid["table"], whole)
+    whole = np.empty_like(planner.terrain.grid["table"])
+    collapse_into(planner.terrain.grid["table_src"], planner.terrain.grid["collapse_w"], whole)
+    np.testing.assert_array_equal(planner.terrain.grid["table"], whole)
     planner.plan(sc.start, sc.task, np.array([0.3, 0.3, 0.4]))
     assert lazy[0] > np.max(lazy[1:]) - 1 and lazy[0] != 0  # a new version, above every slab's
 
@@ -124,9 +124,9 @@ def test_new_weights_make_every_slab_stale_and_prepare_collapses_those_the_last_
     planner = Planner(PlannerConfig(backend="cpu", samples=128, horizon=10), model)
     sc = circle_lane()
     planner.plan(sc.start, sc.task, np.array([0.2, 0.3, 0.5]))
-    lazy = planner._grid["lazy"]
+    lazy = planner.terrain.grid["lazy"]
     before = lazy[0]
-    planner._terrain_setup(np.array([0.25, 0.3, 0.45]))  # as `plan` does: nothing collapsed yet
+    planner.terrain.set_weights(np.array([0.25, 0.3, 0.45]))  # as `plan` does: nothing collapsed yet
     assert lazy[0] == before + 1 and not np.any(lazy[1:] == lazy[0])
     planner.plan(sc.start, sc.task, np.array([0.25, 0.3, 0.45]))
     read = lazy[1:] == lazy[0]
@@ -136,10 +136,11 @@ def test_new_weights_make_every_slab_stale_and_prepare_collapses_those_the_last_
     # exactly the slabs the last plan read, current and not read yet (`-version`)
     np.testing.assert_array_equal(lazy[1:] == -lazy[0], read)
     assert not np.any(lazy[1:] == lazy[0])
-    whole = np.empty_like(planner._grid["table"])
-    collapse_into(planner._grid["table_src"], planner._grid["collapse_w"], whole)
-    rows = (np.flatnonzero(read)[:, None] * planner._grid["dims"][3] + np.arange(planner._grid["dims"][3])).ravel()
-    np.testing.assert_array_equal(planner._grid["table"][rows], whole[rows])
+    whole = np.empty_like(planner.terrain.grid["table"])
+    collapse_into(planner.terrain.grid["table_src"], planner.terrain.grid["collapse_w"], whole)
+    dim3 = planner.terrain.grid["dims"][3]
+    rows = (np.flatnonzero(read)[:, None] * dim3 + np.arange(dim3)).ravel()
+    np.testing.assert_array_equal(planner.terrain.grid["table"][rows], whole[rows])
     planner.prepare(np.array([0.3, 0.3, 0.4]))  # the same weights: nothing to do
     assert lazy[0] == before + 1
     # the next plan reads some of the slabs collapsed ahead (marked read) and collapses others; the next collapse
@@ -160,7 +161,7 @@ def test_a_lookup_outside_the_cells_writes_nothing(model) -> None:
     """A NaN state reaches `ensure_block` through the multilinear cell lookup as a garbage index: nothing is written."""
     planner = Planner(PlannerConfig(backend="cpu", samples=64, horizon=5), model)
     planner.prepare(np.array([0.2, 0.3, 0.5]))
-    grid = planner._grid
+    grid = planner.terrain.grid
     lazy_before, table_before = grid["lazy"].copy(), grid["table"].copy()
     for cell in ((-1, 0, 0), (0, int(grid["dims"][1]) - 1, 0), (np.iinfo(np.int64).min, 0, 0)):
         ensure_block(grid["lazy"], grid["table_src"], grid["collapse_w"], grid["table"], grid["dims"], *cell)

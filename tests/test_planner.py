@@ -260,7 +260,7 @@ def test_prepare_collapses_ahead_and_plans_are_unchanged() -> None:
     w = np.array([0.2, 0.7, 0.1])
     ahead = Planner(PlannerConfig(samples=256, seed=5), model)
     ahead.prepare(w)
-    np.testing.assert_allclose(ahead._table_weights, w, rtol=0, atol=1e-15)  # collapsed for w already
+    np.testing.assert_allclose(ahead.terrain.weights, w, rtol=0, atol=1e-15)  # collapsed for w already
     plain = Planner(PlannerConfig(samples=256, seed=5), model)
     a, b = ahead.plan(x, task, w), plain.plan(x, task, w)
     np.testing.assert_array_equal(a.controls, b.controls)

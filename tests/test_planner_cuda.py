@@ -117,14 +117,14 @@ src_uploads = p.device._versions[("model", M_TABLE_SRC)]
 # a table marked lazily collapsed with no per-terrain rows to collapse it from is refused, by name
 from gpmppi.mppi.bundles import M_LAZY
 from gpmppi.mppi.cuda_backend import cuda_rollouts
-broken = list(p._terrain_setup(w)[0].args())
+broken = list(p.terrain.set_weights(w).args())
 broken[M_TABLE_SRC], broken[M_LAZY] = np.zeros((1, 4), dtype=np.float32), np.ones(1, dtype=np.int64)
 try:
     cuda_rollouts(tuple(broken), None, None, None, None)
     refused = ""
 except ValueError as exc:
     refused = str(exc)
-n_arrays = sum(isinstance(a, np.ndarray) for a in p._terrain_setup(w)[0].args())
+n_arrays = sum(isinstance(a, np.ndarray) for a in p.terrain.set_weights(w).args())
 print(json.dumps({"counts": counts, "model_arrays": n_arrays, "collapses": collapses, "src_uploads": src_uploads,
                   "refused": refused}))
 """

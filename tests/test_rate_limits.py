@@ -33,11 +33,11 @@ def test_every_sampled_first_command_keeps_the_rate_limits_and_the_later_steps_a
     x = sc.start.copy()
     for _ in range(3):  # a few cycles in, so that the command in effect is the planner's own
         x = kinematic_step(x, p.plan(x, sc.task, W).control, DT)
-    bundle, _ = p._terrain_setup(W)
-    task = TaskBundle.for_lane(p._lane_lookup(sc.task), 1.0, np.ones(21), 1.0)
+    bundle = p.terrain.set_weights(W)
+    task = TaskBundle.for_lane(p.kind(sc.task).lane_lookup(sc.task), 1.0, np.ones(21), 1.0)
     sampling = p._sampling(x, p._nominal, np.array([0.5, 0.7]))
     np.testing.assert_array_equal(sampling.u_prev, p._last_control)
-    eps, _, _ = backends.rollouts("cpu", bundle, task, sampling, p._costs["lane"], 512, 0)
+    eps, _, _ = backends.rollouts("cpu", bundle, task, sampling, p.kind(sc.task).cost, 512, 0)
     u = p._nominal[None] + eps.astype(np.float64)  # (S, N, 2) the sampled commands
     first = np.abs(u[:, 0] - sampling.u_prev)
     assert np.all(first <= STEP + TOL), first.max(axis=0)

@@ -59,14 +59,14 @@ def _rollout_noise(memory: float, seed: int = 7, iteration: int = 3) -> tuple[np
     p = Planner(PlannerConfig(dynamics="unicycle", backend="cpu", samples=2048, horizon=30, seed=seed,
                               v_limits=(-1e6, 1e6), omega_limits=(-1e6, 1e6)), synthetic_model())
     sc = circle_lane()
-    bundle, _ = p._terrain_setup(np.full(3, 1 / 3))
+    bundle = p.terrain.set_weights(np.full(3, 1 / 3))
     from gpmppi.mppi.bundles import TaskBundle
 
-    task = TaskBundle.for_lane(p._lane_lookup(sc.task), 1.0, np.ones(31), 1.0)
+    task = TaskBundle.for_lane(p.kind(sc.task).lane_lookup(sc.task), 1.0, np.ones(31), 1.0)
     std = np.array([0.5, 0.7])
     sampling = dataclasses.replace(p._sampling(sc.start, np.zeros((30, 2)), std), iteration=iteration,
                                    noise_memory=memory)
-    eps, _, _ = backends.rollouts("cpu", bundle, task, sampling, p._costs["lane"], 2048, 0)
+    eps, _, _ = backends.rollouts("cpu", bundle, task, sampling, p.kind(sc.task).cost, 2048, 0)
     return eps / std, sampled_noise(seed, iteration, 2048, 30, memory)
 
 

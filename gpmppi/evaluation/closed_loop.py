@@ -32,10 +32,10 @@ from typing import Literal, Protocol
 import numpy as np
 
 from gpmppi.evaluation.command_path import CommandPath
-from gpmppi.evaluation.metrics import first_collision_index, lane_end_reached
+from gpmppi.evaluation.task_runs import run_for
 from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle, PlannerLike
 from gpmppi.safety import SafetyConfig
-from gpmppi.tasks import GoalTask, LaneTask, polyline_length
+from gpmppi.tasks import Task
 from gpmppi.terrain.cycle import TerrainCycleConfig
 from gpmppi.terrain.estimate import EstimatorLike
 
@@ -126,10 +126,50 @@ class Trajectory:
         return self.true_states[:, :2]
 
 
+@dataclass(frozen=True)
+class _Cycle:
+    """What one planner cycle of a run recorded (a `Trajectory` row)."""
+
+    command: np.ndarray  # (2,) the planned command
+    weights: np.ndarray  # (M,) the terrain weights the plan used
+    weights_ok: bool  # whether the estimator produced them
+    planner_ms: float  # wall time of the planner's cycle [ms]
+    tightened: np.ndarray  # the plan's tightened half-widths or inflated radii
+    terrain: str  # the plant's terrain
+    effective_samples: float  # the update's effective sample size
+    plan_xy: np.ndarray | None  # the nominal plan (N+1, 2), if recorded
+
+
+def _trajectory(
+    times: list[float], trues: list[np.ndarray], meas: list[np.ndarray], cycles: list[_Cycle], n_terrains: int,
+    status: Status, message: str, record_plans: bool, path: CommandPath,
+) -> Trajectory:
+    m = len(cycles)
+    return Trajectory(
+        times=np.asarray(times),
+        true_states=np.asarray(trues),
+        measured_states=np.asarray(meas),
+        commands=np.asarray([c.command for c in cycles]).reshape(m, 2),
+        weights=np.asarray([c.weights for c in cycles]).reshape(m, n_terrains),
+        weights_ok=np.asarray([c.weights_ok for c in cycles], dtype=bool),
+        planner_ms=np.asarray([c.planner_ms for c in cycles]),
+        tightened=[c.tightened for c in cycles],
+        terrains=[c.terrain for c in cycles],
+        status=status,
+        message=message,
+        plans_xy=[c.plan_xy for c in cycles] if record_plans else [],
+        effective_samples=np.asarray([c.effective_samples for c in cycles], dtype=np.float64),
+        base_times=np.asarray(path.base_times, dtype=np.float64),
+        base_commands=np.asarray(path.base_commands, dtype=np.float64).reshape(-1, 2),
+        base_reasons=list(path.base_reasons),
+        terrain_solves=list(path.solves),
+    )
+
+
 def run_closed_loop(
     planner: PlannerLike,
     plant: PlantLike,
-    task: LaneTask | GoalTask,
+    task: Task,
     start: np.ndarray,
     n_terrains: int,
     config: ClosedLoopConfig | None = None,
@@ -157,16 +197,13 @@ def run_closed_loop(
     measured = np.asarray(plant.measure(), dtype=np.float64)
 
     times, trues, meas = [0.0], [true_state.copy()], [measured.copy()]
-    cmds, ws, oks, pms, tights, terrs, plans = [], [], [], [], [], [], []
-    ess: list[float] = []
+    cycles: list[_Cycle] = []
     path = CommandPath(cfg.safety, cfg.terrain, n_terrains, estimator if cfg.adapt_weights else None)
     driven = 0.0
     status: Status = "time_limit"
     message = ""
     steps = int(np.ceil(cfg.time_limit_s / dt - eps))
-    # the open lane whose end stops the run (None: no lane end to reach)
-    end_lane = task if isinstance(task, LaneTask) and not task.closed and cfg.stop_at_lane_end else None
-    lane_length = polyline_length(end_lane.centerline, closed=False) if end_lane is not None else 0.0
+    run = run_for(task)  # when the task stops the run: a goal task's goal or collision, an open lane's end
     for k in range(steps):
         t = k * dt
         sim_now[0] = t
@@ -183,16 +220,14 @@ def run_closed_loop(
             status, message = "planner_error", f"planner refused at t={t:.1f} s ({out.name}): {out.message}"
             break
         result = out.result
-        pms.append((time.perf_counter() - t0) * 1e3)
+        planner_ms = (time.perf_counter() - t0) * 1e3
         command = np.asarray(result.control, dtype=np.float64).copy()
-        cmds.append(command)
-        ws.append(cycle.weights.copy())
-        oks.append(path.weights_ok)
-        tights.append(np.asarray(result.tightened).copy())
-        terrs.append(terrain)
-        ess.append(float(result.effective_samples))
-        if record_plans:
-            plans.append(np.asarray(result.states)[:, :2].copy())
+        record = _Cycle(
+            command=command, weights=cycle.weights.copy(), weights_ok=path.weights_ok, planner_ms=planner_ms,
+            tightened=np.asarray(result.tightened).copy(), terrain=terrain,
+            effective_samples=float(result.effective_samples),
+            plan_xy=np.asarray(result.states)[:, :2].copy() if record_plans else None,
+        )
         path.on_planned(t, t + cfg.latency_s, stamp_ns, command)
 
         # advance the plant over [t, t + dt): egress's outputs and the terrain solve happen on their own times
@@ -200,10 +235,8 @@ def run_closed_loop(
             true_state = path.advance(plant, t, t + dt, cycle)
         except FloatingPointError as e:
             status, message = "plant_error", f"plant failed in [{t:.2f}, {t + dt:.2f}) s: {e}"
-            cmds.pop(), ws.pop(), oks.pop(), pms.pop(), tights.pop(), terrs.pop(), ess.pop()
-            if record_plans:
-                plans.pop()
-            break
+            break  # the cycle whose plant step failed is not recorded
+        cycles.append(record)
         measured = np.asarray(plant.measure(), dtype=np.float64).copy()
         driven += float(np.linalg.norm(true_state[:2] - trues[-1][:2]))
         times.append((k + 1) * dt)
@@ -213,43 +246,12 @@ def run_closed_loop(
         if not np.all(np.isfinite(true_state)):
             status, message = "plant_error", f"plant state became non-finite at t={times[-1]:.1f} s"
             break
-        if isinstance(task, GoalTask):
-            hit = first_collision_index(true_state[None, :2], task.obstacles, cfg.robot_radius)
-            if cfg.stop_on_collision and hit is not None:
-                status = "collision"
-                break
-            if cfg.stop_at_goal and np.linalg.norm(true_state[:2] - task.goal) <= task.tolerance:
-                status = "goal"
-                break
-        if (
-            end_lane is not None
-            and driven >= 0.5 * lane_length
-            and lane_end_reached(true_state[None, :2], end_lane.centerline, end_lane.half_width,
-                                 cfg.lane_end_tolerance_m)[0]
-        ):
-            status = "finished"
+        stop = run.stop(true_state, driven, cfg)
+        if stop is not None:
+            status = stop
             break
         if cfg.distance_limit_m is not None and driven >= cfg.distance_limit_m:
             status = "distance"
             break
 
-    m = len(cmds)
-    return Trajectory(
-        times=np.asarray(times),
-        true_states=np.asarray(trues),
-        measured_states=np.asarray(meas),
-        commands=np.asarray(cmds).reshape(m, 2),
-        weights=np.asarray(ws).reshape(m, n_terrains),
-        weights_ok=np.asarray(oks, dtype=bool),
-        planner_ms=np.asarray(pms),
-        tightened=tights,
-        terrains=terrs,
-        status=status,
-        message=message,
-        plans_xy=plans,
-        effective_samples=np.asarray(ess, dtype=np.float64),
-        base_times=np.asarray(path.base_times, dtype=np.float64),
-        base_commands=np.asarray(path.base_commands, dtype=np.float64).reshape(-1, 2),
-        base_reasons=list(path.base_reasons),
-        terrain_solves=list(path.solves),
-    )
+    return _trajectory(times, trues, meas, cycles, n_terrains, status, message, record_plans, path)

@@ -16,18 +16,16 @@ import numpy as np
 from gpmppi.evaluation.closed_loop import ClosedLoopConfig, Trajectory, run_closed_loop
 from gpmppi.evaluation.metrics import (
     command_rates,
-    goal_outcome,
-    lane_exit_count,
-    lane_rmse_mm,
     mean_p95,
     mean_std,
     path_length,
     true_weight_mean,
     weight_switches_per_min,
 )
+from gpmppi.evaluation.task_runs import run_for
 from gpmppi.safety import SafetyConfig
 from gpmppi.scenarios import Scenario, infeasibility, random_obstacle_scene
-from gpmppi.tasks import GoalTask, LaneTask, polyline_length
+from gpmppi.tasks import Task
 from gpmppi.terrain.cycle import TerrainCycleConfig
 from gpmppi.terrain.estimate import EstimatorLike, TerrainEstimate
 
@@ -213,25 +211,9 @@ def needs_estimator(settings: EvalSettings, job: Job) -> bool:
 def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
     task = job.scenario.task
     adapt = needs_estimator(settings, job)
-    if isinstance(task, LaneTask):
-        speed = max(task.speed_target, 0.25)
-        # an open lane ends (status `finished`) at its last point, which may come before the distance limit
-        target = settings.lane_distance_m if task.closed else min(
-            settings.lane_distance_m, polyline_length(task.centerline, closed=False))
-        return ClosedLoopConfig(
-            time_limit_s=1.5 * target / speed + 10.0,
-            distance_limit_m=settings.lane_distance_m,
-            stop_on_collision=False,
-            latency_s=settings.latency_s,
-            compensate_latency=settings.compensate_latency,
-            robot_radius=settings.robot_radius,
-            adapt_weights=adapt,
-            terrain_switches=job.terrain_switches,
-            safety=settings.safety,
-            terrain=settings.terrain_cycle,
-        )
+    limits = run_for(task).limits(settings.lane_distance_m, settings.goal_time_limit_s)
     return ClosedLoopConfig(
-        time_limit_s=settings.goal_time_limit_s,
+        **limits,
         latency_s=settings.latency_s,
         compensate_latency=settings.compensate_latency,
         robot_radius=settings.robot_radius,
@@ -243,7 +225,7 @@ def loop_config(settings: EvalSettings, job: Job) -> ClosedLoopConfig:
 
 
 def score(
-    traj: Trajectory, task: LaneTask | GoalTask, seed: int, cfg: ClosedLoopConfig,
+    traj: Trajectory, task: Task, seed: int, cfg: ClosedLoopConfig,
     terrain_names: list[str] | None = None,
 ) -> RunScore:
     """Score one trajectory (true states, at planner cycles).
@@ -275,14 +257,8 @@ def score(
     if cfg.adapt_weights and terrain_names is not None:
         s.true_weight_mean = true_weight_mean(traj.times, traj.weights, traj.terrains, terrain_names)
         s.weight_switches_per_min = weight_switches_per_min(traj.times, traj.weights)
-    if isinstance(task, LaneTask):
-        s.rmse_mm = lane_rmse_mm(pos, task.centerline, task.closed)
-        s.lane_exits = lane_exit_count(pos, task.centerline, task.half_width, task.closed)
-        s.success = traj.status in ("distance", "finished") and s.lane_exits == 0
-    else:
-        limit, radius = cfg.time_limit_s, cfg.robot_radius
-        out = goal_outcome(traj.times, pos, task.goal, task.tolerance, task.obstacles, limit, radius)
-        s.success, s.time_to_goal_s, s.min_clearance_m = out.success, out.time_to_goal_s, out.min_clearance_m
+    for name, value in run_for(task).score(pos, traj.times, traj.status, cfg).items():
+        setattr(s, name, value)
     return s
 
 

@@ -23,7 +23,7 @@ from typing import Any, ClassVar, NamedTuple
 import numpy as np
 
 from gpmppi.mppi.critics import registry
-from gpmppi.mppi.critics.base import TASK_GOAL, TASK_LANE, W_GOAL_GEODESIC
+from gpmppi.mppi.critics.base import TASK_GOAL, TASK_KINDS, TASK_LANE, W_GOAL_GEODESIC
 from gpmppi.mppi.goal_field import GoalField
 from gpmppi.mppi.lane import LaneLookup
 
@@ -34,6 +34,7 @@ __all__ = [
 
 # the registered critics (`gpmppi.mppi.critics`), each with its own weight, in the kernels' order
 _LAYOUT = registry.layout()
+_KERNEL_TASK_KINDS = frozenset(TASK_KINDS.values())
 CRITICS = _LAYOUT.names
 
 
@@ -192,6 +193,14 @@ class TaskBundle(_Bundle):
         "tightened_hw": FieldSpec("float64", 1), "speed_target": FieldSpec("float64", 0),
         "goal": FieldSpec("float64", 1), "obstacles": FieldSpec("float64", 2), "radii": FieldSpec("float64", 2),
     }
+
+    def args(self) -> tuple:
+        """The fields as the kernels take them; a ValueError for a kind the kernels have no critics for (they score
+        `TASK_LANE` with the lane critics and every other kind with the goal critics)."""
+        if self.kind not in _KERNEL_TASK_KINDS:
+            raise ValueError(f"TaskBundle.kind must be one of the kernels' task kinds {TASK_KINDS}, got {self.kind!r}; "
+                             "a new task kind scores its tasks with one of these critic chains (`task_kinds.TaskKind`)")
+        return super().args()
 
     @classmethod
     def for_lane(cls, lane: LaneLookup, half_width: float, tightened: np.ndarray, speed: float) -> TaskBundle:

@@ -103,7 +103,8 @@ def stage_cost(
     cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles: `TaskBundle`
     fields); `tightened_hw` this step's tightened half-width (the lane distance is exact near it), `radii` (K,) this
     step's inflated radii; `discount_k` the lane-exit discount of this step; `s` the state after the step (x, y,
-    yaw, v, omega), `u` its command, `var` its GP variances.
+    yaw, v, omega), `u` its command, `var` its GP variances. `kind` is `TASK_LANE` or `TASK_GOAL`: `TaskBundle.args`
+    refuses any other, so the goal critics here are the goal kind's.
     """
     at = _step(kind == TASK_LANE, geo, tightened_hw, radii, discount_k, s, u, var)
     if kind == TASK_LANE:

@@ -34,7 +34,7 @@ from pydantic import BaseModel, Field, model_validator
 
 if TYPE_CHECKING:
     from gpmppi.mppi.planner import PlanResult
-    from gpmppi.tasks import GoalTask, LaneTask
+    from gpmppi.tasks import Task
 
 Level = Literal["reject", "error", "warning", "info"]
 # why a state gave no command
@@ -85,7 +85,7 @@ class CycleConfig(BaseModel):
 
 
 class PlannerLike(Protocol):
-    def plan(self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None,
+    def plan(self, state: np.ndarray, task: Task, weights: np.ndarray | None = None,
              state_cov: np.ndarray | None = None, delay_s: float = 0.0) -> PlanResult: ...
     def prepare(self, weights: np.ndarray | None) -> None: ...
     def reset(self) -> None: ...
@@ -147,7 +147,7 @@ class PlannerCycle:
     passes its own, under which planning takes no time (its command latency is all in `actuation_delay_s`)."""
 
     def __init__(
-        self, planner: PlannerLike, task: LaneTask | GoalTask | None, config: CycleConfig, n_terrains: int,
+        self, planner: PlannerLike, task: Task | None, config: CycleConfig, n_terrains: int,
         terrains: Sequence[str] | None = None, clock: Callable[[], float] = time.monotonic,
     ) -> None:
         if terrains is not None and len(terrains) != n_terrains:
@@ -180,7 +180,7 @@ class PlannerCycle:
         return events
 
     # ---- inputs between states
-    def set_task(self, task: LaneTask | GoalTask) -> None:
+    def set_task(self, task: Task) -> None:
         """Plan for `task` from now on; the warm start was for the old one, so it is forgotten."""
         self.task = task
         self.planner.reset()

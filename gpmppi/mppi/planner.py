@@ -14,43 +14,20 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 
 from gpmppi.gp.model_file import GPModel
 from gpmppi.mppi import backends, compile_ahead
-from gpmppi.mppi.bundles import ModelBundle, Outputs, SamplingBundle, TaskBundle
+from gpmppi.mppi.bundles import ModelBundle, Outputs, SamplingBundle
 from gpmppi.mppi.config import PlannerConfig
-from gpmppi.mppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
-from gpmppi.mppi.critics.base import TASK_KINDS
-from gpmppi.mppi.dynamics import (
-    DYN_EDD5,
-    DYN_GP,
-    DYN_UNICYCLE,
-    GP_EXACT,
-    GP_GRID,
-    GP_SIMPLEX,
-    predict_ahead,
-    propagate,
-)
-from gpmppi.mppi.goal_field import GoalField, cached_goal_field
-from gpmppi.mppi.gp_table import (
-    TABLE_AXES,
-    collapse_into,
-    collapse_slabs_at,
-    collapse_weights,
-    lazy_state,
-    rollout_order,
-    terrain_rows,
-)
-from gpmppi.mppi.lane import LaneLookup, cached_lane_lookup
+from gpmppi.mppi.costs import ChanceQuantiles
+from gpmppi.mppi.dynamics import predict_ahead, propagate
+from gpmppi.mppi.task_kinds import TaskKind, kind_class_for, registered_kinds
 from gpmppi.mppi.temperature import temperature_for_effective_samples
-from gpmppi.tasks import GoalTask, LaneTask
+from gpmppi.mppi.terrain_table import TerrainTable
+from gpmppi.tasks import Task
 
 __all__ = ["PlanResult", "Planner", "PlannerConfig"]
-
-_DYN = {"unicycle": DYN_UNICYCLE, "edd5": DYN_EDD5, "gp": DYN_GP}
-
 
 @dataclass
 class PlanResult:
@@ -83,79 +60,33 @@ def savgol_matrix(horizon: int, window: int, order: int) -> np.ndarray:
 
 
 class Planner:
-    """GP-MPPI over a `GPModel`; `plan` is one receding-horizon iteration (warm-started)."""
+    """GP-MPPI over a `GPModel`; `plan` is one receding-horizon iteration (warm-started).
+
+    What depends on the terrain weights (the collapsed GP table, the noise, the EDD5 terrain) is its `terrain`
+    (`TerrainTable`); what depends on the task's kind (checks, bounds, the kernels' task input, the critics) is that
+    kind's (`task_kinds`); the planner keeps the MPPI iteration and its warm start.
+    """
 
     def __init__(self, config: PlannerConfig, model: GPModel) -> None:
         self.config = config
         self.model = model
         c = config
-        m = len(model.terrains)
-        if c.edd5_terrain is not None and c.edd5_terrain not in model.terrains:
-            raise ValueError(f"edd5_terrain {c.edd5_terrain!r} is not a model terrain ({model.terrains})")
         exact_gp = c.dynamics == "gp" and c.gp_mode == "exact"
         if exact_gp and c.backend == "cuda":
             raise ValueError("backend='cuda' evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
         self.backend = "cpu" if exact_gp else backends.resolve(c.backend)
         self.device = backends.device_inputs(self.backend)  # the kernel's inputs kept on the GPU between plans
-        self._dyn = _DYN[c.dynamics]
-        if c.gp_mode == "exact":
-            self._gp_mode = GP_EXACT
-        else:
-            self._gp_mode = GP_SIMPLEX if c.grid_interpolation == "simplex" else GP_GRID
-        self._theta = np.ascontiguousarray(model.theta, dtype=np.float64)
-        self._noise = np.asarray(model.noise, dtype=np.float64).reshape(-1)
-        self._edd5 = np.stack([np.asarray(model.edd5[t], dtype=np.float64) for t in model.terrains])
+        self.terrain = TerrainTable(c, model, self.backend)
         self._quant = ChanceQuantiles.for_probability(c.p_x)
-        self._costs = {task: c.cost_bundle(task) for task in TASK_KINDS}  # by task kind
+        # one of each registered task kind, by task type (a kind registered later: made on its first task)
+        self._kinds = {t: kind(c, self._quant) for t, kind in registered_kinds().items()}
         self._u_lo = np.array([c.v_limits[0], c.omega_limits[0]])
         self._u_hi = np.array([c.v_limits[1], c.omega_limits[1]])
-        self._std = np.array(c.noise_std, dtype=np.float64)
         self._default_state_cov = np.diag(np.square(np.asarray(c.state_std, dtype=np.float64)))
-        self._lane_std = np.array(c.noise_std if c.lane_noise_std is None else c.lane_noise_std, dtype=np.float64)
-        self._table_full: np.ndarray | None = None
-        # the model bundle's grid fields (the table itself collapsed per weights) and exact-GP fields
-        self._grid = ModelBundle.no_grid()
-        self._lazy_collapse = False
-        self._table_version = 1  # the version of the lazily collapsed table's weights (`gp_table.ensure_block`)
-        self._planned_with_weights = False  # whether a plan has run with the weights of the table
-        if self._dyn == DYN_GP and self._gp_mode != GP_EXACT:
-            g = model.grid()
-            self._table_full = terrain_rows(rollout_order(g.table))
-            dims = np.array(g.table.shape[:4], dtype=np.int64)[TABLE_AXES]
-            self._grid = {
-                "table": self._grid["table"],
-                "dims": dims,
-                "lo": np.ascontiguousarray(np.asarray(g.lo, dtype=np.float64)[TABLE_AXES]),
-                "inv_step": np.ascontiguousarray(np.asarray(g.inv_step, dtype=np.float64)[TABLE_AXES]),
-                **ModelBundle.collapsed_whole(),
-            }
-            if c.table_collapse == "lazy":
-                self._lazy_collapse = True
-                # collapsed lazily, slab by slab as the rollouts reach them (`gp_table.ensure_block`), into one
-                # table kept for the planner's life; on CUDA the host reads only the nominal's slabs, and the
-                # device collapses its own table whole from the same per-terrain rows (`cuda_backend`)
-                self._grid.update(table=np.empty((int(np.prod(dims)), 4), dtype=np.float32),
-                                  table_src=self._table_full, lazy=lazy_state(dims), collapse_w=np.zeros(4 + 4 * m))
-        if self._dyn == DYN_GP and self._gp_mode == GP_EXACT:
-            inv_ls = 1.0 / model.lengthscale
-            self._ex = {
-                "ex_scaled_x": np.ascontiguousarray(model.train_x[None, :, :] * inv_ls[:, None, :], dtype=np.float64),
-                "ex_inv_ls": np.ascontiguousarray(inv_ls, dtype=np.float64),
-                "ex_outputscale": np.ascontiguousarray(model.outputscale, dtype=np.float64),
-                "ex_alpha": np.ascontiguousarray(model.alpha, dtype=np.float64),
-                "ex_chol": np.ascontiguousarray(model.chol, dtype=np.float64),
-            }
-        else:
-            self._ex = ModelBundle.no_exact(2 * m)
-        self._table_weights: np.ndarray | None = None
         # the largest change of the command sent from one plan to the next [m/s, rad/s] (`rng.sampled_command`)
         limits = c.accel_limits
         self._rate_step = np.full(2, np.inf) if limits is None else np.asarray(limits, dtype=np.float64) * c.dt
         self._smoother = savgol_matrix(c.horizon, c.savgol_window, c.smoothing_order) if c.savgol_window else None
-        self._lateral_full = model.lateral_matrix()
-        self._lateral = np.zeros(2)
-        self._lane_key: tuple | None = None
-        self._lane: LaneLookup | None = None
         self._may_compile_ahead = self.backend == "cpu"  # until the first plan (`compile_ahead`)
         self.reset()
 
@@ -166,43 +97,27 @@ class Planner:
                                 (c.horizon, 1))
         self._last_control: np.ndarray | None = None
         self._iteration = 0
-        # the scene whose goal field this planner uses, and the position it first planned that scene from
-        self._goal_scene: bytes | None = None
-        self._goal_extent = np.zeros((1, 2))
+        for kind in self._kinds.values():
+            kind.reset()
+
+    def kind(self, task: Task) -> TaskKind:
+        """This planner's kind of `task` (`task_kinds`); a ValueError for a task of no registered kind."""
+        kind = self._kinds.get(type(task))
+        if kind is None:
+            kind = self._kinds[type(task)] = kind_class_for(task)(self.config, self._quant)
+        return kind
 
     # ---------------------------------------------------------------- inputs
-    def _check_inputs(self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None) -> tuple:
+    def _check_inputs(self, state: np.ndarray, task: Task, weights: np.ndarray | None) -> tuple:
         x = np.asarray(state, dtype=np.float64).reshape(-1)
         if x.shape != (5,):
             raise ValueError(f"state must be [X, Y, theta, v, omega] (5 numbers), got shape {np.shape(state)}")
         if not np.all(np.isfinite(x)):
             raise ValueError(f"state must be finite, got {x.tolist()}; drop this state and wait for the next one")
-        if not isinstance(task, (LaneTask, GoalTask)):
-            raise ValueError(f"task must be a LaneTask or GoalTask, got {type(task).__name__}")
-        w = self._check_weights(weights)
-        if isinstance(task, GoalTask):
-            o = task.obstacles
-            if o.shape[0]:
-                d = np.hypot(o[:, 0] - task.goal[0], o[:, 1] - task.goal[1])
-                inside = np.nonzero(d < o[:, 2] + self.config.robot_radius)[0]
-                if inside.size:
-                    raise ValueError(
-                        f"task.goal {task.goal.tolist()} lies inside obstacle {int(inside[0])} "
-                        f"{o[inside[0]].tolist()}; move the goal out of the obstacles"
-                    )
-        return np.ascontiguousarray(x), w
-
-    def _check_weights(self, weights: np.ndarray | None) -> np.ndarray:
-        m = len(self.model.terrains)
-        if weights is None:
-            return np.full(m, 1.0 / m)
-        w = np.asarray(weights, dtype=np.float64).reshape(-1)
-        if w.shape != (m,):
-            raise ValueError(f"weights must have one entry per terrain {self.model.terrains}, got shape {w.shape}")
-        if not np.all(np.isfinite(w)) or np.any(w < -1e-6) or abs(w.sum() - 1.0) > 1e-4:
-            raise ValueError(f"weights must lie on the simplex (>= 0, sum 1), got {w.tolist()}")
-        w = np.clip(w, 0.0, None)
-        return w / w.sum()
+        kind = self.kind(task)
+        w = self.terrain.check_weights(weights)
+        kind.check(task)
+        return np.ascontiguousarray(x), w, kind
 
     def prepare(self, weights: np.ndarray | None) -> None:
         """Get ready to plan with these terrain weights: collapse the GP table now rather than in the next `plan`.
@@ -213,88 +128,11 @@ class Planner:
         collapsed whole, all of it (28.5 MB of per-terrain table for the shipped model).
         Not while a plan runs (the lazily collapsed table is rewritten in place): call both from one thread.
         """
-        self._terrain_setup(self._check_weights(weights), ahead=True)
-
-    def _lane_lookup(self, task: LaneTask) -> LaneLookup:
-        key = (task.centerline.shape, hash(task.centerline.tobytes()), task.closed)
-        if key != self._lane_key:
-            c = self.config
-            reach = c.horizon * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
-            margin = task.half_width + min(reach, 10.0) + 1.0
-            self._lane = cached_lane_lookup(task.centerline, task.closed, margin, c.lane_cell)
-            self._lane_key = key
-        assert self._lane is not None
-        return self._lane
-
-    def _goal_field(self, task: GoalTask, x: np.ndarray) -> GoalField | None:
-        """The geodesic goal field of the task's scene (built once per scene; None for straight-line distance).
-
-        Circles are the obstacles grown by the robot radius; the grid covers the scene and the robot's
-        position when this planner first planned the scene (since its last `reset`), plus the distance a horizon
-        can drive. That position is part of the shared cache's key: a field another planner of the process built
-        from elsewhere covers another grid, and its interpolated distances (so the plans) differ in the last bits.
-        """
-        c = self.config
-        if c.goal_distance != "geodesic":
-            return None
-        circles = task.obstacles.copy()
-        circles[:, 2] += c.robot_radius
-        reach = c.horizon * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
-        scene = task.goal.tobytes() + circles.tobytes()
-        if scene != self._goal_scene:
-            self._goal_scene, self._goal_extent = scene, x[None, :2].copy()
-        return cached_goal_field(task.goal, circles, self._goal_extent, margin=min(reach, 10.0), cell=c.goal_cell)
-
-    def _terrain_setup(self, w: np.ndarray, ahead: bool = False) -> tuple[ModelBundle, float]:
-        """Collapse the grid table when the weights changed (on the CPU: mark it stale, `gp_table.ensure_block`); pick
-        the EDD5 terrain. Returns (the model, ms)."""
-        t0 = time.perf_counter()
-        changed = self._table_weights is None or not np.array_equal(w, self._table_weights)
-        if self._table_full is not None and self._lazy_collapse:
-            lazy = self._grid["lazy"]
-            if changed:  # every slab stale: the readers collapse those they read
-                self._grid["collapse_w"][:] = collapse_weights(w, self._noise_var(w))
-                self._table_version += 1
-                if ahead:  # `prepare`: the slabs the last lazy plan made current, now
-                    collapse_slabs_at(lazy, self._table_full, self._grid["collapse_w"], self._grid["table"],
-                                      self._grid["dims"], self._table_version - 1, self._table_version,
-                                      numba.get_num_threads())
-                lazy[0] = self._table_version
-            elif lazy[0] != 0 and self._planned_with_weights and self.backend == "cpu":
-                # the weights held for a second plan: collapse the rest of the table now (the slabs already current
-                # get the same bits again), and the rollouts skip their slab checks until the weights move
-                collapse_into(self._table_full, self._grid["collapse_w"], self._grid["table"])
-                lazy[0] = 0
-        elif self._table_full is not None and changed:
-            # predictive variance = latent + likelihood noise: the rollouts' variance cost and the propagated
-            # covariance both read it from the table
-            table = np.empty((self._table_full.shape[0], 4), dtype=np.float32)
-            collapse_into(self._table_full, collapse_weights(w, self._noise_var(w)), table)
-            self._grid = {**self._grid, "table": table}
-        if changed:
-            self._table_weights = w.copy()
-            self._planned_with_weights = False
-        # the sideways slide is linear in its coefficients, so the ensemble's is the weighted sum (GP model only)
-        self._lateral = w @ self._lateral_full if self._dyn == DYN_GP else np.zeros(2)
-        name = self.config.edd5_terrain
-        idx = self.model.terrains.index(name) if name is not None else int(np.argmax(w))
-        bundle = ModelBundle(dyn_mode=self._dyn, theta=self._theta, lateral=self._lateral, edd5=self._edd5[idx],
-                             gp_mode=self._gp_mode, **self._grid, **self._ex, terrain_w=w)
-        return bundle, (time.perf_counter() - t0) * 1e3
-
-    def _noise_var(self, w: np.ndarray) -> tuple[float, float]:
-        """Ensemble likelihood noise (sum_i w_i^2 noise_i for v and omega); zero for the models without a GP.
-
-        The GP's latent variance C says how unsure the mean is; the next velocity itself scatters by
-        C + noise (the predictive variance), and that is what the chance constraints must cover.
-        """
-        if self._dyn != DYN_GP:
-            return 0.0, 0.0
-        w2 = w * w
-        return float(w2 @ self._noise[0::2]), float(w2 @ self._noise[1::2])
+        self.terrain.set_weights(self.terrain.check_weights(weights), ahead=True)
 
     def _propagate(self, x: np.ndarray, controls: np.ndarray, model: ModelBundle, cov0: np.ndarray) -> tuple:
-        return propagate(model.args(), x, controls, self.config.dt, *self._exact_noise_var(model.terrain_w), cov0)
+        noise = self.terrain.exact_noise_var(model.terrain_w)
+        return propagate(model.args(), x, controls, self.config.dt, *noise, cov0)
 
     def _predict_ahead(
         self, x: np.ndarray, cov0: np.ndarray, delay_s: float, model: ModelBundle
@@ -314,7 +152,7 @@ class Planner:
             )
         held = self._command_in_effect(x)
         return predict_ahead(model.args(), x, cov0, np.ascontiguousarray(held, dtype=np.float64), float(delay_s),
-                             c.dt, *self._exact_noise_var(model.terrain_w))
+                             c.dt, *self.terrain.exact_noise_var(model.terrain_w))
 
     def _command_in_effect(self, x: np.ndarray) -> np.ndarray:
         """The command the base is under at state `x`: the last one this planner returned (since a reset: the
@@ -334,27 +172,16 @@ class Planner:
             raise ValueError("state_cov has a negative variance on its diagonal")
         return cov
 
-    def _exact_noise_var(self, w: np.ndarray) -> tuple[float, float]:
-        """The noise the kernels do not add themselves: the exact GP gives latent variances (the grid table has it)."""
-        return self._noise_var(w) if self._gp_mode == GP_EXACT else (0.0, 0.0)
-
-    def _bounds(self, task: LaneTask | GoalTask, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
-        """Tightened half-widths (N+1,) or effective obstacle radii (N+1, K), and the clamp count."""
-        c = self.config
-        if not c.tightening:
+    def _bounds(self, kind: TaskKind, task: Task, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
+        """The task kind's bounds (tightened half-widths (N+1,), effective obstacle radii (N+1, K)) and clamp count;
+        untightened (zero covariances) with `tightening` off."""
+        if not self.config.tightening:
             covs = np.zeros_like(covs)
-        if isinstance(task, LaneTask):
-            return tighten_lane(covs, float(task.half_width), self._quant.chi2_2, c.min_half_width_fraction)
-        radii, capped = inflate_obstacles(states, covs, task.obstacles, self._quant.normal, c.robot_radius,
-                                          c.max_inflation)
-        if c.step_clearance:
-            half_step = 0.5 * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
-            radii = np.sqrt(radii * radii + half_step * half_step)
-        return radii, capped
+        return kind.bounds(task, states, covs)
 
     # ---------------------------------------------------------------- plan
     def plan(
-        self, state: np.ndarray, task: LaneTask | GoalTask, weights: np.ndarray | None = None,
+        self, state: np.ndarray, task: Task, weights: np.ndarray | None = None,
         state_cov: np.ndarray | None = None, delay_s: float = 0.0,
     ) -> PlanResult:
         """One MPPI iteration from `state` for `task` with terrain `weights` (None = uniform).
@@ -365,24 +192,25 @@ class Planner:
         """
         c = self.config
         t_start = time.perf_counter()
-        x, w = self._check_inputs(state, task, weights)
+        x, w, kind = self._check_inputs(state, task, weights)
         cov0 = self._state_covariance(state_cov)
-        model, collapse_ms = self._terrain_setup(w)
-        self._planned_with_weights = True
-        ahead = self._start_compile_ahead(x, task, model) if self._may_compile_ahead else None
+        t_collapse = time.perf_counter()
+        model = self.terrain.set_weights(w)
+        collapse_ms = (time.perf_counter() - t_collapse) * 1e3
+        self.terrain.planned()
+        ahead = self._start_compile_ahead(x, kind, task, model) if self._may_compile_ahead else None
         if delay_s != 0.0:
             x, cov0 = self._predict_ahead(x, cov0, delay_s, model)
         t0 = time.perf_counter()
         nominal = self._nominal
         prev_states, prev_covs, _ = self._propagate(x, nominal, model, cov0)
-        bounds, clamped_before = self._bounds(task, prev_states, prev_covs)
+        bounds, clamped_before = self._bounds(kind, task, prev_states, prev_covs)
         t1 = time.perf_counter()
 
-        is_lane = isinstance(task, LaneTask)
-        task_bundle = self._task_bundle(task, bounds, x)
+        task_bundle = kind.task_bundle(task, bounds, x)
         n_xy = min(c.sample_output, c.samples)
-        sampling = self._sampling(x, nominal, self._lane_std if is_lane else self._std)
-        cost = self._costs["lane" if is_lane else "goal"]
+        sampling = self._sampling(x, nominal, kind.noise_std)
+        cost = kind.cost
         if ahead is not None:  # the per-critic scorer compiled here while the child compiles the rollout kernel
             backends.critic_costs(model, task_bundle, sampling, cost)
             ahead.wait()
@@ -390,7 +218,7 @@ class Planner:
                                            self.device)
         # exact GP: the kernels' variance cost is latent; the noise adds the same to every rollout (the update
         # is unchanged), added here so that costs are those of the predictive variance in every mode
-        noise_cost = c.horizon * cost.weights["variance"] * sum(self._exact_noise_var(w))
+        noise_cost = c.horizon * cost.weights["variance"] * sum(self.terrain.exact_noise_var(w))
         costs = costs + noise_cost
         t2 = time.perf_counter()
 
@@ -402,7 +230,7 @@ class Planner:
         t3 = time.perf_counter()
 
         states, covs, _ = self._propagate(x, new_u, model, cov0)
-        out_bounds, clamped_after = self._bounds(task, states, covs)
+        out_bounds, clamped_after = self._bounds(kind, task, states, covs)
         nominal_sampling = self._sampling(x, new_u, np.zeros(2))
         # the nominal sequence scored once: each critic's share, whose sum is its cost (the kernels add the same
         # terms step by step; tests/test_critics.py compares the sum with the kernel's cost of this sequence)
@@ -421,10 +249,10 @@ class Planner:
             control = new_u[0].copy()
             states = np.repeat(x[None, :], c.horizon + 1, axis=0)
             covs = np.zeros_like(covs)
-            out_bounds, clamped_after = self._bounds(task, states, covs)
+            out_bounds, clamped_after = self._bounds(kind, task, states, covs)
         else:
             flags["nonfinite_fallback"] = 0
-        key = "half_width_clamped_steps" if is_lane else "inflation_capped"
+        key = kind.clamp_flag
         flags[key] = int(clamped_before)
         flags[key + "_plan"] = int(clamped_after)
         self._last_control = control
@@ -455,26 +283,19 @@ class Planner:
             temperature=temperature,
         )
 
-    def _task_bundle(self, task: LaneTask | GoalTask, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
-        if isinstance(task, LaneTask):
-            lane = self._lane_lookup(task)
-            return TaskBundle.for_lane(lane, float(task.half_width), bounds, float(task.speed_target))
-        return TaskBundle.for_goal(task.goal, task.obstacles, bounds, self._goal_field(task, x))
-
     def _start_compile_ahead(
-        self, x: np.ndarray, task: LaneTask | GoalTask, model: ModelBundle
+        self, x: np.ndarray, kind: TaskKind, task: Task, model: ModelBundle
     ) -> compile_ahead.CompileAhead | None:
         """On the first plan: compile the rollout kernel in a second process when it is not cached
         (`compile_ahead.start` decides), with this plan's inputs (the bounds of an untightened plan, which have the
         same types), while this one compiles the rest."""
         self._may_compile_ahead = False
         c = self.config
-        bounds, _ = self._bounds(task, np.repeat(x[None, :], c.horizon + 1, axis=0), np.zeros((c.horizon + 1, 5, 5)))
-        std = self._lane_std if isinstance(task, LaneTask) else self._std
+        bounds, _ = self._bounds(kind, task, np.repeat(x[None, :], c.horizon + 1, axis=0),
+                                 np.zeros((c.horizon + 1, 5, 5)))
         out = Outputs.allocate(c.samples, c.horizon, min(c.sample_output, c.samples))
-        cost = self._costs["lane" if isinstance(task, LaneTask) else "goal"]
-        args = (model.args(), self._task_bundle(task, bounds, x).args(), self._sampling(x, self._nominal, std).args(),
-                cost.args(), out.args())
+        args = (model.args(), kind.task_bundle(task, bounds, x).args(),
+                self._sampling(x, self._nominal, kind.noise_std).args(), kind.cost.args(), out.args())
         return compile_ahead.start(args)
 
     def _sampling(self, x: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray) -> SamplingBundle:

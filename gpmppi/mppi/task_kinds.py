@@ -1,0 +1,192 @@
+"""Task kinds: what the planner does differently for a lane to follow and a goal to reach.
+
+A kind is a class bound to one task type (`LaneTask`, `GoalTask`); the planner holds one instance of each kind it has
+been given a task of. Each owns, for its tasks:
+
+* its checks of a task against the planner's configuration (`check`);
+* its chance-constrained bounds from the propagated covariances (`bounds`: tightened lane half-widths, or inflated
+  obstacle radii) and the name of the flag that counts their clamps (`clamp_flag`);
+* the kernels' task input (`task_bundle`, with what it caches per task: the lane lookup, the goal field);
+* its critic chain: the registered critics of a kernel task kind (`critics`, a key of `critics.base.TASK_KINDS`), as
+  the cost bundle the kernels read (`cost`), and the sampling noise of its rollouts (`noise_std`).
+
+A new kind is a `TaskKind` subclass registered with `register` (`tests/test_task_kinds.py` plugs in a toy one). A
+task whose type has no registered kind is refused with a `ValueError` naming the kinds there are
+(`kind_class_for`): it never falls to another kind's critics.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from gpmppi.mppi.bundles import CostBundle, TaskBundle
+from gpmppi.mppi.config import PlannerConfig
+from gpmppi.mppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
+from gpmppi.mppi.critics.base import TASK_KINDS
+from gpmppi.mppi.goal_field import GoalField, cached_goal_field
+from gpmppi.mppi.lane import LaneLookup, cached_lane_lookup
+from gpmppi.tasks import GoalTask, LaneTask
+
+__all__ = ["GoalKind", "LaneKind", "TaskKind", "kind_class_for", "register", "registered_kinds"]
+
+
+class TaskKind:
+    """What the planner does for the tasks of one type (`task_type`): checks, bounds, the kernels' task input and
+    critic chain. One instance per planner (it may cache per task); `reset` with the planner's."""
+
+    task_type: ClassVar[type]  # the task dataclass this kind plans for
+    critics: ClassVar[str]  # the kernels' task kind whose critics score it (a key of `critics.base.TASK_KINDS`)
+    clamp_flag: ClassVar[str]  # `PlanResult.flags` key of the bounds' clamps (and that key + "_plan")
+
+    def __init__(self, config: PlannerConfig, quantiles: ChanceQuantiles) -> None:
+        if self.critics not in TASK_KINDS:
+            raise ValueError(f"task kind {type(self).__name__}: critics {self.critics!r} must be one of the kernels' "
+                             f"task kinds {list(TASK_KINDS)}")
+        self.config = config
+        self.quantiles = quantiles
+        self.cost: CostBundle = config.cost_bundle(self.critics)  # the critic chain as the kernels read it
+        self.noise_std = np.array(config.noise_std, dtype=np.float64)  # the sampling noise of its rollouts
+
+    def reset(self) -> None:
+        """Forget what depends on where the planner started planning (plans repeat from here)."""
+
+    def check(self, task: object) -> None:
+        """Raise a ValueError if the planner cannot plan for `task` (the task's own checks are its type's)."""
+
+    def bounds(self, task: object, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
+        """The chance-constrained bounds (N+1, ...) along `states` with covariances `covs`, and the clamp count."""
+        raise NotImplementedError
+
+    def task_bundle(self, task: object, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
+        """The kernels' task input for `task` with `bounds`, planning from state `x`."""
+        raise NotImplementedError
+
+    def reach(self) -> float:
+        """How far [m] one horizon can drive at the largest speed."""
+        c = self.config
+        return c.horizon * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
+
+
+_KINDS: dict[type, type[TaskKind]] = {}
+
+
+def register(kind: type[TaskKind]) -> type[TaskKind]:
+    """Make `kind` the kind of its `task_type`'s tasks (a class decorator); another kind of that type is replaced."""
+    if kind.critics not in TASK_KINDS:
+        raise ValueError(f"task kind {kind.__name__}: critics {kind.critics!r} must be one of the kernels' task kinds "
+                         f"{list(TASK_KINDS)}")
+    _KINDS[kind.task_type] = kind
+    return kind
+
+
+def registered_kinds() -> dict[type, type[TaskKind]]:
+    """The registered kinds by task type."""
+    return dict(_KINDS)
+
+
+def kind_class_for(task: object) -> type[TaskKind]:
+    """The kind of `task`'s type, or a ValueError that names the task types there are kinds for."""
+    kind = _KINDS.get(type(task))
+    if kind is None:
+        names = " or ".join(t.__name__ for t in _KINDS)
+        raise ValueError(f"task must be a {names}, got {type(task).__name__}: no task kind plans for it "
+                         "(register one with gpmppi.mppi.task_kinds.register)")
+    return kind
+
+
+@register
+class LaneKind(TaskKind):
+    """Follow a lane: the half-width tightened by the covariance, the lane critics, the lane noise."""
+
+    task_type = LaneTask
+    critics = "lane"
+    clamp_flag = "half_width_clamped_steps"
+
+    def __init__(self, config: PlannerConfig, quantiles: ChanceQuantiles) -> None:
+        super().__init__(config, quantiles)
+        std = config.noise_std if config.lane_noise_std is None else config.lane_noise_std
+        self.noise_std = np.array(std, dtype=np.float64)
+        self._lane_key: tuple | None = None
+        self._lane: LaneLookup | None = None
+
+    def bounds(self, task: LaneTask, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
+        """Tightened half-widths (N+1,)."""
+        c = self.config
+        return tighten_lane(covs, float(task.half_width), self.quantiles.chi2_2, c.min_half_width_fraction)
+
+    def task_bundle(self, task: LaneTask, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
+        return TaskBundle.for_lane(self.lane_lookup(task), float(task.half_width), bounds, float(task.speed_target))
+
+    def lane_lookup(self, task: LaneTask) -> LaneLookup:
+        """The lane's lookup grid (built once per lane)."""
+        key = (task.centerline.shape, hash(task.centerline.tobytes()), task.closed)
+        if key != self._lane_key:
+            c = self.config
+            margin = task.half_width + min(self.reach(), 10.0) + 1.0
+            self._lane = cached_lane_lookup(task.centerline, task.closed, margin, c.lane_cell)
+            self._lane_key = key
+        assert self._lane is not None
+        return self._lane
+
+
+@register
+class GoalKind(TaskKind):
+    """Reach a goal among circles: the circles inflated by the covariance, the goal critics."""
+
+    task_type = GoalTask
+    critics = "goal"
+    clamp_flag = "inflation_capped"
+
+    def reset(self) -> None:
+        # the scene whose goal field this planner uses, and the position it first planned that scene from
+        self._goal_scene: bytes | None = None
+        self._goal_extent = np.zeros((1, 2))
+
+    def __init__(self, config: PlannerConfig, quantiles: ChanceQuantiles) -> None:
+        super().__init__(config, quantiles)
+        self.reset()
+
+    def check(self, task: GoalTask) -> None:
+        o = task.obstacles
+        if o.shape[0]:
+            d = np.hypot(o[:, 0] - task.goal[0], o[:, 1] - task.goal[1])
+            inside = np.nonzero(d < o[:, 2] + self.config.robot_radius)[0]
+            if inside.size:
+                raise ValueError(
+                    f"task.goal {task.goal.tolist()} lies inside obstacle {int(inside[0])} "
+                    f"{o[inside[0]].tolist()}; move the goal out of the obstacles"
+                )
+
+    def bounds(self, task: GoalTask, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
+        """Effective obstacle radii (N+1, K)."""
+        c = self.config
+        radii, capped = inflate_obstacles(states, covs, task.obstacles, self.quantiles.normal, c.robot_radius,
+                                          c.max_inflation)
+        if c.step_clearance:
+            half_step = 0.5 * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
+            radii = np.sqrt(radii * radii + half_step * half_step)
+        return radii, capped
+
+    def task_bundle(self, task: GoalTask, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
+        return TaskBundle.for_goal(task.goal, task.obstacles, bounds, self.goal_field(task, x))
+
+    def goal_field(self, task: GoalTask, x: np.ndarray) -> GoalField | None:
+        """The geodesic goal field of the task's scene (built once per scene; None for straight-line distance).
+
+        Circles are the obstacles grown by the robot radius; the grid covers the scene and the robot's
+        position when this planner first planned the scene (since its last `reset`), plus the distance a horizon
+        can drive. That position is part of the shared cache's key: a field another planner of the process built
+        from elsewhere covers another grid, and its interpolated distances (so the plans) differ in the last bits.
+        """
+        c = self.config
+        if c.goal_distance != "geodesic":
+            return None
+        circles = task.obstacles.copy()
+        circles[:, 2] += c.robot_radius
+        scene = task.goal.tobytes() + circles.tobytes()
+        if scene != self._goal_scene:
+            self._goal_scene, self._goal_extent = scene, x[None, :2].copy()
+        return cached_goal_field(task.goal, circles, self._goal_extent, margin=min(self.reach(), 10.0),
+                                 cell=c.goal_cell)

@@ -1,0 +1,132 @@
+"""Task kinds are plug-ins: a kind defined here (a waypoint: a goal with no obstacles) plans through the planner's
+own iteration, scored by the goal critics it names, and a task of no registered kind is refused by name."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from gpmppi.evaluation import task_runs
+from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+from gpmppi.evaluation.task_runs import TaskRun, run_for
+from gpmppi.gp.model_file import load_default_model
+from gpmppi.mppi import task_kinds
+from gpmppi.mppi.bundles import TaskBundle
+from gpmppi.mppi.planner import Planner, PlannerConfig
+from gpmppi.mppi.task_kinds import TaskKind
+from gpmppi.tasks import GoalTask
+
+W = np.array([0.5, 0.3, 0.2])
+
+
+@dataclass(frozen=True)
+class WaypointTask:
+    """Drive to a point; nothing to avoid."""
+
+    point: np.ndarray
+
+
+class WaypointKind(TaskKind):
+    task_type = WaypointTask
+    critics = "goal"
+    clamp_flag = "waypoint_clamped"
+
+    def check(self, task: WaypointTask) -> None:
+        if not np.all(np.isfinite(task.point)):
+            raise ValueError("waypoint must be finite")
+
+    def bounds(self, task: WaypointTask, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
+        return np.zeros((states.shape[0], 0)), 0  # no circles to inflate
+
+    def task_bundle(self, task: WaypointTask, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
+        return TaskBundle.for_goal(np.asarray(task.point, dtype=np.float64), np.zeros((0, 3)), bounds, None)
+
+
+class WaypointRun(TaskRun):
+    """The evaluation of a waypoint: stop within 0.5 m of it, scored by whether it got there."""
+
+    task_type = WaypointTask
+
+    def limits(self, lane_distance_m: float, goal_time_limit_s: float) -> dict:
+        return {"time_limit_s": goal_time_limit_s}
+
+    def stop(self, true_state: np.ndarray, driven_m: float, cfg: ClosedLoopConfig) -> str | None:
+        return "goal" if np.linalg.norm(true_state[:2] - self.task.point) <= 0.5 else None
+
+    def score(self, positions: np.ndarray, times: np.ndarray, status: str, cfg: ClosedLoopConfig) -> dict:
+        return {"success": status == "goal"}
+
+
+@pytest.fixture
+def waypoint_kind(monkeypatch):  # noqa: ANN001, ANN201
+    """WaypointKind (and its evaluation, WaypointRun) registered for this test only."""
+    monkeypatch.setattr(task_kinds, "_KINDS", dict(task_kinds._KINDS))
+    monkeypatch.setattr(task_runs, "_RUNS", dict(task_runs._RUNS))
+    task_kinds.register(WaypointKind)
+    task_runs.register(WaypointRun)
+    return WaypointKind
+
+
+@pytest.fixture(scope="module")
+def model():  # noqa: ANN201
+    return load_default_model()
+
+
+def test_a_new_task_kind_plugs_in(model, waypoint_kind) -> None:  # noqa: ANN001
+    """The toy kind plans as a goal task with the same point and no obstacles does (the same critics and inputs),
+    bit for bit, and reports its own clamp flag."""
+    cfg = PlannerConfig(backend="cpu", samples=64, seed=3, goal_distance="euclidean", step_clearance=False)
+    mine, ref = Planner(cfg, model), Planner(cfg, model)
+    point = np.array([4.0, 3.0])
+    x_mine = x_ref = np.array([0.0, 0.0, 0.5, 0.0, 0.0])
+    for _ in range(3):
+        a = mine.plan(x_mine, WaypointTask(point), W)
+        b = ref.plan(x_ref, GoalTask(goal=point), W)
+        np.testing.assert_array_equal(a.controls, b.controls)
+        assert a.cost == b.cost and a.critic_costs == b.critic_costs
+        assert a.flags["waypoint_clamped"] == 0 and "inflation_capped" not in a.flags
+        x_mine, x_ref = a.states[1].copy(), b.states[1].copy()
+    assert isinstance(mine.kind(WaypointTask(point)), WaypointKind)
+    with pytest.raises(ValueError, match="waypoint must be finite"):
+        mine.plan(x_mine, WaypointTask(np.array([np.nan, 0.0])), W)
+
+
+def test_a_new_task_kind_drives_a_closed_loop(model, waypoint_kind) -> None:  # noqa: ANN001
+    """The evaluation's closed loop drives the toy kind to its point and stops there by the kind's own rule."""
+    from gpmppi.evaluation.runner import EvalSettings, make_plant
+
+    settings = EvalSettings(samples=128)
+    planner = Planner(PlannerConfig(backend="cpu", samples=128, seed=1, goal_distance="euclidean"), model)
+    task = WaypointTask(np.array([2.5, 1.5]))
+    limits = run_for(task).limits(settings.lane_distance_m, 12.0)
+    traj = run_closed_loop(planner, make_plant(settings, model.terrains[0], 0), task, np.zeros(5),
+                           len(model.terrains), ClosedLoopConfig(**limits, adapt_weights=False))
+    assert traj.status == "goal", traj.message
+    assert np.linalg.norm(traj.positions[-1] - task.point) <= 0.5
+    assert run_for(task).score(traj.positions, traj.times, traj.status, None) == {"success": True}
+
+
+def test_a_task_of_no_kind_is_refused_not_scored_as_a_goal(model) -> None:  # noqa: ANN001
+    p = Planner(PlannerConfig(backend="cpu", samples=16), model)
+    with pytest.raises(ValueError, match=r"task must be a LaneTask or GoalTask, got WaypointTask"):
+        p.plan(np.zeros(5), WaypointTask(np.ones(2)), W)
+    with pytest.raises(ValueError, match="the evaluation runs a LaneTask or GoalTask, got WaypointTask"):
+        run_for(WaypointTask(np.ones(2)))
+
+
+def test_the_kernels_refuse_a_task_kind_they_have_no_critics_for() -> None:
+    bundle = TaskBundle.for_goal(np.ones(2), np.zeros((0, 3)), np.zeros((3, 0)), None)
+    bundle.args()
+    object.__setattr__(bundle, "kind", 2)
+    with pytest.raises(ValueError, match="TaskBundle.kind must be one of the kernels' task kinds"):
+        bundle.args()
+
+
+def test_a_kind_must_name_a_critic_chain_of_the_kernels() -> None:
+    class Nowhere(WaypointKind):
+        critics = "nowhere"
+
+    with pytest.raises(ValueError, match="critics 'nowhere' must be one of the kernels' task kinds"):
+        task_kinds.register(Nowhere)
