@@ -11,7 +11,9 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-SCHEMA_VERSION = 1
+# 2: `Command.source`, the publishing process's identity. A version-1 message (no such field) still decodes.
+SCHEMA_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 
@@ -30,10 +32,10 @@ class Header(Strict):
 
     @model_validator(mode="after")
     def _known_version(self) -> Header:
-        if self.schema_version != SCHEMA_VERSION:
+        if self.schema_version not in READABLE_VERSIONS:
             raise ValueError(
                 f"schema_version {self.schema_version} is not supported (this build speaks "
-                f"{SCHEMA_VERSION}); upgrade the older side"
+                f"{SCHEMA_VERSION} and reads {', '.join(map(str, READABLE_VERSIONS))}); upgrade the older side"
             )
         return self
 
@@ -66,6 +68,16 @@ class Command(Message):
 
     v_ref: float = Field(description="commanded forward velocity [m/s]")
     omega_ref: float = Field(description="commanded yaw rate [rad/s]")
+    source: str = Field(
+        "", max_length=64, description="the publishing process's identity (its Zenoh session id; schema 2): "
+        "commands from two processes tell apart, e.g. a planner and the spare that took over from it"
+    )
+
+    @model_validator(mode="after")
+    def _source_since_2(self) -> Command:
+        if self.source and self.header.schema_version < 2:
+            raise ValueError("source is a schema_version 2 field; this message says version 1")
+        return self
 
 
 class BaseCommand(Message):
