@@ -35,8 +35,9 @@ import zenoh
 from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_for
 from schemas.codec import ENCODING
 from services.runtime.node_settings import NodeSettings
+from services.runtime.role import wait_for_role
 from services.runtime.scheduling import Inbox
-from services.runtime.session import open_session
+from services.runtime.session import StoppedWhileWaiting, open_session
 
 M = TypeVar("M", bound=Message)
 LIVELINESS_PREFIX = "gpmppi/{robot}/alive/{service}"
@@ -179,6 +180,9 @@ class Node:
         self._cycle_times: deque[float] = deque(maxlen=512)
         self._reject_log_times: deque[float] = deque(maxlen=20)
         self.started = time.monotonic()
+        # what a predecessor left, from the launcher's go (registered key name -> payload; `handed_over`)
+        self.handover: dict[str, bytes] = {}
+        self.zid = ""
         if install_signals and threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGINT, self._on_signal)
             signal.signal(signal.SIGTERM, self._on_signal)
@@ -202,15 +206,59 @@ class Node:
     def open(self) -> Node:
         if self.session is not None:
             return self
+        # started by a launcher: everything before this line (imports, model, kernels) is done; the launcher says
+        # when to join (at once, or, for a warm spare, when the service it backs died) and hands over what the
+        # predecessor published last (services.runtime.role)
+        role = wait_for_role(self._stop)
+        if role is not None:
+            self.handover = dict(role.handover)
+            if role.waited_s > 1.0:
+                self.log.info("taking over", extra={"fields": {"waited_s": round(role.waited_s, 1),
+                                                               "handover": sorted(self.handover)}})
         # a client waits for its router (services start in any order); a stop meanwhile ends the wait
         self.session = open_session(self.settings.zenoh, self.log, self._stop)
+        self.zid = str(self.session.zid())  # this process's identity on the wire (e.g. `Command.source`)
         robot, service = self.settings.robot, self.name
-        self._token = self.session.liveliness().declare_token(LIVELINESS_PREFIX.format(robot=robot, service=service))
+        token_key = LIVELINESS_PREFIX.format(robot=robot, service=service)
+        if role is not None:
+            # never two of one service publishing: liveliness decides, not the launcher's view of its processes
+            self._wait_while_alive(token_key)
+        self._token = self.session.liveliness().declare_token(token_key)
         self._health = self.publisher("health")
         self.log.info(
             "session open", extra={"fields": {"zid": str(self.session.zid()), "mode": self.settings.zenoh.mode}}
         )
         return self
+
+    def _alive(self, key: str) -> bool:
+        """Whether a liveliness token on `key` (another process of this service) is alive at the router."""
+        assert self.session is not None
+        replies = self.session.liveliness().get(key, timeout=1.0)
+        return any(reply.ok is not None for reply in replies)
+
+    def _wait_while_alive(self, key: str) -> None:
+        """Wait until no other process of this service holds its liveliness token (a predecessor whose death the
+        router has not seen yet, or one that is alive elsewhere), before declaring ours and publishing."""
+        if not self._alive(key):
+            return
+        t0 = time.monotonic()
+        self.log.warning("another %s is alive (%s); waiting until it is gone", self.name, key)
+        while self._alive(key):
+            if self._stop.wait(0.02):
+                raise StoppedWhileWaiting(f"stopped while another {self.name} was alive")
+        waited = round(time.monotonic() - t0, 3)
+        self.log.info("the other %s is gone", self.name, extra={"fields": {"waited_s": waited}})
+
+    def handed_over(self, name: str, model: type[M]) -> M | None:
+        """The predecessor's last message on the registered key `name`, as the launcher saw it, or None."""
+        payload = self.handover.get(name)
+        if payload is None:
+            return None
+        try:
+            return decode(model, payload, self.settings.max_payload_bytes)
+        except DecodeError as exc:
+            self.log.warning("handed-over %s not used: %s", name, exc)
+            return None
 
     def close(self) -> None:
         if self.session is None:

@@ -1,0 +1,87 @@
+"""When a launcher-started process may join, and what its predecessor left: the launcher's side of a service's
+start, seen from the service's process.
+
+The launcher (`services.launch.supervisor`) starts every service process with one end of a socket pair, its file
+descriptor in `GPMPPI_ROLE_FD`. The process does what it can before it joins (imports, the model file, its
+compiled kernels), then `Node.open` calls `wait_for_role`, which says "ready" on the socket and blocks on it (a
+read: no CPU) until the launcher answers with one JSON line, the go:
+
+    {"handover": {"plan": "<the last Plan payload the launcher saw>", ...}}
+
+A process started as the service gets its go at once; a warm spare gets it when the service it backs has died.
+Only the launcher knows which it was: the service module runs the same code either way. `handover` holds the
+last payload the launcher's own session received on the keys the service resumes from (the planner's last Plan,
+the terrain service's last weights), by registered key name; a service without a predecessor gets none.
+
+Outside a launcher (by hand, systemd) there is no socket: `wait_for_role` returns None at once.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import select
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+
+from services.runtime.session import StoppedWhileWaiting
+
+ROLE_FD_ENV = "GPMPPI_ROLE_FD"
+READY = b"ready\n"
+
+
+@dataclass
+class Role:
+    """The launcher's go: what the predecessor left (registered key name -> payload), and how long this process
+    waited for it after it was ready [s]."""
+
+    handover: dict[str, bytes] = field(default_factory=dict)
+    waited_s: float = 0.0
+
+
+_taken: Role | None = None
+
+
+def wait_for_role(stop: threading.Event | None = None) -> Role | None:
+    """Tell the launcher this process is ready, and wait for its go (None without a launcher's socket). The first
+    call waits; later calls return the same role. `StoppedWhileWaiting` when `stop` is set meanwhile (SIGINT,
+    SIGTERM) or the launcher closed its end (it stops, or it died)."""
+    global _taken
+    if _taken is not None:
+        return _taken
+    fd = os.environ.get(ROLE_FD_ENV, "")
+    if not fd.isdigit():
+        return None
+    os.environ.pop(ROLE_FD_ENV)  # not for this process's own children (compile_ahead, ...)
+    sock = socket.socket(fileno=int(fd))
+    try:
+        t0 = time.monotonic()
+        try:
+            sock.sendall(READY)
+        except OSError as exc:
+            raise StoppedWhileWaiting(f"the launcher is gone ({exc})") from None
+        buf = b""
+        while b"\n" not in buf:
+            if stop is not None and stop.is_set():
+                raise StoppedWhileWaiting("stopped while waiting for the launcher's go")
+            # blocked in the kernel; the timeout only lets a stop (a signal handler setting `stop`) be seen
+            ready, _, _ = select.select([sock], [], [], 1.0)
+            if not ready:
+                continue
+            chunk = sock.recv(1 << 16)
+            if not chunk:
+                raise StoppedWhileWaiting("the launcher closed its end before its go")
+            buf += chunk
+        go = json.loads(buf.split(b"\n", 1)[0])
+        handover = {str(k): str(v).encode() for k, v in (go.get("handover") or {}).items()}
+        _taken = Role(handover, time.monotonic() - t0)
+        return _taken
+    finally:
+        sock.close()
+
+
+def go_message(handover: dict[str, bytes]) -> bytes:
+    """The launcher's go line for `handover` (registered key name -> payload, JSON text)."""
+    return json.dumps({"handover": {k: v.decode() for k, v in handover.items()}}).encode() + b"\n"
