@@ -169,20 +169,28 @@ def run(settings: Settings) -> int:
         scenario = load_scenario(settings.scenario)
         model = loading.result()
     startup["planner_import_and_model_s"] = time.monotonic() - t
-    with Node(settings) as node:
-        log_model_fit(node.log, model, settings.model_file)
-        # subscribed before the warm-up: the newest state is waiting when it is done (no wait for the next one);
-        # the heartbeat, which tells the launcher the planner is up, starts with the loop
+    # everything that does not need the session is done before it opens: the kernels loaded (or compiled) and the
+    # warm-up plan. A process started ahead of need waits in `Node.open` ready to plan (services.runtime.role).
+    node = Node(settings)
+    log_model_fit(node.log, model, settings.model_file)
+    t = time.monotonic()
+    planner = Planner(settings.planner, model)
+    warm_up(node, planner, scenario)
+    startup["warmup_s"] = time.monotonic() - t
+    with node:
+        # the newest state, weights and task are taken the moment they arrive
         state_sub = StateSubscription(node, node.key("state"), State, newest_only=True, capacity=1024)
         weights_sub = node.subscribe("terrain_weights")
         task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
         outputs = Outputs(node, settings, startup)
-        t = time.monotonic()
-        planner = Planner(settings.planner, model)
-        warm_up(node, planner, scenario)
-        startup["warmup_s"] = time.monotonic() - t
         outputs.started = time.monotonic()
         cycle = PlannerCycle(planner, scenario.task, settings.cycle_config(), len(model.terrains), model.terrains)
+        if (last := node.handed_over("plan", Plan)) is not None:
+            # a predecessor's last plan (the launcher saw it): the first plan starts from its sequence, shifted to
+            # the first state, never from zero commands at speed
+            cycle.resume_from(last.controls, last.header.stamp_ns, settings.planner.dt)
+            if last.terrain_weights and len(last.terrain_weights) == len(model.terrains):
+                cycle.on_weights(last.terrain_weights, time.monotonic())
         report = CycleReport(node, cycle)
         next_task = 0.0
         next_rate_tick = time.monotonic()
@@ -241,6 +249,7 @@ class Outputs:
         cmd = Command(v_ref=float(result.control[0]), omega_ref=float(result.control[1]))
         cmd.header.stamp_ns = out.stamp_ns
         cmd.header.frame_id = "base_link"
+        cmd.source = self.node.zid
         self.cmd.put(cmd)
         # the control latency as this process sees it: the state's stamp to the command handed to Zenoh
         state_to_cmd_ms = (time.time_ns() - out.stamp_ns) / 1e6

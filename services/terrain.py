@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 from typing import TYPE_CHECKING
 
+import numpy as np
 from pydantic import Field
 
 from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig, WeightsUpdate
@@ -46,6 +47,13 @@ def run(settings: Settings) -> int:
     from gpmppi.gp.model_file import GPModel, load_default_model
 
     model = load_default_model() if settings.model_file is None else GPModel.load(settings.model_file)
+    # the estimator's modules (cvxpy for the paper's method) before the session: a process started ahead of need
+    # waits in `Node.open` with them imported (services.runtime.role)
+    import gpmppi.terrain.estimator  # noqa: F401
+
+    if settings.estimator.method == "paper":
+        import cvxpy  # noqa: F401
+
     with Node(settings) as node:
         return serve(node, settings, model)
 
@@ -58,6 +66,9 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
     out = node.publisher("terrain_weights")
     states = node.subscribe("state", newest_only=False, capacity=64)
     command_sub = node.subscribe(settings.command_source, newest_only=False, capacity=64)
+    # a predecessor's last weights (the launcher saw them): published first instead of the prior, and the
+    # estimator starts from them
+    resumed = _resumed_weights(node, terrains)
     while node.ok():
         received_ns = time.time_ns()  # the loop wakes on arrival: when the base got them, on the states' clock
         for c in command_sub.drain():
@@ -73,9 +84,16 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
             # up at once with the prior (uniform weights, solver_ok False: what the planner uses without us,
             # and what a short history gives), then the slow part of the start: cvxpy and the problem (the paper's
             # method) or the GP predictor
-            out.put(_weights_message(terrains, cycle.prior_update()))
+            first = cycle.prior_update()
+            if resumed is not None:
+                first = WeightsUpdate(resumed, False, 0.0, first.stamp_ns)
+            out.put(_weights_message(terrains, first))
             node.cycle()
             cycle.estimator = _estimator(model, settings)
+            if resumed is not None and (reset := getattr(cycle.estimator, "reset", None)) is not None:
+                reset(resumed)
+                node.log.info("resumed from the last published weights", extra={"fields": {
+                    "weights": [round(w, 3) for w in resumed.tolist()]}})
             continue
         # the state's own command arrives when the planner is done with it: solving then, not alongside the
         # planner, keeps this service off the cores the control path needs (it gets the same weights a cycle on)
@@ -90,6 +108,19 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
         node.cycle()
         node.spin_once(0.0)
     return 0
+
+
+def _resumed_weights(node: Node, terrains: list[str]) -> np.ndarray | None:
+    """The predecessor's last weights in the model's terrain order, if handed over and for these terrains."""
+    last = node.handed_over("terrain_weights", TerrainWeights)
+    if last is None:
+        return None
+    if sorted(last.names) != sorted(terrains):
+        node.log.warning("handed-over weights are for other terrains %s: starting from the prior", last.names)
+        return None
+    by_name = dict(zip(last.names, last.weights, strict=True))
+    w = np.clip(np.array([by_name[t] for t in terrains], dtype=np.float64), 0.0, 1.0)
+    return w / w.sum() if w.sum() > 0 else None
 
 
 def _estimator(model: GPModel, settings: Settings) -> EstimatorLike:

@@ -166,6 +166,7 @@ class PlannerCycle:
         self.last_plan_s = 0.0
         self.events: list[Event] = []
         self.counts: dict[str, int] = {}
+        self._resume: tuple[np.ndarray, int, float] | None = None  # a predecessor's plan for the first state
 
     # ---- reporting
     def _event(self, name: str, level: Level, message: str) -> Event:
@@ -180,6 +181,25 @@ class PlannerCycle:
         return events
 
     # ---- inputs between states
+    def resume_from(self, controls: Sequence[Sequence[float]] | np.ndarray, stamp_ns: int, dt: float) -> None:
+        """Start from a predecessor's last plan (its control sequence, planned from a state stamped `stamp_ns`)
+        instead of the configured initial sequence: at the next state, shifted by the steps of `dt` since, so a
+        planner that takes over at speed does not start from zero commands (`Planner.resume`). A plan older than
+        its horizon, or a jump at that state, leaves the usual start."""
+        self._resume = (np.asarray(controls, dtype=np.float64), int(stamp_ns), float(dt))
+
+    def _apply_resume(self, stamp_ns: int) -> None:
+        controls, plan_ns, dt = self._resume  # type: ignore[misc]
+        self._resume = None
+        steps = max(0, round((stamp_ns - plan_ns) / 1e9 / dt))
+        resume = getattr(self.planner, "resume", None)
+        if resume is not None and resume(controls, steps):
+            self._event("resumed", "info", f"warm start from the predecessor's last plan, shifted {steps} steps "
+                        f"({(stamp_ns - plan_ns) / 1e9:.3f} s)")
+        else:
+            self._event("resume_skipped", "warning", f"the predecessor's last plan ({(stamp_ns - plan_ns) / 1e9:.3f} "
+                        "s old) does not fit: starting from the configured initial sequence")
+
     def set_task(self, task: Task) -> None:
         """Plan for `task` from now on; the warm start was for the old one, so it is forgotten."""
         self.task = task
@@ -268,7 +288,10 @@ class PlannerCycle:
             # the warm start was planned for the old pose: from the new one it is a wrong guess
             self._event("odom_jump", "warning", f"{jump}: warm start reset")
             self.planner.reset()
+            self._resume = None
         self.previous = (stamp_ns, x)
+        if self._resume is not None:
+            self._apply_resume(stamp_ns)
         cov = self._start_covariance(covariance)
         # the command acts once this plan is computed (about as long as the last one) and has reached the base
         delay_s = max(0.0, age_s) + self.last_plan_s + c.actuation_delay_s if c.compensate_delay else 0.0

@@ -100,6 +100,23 @@ class Planner:
         for kind in self._kinds.values():
             kind.reset()
 
+    def resume(self, controls: np.ndarray, steps: int) -> bool:
+        """Warm-start from another planner's sequence (a predecessor's last plan, `controls` (N, 2) from its
+        state on), `steps` dt-steps later: its controls from `steps` on, the last one held for the rest. The
+        command in effect stays unknown (the state's own velocities, as after `reset`). False, and nothing
+        changed, when the sequence does not fit this planner or has run out (`steps` >= its length)."""
+        c = self.config
+        u = np.asarray(controls, dtype=np.float64)
+        if u.ndim != 2 or u.shape[1] != 2 or u.shape[0] == 0 or not np.all(np.isfinite(u)):
+            return False
+        if not 0 <= steps < u.shape[0]:
+            return False
+        u = u[steps:][: c.horizon]
+        u = np.concatenate([u, np.repeat(u[-1:], c.horizon - u.shape[0], axis=0)], axis=0)
+        self._nominal = np.clip(u, self._u_lo, self._u_hi)
+        self._last_control = None
+        return True
+
     def kind(self, task: Task) -> TaskKind:
         """This planner's kind of `task` (`task_kinds`); a ValueError for a task of no registered kind."""
         kind = self._kinds.get(type(task))
