@@ -53,6 +53,15 @@ class LaunchFile(BaseModel):
         30.0, gt=0, description="a service that ran this long before it died starts its backoff over [s]"
     )
     stop_timeout_s: float = Field(5.0, gt=0, description="wait after SIGINT, then after SIGTERM, before escalating")
+    spares: list[str] | None = Field(
+        None, description="services (by name) that get a warm spare: a second process, started ahead of need, that "
+        "has loaded everything and waits (no session, no CPU) to take over the moment the service dies. None: every "
+        "planner, terrain, ingress and egress service; []: none"
+    )
+    spare_delay_s: float = Field(
+        5.0, ge=0, le=3600, description="a spare is made this long after its service (re)started, one spare "
+        "warming at a time (planner first), so spares do not compete with a start for the CPU [s]"
+    )
 
     @classmethod
     def load(cls, path: str | Path) -> LaunchFile:

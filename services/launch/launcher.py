@@ -234,6 +234,7 @@ def run_launch(
                 endpoints = ", ".join(launch.zenoh.connect)
                 launcher.say("launch", f"waiting up to {wait_s:.0f} s for the router at {endpoints}")
             monitor = open_monitor(launch, monitor_zenoh, t_start, launch_path, launcher.stop_event)
+        launcher.last_payload = monitor.last_payload  # what a service's next process resumes from
         expected = {c.name for c in launcher.children if c.kind != "router"}
         ready_by = time.monotonic() + ready_timeout_s
         deadline: float | None = None

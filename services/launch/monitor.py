@@ -65,6 +65,10 @@ class Monitor:
         # at 0 in each new process, which tells a restarted service's first output from its predecessor's last
         self.output_keys = {f"gpmppi/{robot}/{key}" for key in PRIMARY_OUTPUT.values()}
         self.output_arrivals: dict[str, list[tuple[float, int]]] = {key: [] for key in self.output_keys}
+        # the last payload on each key, for the launcher to hand to the next process of a service (`last_payload`)
+        self._last: dict[str, bytes] = {}
+        # every command's (arrival, source): which process commanded when (`Command.source`)
+        self.command_sources: list[tuple[float, str]] = []
         # waits for the router as long as zenoh_settings.wait_for_router_s says (services start in any order)
         self.session = open_session(zenoh_settings, logging.getLogger("gpmppi.launch"), stop)
         self._sub = self.session.declare_subscriber("gpmppi/**", self._on_sample)
@@ -73,14 +77,16 @@ class Monitor:
         received_ns = time.time_ns()
         received = time.monotonic()
         key = str(sample.key_expr)
+        payload = sample.payload.to_bytes()
         with self.lock:
             self.counts[key] += 1
             self.first_seen_s.setdefault(key, received - self.t_start)
+            self._last[key] = payload
         try:
             model = model_for_key(key)
             if model not in (State, Command, Plan, Heartbeat, Task, TerrainWeights, BaseCommand):
                 return
-            msg = decode(model, sample.payload.to_bytes())
+            msg = decode(model, payload)
         except (KeyError, DecodeError):
             with self.lock:
                 self.undecodable += 1
@@ -94,6 +100,7 @@ class Monitor:
                 self.states.append((msg.header.stamp_ns, msg.x, msg.y))
             elif isinstance(msg, Command) and key.endswith("/cmd"):
                 self.delivery_ms.append((received_ns - msg.header.stamp_ns) / 1e6)
+                self.command_sources.append((received, msg.source))
             elif isinstance(msg, Plan):
                 if "total" in msg.timings_ms:
                     self.plan_total_ms.append(msg.timings_ms["total"])
@@ -101,6 +108,11 @@ class Monitor:
                     self.latencies_ms.append(msg.timings_ms["state_to_cmd"])
             elif isinstance(msg, Task):
                 self.task = msg
+
+    def last_payload(self, key: str) -> bytes | None:
+        """The last payload received on `key`, or None."""
+        with self.lock:
+            return self._last.get(key)
 
     def close(self) -> None:
         try:
@@ -131,6 +143,8 @@ class Summary:
     first_output_s: dict[str, float] = field(default_factory=dict)  # service -> s from process start to output
     restarts: dict[str, int] = field(default_factory=dict)
     restart_events: list[RestartEvent] = field(default_factory=list)  # every crash restart, with its cause
+    spare_events: list[str] = field(default_factory=list)  # every spare that died
+    spares: dict[str, int] = field(default_factory=dict)  # service -> pid of its warm spare at the end
     failed: list[str] = field(default_factory=list)
     recording: str | None = None
     rerun_file: str | None = None  # the .rrd written (`--rerun save`)
@@ -158,10 +172,12 @@ class Summary:
         out.append(f"restarts: {self.restarts or 'none'}; failed for good: {self.failed or 'none'}")
         for e in self.restart_events:
             note = f"; {e.note}" if e.note else ""
-            out.append(
-                f"  {e.name}: {e.cause} at {e.died_s:.1f} s after {e.uptime_s:.1f} s up, restarted after "
-                f"{e.delay_s:.2f} s{note}"
-            )
+            how = (f"its warm spare (pid {e.takeover_pid}) took over after {e.delay_s:.3f} s"
+                   if e.takeover_pid is not None else f"restarted after {e.delay_s:.2f} s")
+            out.append(f"  {e.name}: {e.cause} at {e.died_s:.1f} s after {e.uptime_s:.1f} s up, {how}{note}")
+        spares = ", ".join(f"{k} (pid {v})" for k, v in sorted(self.spares.items()))
+        out.append(f"warm spares at the end: {spares or 'none'}")
+        out += [f"  {e}" for e in self.spare_events]
         if self.recording:
             out.append(f"recording: {self.recording}")
         if self.rerun_file:
@@ -178,6 +194,8 @@ def summarize(monitor: Monitor | None, launcher: Launcher, service_names: list[s
     s = Summary(duration_s=time.monotonic() - launcher.t0, recording=record)
     s.restarts = {c.name: c.restarts for c in launcher.children if c.restarts}
     s.restart_events = list(launcher.restart_events)
+    s.spare_events = list(launcher.spare_events)
+    s.spares = dict(launcher.spares_at_stop)
     s.failed = [c.name for c in launcher.children if c.failed]
     if monitor is None:
         return s

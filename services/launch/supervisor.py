@@ -8,11 +8,13 @@ import json
 import os
 import queue
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
@@ -21,11 +23,18 @@ import yaml
 
 from services.recording.output_files import free_name
 from services.run import LAUNCHER_PID_ENV, SERVICES
+from services.runtime.role import READY, ROLE_FD_ENV, go_message
 
 if TYPE_CHECKING:
     from services.launch.launch_file import LaunchFile
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
+
+# the control path, most critical first: the services that get a warm spare by default, in the order spares are made
+SPARE_KINDS = ("planner", "terrain", "ingress", "egress")
+# what a service resumes from, by kind: registered key name -> key under gpmppi/{robot}/ (the launcher's own session
+# keeps the last payload on each, and hands it to the next process of that service with its go)
+HANDOVER: dict[str, dict[str, str]] = {"planner": {"plan": "plan"}, "terrain": {"terrain_weights": "terrain/weights"}}
 
 
 class _Spawner:
@@ -72,6 +81,25 @@ _SPAWNER = _Spawner()
 
 
 @dataclass
+class Proc:
+    """One process of a service: its Popen, the launcher's end of its role socket (services.runtime.role), when
+    it started and when it said it was ready (everything loaded, waiting for its go) [monotonic s]."""
+
+    process: subprocess.Popen
+    sock: socket.socket | None
+    started_at: float
+    label: str  # its log lines' prefix: the service's name, or `name*` while it is a spare
+    ready_at: float | None = None
+
+    def close(self) -> None:
+        if self.sock is not None:
+            try:
+                self.sock.close()
+            except OSError:
+                pass
+
+
+@dataclass
 class Child:
     name: str
     kind: str
@@ -87,6 +115,11 @@ class Child:
     in_a_row: int = 0  # restarts since the last run that lasted restart_reset_s
     exited_at: float | None = None  # when the watcher saw the current process end (monotonic)
     hold_until: float = 0.0  # a crash restart waits at least until then (see Launcher.kill)
+    proc: Proc | None = None  # the current process's role socket and ready time
+    spare: Proc | None = None  # its warm spare, if it has one now
+    spare_due: float | None = None  # when the next spare is made (monotonic; None: no spare wanted)
+    spare_deaths: int = 0  # spares that died in a row (each doubles the wait for the next)
+    takeovers: int = 0
 
 
 @dataclass
@@ -97,8 +130,9 @@ class RestartEvent:
     died_s: float  # since launch start [s]
     cause: str  # 'SIGKILL', 'exit code 1', ...
     uptime_s: float  # how long the process that died had run [s]
-    delay_s: float  # backoff before the new process [s]
+    delay_s: float  # backoff before the new process [s]; for a takeover, from the death to the spare's go
     note: str = ""
+    takeover_pid: int | None = None  # the warm spare that took over (None: a new process was started)
 
 
 def exit_cause(code: int) -> str:
@@ -131,6 +165,13 @@ class Launcher:
         self.restart_events: list[RestartEvent] = []
         # set by a process's watcher thread when it ends (and by request_stop): the supervision loop wakes at once
         self.wake = threading.Event()
+        # the last payload the launcher's own session saw on a key (gpmppi/{robot}/...), for a handover; set by
+        # whoever holds that session (the launcher's Monitor)
+        self.last_payload: Callable[[str], bytes | None] | None = None
+        self.spare_events: list[str] = []  # a spare's death, for the summary
+        self.spares_at_stop: dict[str, int] = {}  # service -> pid of its spare when the launch stopped
+        names = launch.spares
+        self._spare_names = None if names is None else set(names)
 
     def child(self, name: str) -> Child:
         child = next((c for c in self.children if c.name == name), None)
@@ -148,9 +189,9 @@ class Launcher:
             self.out.write(f"[{name:>9}] {line.rstrip()}\n")
             self.out.flush()
 
-    def _pump(self, child: Child, stream: IO[bytes]) -> None:
+    def _pump(self, proc: Proc, stream: IO[bytes]) -> None:
         for raw in iter(stream.readline, b""):
-            self.say(child.name, readable(raw.decode(errors="replace")))
+            self.say(proc.label, readable(raw.decode(errors="replace")))
         stream.close()
 
     # ---- processes ----------------------------------------------------------------------------
@@ -166,27 +207,157 @@ class Launcher:
             raise ValueError(f"two services are named {name!r}; names must be unique")
         self.children.append(Child(name, kind, self._write_config(name, config), required))
 
-    def _spawn(self, child: Child) -> None:
+    def _start_process(self, child: Child, label: str) -> Proc:
+        """A new process of `child`'s service with a role socket (services.runtime.role): it loads what it can,
+        says it is ready and waits for its go (`_go`)."""
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
         env["PYTHONUNBUFFERED"] = "1"
         # the child stops when this process dies, however it dies (services.run.follow_launcher)
         env[LAUNCHER_PID_ENV] = str(os.getpid())
-        child.process = _SPAWNER.popen(
-            [sys.executable, "-m", "services.run", child.kind, "--config", str(child.config_path)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            env=env,
-            cwd=os.getcwd(),
-            start_new_session=True,  # Ctrl-C reaches only the launcher, which stops children in order
-        )
-        child.started_at = time.monotonic()
+        ours: socket.socket | None = None
+        theirs: socket.socket | None = None
+        pass_fds: tuple[int, ...] = ()
+        if child.kind != "router":
+            ours, theirs = socket.socketpair()
+            env[ROLE_FD_ENV] = str(theirs.fileno())
+            pass_fds = (theirs.fileno(),)
+        try:
+            process = _SPAWNER.popen(
+                [sys.executable, "-m", "services.run", child.kind, "--config", str(child.config_path)],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                env=env,
+                cwd=os.getcwd(),
+                start_new_session=True,  # Ctrl-C reaches only the launcher, which stops children in order
+                pass_fds=pass_fds,
+            )
+        finally:
+            if theirs is not None:
+                theirs.close()
+        proc = Proc(process, ours, time.monotonic(), label)
+        assert process.stdout is not None
+        threading.Thread(target=self._pump, args=(proc, process.stdout), daemon=True).start()
+        threading.Thread(target=self._watch, args=(child, process), daemon=True).start()
+        if ours is not None:
+            threading.Thread(target=self._await_ready, args=(proc,), daemon=True).start()
+        return proc
+
+    def _await_ready(self, proc: Proc) -> None:
+        """Note when the process says it is ready (loaded, waiting for its go); wakes the supervision loop."""
+        assert proc.sock is not None
+        try:
+            said = proc.sock.recv(len(READY))
+        except OSError:
+            return
+        if said == READY:
+            proc.ready_at = time.monotonic()
+            self.wake.set()
+
+    def _go(self, child: Child, proc: Proc) -> None:
+        """Let `proc` join as `child`'s service, with the last payloads on the keys it resumes from (on a thread of
+        its own: a large handover must not block supervision on a process that has not read it yet)."""
+        if proc.sock is None:
+            return
+        handover: dict[str, bytes] = {}
+        if self.last_payload is not None:
+            for name, key in HANDOVER.get(child.kind, {}).items():
+                payload = self.last_payload(f"gpmppi/{self.launch.robot}/{key}")
+                if payload is not None:
+                    handover[name] = payload
+        line = go_message(handover)
+        sock = proc.sock
+
+        def send() -> None:
+            try:
+                sock.sendall(line)
+            except OSError:
+                pass  # it died meanwhile: supervision sees that
+
+        threading.Thread(target=send, daemon=True).start()
+
+    def _spawn(self, child: Child) -> None:
+        if child.proc is not None:
+            child.proc.close()
+        proc = self._start_process(child, child.name)
+        self._go(child, proc)
+        child.proc = proc
+        child.process = proc.process
+        child.started_at = proc.started_at
         child.exited_at = None
         child.first_started_at = child.first_started_at or child.started_at
-        assert child.process.stdout is not None
-        threading.Thread(target=self._pump, args=(child, child.process.stdout), daemon=True).start()
-        threading.Thread(target=self._watch, args=(child, child.process), daemon=True).start()
-        self.say("launch", f"started {child.name} ({child.kind}) pid {child.process.pid}")
+        if self._wants_spare(child) and child.spare is None:
+            child.spare_due = child.started_at + self.launch.spare_delay_s
+        self.say("launch", f"started {child.name} ({child.kind}) pid {proc.process.pid}")
+
+    # ---- warm spares ----------------------------------------------------------------------------
+    def _wants_spare(self, child: Child) -> bool:
+        if self._spare_names is None:
+            return child.kind in SPARE_KINDS
+        return child.name in self._spare_names
+
+    def _tend_spares(self, now: float) -> None:
+        """Replace a spare that died (after a wait that doubles while they keep dying), and make the spares that
+        are due, one warming at a time, the most critical service first."""
+        for child in self.children:
+            spare = child.spare
+            if spare is None or (code := spare.process.poll()) is None:
+                continue
+            child.spare = None
+            spare.close()
+            child.spare_deaths += 1
+            wait = min(60.0, max(1.0, self.launch.spare_delay_s) * 2 ** (child.spare_deaths - 1))
+            child.spare_due = now + wait
+            event = (f"{child.name}'s spare (pid {spare.process.pid}) died ({exit_cause(code)}) at "
+                     f"{now - self.t0:.1f} s; a new one in {_seconds(wait)} s")
+            self.spare_events.append(event)
+            self.say("launch", event)
+        for child in self.children:
+            if child.spare is not None and child.spare.ready_at is not None and child.spare_deaths:
+                child.spare_deaths = 0  # it got ready: the next one that dies waits the base delay again
+        if any(c.spare is not None and c.spare.ready_at is None for c in self.children):
+            return  # one warming at a time
+        if any(c.proc is not None and c.proc.sock is not None and c.proc.ready_at is None and c.process is not None
+               and c.process.poll() is None for c in self.children):
+            return  # a service is (re)starting: it has the CPU first
+        order = {kind: i for i, kind in enumerate(SPARE_KINDS)}
+        for child in sorted(self.children, key=lambda c: order.get(c.kind, len(order))):
+            if child.spare is not None or child.spare_due is None or now < child.spare_due:
+                continue
+            if child.failed or child.restart_at is not None or child.process is None:
+                continue
+            if child.process.poll() is not None or self.stop_event.is_set():
+                continue
+            child.spare = self._start_process(child, f"{child.name}*")
+            child.spare_due = None
+            self.say("launch", f"started a warm spare for {child.name} ({child.kind}) pid {child.spare.process.pid}")
+            return
+
+    def _take_over(self, child: Child, died: float, cause: str, uptime: float, now: float) -> bool:
+        """`child` died: its ready spare, if it has one, takes over at once (its go). False: none could."""
+        spare = child.spare
+        if spare is None or spare.ready_at is None or spare.process.poll() is not None:
+            return False
+        child.spare = None
+        self._go(child, spare)
+        spare.label = child.name
+        old = child.proc
+        if old is not None:
+            old.close()
+        child.proc = spare
+        child.process = spare.process
+        child.started_at = now
+        child.exited_at = None
+        child.restarts += 1
+        child.in_a_row += 1
+        child.takeovers += 1
+        child.spare_due = now + self.launch.spare_delay_s
+        event = RestartEvent(child.name, died - self.t0, cause, uptime, now - died,
+                             takeover_pid=spare.process.pid)
+        self.restart_events.append(event)
+        self.say("launch", f"{child.name} exited ({cause}) after {uptime:.1f} s; its warm spare pid "
+                           f"{spare.process.pid} takes over ({(now - died) * 1e3:.0f} ms after the death)")
+        return True
 
     def _watch(self, child: Child, process: subprocess.Popen) -> None:
         """Wait on one process; when it ends, note when and wake the supervision loop (no polling delay)."""
@@ -209,6 +380,7 @@ class Launcher:
 
     def _supervise(self, now: float) -> float:
         next_due = 0.1
+        self._tend_spares(now)
         for child in self.children:
             if child.failed or child.process is None:
                 continue
@@ -231,6 +403,8 @@ class Launcher:
             cause = exit_cause(code)
             if uptime >= self.launch.restart_reset_s:
                 child.in_a_row = 0  # it had run well: a new crash is not part of a crash loop
+            if child.in_a_row == 0 and self._take_over(child, died, cause, uptime, now):
+                continue  # a second death in a row restarts with backoff, below
             if child.in_a_row >= self.launch.max_restarts:
                 child.failed = True
                 self.say("launch", f"{child.name} exited ({cause}) and has failed for good")
@@ -270,10 +444,45 @@ class Launcher:
         return config.get("mode", "save") == "save"
 
     def stop_all(self) -> None:
-        """Reverse start order: SIGINT, wait, SIGTERM, wait, SIGKILL."""
+        """The spares first (they hold no session and no file: SIGTERM, then SIGKILL); then the services in reverse
+        start order: SIGINT, wait, SIGTERM, wait, SIGKILL."""
         with self._process_lock:
+            self._stop_spares()
             for child in reversed(self.children):
                 self._stop(child)
+                if child.proc is not None:
+                    child.proc.close()
+
+    def _stop_spares(self) -> None:
+        spares = [(c, c.spare) for c in self.children if c.spare is not None]
+        self.spares_at_stop = {c.name: sp.process.pid for c, sp in spares if sp is not None}
+        for _, spare in spares:
+            assert spare is not None
+            spare.close()  # a spare waiting for its go sees the socket close and exits
+            try:
+                spare.process.send_signal(signal.SIGCONT)
+                spare.process.send_signal(signal.SIGTERM)
+            except ProcessLookupError:
+                pass
+        for child, spare in spares:
+            assert spare is not None
+            try:
+                spare.process.wait(self.launch.stop_timeout_s)
+            except subprocess.TimeoutExpired:
+                spare.process.kill()
+                spare.process.wait()
+            child.spare = None
+            self.say("launch", f"stopped {child.name}'s spare (exit {spare.process.returncode})")
+
+    def kill_spare(self, name: str, sig: signal.Signals = signal.SIGKILL) -> int:
+        """A fault on purpose: send `sig` to the spare of `name` (its pid); supervision replaces a spare that dies."""
+        with self._process_lock:
+            spare = self.child(name).spare
+            if spare is None or spare.process.poll() is not None:
+                raise RuntimeError(f"{name} has no spare running")
+            spare.process.send_signal(sig)
+            self.say("launch", f"sent {sig.name} to {name}'s spare (pid {spare.process.pid})")
+            return spare.process.pid
 
     def _stop(self, child: Child) -> None:
         timeout = self.launch.stop_timeout_s
