@@ -1,12 +1,19 @@
 """`gpmppi bench startup`: how long a service takes to be useful again when it is (re)started on its own while
-the rest of the stack runs (a crashed planner restarted by the launcher or systemd: the robot waits for it).
+the rest of the stack runs (a crashed planner restarted by the launcher or systemd: the robot waits for it), and
+how long its warm spare takes to take over when it is killed.
 
 The whole stack starts as `gpmppi launch` runs it (the cold start of every process at once, reported as
 `bench zenoh` does); once every service is up and the stack has settled, each service in turn is stopped as the
 launcher stops it (SIGINT, then SIGTERM, then SIGKILL) and started again at once, `repeats` times. Time to first
 output = from the new process's start (its Popen) to its first message on its output key (`PRIMARY_OUTPUT`) as
 the launcher's outside Zenoh client receives it; a message numbered after the old process's last one (header
-seq; a new process counts from 0) is a late delivery from the old process and does not count.
+seq; a new process counts from 0) is a late delivery from the old process and does not count. Ready = from the
+new process's start to its "ready" on the launcher's role socket (loaded, about to join).
+
+Then (`kills`) each service in turn is killed with SIGKILL while the robot drives, once its warm spare is ready:
+kill -> the new process's first output at the outside client, the dead process's last output -> that, and for the
+planner the base's first zero after the dead planner's last command, driving again (a moving base command from the
+planner) after it, and the lane RMSE over the 5 s after the takeover against the 5 s before the kill.
 """
 
 from __future__ import annotations
@@ -14,6 +21,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import signal
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -22,11 +30,14 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from schemas import Task
 from services.launch.launcher import run_launch
 from services.launch.monitor import PRIMARY_OUTPUT, Monitor, Summary
-from services.launch.supervisor import Launcher
+from services.launch.supervisor import Child, Launcher
 
 RESTARTABLE = list(PRIMARY_OUTPUT)  # sim, ingress, terrain, planner, egress
+MOVING = 0.05  # [m/s] a base command above this is driving
+RMSE_WINDOW_S = 5.0
 
 
 @dataclass
@@ -41,11 +52,31 @@ class Restart:
     first_seq: int | None  # header seq of that output (the new process counts from 0)
     old_last_seq: int | None  # seq of the old process's last output seen before the restart
     load_avg_1min: float  # the machine's load when the restart began
+    ready_s: float | None = None  # new process start -> its "ready" on the launcher's role socket
+
+
+@dataclass
+class Takeover:
+    """One SIGKILL of one service while the robot drives, and what followed."""
+
+    service: str
+    old_pid: int
+    pid: int | None  # the process that took the role (None: none within the timeout)
+    by_spare: bool  # a warm spare took over (else a new process was started)
+    spare_ready_s: float | None  # that spare's process start -> ready (loaded, waiting)
+    kill_to_output_s: float | None  # SIGKILL -> the new process's first output at the outside client
+    gap_s: float | None  # the dead process's last output -> the new process's first output
+    zero_after_last_cmd_s: float | None  # planner: its last command -> the base's first zero (None: no zero)
+    driving_after_last_cmd_s: float | None  # the last planner command before the kill -> a moving base command
+    rmse_before_mm: float | None  # lane RMSE over the 5 s before the kill
+    rmse_after_mm: float | None  # ... over the 5 s after the new process's first output
+    load_avg_1min: float
 
 
 @dataclass
 class StartupResult:
     restarts: list[Restart] = field(default_factory=list)
+    takeovers: list[Takeover] = field(default_factory=list)
     summary: Summary | None = None
     exit_code: int = 0
     load_avg_1min: list[float] = field(default_factory=list)  # before and after the whole run
@@ -61,6 +92,38 @@ class StartupResult:
                 "timeouts": n - len(times),
                 "p50_s": round(float(np.percentile(times, 50)), 3) if times else None,
                 "max_s": round(max(times), 3) if times else None,
+                "ready_p50_s": _pct([r.ready_s for r in self.restarts if r.service == name], 50),
+            }
+        return out
+
+    def per_takeover(self) -> dict[str, dict[str, float | int | None]]:
+        """service -> n, by spare, p50/p95/max of kill -> first output and of the output gap [s], the zero's and
+        driving's times after the last command [s], and the RMSE before and after [mm] (medians)."""
+        out: dict[str, dict[str, float | int | None]] = {}
+        for name in dict.fromkeys(t.service for t in self.takeovers):
+            rows = [t for t in self.takeovers if t.service == name]
+            kill = [t.kill_to_output_s for t in rows]
+            gap = [t.gap_s for t in rows]
+            zero = [t.zero_after_last_cmd_s for t in rows]
+            out[name] = {
+                "n": len(rows),
+                "by_spare": sum(t.by_spare for t in rows),
+                "timeouts": sum(t.kill_to_output_s is None for t in rows),
+                "spare_ready_p50_s": _pct([t.spare_ready_s for t in rows], 50),
+                "kill_to_output_p50_s": _pct(kill, 50),
+                "kill_to_output_p95_s": _pct(kill, 95),
+                "kill_to_output_max_s": _pct(kill, 100),
+                "gap_p50_s": _pct(gap, 50),
+                "gap_p95_s": _pct(gap, 95),
+                "gap_max_s": _pct(gap, 100),
+                "zeros": sum(z is not None for z in zero),
+                "zero_after_last_cmd_max_s": _pct(zero, 100),
+                "driving_after_last_cmd_p95_s": _pct([t.driving_after_last_cmd_s for t in rows], 95),
+                "rmse_before_p50_mm": _pct([t.rmse_before_mm for t in rows], 50),
+                "rmse_after_p50_mm": _pct([t.rmse_after_mm for t in rows], 50),
+                "rmse_after_over_before_max": _pct(
+                    [t.rmse_after_mm / t.rmse_before_mm if t.rmse_after_mm and t.rmse_before_mm else None
+                     for t in rows], 100),
             }
         return out
 
@@ -75,7 +138,14 @@ class StartupResult:
             "crash_restarts": s.restarts,
             "failed": s.failed,
             "restarts": [asdict(r) for r in self.restarts],
+            "takeover": self.per_takeover(),
+            "takeovers": [asdict(t) for t in self.takeovers],
         }
+
+
+def _pct(values: list[float | None], q: float) -> float | None:
+    vals = [v for v in values if v is not None]
+    return round(float(np.percentile(vals, q)), 3) if vals else None
 
 
 def restart_rounds(
@@ -110,6 +180,7 @@ def restart_rounds(
                         first_seq=None if first is None else first[1],
                         old_last_seq=old_last,
                         load_avg_1min=load,
+                        ready_s=_ready_s(child),
                     )
                 )
                 shown = "timed out" if first is None else f"{first[0] - started:.2f} s"
@@ -119,6 +190,125 @@ def restart_rounds(
                     return
 
     return restart_each_service
+
+
+def _ready_s(child: Child, timeout_s: float = 60.0) -> float | None:
+    """The current process's start -> its ready on the role socket [s], waiting for it up to `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        proc = child.proc
+        if proc is not None and proc.ready_at is not None:
+            return round(proc.ready_at - proc.started_at, 3)
+        time.sleep(0.02)
+    return None
+
+
+def kill_rounds(
+    services: list[str], kills: int, settle_s: float, timeout_s: float, records: list[Takeover]
+) -> Callable[[Launcher, Monitor], None]:
+    """A `then` hook: SIGKILL each service `kills` times while the robot drives, each once its spare is ready."""
+
+    def kill_each_service(launcher: Launcher, monitor: Monitor) -> None:
+        for _ in range(kills):
+            for name in services:
+                child = launcher.child(name)
+                if not _wait_ready_to_kill(launcher, monitor, child, timeout_s):
+                    if launcher.stop_event.is_set():
+                        return
+                    launcher.say("bench", f"{name}: no spare ready or not driving within {timeout_s:.0f} s; "
+                                          "killing anyway")
+                record = _kill_once(launcher, monitor, child, timeout_s)
+                records.append(record)
+                launcher.say("bench", f"killed {name}: {asdict(record)}")
+                if launcher.stop_event.wait(max(settle_s, RMSE_WINDOW_S + 0.5)):
+                    return
+
+    return kill_each_service
+
+
+def _driving(monitor: Monitor, steady_s: float = 1.0, max_gap_s: float = 0.25) -> bool:
+    """The planner's commands arrived for the last `steady_s` with no gap over `max_gap_s`, and the base follows."""
+    now = time.monotonic()
+    key = f"gpmppi/{monitor.robot}/cmd"
+    with monitor.lock:
+        cmds = [t for t, _ in monitor.output_arrivals[key] if t >= now - steady_s - max_gap_s]
+        base = [b for b in monitor.base_commands if b[0] >= now - max_gap_s]
+    if not cmds or cmds[0] > now - steady_s or now - cmds[-1] > max_gap_s:
+        return False
+    if any(b - a > max_gap_s for a, b in zip(cmds, cmds[1:], strict=False)):
+        return False
+    return bool(base) and base[-1][3] in ("planner", "limit", "ramp") and base[-1][1] > MOVING
+
+
+def _wait_ready_to_kill(launcher: Launcher, monitor: Monitor, child: Child, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        spare = child.spare
+        if spare is not None and spare.ready_at is not None and _driving(monitor):
+            return True
+        if launcher.stop_event.wait(0.1):
+            return False
+    return False
+
+
+def _kill_once(launcher: Launcher, monitor: Monitor, child: Child, timeout_s: float) -> Takeover:
+    key = f"gpmppi/{monitor.robot}/{PRIMARY_OUTPUT[child.kind]}"
+    cmd_key = f"gpmppi/{monitor.robot}/cmd"
+    spare = child.spare
+    spare_ready = None if spare is None or spare.ready_at is None else round(spare.ready_at - spare.started_at, 3)
+    load = round(os.getloadavg()[0], 2)
+    old_pid = child.process.pid if child.process is not None else -1
+    t_kill = time.monotonic()
+    kill_ns = time.time_ns()
+    with monitor.lock:
+        before = [seq for t, seq in monitor.output_arrivals[key] if t < t_kill]
+    old_last = before[-1] if before else None
+    launcher.kill(child.name, signal.SIGKILL)
+    first = _first_output(launcher, monitor, key, t_kill, old_last, timeout_s)
+    new_pid = child.process.pid if child.process is not None and child.process.pid != old_pid else None
+    by_spare = any(e.takeover_pid == new_pid for e in launcher.restart_events) if new_pid else False
+    gap = zero = driving = rmse_before = rmse_after = None
+    if first is not None:
+        with monitor.lock:
+            old_outputs = [t for t, _ in monitor.output_arrivals[key] if t < first[0]]
+        gap = round(first[0] - old_outputs[-1], 3) if old_outputs else None
+        # what the base did: wait for the RMSE window after the takeover
+        launcher.stop_event.wait(max(0.0, first[0] + RMSE_WINDOW_S + 0.3 - time.monotonic()))
+        with monitor.lock:
+            cmds = [t for t, _ in monitor.output_arrivals[cmd_key]]
+            base = list(monitor.base_commands)
+            states = sorted(monitor.states)
+            task = monitor.task
+        last_cmd = max((t for t in cmds if t < t_kill), default=None)
+        if child.kind == "planner":
+            last_cmd = max((t for t in cmds if t < first[0]), default=None)  # the dead planner's last
+        if last_cmd is not None:
+            back = next((t for t, v, _, r in base if t > max(last_cmd, t_kill) and r in ("planner", "limit", "ramp")
+                         and v > MOVING), None)
+            zero_t = next((t for t, v, w, _ in base if t > last_cmd and v == 0.0 and w == 0.0
+                           and (back is None or t < back)), None)
+            zero = None if zero_t is None else round(zero_t - last_cmd, 3)
+            driving = None if back is None else round(back - last_cmd, 3)
+        first_ns = kill_ns + int((first[0] - t_kill) * 1e9)
+        rmse_before = _lane_rmse(states, task, kill_ns - int(RMSE_WINDOW_S * 1e9), kill_ns)
+        rmse_after = _lane_rmse(states, task, first_ns, first_ns + int(RMSE_WINDOW_S * 1e9))
+    return Takeover(
+        service=child.name, old_pid=old_pid, pid=new_pid, by_spare=by_spare, spare_ready_s=spare_ready,
+        kill_to_output_s=None if first is None else round(first[0] - t_kill, 3), gap_s=gap,
+        zero_after_last_cmd_s=zero, driving_after_last_cmd_s=driving, rmse_before_mm=rmse_before,
+        rmse_after_mm=rmse_after, load_avg_1min=load,
+    )
+
+
+def _lane_rmse(states: list[tuple[int, float, float]], task: Task | None, t0_ns: int, t1_ns: int) -> float | None:
+    if task is None or task.kind != "lane":
+        return None
+    from gpmppi.evaluation import metrics
+
+    xy = np.array([[x, y] for stamp, x, y in states if t0_ns <= stamp < t1_ns]).reshape(-1, 2)
+    if xy.shape[0] < 5:
+        return None
+    return round(metrics.lane_rmse_mm(xy, np.asarray(task.centerline), task.closed), 1)
 
 
 def _first_output(
@@ -144,15 +334,27 @@ def measure_startup(
     timeout_s: float = 60.0,
     port: int | None = None,
     show_logs: bool = False,
+    kills: int = 0,
+    kill_services: list[str] | None = None,
 ) -> StartupResult:
-    """Cold-start the stack, then restart each service in turn `repeats` times; see the module docstring."""
+    """Cold-start the stack, then restart each service in turn `repeats` times, then kill each of `kill_services`
+    `kills` times (its spare takes over); see the module docstring."""
     services = services or RESTARTABLE
-    unknown = [s for s in services if s not in PRIMARY_OUTPUT]
+    kill_services = kill_services or []
+    unknown = [s for s in services + kill_services if s not in PRIMARY_OUTPUT]
     if unknown:
         raise ValueError(f"cannot measure the restart of {unknown}: services with an output key are {RESTARTABLE}")
     result = StartupResult()
     before = os.getloadavg()[0]
-    hook = restart_rounds(services, repeats, settle_s, timeout_s, result.restarts)
+    restarts = restart_rounds(services, repeats, settle_s, timeout_s, result.restarts)
+    takeovers = kill_rounds(kill_services, kills, settle_s, timeout_s, result.takeovers)
+
+    def hook(launcher: Launcher, monitor: Monitor) -> None:
+        restarts(launcher, monitor)
+        if not launcher.stop_event.is_set():
+            takeovers(launcher, monitor)
+
+    hook.__name__ = "restarts_then_kills"
     logs = None if show_logs else io.StringIO()
     result.exit_code, result.summary = run_launch(launch_path, port=port, out=logs, then=hook)
     result.load_avg_1min = [round(before, 2), round(os.getloadavg()[0], 2)]
@@ -163,7 +365,14 @@ def register(bench_app: typer.Typer) -> None:
     @bench_app.command("startup")
     def bench_startup(
         services: str = typer.Option(",".join(RESTARTABLE), help="comma-separated services to restart, in order"),
-        repeats: int = typer.Option(3, min=1, max=1000, help="restarts of each service"),
+        repeats: int = typer.Option(3, min=0, max=1000, help="restarts of each service"),
+        kills: int = typer.Option(
+            1, min=0, max=1000, help="then SIGKILLs of each --kill-services service while the robot drives, each "
+            "once its warm spare is ready (the takeover)"
+        ),
+        kill_services: str = typer.Option(
+            "planner,terrain,ingress,egress", help="comma-separated services to kill, in order"
+        ),
         settle: float = typer.Option(
             3.0, min=0.0, max=3600.0, help="seconds to wait after start-up and after each restart"
         ),
@@ -178,8 +387,9 @@ def register(bench_app: typer.Typer) -> None:
         """Time to first output of each service restarted on its own while the stack runs, and of the cold start
         of the whole stack (timings are noisy on a shared machine: see the load average)."""
         names = [s.strip() for s in services.split(",") if s.strip()]
+        killed = [s.strip() for s in kill_services.split(",") if s.strip()]
         try:
-            result = measure_startup(launch_file, names, repeats, settle, timeout, port, show_logs)
+            result = measure_startup(launch_file, names, repeats, settle, timeout, port, show_logs, kills, killed)
         except (ValueError, FileNotFoundError) as exc:
             typer.echo(f"gpmppi bench startup: {exc}", err=True)
             raise typer.Exit(2) from exc
@@ -192,10 +402,29 @@ def register(bench_app: typer.Typer) -> None:
             typer.echo("restart on its own, process start -> first output [s]:")
             for name, row in data["restart_first_output_s"].items():
                 typer.echo(
-                    f"  {name:>8}: p50 {row['p50_s']}  max {row['max_s']}  (n {row['n']}, timeouts {row['timeouts']})"
+                    f"  {name:>8}: p50 {row['p50_s']}  max {row['max_s']}  (n {row['n']}, timeouts {row['timeouts']}); "
+                    f"process start -> ready p50 {row['ready_p50_s']}"
+                )
+            if data["takeover"]:
+                typer.echo("SIGKILL while driving [s]:")
+            for name, row in data["takeover"].items():
+                typer.echo(
+                    f"  {name:>8}: n {row['n']} (by a warm spare {row['by_spare']}, timeouts {row['timeouts']}); "
+                    f"spare start -> ready p50 {row['spare_ready_p50_s']}; kill -> first output p50 "
+                    f"{row['kill_to_output_p50_s']} p95 {row['kill_to_output_p95_s']} "
+                    f"max {row['kill_to_output_max_s']}; "
+                    f"last output -> first output p50 {row['gap_p50_s']} p95 {row['gap_p95_s']} max {row['gap_max_s']}"
+                )
+                typer.echo(
+                    f"  {'':>8}  last command -> base zero: {row['zeros']} zeros, "
+                    f"max {row['zero_after_last_cmd_max_s']};"
+                    f" -> driving again p95 {row['driving_after_last_cmd_p95_s']}; lane RMSE 5 s before "
+                    f"{row['rmse_before_p50_mm']} mm, 5 s after {row['rmse_after_p50_mm']} mm (p50; worst ratio "
+                    f"{row['rmse_after_over_before_max']})"
                 )
             typer.echo(f"cold start of the whole stack, start -> first output [s]: {data['cold_first_output_s']}")
             typer.echo(f"cold start, process start -> first heartbeat [s]: {data['cold_first_heartbeat_s']}")
             typer.echo(f"crash restarts: {data['crash_restarts'] or 'none'}; failed: {data['failed'] or 'none'}")
-        timed_out = any(r.first_output_s is None for r in result.restarts)
+        timed_out = any(r.first_output_s is None for r in result.restarts) or any(
+            t.kill_to_output_s is None for t in result.takeovers)
         raise typer.Exit(result.exit_code or int(timed_out))

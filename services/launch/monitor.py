@@ -69,6 +69,8 @@ class Monitor:
         self._last: dict[str, bytes] = {}
         # every command's (arrival, source): which process commanded when (`Command.source`)
         self.command_sources: list[tuple[float, str]] = []
+        # every base command: (arrival, v, omega, reason)
+        self.base_commands: list[tuple[float, float, float, str]] = []
         # waits for the router as long as zenoh_settings.wait_for_router_s says (services start in any order)
         self.session = open_session(zenoh_settings, logging.getLogger("gpmppi.launch"), stop)
         self._sub = self.session.declare_subscriber("gpmppi/**", self._on_sample)
@@ -101,6 +103,8 @@ class Monitor:
             elif isinstance(msg, Command) and key.endswith("/cmd"):
                 self.delivery_ms.append((received_ns - msg.header.stamp_ns) / 1e6)
                 self.command_sources.append((received, msg.source))
+            elif isinstance(msg, BaseCommand):
+                self.base_commands.append((received, msg.v, msg.omega, msg.reason))
             elif isinstance(msg, Plan):
                 if "total" in msg.timings_ms:
                     self.plan_total_ms.append(msg.timings_ms["total"])
