@@ -67,13 +67,19 @@ class TimedLog(io.TextIOBase):
             return "\n".join(line for _, line in self.lines)
 
 
-def _launch_file(tmp_path: Path, port: int, router_enabled: bool = True, wait_s: float = 0.0) -> Path:
+def _launch_file(
+    tmp_path: Path, port: int, router_enabled: bool = True, wait_s: float = 0.0, spares: list[str] | None = None,
+    **extra: Any,
+) -> Path:
+    """The fault tests' stack; `spares`: the services with a warm spare ([]: none, today's restarts only)."""
     ep = endpoint(port)
     launch = {
         "robot": ROBOT,
         "router": {"enabled": router_enabled, "listen": [ep], "wait_s": wait_s},
         "zenoh": {"mode": "client", "connect": [ep]},
         "restart_backoff_s": 0.25,
+        "spares": [] if spares is None else spares,
+        **extra,
         "services": [
             {"name": "sim", "config": {"lane": "circle", "noise": False, "command_timeout_s": SIM_TIMEOUT_S}},
             {"name": "ingress", "config": {"source": "sim"}},
@@ -542,3 +548,196 @@ def test_a_router_that_refuses_the_session_is_not_waited_for(tmp_path: Path) -> 
         assert time.monotonic() - t0 < 10.0
     finally:
         router.close()
+
+
+# ---- warm spares ------------------------------------------------------------------------------------------------
+def _spare_ready(launcher: Launcher, name: str, not_pid: int | None = None) -> bool:
+    spare = launcher.child(name).spare
+    return spare is not None and spare.ready_at is not None and spare.process.pid != not_pid
+
+
+def _two_commanders(cmds: list[tuple[float, Command]], window_s: float = 0.1) -> list[tuple[float, str, str]]:
+    """Adjacent commands (by arrival) from two processes less than `window_s` apart: any 100 ms holding commands of
+    two processes holds such a pair."""
+    return [(b[0] - a[0], a[1].source, b[1].source) for a, b in zip(cmds, cmds[1:], strict=False)
+            if a[1].source != b[1].source and b[0] - a[0] < window_s]
+
+
+@pytest.mark.slow(seconds=120)
+@pytest.mark.exclusive
+def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every critical service killed while the robot drives: its warm spare takes over (the summary says so), the
+    planner from its predecessor's last plan and terrain from the last weights; a spare that dies is replaced; two
+    planner deaths in a row fall back to a restart with backoff; SIGSTOP/SIGCONT and kills of the planner in
+    sequence never let two planner processes command in the same 100 ms (each command names its process)."""
+    monkeypatch.chdir(tmp_path)
+    port = free_port()
+    out = TimedLog()
+    failures: list[str] = []
+    timings: dict[str, float] = {}
+
+    def check(ok: bool, what: str) -> None:
+        if not ok:
+            failures.append(what)
+
+    def takeover_of(launcher: Launcher, name: str, since_events: int) -> int | None:
+        new = [e for e in launcher.restart_events[since_events:] if e.name == name]
+        return new[0].takeover_pid if new else None
+
+    def spares(launcher: Launcher, monitor: Monitor) -> None:
+        obs = Observer(port)
+        try:
+            assert obs.wait_driving(time.monotonic(), 60.0), "the robot never drove"
+            assert wait_for(lambda: _spare_ready(launcher, "planner") and obs.commanding_steadily(1.0), 90.0), \
+                "no planner spare ready, or not driving steadily"
+
+            # ---- SIGKILL planner: its spare takes over from the last plan, at speed
+            spare_pid = launcher.child("planner").spare.process.pid  # type: ignore[union-attr]
+            old_source = obs.cmds()[-1][1].source
+            n_events = len(launcher.restart_events)
+            t_kill = time.monotonic()
+            launcher.kill("planner", signal.SIGKILL)
+            check(wait_for(lambda: any(m.source not in ("", old_source) for _, m in obs.cmds(t_kill)), 15.0),
+                  "planner SIGKILL: no command from another process")
+            check(takeover_of(launcher, "planner", n_events) == spare_pid,
+                  "planner SIGKILL: the spare did not take over")
+            new_cmds = [(t, m) for t, m in obs.cmds(t_kill) if m.source != old_source]
+            if new_cmds:
+                last_old = max(t for t, m in obs.cmds() if m.source == old_source)
+                timings["planner_takeover_gap_s"] = new_cmds[0][0] - last_old
+                # the warm start: its first command is at speed (the predecessor's sequence, shifted), not zero
+                check(new_cmds[0][1].v_ref > MOVING, f"planner takeover: first command {new_cmds[0][1]}")
+                t_zero = obs.first_zero(last_old, "watchdog")
+                if t_zero is not None and t_zero < new_cmds[0][0]:
+                    timings["planner_takeover_zero_after_last_cmd_s"] = t_zero - last_old
+                    check(t_zero - last_old <= WATCHDOG_S + DEADLINE_SLACK_S,
+                          f"planner takeover: zero {t_zero - last_old:.3f} s after the last command")
+            check(bool(out.after(t_kill, "warm start from the predecessor's last plan")),
+                  "planner takeover: it did not start from the last plan")
+            check(obs.wait_driving(t_kill, 15.0) is not None, "planner takeover: not driving again")
+
+            # ---- the spare itself dies: replaced
+            assert wait_for(lambda: _spare_ready(launcher, "planner"), 90.0), "no new planner spare"
+            dead_spare = launcher.kill_spare("planner")
+            check(wait_for(lambda: _spare_ready(launcher, "planner", not_pid=dead_spare), 90.0),
+                  "a spare that died was not replaced")
+            check(any("spare" in e and str(dead_spare) in e for e in launcher.spare_events),
+                  f"the spare's death is not in the summary's events: {launcher.spare_events}")
+
+            # ---- SIGSTOP/SIGCONT: alive, so nobody takes over; then SIGSTOP and SIGKILL while frozen: taken over
+            time.sleep(6.0)  # past restart_reset_s: the next death is not "in a row"
+            n_events = len(launcher.restart_events)
+            launcher.kill("planner", signal.SIGSTOP)
+            time.sleep(1.5)
+            check(len(launcher.restart_events) == n_events, "planner SIGSTOP: a frozen planner was replaced")
+            launcher.kill("planner", signal.SIGCONT)
+            check(obs.wait_driving(time.monotonic(), 15.0) is not None, "planner SIGCONT: not driving again")
+            time.sleep(1.0)
+            spare_pid = launcher.child("planner").spare.process.pid  # type: ignore[union-attr]
+            launcher.kill("planner", signal.SIGSTOP)
+            time.sleep(0.5)
+            launcher.kill("planner", signal.SIGKILL)
+            check(wait_for(lambda: takeover_of(launcher, "planner", n_events) == spare_pid, 10.0),
+                  "planner SIGSTOP + SIGKILL: the spare did not take over")
+            check(obs.wait_driving(time.monotonic(), 15.0) is not None, "planner SIGSTOP + SIGKILL: not driving")
+
+            # ---- two deaths in a row: the second is a restart with backoff, as without spares
+            time.sleep(1.0)
+            n_events = len(launcher.restart_events)
+            launcher.kill("planner", signal.SIGKILL)
+            wait_for(lambda: len(launcher.restart_events) > n_events, 5.0)
+            again = [e for e in launcher.restart_events[n_events:] if e.name == "planner"]
+            check(bool(again) and again[0].takeover_pid is None and again[0].delay_s >= 0.5 - 1e-3,
+                  f"planner killed twice in a row: {again}")
+            check(obs.wait_driving(time.monotonic(), 120.0) is not None, "planner restart: not driving again")
+
+            # ---- terrain, ingress, egress: each spare takes over; terrain first publishes the last weights
+            for name in ("terrain", "ingress", "egress"):
+                assert wait_for(lambda n=name: _spare_ready(launcher, n), 120.0), f"no {name} spare ready"
+                assert wait_for(lambda: obs.commanding_steadily(1.0), 60.0), f"not driving before the {name} kill"
+                spare_pid = launcher.child(name).spare.process.pid  # type: ignore[union-attr]
+                n_events = len(launcher.restart_events)
+                last_weights = [m for _, m in obs._since("terrain/weights", 0.0)][-1:]
+                t_kill = time.monotonic()
+                launcher.kill(name, signal.SIGKILL)
+                check(wait_for(lambda n=name, p=spare_pid, k=n_events: takeover_of(launcher, n, k) == p, 10.0),
+                      f"{name} SIGKILL: its spare did not take over")
+                t_drive = obs.wait_driving(t_kill + 0.05, 15.0)
+                check(t_drive is not None, f"{name} SIGKILL: not driving again")
+                if t_drive is not None:
+                    timings[f"{name}_takeover_driving_after_kill_s"] = t_drive - t_kill
+                if name == "terrain":
+                    wait_for(lambda k=t_kill: any(m.header.seq == 0 for _, m in obs._since("terrain/weights", k)),
+                             10.0)
+                    first = [m for _, m in obs._since("terrain/weights", t_kill) if m.header.seq == 0][:1]
+                    check(bool(first and last_weights) and np.allclose(
+                        [dict(zip(first[0].names, first[0].weights, strict=True))[n] for n in last_weights[0].names],
+                        last_weights[0].weights, atol=1e-6),
+                        f"terrain takeover: first weights {first} are not the last ones {last_weights}")
+                time.sleep(1.0)
+
+            # ---- never two planners commanding in the same 100 ms (the whole run, every command named)
+            cmds = obs.cmds()
+            check(all(m.source for _, m in cmds), "a command without its process's identity")
+            both = _two_commanders(cmds)
+            check(not both, f"two planner processes commanded within 100 ms: {both[:5]}")
+            timings["planner_processes"] = len({m.source for _, m in cmds})
+        except Exception:  # noqa: BLE001 - reported with the launcher's log below
+            failures.append(traceback.format_exc())
+        finally:
+            obs.close()
+
+    launch = _launch_file(tmp_path, port, spares=["planner", "terrain", "ingress", "egress"], spare_delay_s=1.0,
+                          restart_reset_s=5.0)
+    code, summary = run_launch(launch, out=out, then=spares)
+    log = out.text()
+    (tmp_path / "launch.log").write_text(log)
+    print("\n".join(f"{k}: {v:.3f}" for k, v in timings.items()))
+    assert not failures, "\n".join(failures) + "\n" + log[-4000:]
+    assert code == 0, log[-3000:]
+    # the summary says which deaths a spare took over, and the restart list counts them
+    lines = "\n".join(summary.lines())
+    for name in ("planner", "terrain", "ingress", "egress"):
+        assert f"{name}: SIGKILL at" in lines and "took over" in lines, lines
+    assert "restarted after" in lines  # the second planner death in a row
+    assert summary.spare_events, lines
+
+
+def test_a_launcher_started_process_waits_while_its_service_is_alive(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Liveliness decides: a process given its go (a spare taking over) does not declare itself, nor publish, while
+    another process of its service holds the liveliness token; it goes on once that token is gone."""
+    from services.egress import Settings as EgressSettings
+    from services.runtime import role
+    from services.runtime.node import Node
+
+    port = free_port()
+    router = ServiceProcess("router", {"service": "router", "listen": [endpoint(port)]}, tmp_path)
+    other = None
+    node: Node | None = None
+    try:
+        other = _client_when_up(port)
+        token = other.liveliness().declare_token(f"gpmppi/{ROBOT}/alive/egress")
+        ours, theirs = socket.socketpair()
+        monkeypatch.setenv(role.ROLE_FD_ENV, str(theirs.detach()))
+        monkeypatch.setattr(role, "_taken", None)
+        ours.sendall(role.go_message({"plan": b'{"x": 1}'}))  # the go, waiting in the socket
+        node = Node(EgressSettings.model_validate(settings("egress", port, robot=ROBOT)), install_signals=False)
+        opened = threading.Event()
+        threading.Thread(target=lambda: (node.open(), opened.set()), daemon=True).start()  # type: ignore[union-attr]
+        assert ours.recv(len(role.READY)) == role.READY
+        assert not opened.wait(2.0), "it joined while another egress was alive"
+        assert node._token is None  # not declared beside the other's
+        token.undeclare()
+        assert opened.wait(10.0), "it did not go on once the other egress was gone"
+        assert node.handover == {"plan": b'{"x": 1}'}
+        ours.close()
+    finally:
+        if node is not None:
+            node.close()
+        if other is not None:
+            other.close()
+        router.stop()
