@@ -741,3 +741,32 @@ def test_a_launcher_started_process_waits_while_its_service_is_alive(
         if other is not None:
             other.close()
         router.stop()
+
+
+def test_a_standby_process_takes_over_when_its_service_dies(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`GPMPPI_STANDBY=1` (the systemd standby unit): the first process of a service joins; a second one stands by
+    without declaring itself while the first is alive, and takes over once the first is killed."""
+    port = free_port()
+    monkeypatch.setenv("GPMPPI_STANDBY", "1")
+    router = ServiceProcess("router", {"service": "router", "listen": [endpoint(port)]}, tmp_path)
+    procs: list[ServiceProcess] = []
+    try:
+        for name in ("a", "b"):
+            (tmp_path / name).mkdir()
+            procs.append(ServiceProcess("egress", settings("egress", port, robot=ROBOT), tmp_path / name))
+            assert wait_for(lambda p=procs[-1]: "session open" in p.log() or "standing by" in p.log(), 60.0), \
+                procs[-1].log()
+        first, second = procs
+        assert "session open" in first.log() and "standing by" not in first.log(), first.log()
+        assert "standing by" in second.log() and "session open" not in second.log(), second.log()
+        time.sleep(1.0)
+        assert "session open" not in second.log(), second.log()
+        first.process.send_signal(signal.SIGKILL)
+        first.process.wait(10)
+        assert wait_for(lambda: "session open" in second.log(), 15.0), second.log()
+        assert "taking over" in second.log()
+    finally:
+        for proc in procs:
+            if proc.alive():
+                proc.stop()
+        router.stop()

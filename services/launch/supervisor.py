@@ -23,7 +23,7 @@ import yaml
 
 from services.recording.output_files import free_name
 from services.run import LAUNCHER_PID_ENV, SERVICES
-from services.runtime.role import READY, ROLE_FD_ENV, go_message
+from services.runtime.role import HANDOVER, READY, ROLE_FD_ENV, go_message
 
 if TYPE_CHECKING:
     from services.launch.launch_file import LaunchFile
@@ -32,9 +32,6 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 # the control path, most critical first: the services that get a warm spare by default, in the order spares are made
 SPARE_KINDS = ("planner", "terrain", "ingress", "egress")
-# what a service resumes from, by kind: registered key name -> key under gpmppi/{robot}/ (the launcher's own session
-# keeps the last payload on each, and hands it to the next process of that service with its go)
-HANDOVER: dict[str, dict[str, str]] = {"planner": {"plan": "plan"}, "terrain": {"terrain_weights": "terrain/weights"}}
 
 
 class _Spawner:

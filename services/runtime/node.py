@@ -35,7 +35,7 @@ import zenoh
 from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_for
 from schemas.codec import ENCODING
 from services.runtime.node_settings import NodeSettings
-from services.runtime.role import wait_for_role
+from services.runtime.role import HANDOVER, notify_systemd_ready, standby_requested, wait_for_role
 from services.runtime.scheduling import Inbox
 from services.runtime.session import StoppedWhileWaiting, open_session
 
@@ -223,7 +223,10 @@ class Node:
         if role is not None:
             # never two of one service publishing: liveliness decides, not the launcher's view of its processes
             self._wait_while_alive(token_key)
+        elif standby_requested():
+            self._stand_by(token_key)
         self._token = self.session.liveliness().declare_token(token_key)
+        notify_systemd_ready()
         self._health = self.publisher("health")
         self.log.info(
             "session open", extra={"fields": {"zid": str(self.session.zid()), "mode": self.settings.zenoh.mode}}
@@ -248,6 +251,37 @@ class Node:
                 raise StoppedWhileWaiting(f"stopped while another {self.name} was alive")
         waited = round(time.monotonic() - t0, 3)
         self.log.info("the other %s is gone", self.name, extra={"fields": {"waited_s": waited}})
+
+    def _stand_by(self, key: str) -> None:
+        """`GPMPPI_STANDBY` (systemd): while another process of this service is alive, keep the last payload on the
+        keys it would resume from (`handover`) and wait, woken by its liveliness token's deletion (no polling)."""
+        assert self.session is not None
+        last: dict[str, bytes] = {}
+        subs = [
+            self.session.declare_subscriber(
+                f"gpmppi/{self.settings.robot}/{suffix}",
+                lambda sample, n=name: last.__setitem__(n, sample.payload.to_bytes()),
+            )
+            for name, suffix in HANDOVER.get(self.name, {}).items()
+        ]
+        # a token's change (and a stop) ends the wait at once
+        watch = self.session.liveliness().declare_subscriber(key, lambda sample: self._wake.set())
+        try:
+            if self._alive(key):
+                t0 = time.monotonic()
+                self.log.info("standing by: another %s is alive (%s)", self.name, key)
+                while self._alive(key):
+                    self._wake.wait(5.0)
+                    self._wake.clear()
+                    if self._stop.is_set():
+                        raise StoppedWhileWaiting(f"stopped while standing by for {self.name}")
+                self.log.warning("taking over: the other %s is gone", self.name,
+                                 extra={"fields": {"stood_by_s": round(time.monotonic() - t0, 1)}})
+        finally:
+            watch.undeclare()
+            for sub in subs:
+                sub.undeclare()
+        self.handover = dict(last)
 
     def handed_over(self, name: str, model: type[M]) -> M | None:
         """The predecessor's last message on the registered key `name`, as the launcher saw it, or None."""

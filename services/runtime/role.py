@@ -13,7 +13,9 @@ Only the launcher knows which it was: the service module runs the same code eith
 last payload the launcher's own session received on the keys the service resumes from (the planner's last Plan,
 the terrain service's last weights), by registered key name; a service without a predecessor gets none.
 
-Outside a launcher (by hand, systemd) there is no socket: `wait_for_role` returns None at once.
+Outside a launcher (by hand, systemd) there is no socket: `wait_for_role` returns None at once. Under systemd a
+process with `GPMPPI_STANDBY=1` stands by instead (`Node.open`): it joins, keeps the last payload on the same keys,
+and declares itself only once no other process of its service is alive (deploy/systemd/README.md).
 """
 
 from __future__ import annotations
@@ -29,7 +31,30 @@ from dataclasses import dataclass, field
 from services.runtime.session import StoppedWhileWaiting
 
 ROLE_FD_ENV = "GPMPPI_ROLE_FD"
+STANDBY_ENV = "GPMPPI_STANDBY"
 READY = b"ready\n"
+# what a service resumes from, by kind: registered key name -> key under gpmppi/{robot}/ (the launcher's own session,
+# or a standby's, keeps the last payload on each and hands it to the next process of that service)
+HANDOVER: dict[str, dict[str, str]] = {"planner": {"plan": "plan"}, "terrain": {"terrain_weights": "terrain/weights"}}
+
+
+def standby_requested() -> bool:
+    """`GPMPPI_STANDBY=1`: outside a launcher, join only once no other process of this service is alive."""
+    return os.environ.get(STANDBY_ENV, "").lower() in ("1", "true", "yes")
+
+
+def notify_systemd_ready() -> None:
+    """Tell systemd this service is up (`Type=notify` units; nothing without `NOTIFY_SOCKET`)."""
+    address = os.environ.get("NOTIFY_SOCKET", "")
+    if not address:
+        return
+    if address.startswith("@"):
+        address = "\0" + address[1:]
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+            sock.sendto(b"READY=1", address)
+    except OSError:
+        pass
 
 
 @dataclass

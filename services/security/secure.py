@@ -108,7 +108,9 @@ def role_keys(identity: str, robot: str, ros2: dict[str, str] | None = None) -> 
         "reads": reads,
         "subscribe": subscribe,
         "tokens": [f"gpmppi/{robot}/alive/{identity}$*"] if role.node else [],
-        "watch": [f"gpmppi/{robot}/alive/**"] if role.watches_liveliness else [],
+        # a service may ask whether another process of itself is alive (a spare taking over waits until none is)
+        "watch": [f"gpmppi/{robot}/alive/**"] if role.watches_liveliness
+        else [f"gpmppi/{robot}/alive/{identity}$*"] if role.node else [],
     }
 
 
