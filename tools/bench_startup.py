@@ -206,7 +206,8 @@ def _ready_s(child: Child, timeout_s: float = 60.0) -> float | None:
 def kill_rounds(
     services: list[str], kills: int, settle_s: float, timeout_s: float, records: list[Takeover]
 ) -> Callable[[Launcher, Monitor], None]:
-    """A `then` hook: SIGKILL each service `kills` times while the robot drives, each once its spare is ready."""
+    """A `then` hook: SIGKILL each service `kills` times while the robot drives, each once its spare is ready and
+    its process has run `restart_reset_s` (an earlier death is then not "in a row", which a takeover requires)."""
 
     def kill_each_service(launcher: Launcher, monitor: Monitor) -> None:
         for _ in range(kills):
@@ -241,10 +242,12 @@ def _driving(monitor: Monitor, steady_s: float = 1.0, max_gap_s: float = 0.25) -
 
 
 def _wait_ready_to_kill(launcher: Launcher, monitor: Monitor, child: Child, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
+    deadline = time.monotonic() + timeout_s + launcher.launch.restart_reset_s
     while time.monotonic() < deadline:
         spare = child.spare
-        if spare is not None and spare.ready_at is not None and _driving(monitor):
+        # a death within restart_reset_s of the last one is "in a row": a restart with backoff, not a takeover
+        settled = time.monotonic() - child.started_at >= launcher.launch.restart_reset_s
+        if spare is not None and spare.ready_at is not None and settled and _driving(monitor):
             return True
         if launcher.stop_event.wait(0.1):
             return False
@@ -283,7 +286,8 @@ def _kill_once(launcher: Launcher, monitor: Monitor, child: Child, timeout_s: fl
         if child.kind == "planner":
             last_cmd = max((t for t in cmds if t < first[0]), default=None)  # the dead planner's last
         if last_cmd is not None:
-            back = next((t for t, v, _, r in base if t > max(last_cmd, t_kill) and r in ("planner", "limit", "ramp")
+            # (egress repeats the last command until its watchdog fires: driving again counts from the new output)
+            back = next((t for t, v, _, r in base if t >= first[0] and r in ("planner", "limit", "ramp")
                          and v > MOVING), None)
             zero_t = next((t for t, v, w, _ in base if t > last_cmd and v == 0.0 and w == 0.0
                            and (back is None or t < back)), None)
