@@ -30,7 +30,7 @@ def test_windows_and_memory_from_samples() -> None:
     # 10 Hz commands, one latency per command (1 ms .. ), a process restarted at t = 6 s, a 3 s warm-up
     ticks = [
         Tick(t + 0.01 * (t % 3), {"a": 1000 + 10 * t, "b": 2048}, {"a": 1 if t < 6 else 2, "b": 3}, 10 * t, 10 * t,
-             10 * t)
+             10 * t, {"b": 0.05 * (t + 0.01 * (t % 3))})  # b uses 5 % of a core
         for t in range(13)
     ]
     data = SoakData(ticks=ticks, latencies_ms=[float(i) for i in range(130)], plan_ms=[1.0] * 130)
@@ -40,6 +40,7 @@ def test_windows_and_memory_from_samples() -> None:
     assert windows[0]["latency_p50_ms"] == pytest.approx(44.5)  # latencies 30 .. 59
     memory = memory_report(ticks, warmup_s=3.0)
     assert memory["b"]["spread_pct"] == 0.0 and memory["b"]["start_mib"] == 2.0 and memory["b"]["samples"] == 10
+    assert memory["b"]["cpu_pct"] == pytest.approx(5.0) and memory["a"]["cpu_pct"] is None
     a = memory["a"]  # only the current process (pid 2, from t = 6 s)
     assert a["pid"] == 2 and a["samples"] == 7 and a["start_mib"] == round(1060 / 1024, 1)
     assert a["growth_pct"] == pytest.approx(100 * (1120 - 1060) / 1060, abs=0.01)
@@ -85,7 +86,10 @@ def test_short_soak_reports_real_numbers(tmp_path: Path, monkeypatch: pytest.Mon
     assert r["exit_code"] == 0 and r["restarts"] == {} and r["failed"] == []
     assert SOAK_S - 1.0 <= r["duration_s"] < SOAK_S + 15.0
     # memory: every process sampled about once a second after the warm-up, plausible sizes
-    assert set(r["memory"]) == SERVICES, r["memory"].keys()
+    # (and the warm spares, `name*`, once made: they are measured while they wait)
+    assert {name for name in r["memory"] if not name.endswith("*")} == SERVICES, r["memory"].keys()
+    assert {name[:-1] for name in r["memory"] if name.endswith("*")} <= {"planner", "terrain", "ingress", "egress"}
+    assert r["spares"]["n"] == sum(name.endswith("*") for name in r["memory"]) and r["spares"]["cpu_pct"] >= 0
     for name, m in r["memory"].items():
         assert m["samples"] >= SOAK_S - 2.0 - 2, (name, m)  # one a second after the warm-up, two may be missed
         assert 5.0 < m["min_mib"] <= m["start_mib"] <= m["max_mib"] < 4096, (name, m)

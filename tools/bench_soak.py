@@ -50,6 +50,15 @@ def rss_kib(pid: int) -> int | None:
     return None
 
 
+def cpu_s(pid: int) -> float | None:
+    """CPU time a process has used so far, user + system [s] (/proc/<pid>/stat), or None when it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (FileNotFoundError, ProcessLookupError, ValueError, IndexError):
+        return None
+
+
 @dataclass
 class Tick:
     """One sample of the running stack, taken once a second."""
@@ -60,6 +69,7 @@ class Tick:
     cmd_count: int  # commands the monitor has seen on `cmd` so far
     latencies: int  # length of the monitor's state stamp -> command list so far
     plans: int  # length of the monitor's plan compute time list so far
+    cpu_s: dict[str, float] = field(default_factory=dict)  # process -> its CPU time so far [s]; spares as `name*`
 
 
 @dataclass
@@ -104,16 +114,21 @@ def soak_hook(duration_s: float, data: SoakData, sample_s: float = 1.0) -> Calla
         try:
             while not launcher.stop_event.is_set():
                 now = time.monotonic()
-                rss, pids = {}, {}
+                rss, pids, cpu = {}, {}, {}
                 for child in launcher.children:
-                    if child.process is not None and child.process.poll() is None:
-                        kib = rss_kib(child.process.pid)
-                        if kib is not None:
-                            rss[child.name], pids[child.name] = kib, child.process.pid
+                    # each service's process, and its warm spare's (`name*`), if it has one
+                    procs = [(child.name, child.process)]
+                    if child.spare is not None:
+                        procs.append((f"{child.name}*", child.spare.process))
+                    for name, process in procs:
+                        if process is not None and process.poll() is None:
+                            kib, used = rss_kib(process.pid), cpu_s(process.pid)
+                            if kib is not None and used is not None:
+                                rss[name], pids[name], cpu[name] = kib, process.pid, used
                 with monitor.lock:
                     tick = Tick(
                         round(now - t0, 3), rss, pids, monitor.counts[cmd_key], len(monitor.latencies_ms),
-                        len(monitor.plan_total_ms),
+                        len(monitor.plan_total_ms), cpu,
                     )
                 data.ticks.append(tick)
                 if now - t0 >= duration_s:
@@ -167,9 +182,15 @@ def memory_report(ticks: list[Tick], warmup_s: float) -> dict[str, dict]:
             continue
         mib = np.array([kib for _, kib in after], dtype=np.float64) / 1024.0
         start, end = float(mib[0]), float(mib[-1])
+        # CPU over the same samples: % of one core
+        used = [(t.t_s, t.cpu_s[name]) for t in ticks
+                if name in t.cpu_s and t.t_s >= warmup_s and t.pids.get(name) == last_pid]
+        cpu_pct = (round(100.0 * (used[-1][1] - used[0][1]) / (used[-1][0] - used[0][0]), 2)
+                   if len(used) > 1 and used[-1][0] > used[0][0] else None)
         out[name] = {
             "samples": len(after),
             "pid": last_pid,
+            "cpu_pct": cpu_pct,
             "start_mib": round(start, 1),
             "middle_mib": round(float(mib[len(mib) // 2]), 1),
             "end_mib": round(end, 1),
@@ -256,6 +277,13 @@ def build_report(data: SoakData, summary: Summary, record: str, warmup_s: float,
         "window_s": window_s,
         "memory": memory,
         "memory_max_spread_pct": max((m["spread_pct"] for m in memory.values()), default=None),
+        # the warm spares (`name*`): what they cost while they wait, in % of one core and MiB resident
+        "spares": {
+            "n": sum(name.endswith("*") for name in memory),
+            "cpu_pct": round(sum(m["cpu_pct"] or 0.0 for n, m in memory.items() if n.endswith("*")), 2),
+            "rss_mib": round(sum(m["end_mib"] for n, m in memory.items() if n.endswith("*")), 1),
+        },
+        "services_cpu_pct": round(sum(m["cpu_pct"] or 0.0 for n, m in memory.items() if not n.endswith("*")), 2),
         "recorder": {
             "seen_while_up": sum(data.seen_per_key.values()),
             "lost": sum(lost.values()),
@@ -290,10 +318,15 @@ def build_report(data: SoakData, summary: Summary, record: str, warmup_s: float,
 def print_report(r: dict) -> None:
     typer.echo(f"soak {r['duration_s']} s (warm-up {r['warmup_s']} s), load average (1 min) before, after: "
                f"{r['load_avg_1min']}, exit code {r['exit_code']}")
-    typer.echo("memory after warm-up [MiB]: start / middle / end, max; growth, spread")
+    typer.echo("memory after warm-up [MiB]: start / middle / end, max; growth, spread; CPU [% of one core]"
+               " (name*: a warm spare)")
     for name, m in r["memory"].items():
         typer.echo(f"  {name:>9}: {m['start_mib']} / {m['middle_mib']} / {m['end_mib']}, max {m['max_mib']}; "
-                   f"growth {m['growth_pct']:+.1f} %, spread {m['spread_pct']:.1f} % (n {m['samples']})")
+                   f"growth {m['growth_pct']:+.1f} %, spread {m['spread_pct']:.1f} % (n {m['samples']}); "
+                   f"CPU {m['cpu_pct']} %")
+    sp = r["spares"]
+    typer.echo(f"warm spares: {sp['n']}, CPU {sp['cpu_pct']} % of one core, {sp['rss_mib']} MiB resident; "
+               f"the services: CPU {r['services_cpu_pct']} %")
     rec = r["recorder"]
     typer.echo(f"recorder: {rec['seen_while_up']} messages seen while up, {rec['lost']} of them not in the file "
                f"{rec['lost_per_key'] or ''}; {rec['in_file']} in the file")
