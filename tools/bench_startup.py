@@ -247,7 +247,8 @@ def _wait_ready_to_kill(launcher: Launcher, monitor: Monitor, child: Child, time
         spare = child.spare
         # a death within restart_reset_s of the last one is "in a row": a restart with backoff, not a takeover
         settled = time.monotonic() - child.started_at >= launcher.launch.restart_reset_s
-        if spare is not None and spare.ready_at is not None and settled and _driving(monitor):
+        spare_ready = not launcher.wants_spare(child) or (spare is not None and spare.ready_at is not None)
+        if spare_ready and settled and _driving(monitor):
             return True
         if launcher.stop_event.wait(0.1):
             return False

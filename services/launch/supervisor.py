@@ -283,12 +283,13 @@ class Launcher:
         child.started_at = proc.started_at
         child.exited_at = None
         child.first_started_at = child.first_started_at or child.started_at
-        if self._wants_spare(child) and child.spare is None:
+        if self.wants_spare(child) and child.spare is None:
             child.spare_due = child.started_at + self.launch.spare_delay_s
         self.say("launch", f"started {child.name} ({child.kind}) pid {proc.process.pid}")
 
     # ---- warm spares ----------------------------------------------------------------------------
-    def _wants_spare(self, child: Child) -> bool:
+    def wants_spare(self, child: Child) -> bool:
+        """Whether `child` gets a warm spare (the launch file's `spares`)."""
         if self._spare_names is None:
             return child.kind in SPARE_KINDS
         return child.name in self._spare_names
