@@ -1,6 +1,12 @@
 """The launcher's supervision: each service a child process, its output prefixed, its death seen at once (a
-thread waits on each process) and answered with a restart after a backoff; a stop in reverse order.
-`services.launch.launcher` builds a `Launcher` from a launch file and runs it."""
+thread waits on each process) and answered by its warm spare taking over, or with a restart after a backoff; a stop
+in reverse order. `services.launch.launcher` builds a `Launcher` from a launch file and runs it.
+
+Warm spares (docs/faults.md): for each critical service (`SPARE_KINDS`, or the launch file's `spares`) a second
+process is started ahead of need. Every service process gets a role socket (`services.runtime.role`): it loads what
+it can, says "ready" and waits for the launcher's go, which a service's own process gets at once and a spare when
+its service has died, with the last payloads on the keys the service resumes from (`HANDOVER`). The service modules
+run the same code either way."""
 
 from __future__ import annotations
 
