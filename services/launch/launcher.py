@@ -2,8 +2,8 @@
 [--rerun spawn|save FILE|connect URL|serve|off] [--port N] [--secrets DIR]`.
 
 Starts the Zenoh router and each service as its own process (`python -m services.run NAME --config FILE`),
-prefixes their logs, hands a crashed service's role to its warm spare or restarts it with backoff (a thread waits
-on each process, so a death is seen at once), stops all in reverse order on Ctrl-C (SIGINT, then SIGTERM, then SIGKILL after timeouts) and
+prefixes their logs, restarts a crashed service with backoff (a thread waits on each process, so a death is
+seen at once), stops all in reverse order on Ctrl-C (SIGINT, then SIGTERM, then SIGKILL after timeouts) and
 prints a summary with every restart and its cause. Exit status 1 when a required service failed for good;
 2 when the launch cannot start (bad launch file, no router to connect to).
 """
