@@ -563,7 +563,7 @@ def _two_commanders(cmds: list[tuple[float, Command]], window_s: float = 0.1) ->
             if a[1].source != b[1].source and b[0] - a[0] < window_s]
 
 
-@pytest.mark.slow(seconds=120)
+@pytest.mark.slow(seconds=50)
 @pytest.mark.exclusive
 def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
