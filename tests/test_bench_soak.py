@@ -91,7 +91,8 @@ def test_short_soak_reports_real_numbers(tmp_path: Path, monkeypatch: pytest.Mon
     assert {name[:-1] for name in r["memory"] if name.endswith("*")} <= {"planner", "terrain", "ingress", "egress"}
     assert r["spares"]["n"] == sum(name.endswith("*") for name in r["memory"]) and r["spares"]["cpu_pct"] >= 0
     for name, m in r["memory"].items():
-        assert m["samples"] >= SOAK_S - 2.0 - 2, (name, m)  # one a second after the warm-up, two may be missed
+        # one a second after the warm-up, two may be missed (a spare: from when it was made, during the soak)
+        assert m["samples"] >= (1 if name.endswith("*") else SOAK_S - 2.0 - 2), (name, m)
         assert 5.0 < m["min_mib"] <= m["start_mib"] <= m["max_mib"] < 4096, (name, m)
         assert m["min_mib"] <= m["end_mib"] <= m["max_mib"] and m["spread_pct"] >= 0
     assert r["memory"]["planner"]["start_mib"] > 100  # numba, the model and the kernels are in there
