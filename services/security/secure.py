@@ -50,8 +50,11 @@ class Role:
 ROLES: dict[str, Role] = {
     "sim": Role("the simulated robot (plant)", puts=("odom/raw", "terrain/label"), reads=("base/cmd",)),
     "ingress": Role("state estimation ingress", puts=("state",), reads=("odom/raw",)),
-    "terrain": Role("terrain-weight estimator", puts=("terrain/weights",), reads=("state", "base/cmd", "cmd")),
-    "planner": Role("GP-MPPI planner", puts=("cmd", "plan", "task"), reads=("state", "terrain/weights", "task")),
+    # terrain and planner also read their own last output: a standby resumes from it (services/runtime/role.py)
+    "terrain": Role("terrain-weight estimator", puts=("terrain/weights",),
+                    reads=("state", "base/cmd", "cmd", "terrain/weights")),
+    "planner": Role("GP-MPPI planner", puts=("cmd", "plan", "task"),
+                    reads=("state", "terrain/weights", "task", "plan")),
     "egress": Role("motor-command egress (owns safety)", puts=("base/cmd",), reads=("cmd", "estop")),
     "recorder": Role("MCAP recorder (reads everything)", reads=("**",)),
     "viewer": Role("rerun viewer (reads everything)", reads=("**",)),
