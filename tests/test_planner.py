@@ -269,3 +269,18 @@ def test_prepare_collapses_ahead_and_plans_are_unchanged() -> None:
         ahead.prepare(np.array([1.0, 1.0, 1.0]))
     with pytest.raises(ValueError, match="one entry per terrain"):
         ahead.prepare(np.array([0.5, 0.5]))
+
+
+def test_resume_starts_from_another_planners_sequence_shifted() -> None:
+    """A planner taking over starts from its predecessor's last sequence, `steps` later, the last control held, and
+    within its own limits; a sequence that does not fit, or has run out, leaves it as it was."""
+    p = Planner(_cfg(horizon=15), _model())
+    before = p._nominal.copy()
+    controls = np.column_stack([np.linspace(1.0, 1.9, 15), np.full(15, 0.2)])
+    assert p.resume(controls, 3)
+    assert np.allclose(p._nominal[:12], controls[3:]) and np.allclose(p._nominal[12:], controls[-1])
+    assert p._nominal.shape == before.shape and p._nominal[:, 0].max() <= p.config.v_limits[1]
+    p.reset()
+    assert not p.resume(controls, 15) and not p.resume(controls[:, :1], 0)
+    assert not p.resume(np.full((15, 2), np.nan), 0)
+    assert np.array_equal(p._nominal, before)

@@ -211,3 +211,43 @@ def test_the_closed_loop_runs_this_cycle() -> None:
     np.testing.assert_array_equal(np.array(commands), traj.commands)
     np.testing.assert_array_equal(np.array(weights), traj.weights)
     assert not np.allclose(traj.weights[-1], traj.weights[0])  # the estimator moved them: the weight path ran
+
+
+class ResumingPlanner(RecordingPlanner):
+    """Records `resume` calls (a planner taking over from a predecessor's plan)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.resumed: list[tuple[np.ndarray, int]] = []
+
+    def resume(self, controls, steps) -> bool:
+        if steps >= len(controls):
+            return False
+        self.resumed.append((np.array(controls), steps))
+        return True
+
+
+def test_a_takeover_resumes_from_the_predecessors_plan_shifted_to_the_first_state() -> None:
+    planner = ResumingPlanner()
+    cycle = PlannerCycle(planner, LANE, CycleConfig(), 2, ["asphalt", "grass"], clock=lambda: 0.0)
+    controls = np.column_stack([np.linspace(1.0, 1.4, 5), np.zeros(5)])
+    plan_ns = 100 * NS
+    cycle.resume_from(controls, plan_ns, dt=0.1)
+    # the first state is 0.31 s after the predecessor's plan's state: three steps of its sequence have gone by
+    now_ns = plan_ns + int(0.31 * NS)
+    assert isinstance(cycle.on_state(X0, now_ns, 0.0, now_ns), Planned)
+    assert len(planner.resumed) == 1 and planner.resumed[0][1] == 3
+    assert np.array_equal(planner.resumed[0][0], controls)
+    assert [e.name for e in cycle.drain_events()] == ["resumed"]
+    # once only: the next state plans from the planner's own warm start
+    assert isinstance(cycle.on_state(X0, now_ns + NS // 10, 0.0, now_ns + NS // 10), Planned)
+    assert len(planner.resumed) == 1
+
+
+def test_a_plan_older_than_its_horizon_is_not_resumed_from() -> None:
+    planner = ResumingPlanner()
+    cycle = PlannerCycle(planner, LANE, CycleConfig(), 2, ["asphalt", "grass"], clock=lambda: 0.0)
+    cycle.resume_from(np.ones((5, 2)), 100 * NS, dt=0.1)
+    now_ns = 100 * NS + NS  # 10 steps later: the 5-step sequence has run out
+    assert isinstance(cycle.on_state(X0, now_ns, 0.0, now_ns), Planned)
+    assert not planner.resumed and [e.name for e in cycle.drain_events()] == ["resume_skipped"]

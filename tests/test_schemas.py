@@ -92,6 +92,15 @@ def test_wrong_schema_version_rejected() -> None:
         decode(Command, json.dumps(data).encode())
 
 
+def test_a_version_1_command_still_decodes_and_only_version_2_names_its_process() -> None:
+    old = b'{"header": {"schema_version": 1, "stamp_ns": 5}, "v_ref": 1.0, "omega_ref": 0.0}'
+    msg = decode(Command, old)
+    assert msg.header.schema_version == 1 and msg.source == ""
+    assert decode(Command, encode(Command(v_ref=1.0, omega_ref=0.0, source="abc"))).source == "abc"
+    with pytest.raises(DecodeError, match="source"):
+        decode(Command, b'{"header": {"schema_version": 1}, "v_ref": 1.0, "omega_ref": 0.0, "source": "abc"}')
+
+
 def test_bad_payloads_name_the_problem() -> None:
     with pytest.raises(DecodeError, match="Command"):
         decode(Command, b"{nope")
