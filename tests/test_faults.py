@@ -570,7 +570,8 @@ def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
 ) -> None:
     """Every critical service killed while the robot drives: its warm spare takes over (the summary says so), the
     planner from its predecessor's last plan and terrain from the last weights; a spare that dies is replaced; two
-    planner deaths in a row fall back to a restart with backoff; SIGSTOP/SIGCONT and kills of the planner in
+    planner deaths in a row fall back to a restart with backoff, and so does a frozen spare that never joins after its
+    go; SIGSTOP/SIGCONT and kills of the planner in
     sequence never let two planner processes command in the same 100 ms (each command names its process)."""
     monkeypatch.chdir(tmp_path)
     port = free_port()
@@ -653,6 +654,21 @@ def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
                   f"planner killed twice in a row: {again}")
             check(obs.wait_driving(time.monotonic(), 120.0) is not None, "planner restart: not driving again")
 
+            # ---- a frozen spare is no single point of failure: it gets its go, never joins, is killed; a restart
+            assert wait_for(lambda: _spare_ready(launcher, "planner"), 120.0), "no planner spare after the restart"
+            time.sleep(6.0)  # past restart_reset_s
+            frozen = launcher.kill_spare("planner", signal.SIGSTOP)
+            n_events = len(launcher.restart_events)
+            t_kill = time.monotonic()
+            launcher.kill("planner", signal.SIGKILL)
+            check(bool(wait_for(lambda: bool(out.after(t_kill, f"its spare (pid {frozen}) did not join")), 15.0)),
+                  "a frozen spare that got its go was not replaced")
+            restarted = [e for e in launcher.restart_events[n_events:] if e.name == "planner"]
+            check(len(restarted) >= 1 and restarted[0].takeover_pid == frozen, f"frozen spare: {restarted}")
+            check(obs.wait_driving(t_kill + 0.5, 120.0) is not None, "frozen spare: not driving again")
+            check(len([e for e in launcher.restart_events[n_events:] if e.name == "planner"]) == 2,
+                  "frozen spare: its service was not restarted")
+
             # ---- terrain, ingress, egress: each spare takes over; terrain first publishes the last weights
             for name in ("terrain", "ingress", "egress"):
                 assert wait_for(lambda n=name: _spare_ready(launcher, n), 120.0), f"no {name} spare ready"
@@ -690,7 +706,7 @@ def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
             obs.close()
 
     launch = _launch_file(tmp_path, port, spares=["planner", "terrain", "ingress", "egress"], spare_delay_s=1.0,
-                          restart_reset_s=5.0)
+                          restart_reset_s=5.0, takeover_timeout_s=2.0)
     code, summary = run_launch(launch, out=out, then=spares)
     log = out.text()
     (tmp_path / "launch.log").write_text(log)

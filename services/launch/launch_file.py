@@ -58,6 +58,11 @@ class LaunchFile(BaseModel):
         "has loaded everything and waits (no session, no CPU) to take over the moment the service dies. None: every "
         "planner, terrain, ingress and egress service; []: none"
     )
+    takeover_timeout_s: float = Field(
+        10.0, gt=0, le=3600, description="a spare that got its go but has not joined (declared itself) this long "
+        "after is killed, and its service restarts with backoff (a frozen or stuck spare is no single point of "
+        "failure) [s]"
+    )
     spare_delay_s: float = Field(
         5.0, ge=0, le=3600, description="a spare is made this long after its service (re)started, one spare "
         "warming at a time (planner first), so spares do not compete with a start for the CPU [s]"

@@ -29,7 +29,7 @@ import yaml
 
 from services.recording.output_files import free_name
 from services.run import LAUNCHER_PID_ENV, SERVICES
-from services.runtime.role import HANDOVER, READY, ROLE_FD_ENV, go_message
+from services.runtime.role import HANDOVER, JOINED, READY, ROLE_FD_ENV, go_message
 
 if TYPE_CHECKING:
     from services.launch.launch_file import LaunchFile
@@ -257,6 +257,27 @@ class Launcher:
             proc.ready_at = time.monotonic()
             self.wake.set()
 
+    def _await_joined(self, child: Child, proc: Proc) -> None:
+        """A spare that got its go must join (declare itself) within `takeover_timeout_s`; one that does not (frozen,
+        stuck) is killed, and supervision restarts its service with backoff like any second death in a row."""
+        assert proc.sock is not None
+        timeout = self.launch.takeover_timeout_s
+        try:
+            proc.sock.settimeout(timeout)
+            said = proc.sock.recv(len(JOINED))
+        except TimeoutError:
+            said = b""
+        except OSError:
+            return  # closed: the launch is stopping, or the process died (supervision sees that)
+        if said == JOINED or self.stop_event.is_set():
+            return
+        with self._process_lock:
+            if child.process is proc.process and proc.process.poll() is None:
+                self.say("launch", f"{child.name}: its spare (pid {proc.process.pid}) did not join within "
+                                   f"{_seconds(timeout)} s of its go; killing it")
+                proc.process.send_signal(signal.SIGCONT)
+                proc.process.kill()
+
     def _go(self, child: Child, proc: Proc) -> None:
         """Let `proc` join as `child`'s service, with the last payloads on the keys it resumes from (on a thread of
         its own: a large handover must not block supervision on a process that has not read it yet)."""
@@ -342,8 +363,11 @@ class Launcher:
         spare = child.spare
         if spare is None or spare.ready_at is None or spare.process.poll() is not None:
             return False
+        if now < child.hold_until:
+            return False  # kept down on purpose (`kill(..., restart_after_s)`): the restart waits for it
         child.spare = None
         self._go(child, spare)
+        threading.Thread(target=self._await_joined, args=(child, spare), daemon=True).start()
         spare.label = child.name
         old = child.proc
         if old is not None:

@@ -35,7 +35,7 @@ import zenoh
 from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_for
 from schemas.codec import ENCODING
 from services.runtime.node_settings import NodeSettings
-from services.runtime.role import HANDOVER, notify_systemd_ready, standby_requested, wait_for_role
+from services.runtime.role import HANDOVER, notify_systemd_ready, say_joined, standby_requested, wait_for_role
 from services.runtime.scheduling import Inbox
 from services.runtime.session import StoppedWhileWaiting, open_session
 
@@ -226,6 +226,7 @@ class Node:
         elif standby_requested():
             self._stand_by(token_key)
         self._token = self.session.liveliness().declare_token(token_key)
+        say_joined()
         notify_systemd_ready()
         self._health = self.publisher("health")
         self.log.info(

@@ -33,6 +33,7 @@ from services.runtime.session import StoppedWhileWaiting
 ROLE_FD_ENV = "GPMPPI_ROLE_FD"
 STANDBY_ENV = "GPMPPI_STANDBY"
 READY = b"ready\n"
+JOINED = b"joined\n"
 # what a service resumes from, by kind: registered key name -> key under gpmppi/{robot}/ (the launcher's own session,
 # or a standby's, keeps the last payload on each and hands it to the next process of that service)
 HANDOVER: dict[str, dict[str, str]] = {"planner": {"plan": "plan"}, "terrain": {"terrain_weights": "terrain/weights"}}
@@ -102,9 +103,30 @@ def wait_for_role(stop: threading.Event | None = None) -> Role | None:
         go = json.loads(buf.split(b"\n", 1)[0])
         handover = {str(k): str(v).encode() for k, v in (go.get("handover") or {}).items()}
         _taken = Role(handover, time.monotonic() - t0)
+        global _joined_to
+        _joined_to, sock = sock, None  # kept open for `say_joined`
         return _taken
     finally:
-        sock.close()
+        if sock is not None:
+            sock.close()
+
+
+_joined_to: socket.socket | None = None
+
+
+def say_joined() -> None:
+    """Tell the launcher this process has joined as its service (its liveliness token is declared): a spare that
+    got its go but never says so (frozen, stuck) is replaced."""
+    global _joined_to
+    if _joined_to is None:
+        return
+    try:
+        _joined_to.sendall(JOINED)
+    except OSError:
+        pass
+    finally:
+        _joined_to.close()
+        _joined_to = None
 
 
 def go_message(handover: dict[str, bytes]) -> bytes:
