@@ -786,3 +786,17 @@ def test_a_standby_process_takes_over_when_its_service_dies(tmp_path: Path, monk
             if proc.alive():
                 proc.stop()
         router.stop()
+
+
+@pytest.mark.parametrize("spares, problem", [(["recorder"], "a recorder"), (["nav"], "does not run")])
+def test_spares_only_for_services_that_can_take_over(tmp_path: Path, spares: list[str], problem: str) -> None:
+    """A recorder's spare would write over its predecessor's file, a sim's would restart the robot from its start:
+    the launch refuses them (and names it does not run) before any process starts."""
+    from services.launch.launch_file import LaunchFile
+    from services.launch.launcher import build
+
+    launch = LaunchFile.load(_launch_file(tmp_path, free_port(), spares=spares))
+    launcher, _ = build(launch, str(tmp_path / "run.mcap"), None, None)
+    with pytest.raises(ValueError, match=problem):
+        launcher.start_all()
+    assert all(c.process is None for c in launcher.children)

@@ -394,7 +394,22 @@ class Launcher:
             child.exited_at = time.monotonic()
         self.wake.set()
 
+    def check_spares(self) -> None:
+        """The launch file's `spares` name services of this launch whose kind can have one: ValueError otherwise (a
+        recorder's spare would write over its predecessor's file, a sim's would start the robot from its start pose)."""
+        if self._spare_names is None:
+            return
+        kinds = {c.name: c.kind for c in self.children}
+        for name in sorted(self._spare_names):
+            if name not in kinds:
+                raise ValueError(f"spares names {name!r}, which this launch does not run; it runs "
+                                 f"{', '.join(kinds)}")
+            if kinds[name] not in SPARE_KINDS:
+                raise ValueError(f"spares names {name!r}, a {kinds[name]}: only {', '.join(SPARE_KINDS)} services "
+                                 "can have a warm spare")
+
     def start_all(self) -> None:
+        self.check_spares()
         for child in self.children:
             self._spawn(child)
             if child.kind == "router":
