@@ -196,6 +196,13 @@ def _settings(
     for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), ("--gp-model", gp_model)):
         if f is not None and not f.is_file():
             fail(f"{label} {f}: file not found")
+    if plant_file is not None:
+        from gpmppi.plant.residual_net import NetworkFileError, load_residual_net
+
+        try:
+            load_residual_net(plant_file)  # here, not first in a worker after the pool has started
+        except NetworkFileError as e:
+            fail(f"--plant-file: {e}")
     if gp_model is not None:
         from gpmppi.evaluation.runner import cached_gp_model
         from gpmppi.gp.model_file import ModelFileError
