@@ -85,7 +85,7 @@ class FoxgloveSceneMapper:
 
     def __init__(self, options: geo.Decimation | None = None) -> None:
         from foxglove import messages as fm
-        from foxglove.schemas import Duration, Timestamp
+        from foxglove.messages import Duration, Timestamp
 
         self.fm = fm
         self._timestamp = Timestamp
