@@ -68,7 +68,9 @@ def build(
     if record:
         # recorder and viewer start first so they see the others' first messages; both at a lower CPU priority
         # (nice) than the control path, which they must never delay
-        entries.insert(0, ServiceEntry(name="recorder", required=False, config={"path": record, "nice": 10}))
+        # with --foxglove the recording carries the Foxglove scene too, so it opens in Foxglove as the run looked live
+        config = {"path": record, "nice": 10, **({"foxglove_scene": True} if foxglove is not None else {})}
+        entries.insert(0, ServiceEntry(name="recorder", required=False, config=config))
     if rerun and rerun[0] != "off":
         mode = rerun[0]
         config: dict[str, Any] = {"mode": mode, "nice": 10}
