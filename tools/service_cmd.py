@@ -11,11 +11,26 @@ import typer
 
 from tools.cli_checks import OUT_DIR, RECORDING, fail, write_text_atomic
 
-SERVICE_NAMES = ("router", "sim", "ingress", "terrain", "planner", "egress", "recorder", "viewer")
+SERVICE_NAMES = ("router", "sim", "ingress", "terrain", "planner", "egress", "recorder", "viewer", "foxglove")
 DurationOpt = typer.Option(
     None, "--duration", min=0.1, max=30 * 86400.0, help="stop after this many seconds once every service is up"
 )
 PortOpt = typer.Option(None, "--port", min=1, max=65535, help="router port on 127.0.0.1 (overrides the file)")
+FOXGLOVE_HELP = (
+    "serve the run to Foxglove on this WebSocket address, HOST:PORT or PORT (loopback unless HOST says otherwise; "
+    "see docs/foxglove.md)"
+)
+
+
+def foxglove_address(text: str | None) -> tuple[str, int] | None:
+    """`--foxglove HOST:PORT` or `PORT` (host 127.0.0.1) as (host, port); a bad address is one line, exit 2."""
+    if text is None:
+        return None
+    host, _, port = text.rpartition(":")
+    host = host.strip("[]") or "127.0.0.1"
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        fail(f"--foxglove {text!r}: expected HOST:PORT or PORT with a port in 1..65535, e.g. 127.0.0.1:8765")
+    return host, int(port)
 
 
 class RerunMode(str, Enum):
@@ -30,14 +45,14 @@ class RerunMode(str, Enum):
 
 def _launch(
     launch_file: Path | None, duration: float | None, record: Path | None, rerun: list[str] | None,
-    port: int | None, secrets: Path | None = None,
+    port: int | None, secrets: Path | None = None, foxglove: tuple[str, int] | None = None,
 ) -> tuple[int, Any]:
     """Run a launch file through the launcher: (exit code, summary); a launch that cannot start is one line."""
     from services.launch.launcher import RouterUnreachable, run_launch
 
     try:
         return run_launch(launch_file, duration, None if record is None else str(record), rerun, port,
-                          secrets=None if secrets is None else str(secrets))
+                          secrets=None if secrets is None else str(secrets), foxglove=foxglove)
     except (FileNotFoundError, ValueError, TimeoutError, RouterUnreachable) as exc:
         fail(str(exc))
         raise AssertionError from exc  # fail() raises
@@ -92,13 +107,15 @@ def register(app: typer.Typer) -> None:
             None, "--secrets", metavar="DIR",
             help="run with authentication and access control, with the identities of `gpmppi secure init DIR`",
         ),
+        foxglove: str | None = typer.Option(None, "--foxglove", metavar="HOST:PORT", help=FOXGLOVE_HELP),
     ) -> None:
         """Run a launch file: every service as its own process, restarted on a crash, stopped on Ctrl-C; then a
         summary."""
         if launch_file is not None and launch_file.suffix == ".rrd":
             fail(f"LAUNCH_FILE {launch_file}: a rerun file, not a launch file; to save the view give "
                  f"--rerun save --rerun-target {launch_file}")
-        code, _ = _launch(launch_file, duration, record, _rerun_args(rerun, rerun_target), port, secrets)
+        address = foxglove_address(foxglove)
+        code, _ = _launch(launch_file, duration, record, _rerun_args(rerun, rerun_target), port, secrets, address)
         raise typer.Exit(code)
 
     @app.command("demo")
