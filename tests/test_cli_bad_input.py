@@ -216,6 +216,15 @@ ISSUE_CASES = [
     (["evaluate", "tracking", "--switch", "abc"], "--switch"),
     (["evaluate", "tracking", "--set", "bogus=1"], "--set"),
     (["secure", "init", "{root}/nope/secrets"], "does not exist"),
+    # an option that only applies with another is an error without it, not ignored
+    (["bench", "planner", "--collapse-in-plan"], "--collapse-in-plan"),
+    (["bench", "planner", "-m", "edd5", "--gp", "exact"], "--gp"),
+    (["bench", "viewer-stall", "--mode", "stack", "--rate", "5"], "--rate"),
+    (["replay", "{input}", "--lockstep"], "--lockstep"),
+    (["replay", "{input}", "--set", "planner.samples=64"], "--set"),
+    (["secure", "init", "{root}/secrets", "--tls-endpoint", "tls/127.0.0.1:9"], "--tls-endpoint"),
+    (["secure", "init", "{root}/secrets", "--ros2-cmd-key", "a/b"], "--ros2-cmd-key"),
+    (["evaluate", "tracking", "--plant-file", "{input}"], "--plant-file"),
 ]
 
 

@@ -308,3 +308,10 @@ def write_text_atomic(path: Path, text: str) -> None:
     """Write `text` to `path` through a temporary file renamed when complete."""
     with AtomicOutput(path) as tmp:
         tmp.write_text(text)
+
+
+def only_with(condition: bool, needs: str, given: dict[str, bool]) -> None:
+    """UserError naming the options of `given` that were set although they apply only with `needs`."""
+    named = [name for name, on in given.items() if on]
+    if named and not condition:
+        fail(f"{', '.join(named)}: only with {needs}")

@@ -17,7 +17,7 @@ from typing import Any
 
 import typer
 
-from tools.cli_checks import OUT_FILE, check_output_file, fail
+from tools.cli_checks import OUT_FILE, check_output_file, fail, only_with
 from tools.replay_live import ReplaceError
 
 RERUN_MODES = ("save", "spawn", "connect", "serve")
@@ -405,6 +405,9 @@ def register(app: typer.Typer) -> None:
                 return
             if rerun_target is not None:
                 raise ValueError(f"--rerun-target {rerun_target!r}: only with --rerun save or --rerun connect")
+            only_with(replace is not None, "--replace SERVICE", {"--set": bool(set_), "--config": bool(config),
+                                                                 "--compare": compare})
+            only_with(compare, "--compare", {"--lockstep": lockstep})
             if port is not None and connect is not None:
                 raise ValueError("give --connect ENDPOINT (an existing router) or --port N (start one), not both")
             req = ReplayRequest(log, speed, start, end, keys, exclude, loop, robot, keep_stamps, replace, list(set_),
