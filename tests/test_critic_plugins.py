@@ -65,12 +65,12 @@ PLUGIN = r"""
 import json, sys
 import numpy as np
 from gpmppi.mppi.critics import register
-from gpmppi.mppi.critics.base import AT_OMEGA, Critic, critic_term
+from gpmppi.mppi.critics.base import Critic, critic_term
 
 
 @critic_term
 def turning_cost(weight, cost_w, p, geo, at):
-    return weight * at[AT_OMEGA] * at[AT_OMEGA]
+    return weight * at.omega * at.omega
 
 
 register(Critic("turning", 0.5, ("lane", "goal"), turning_cost, "omega^2 per step [cost / (rad/s)^2]"))

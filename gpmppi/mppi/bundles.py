@@ -15,9 +15,9 @@ built here, by the classmethods, and nowhere else.
 
 from __future__ import annotations
 
+from collections import namedtuple
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from collections import namedtuple
 from typing import Any, ClassVar, NamedTuple
 
 import numpy as np

@@ -25,18 +25,10 @@ from numba import njit
 from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row, vector_phase
 from gpmppi.mppi.bundles import CRITICS, K_EXIT_DISCOUNT
 from gpmppi.mppi.costs import stage_cost, stage_critics, terminal_cost, terminal_critics, weight_vector
-from gpmppi.mppi.dynamics import (
-    DYN_GP,
-    GP_SIMPLEX,
-    advance,
-    gp_inputs,
-    gp_residual,
-    gp_scratch,
-    velocity_coefficients,
-)
+from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, gp_scratch, velocity_coefficients
 from gpmppi.mppi.gp_table import block_keys, cell32, ensure_block_at, simplex_corner, simplex_params
 from gpmppi.mppi.rng import command_from_normals, normal_pair
-from gpmppi.mppi.step import sample_step
+from gpmppi.mppi.step import sample_step, step_inputs
 
 __all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", "softmax_update"]
 
@@ -88,14 +80,14 @@ def _draw_commands(
 
 @phase
 def _add_costs(
-    n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray, total: np.ndarray, kind: int, cost_w: np.ndarray,
-    geo: tuple, bounds: tuple, discount_k: float,
+    n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray, total: np.ndarray, cost_w: np.ndarray, task: tuple,
+    bounds: tuple, discount_k: float,
 ) -> None:
     """Add one step's stage cost to each sample's total: states `st` after the step, its commands and GP variances;
     `bounds` = (this step's tightened half-width, its inflated radii)."""
     tightened_hw, radii = bounds
     for j in range(n_in):
-        total[j] += stage_cost(kind, cost_w, geo, tightened_hw, radii, discount_k,
+        total[j] += stage_cost(cost_w, task, tightened_hw, radii, discount_k,
                                (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]), (cmd[0, j], cmd[1, j]),
                                (res[2, j], res[3, j]))
 
@@ -223,12 +215,7 @@ def rollout_worker(
     dyn_mode = model.dyn_mode
     gp_mode = model.gp_mode
     table = model.table
-    task_kind = task.kind
-    field = task.field
-    grid_origin = task.origin
-    inv_cell = task.inv_cell
     tightened_hw = task.tightened_hw
-    goal = task.goal
     radii = task.radii
     x0 = sampling.x0
     nominal = sampling.nominal
@@ -245,15 +232,9 @@ def rollout_worker(
     n_xy = xy_out.shape[0]
     n_groups = (samples + GROUP - 1) // GROUP
     counter0 = sampling.iteration * samples
-    dyn = (dyn_mode, coef, model.edd5)
+    inputs = step_inputs(model, sampling, sampling.noise_std, sampling.noise_memory, coef)
+    dyn, limits, gp = inputs.dyn, inputs.limits, inputs.gp
     grid = simplex_params(model.dims, model.lo, model.inv_step)
-    memory = sampling.noise_memory
-    ar = (memory, np.sqrt(1.0 - memory * memory))  # `rng.sampled_command`
-    limits = (nominal, sampling.noise_std, sampling.u_lo, sampling.u_hi, ar,
-              (sampling.u_prev, sampling.rate_step))
-    gp = gp_inputs(model)
-    geo = (task.seg, task.cell_start, task.candidates, field, grid_origin, inv_cell, task.half_width,
-           task.speed_target, goal, task.obstacles)
     simplex = dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX
     lazy = model.lazy
     lazy_collapse = simplex and lazy[0] != 0
@@ -288,8 +269,7 @@ def rollout_worker(
                 _draw_commands(seed, counter0, horizon, k + 1, limits, first, n_in, eps_out, cmd_next, noise,
                                normals)
             if k > 0:
-                _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[k], radii[k]),
-                           discount_k)
+                _add_costs(n_in, st, cmd_prev, res, total, cost_w, task, (tightened_hw[k], radii[k]), discount_k)
                 discount_k *= discount
             if simplex:
                 _read_rows(n_in, flat, nodes, node_w, res)
@@ -297,10 +277,9 @@ def rollout_worker(
                 _gp_residuals(gp, scratch, n_in, st, cmd, res)
             _advance_group(dyn, dt, n_in, first, k, st, cmd, res, xy_out)
             cmd_prev, cmd, cmd_next = cmd, cmd_next, cmd_prev
-        _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[horizon], radii[horizon]),
-                   discount_k)
+        _add_costs(n_in, st, cmd_prev, res, total, cost_w, task, (tightened_hw[horizon], radii[horizon]), discount_k)
         for j in range(n_in):
-            t = total[j] + terminal_cost(task_kind, cost_w, geo, tightened_hw[horizon], radii[horizon],
+            t = total[j] + terminal_cost(cost_w, task, tightened_hw[horizon], radii[horizon],
                                          (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]))
             if not np.isfinite(t):
                 t = np.inf
@@ -394,19 +373,12 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     pose step round differently and the sum strayed 5e-9 from the kernel's cost): the kernels add the critics of a
     step into one cost, this keeps them apart; their sum is the kernels' cost.
     """
-    kind = task.kind
     tightened_hw = task.tightened_hw
     radii = task.radii
-    geo = (task.seg, task.cell_start, task.candidates, task.field, task.origin, task.inv_cell,
-           task.half_width, task.speed_target, task.goal, task.obstacles)
-    nominal = sampling.nominal
-    horizon = nominal.shape[0]
+    horizon = sampling.nominal.shape[0]
     # the sampling bundle's own limits, but no noise: whatever its noise std, the sequence scored is the nominal
-    limits = (nominal, np.zeros(2), sampling.u_lo, sampling.u_hi, (0.0, 1.0),
-              (sampling.u_prev, sampling.rate_step))
+    inputs = step_inputs(model, sampling, np.zeros(2), 0.0, velocity_coefficients(model.theta, model.lateral))
     dt = sampling.dt
-    dyn = (model.dyn_mode, velocity_coefficients(model.theta, model.lateral), model.edd5)
-    gp = gp_inputs(model)
     scratch = gp_scratch(model)
     cost_w = weight_vector(cost)
     discount = cost_w[K_EXIT_DISCOUNT]
@@ -416,10 +388,10 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     out = np.zeros(len(CRITICS))
     discount_k = 1.0
     for k in range(horizon):
-        u, d, s, variances = sample_step(sampling.seed, k, k, limits, dyn, gp, scratch, dt, s, d)
-        stage_critics(kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, variances, out)
+        u, d, s, variances = sample_step(sampling.seed, k, k, inputs, scratch, dt, s, d)
+        stage_critics(cost_w, task, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, variances, out)
         discount_k *= discount
-    terminal_critics(kind, cost_w, geo, tightened_hw[horizon], radii[horizon], s, out)
+    terminal_critics(cost_w, task, tightened_hw[horizon], radii[horizon], s, out)
     return out
 
 

@@ -48,7 +48,8 @@ def _grid_residual(gp, scratch, v_ref, w_ref, v, w):  # noqa: ANN001, ANN202 - a
 
 set_device_version(dynamics.gp_residual, _grid_residual)
 _sample_step = device_version(step.sample_step)
-_gp_inputs = device_version(dynamics.gp_inputs)
+_step_inputs = device_version(step.step_inputs)
+_fill_velocity_coefficients = device_version(dynamics.fill_velocity_coefficients)
 # the critics' sums from the terms' device twins (the CPU sums are closures, which `device_version` cannot rebuild)
 for _kind, _sums in build_sums(cuda.jit(device=True, inline=True), device_version).items():
     set_device_version(getattr(critic, f"_{_kind}_stage"), _sums.stage)
@@ -67,35 +68,19 @@ def _rollout_kernel(model, task, sampling, cost, out):
     samples = eps_out.shape[0]
     if s >= samples:
         return
-    theta = model.theta
-    lateral = model.lateral
-    task_kind = task.kind
     tightened_hw = task.tightened_hw
     radii = task.radii
-    geo = (task.seg, task.cell_start, task.candidates, task.field, task.origin, task.inv_cell,
-           task.half_width, task.speed_target, task.goal, task.obstacles)
     x0 = sampling.x0
     nominal = sampling.nominal
     dt = sampling.dt
     seed = sampling.seed
-    memory = sampling.noise_memory
-    limits = (nominal, sampling.noise_std, sampling.u_lo, sampling.u_hi,
-              (memory, math.sqrt(1.0 - memory * memory)), (sampling.u_prev, sampling.rate_step))
     cost_w = cuda.local.array(N_COST_TERMS, numba.float64)
     _fill_weight_vector(cost, cost_w)
     discount = cost_w[K_EXIT_DISCOUNT]
     # `dynamics.velocity_coefficients` in a thread's own memory (a device function cannot make an array)
     coef = cuda.local.array(8, numba.float64)
-    coef[0] = theta[2] / theta[0]
-    coef[1] = theta[3] / theta[0]
-    coef[2] = 1.0 / theta[0]
-    coef[3] = theta[4] / theta[1]
-    coef[4] = theta[5] / theta[1]
-    coef[5] = 1.0 / theta[1]
-    coef[6] = lateral[0]
-    coef[7] = lateral[1]
-    dyn = (model.dyn_mode, coef, model.edd5)
-    gp = _gp_inputs(model)
+    _fill_velocity_coefficients(model.theta, model.lateral, coef)
+    inputs = _step_inputs(model, sampling, sampling.noise_std, sampling.noise_memory, coef)
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
     st = (x0[0], x0[1], x0[2], x0[3], x0[4])
@@ -108,15 +93,15 @@ def _rollout_kernel(model, task, sampling, cost, out):
     d = (0.0, 0.0)  # the unit noise of the last step (`rng.sampled_command`)
     for k in range(horizon):
         # the step every backend takes (`step.sample_step`); the exact GP's work arrays: none on the device
-        u, d, st, variances = _sample_step(seed, base + k, k, limits, dyn, gp, (), dt, st, d)
+        u, d, st, variances = _sample_step(seed, base + k, k, inputs, (), dt, st, d)
         eps_out[s, k, 0] = u[0] - nominal[k, 0]
         eps_out[s, k, 1] = u[1] - nominal[k, 1]
         if s < n_xy:
             xy_out[s, k + 1, 0] = st[0]
             xy_out[s, k + 1, 1] = st[1]
-        total += _stage_cost(task_kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, st, u, variances)
+        total += _stage_cost(cost_w, task, tightened_hw[k + 1], radii[k + 1], discount_k, st, u, variances)
         discount_k *= discount
-    total += _terminal_cost(task_kind, cost_w, geo, tightened_hw[horizon], radii[horizon], st)
+    total += _terminal_cost(cost_w, task, tightened_hw[horizon], radii[horizon], st)
     if math.isnan(total) or math.isinf(total):
         total = math.inf
     cost_out[s] = total

@@ -93,11 +93,33 @@ def gp_scratch(model: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 @njit(cache=True, inline="always")
+def fill_velocity_coefficients(theta: np.ndarray, lateral: np.ndarray, coef: np.ndarray) -> None:
+    """Write [th3/th1, th4/th1, 1/th1, th5/th2, th6/th2, 1/th2, a, b] into `coef` (8,): divisions done once, not at
+    every sample-step; (a, b) the terrain-weighted lateral slip coefficients (`gpmppi.models.lateral_slip`). The CUDA
+    kernel fills a thread's own array with it (a device function cannot make an array)."""
+    coef[0] = theta[2] / theta[0]
+    coef[1] = theta[3] / theta[0]
+    coef[2] = 1.0 / theta[0]
+    coef[3] = theta[4] / theta[1]
+    coef[4] = theta[5] / theta[1]
+    coef[5] = 1.0 / theta[1]
+    coef[6] = lateral[0]
+    coef[7] = lateral[1]
+
+
+@njit(cache=True, inline="always")
 def velocity_coefficients(theta: np.ndarray, lateral: np.ndarray) -> np.ndarray:
-    """[th3/th1, th4/th1, 1/th1, th5/th2, th6/th2, 1/th2, a, b]: divisions done once, not at every sample-step;
-    (a, b) the terrain-weighted lateral slip coefficients (`gpmppi.models.lateral_slip`)."""
-    return np.array([theta[2] / theta[0], theta[3] / theta[0], 1.0 / theta[0],
-                     theta[4] / theta[1], theta[5] / theta[1], 1.0 / theta[1], lateral[0], lateral[1]])
+    """`fill_velocity_coefficients` into a new array."""
+    coef = np.empty(8)
+    fill_velocity_coefficients(theta, lateral, coef)
+    return coef
+
+
+@njit(cache=True, inline="always")
+def dyn_inputs(model: tuple, coef: np.ndarray) -> tuple:
+    """The model fields of a model bundle's tuple as `step_state` takes them, (dyn_mode, coef, edd5), with `coef` its
+    `velocity_coefficients` (called once, before any loop)."""
+    return (model.dyn_mode, coef, model.edd5)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -202,7 +224,7 @@ def propagate(
     dyn_mode = model.dyn_mode
     theta = model.theta
     lateral = model.lateral
-    dyn = (dyn_mode, velocity_coefficients(theta, lateral), model.edd5)
+    dyn = dyn_inputs(model, velocity_coefficients(theta, lateral))
     gp = gp_inputs(model)
     scratch = gp_scratch(model)
     n = controls.shape[0]
@@ -248,7 +270,7 @@ def predict_ahead(
     dyn_mode = model.dyn_mode
     theta = model.theta
     lateral = model.lateral
-    dyn = (dyn_mode, velocity_coefficients(theta, lateral), model.edd5)
+    dyn = dyn_inputs(model, velocity_coefficients(theta, lateral))
     gp = gp_inputs(model)
     scratch = gp_scratch(model)
     n = max(1, int(math.ceil(delay / 0.01)))

@@ -5,9 +5,10 @@ A term is `term(weight, cost_w, p, geo, at) -> float`, compiled by `critic_term`
 
 * `weight` its weight; `cost_w` the cost vector the kernels hold (`registry.CriticLayout`), `p` the index in it of
   the critic's first parameter (in the order of `Critic.params`);
-* `geo` the task's geometry, read by the `G_*` indices; `at` the step, read by the `AT_*` indices: the state after
-  the step, its command and GP variances, this step's tightened lane half-width and inflated obstacle radii, the
-  lane-exit discount of this step, and (lane tasks) the lane distance and direction at the state.
+* `geo` the task, its `TaskBundle` fields by name (`geo.speed_target`, `geo.obstacles`, ...); `at` the step, a `Step`
+  read by name: the state after the step, its command and GP variances, this step's tightened lane half-width and
+  inflated obstacle radii, the lane-exit discount of this step, and (lane tasks) the lane distance and direction at
+  the state.
 
 A terminal term is evaluated once, on the state after the last step (its command and variances zero).
 """
@@ -16,13 +17,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
+import numpy as np
 from numba import njit
 
 from gpmppi.kernel_flags import FASTMATH
 
 __all__ = [
-    "TASK_GOAL", "TASK_KINDS", "TASK_LANE", "W_GOAL_GEODESIC", "Critic", "Param", "critic_term",
+    "TASK_GOAL", "TASK_KINDS", "TASK_LANE", "W_GOAL_GEODESIC", "Critic", "Param", "Step", "critic_term",
 ]
 
 # task kinds of the rollout kernels, by the name the config uses
@@ -33,13 +36,25 @@ TASK_KINDS = {"lane": TASK_LANE, "goal": TASK_GOAL}
 # the cost vector's first slot: goal critics measure the distance around the obstacles (1.0) or the straight line
 W_GOAL_GEODESIC = 0
 
-# the task's geometry (`TaskBundle` fields)
-G_SEG, G_CELL_START, G_CANDIDATES, G_FIELD, G_ORIGIN, G_INV_CELL, G_HALF_WIDTH, G_SPEED_TARGET, G_GOAL = range(9)
-G_OBSTACLES = 9
 
-# the step
-AT_X, AT_Y, AT_YAW, AT_V, AT_OMEGA, AT_V_REF, AT_OMEGA_REF, AT_VAR_V, AT_VAR_OMEGA = range(9)
-AT_TIGHTENED_HW, AT_RADII, AT_DISCOUNT_K, AT_LANE_DIST, AT_LANE_TX, AT_LANE_TY = range(9, 15)
+class Step(NamedTuple):
+    """One rollout step as every critic's term reads it (`costs.stage_cost` builds it once per step for all)."""
+
+    x: float  # state after the step [m, m, rad, m/s, rad/s]
+    y: float
+    yaw: float
+    v: float
+    omega: float
+    v_ref: float  # the step's command [m/s, rad/s]
+    omega_ref: float
+    var_v: float  # the step's GP residual variances [(m/s)^2, (rad/s)^2]
+    var_omega: float
+    tightened_hw: float  # this step's tightened lane half-width [m]
+    radii: np.ndarray  # (K,) this step's inflated obstacle radii [m]
+    discount_k: float  # the lane-exit discount of this step
+    lane_dist: float  # lane tasks: distance from the lane's centre line [m] (else 0)
+    lane_tx: float  # lane tasks: the lane's direction at the state (unit; else 0)
+    lane_ty: float
 
 
 def critic_term(func: Callable) -> Callable:

@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmppi.mppi.critics.base import AT_DISCOUNT_K, AT_LANE_DIST, AT_TIGHTENED_HW, Critic, Param, critic_term
+from gpmppi.mppi.critics.base import Critic, Param, critic_term
 
 
 @critic_term
 def lane_exit_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
-    return weight * at[AT_DISCOUNT_K] if at[AT_LANE_DIST] > at[AT_TIGHTENED_HW] else 0.0
+    return weight * at.discount_k if at.lane_dist > at.tightened_hw else 0.0
 
 
 CRITIC = Critic("lane_exit", 1000.0, ("lane",), lane_exit_cost,

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmppi.mppi.critics.base import AT_VAR_OMEGA, AT_VAR_V, Critic, critic_term
+from gpmppi.mppi.critics.base import Critic, critic_term
 
 
 @critic_term
 def variance_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
-    return weight * (at[AT_VAR_V] + at[AT_VAR_OMEGA])
+    return weight * (at.var_v + at.var_omega)
 
 
 CRITIC = Critic("variance", 1.0, ("lane", "goal"), variance_cost,
