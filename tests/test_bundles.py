@@ -9,6 +9,7 @@ from numba import typeof
 
 from gpmppi.mppi import bundles
 from gpmppi.mppi.bundles import CRITICS, CostBundle, ModelBundle, Outputs, SamplingBundle, TaskBundle
+from gpmppi.mppi.critics.registry import layout
 from gpmppi.mppi.lane import build_lane_lookup
 
 A1, A2, A3 = "array(float64, 1d, C)", "array(float64, 2d, C)", "array(float64, 3d, C)"
@@ -102,7 +103,8 @@ def test_cost_bundle_takes_weights_by_critic_name() -> None:
     # the cost vector: the goal switch, the weights in CRITICS order, the critics' parameters
     assert cost.args() == (1.0, *weights.values(), 0.8, 0.0)
     assert typeof(cost.args()) == typeof((1.0,) * bundles.N_COST_TERMS)
-    assert cost.args()[bundles.K_EXIT_DISCOUNT] == 0.8 and cost.args()[bundles.K_GOAL_GEODESIC] == 1.0
+    assert cost.args()[layout().param_index("lane_exit", "discount")] == 0.8
+    assert cost.args()[bundles.K_GOAL_GEODESIC] == 1.0
     assert CostBundle.from_weights(weights).params == {**{n: {} for n in CRITICS}, "lane_exit": {"discount": 0.9},
                                                        "speed": {"along_lane": True}}
     with pytest.raises(ValueError, match=r"unknown \['slippage'\], missing \['slip'\]"):

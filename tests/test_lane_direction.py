@@ -71,7 +71,7 @@ def _lane_step_cost(lane: LaneLookup, yaw: float, along: bool) -> float:
     w[layout().weight_index("speed")] = 1.0
     w[layout().param_index("speed", "along_lane")] = float(along)
     task = TaskBundle.for_lane(lane, 2.75, np.full(2, 2.75), 1.5).args()
-    return stage_cost(w, task, 2.75, np.zeros(0), 1.0, (10.0, 0.0, yaw, 1.5, 0.0), (1.5, 0.0), (0.0, 0.0))
+    return stage_cost(w, task, 2.75, np.zeros(0), (1.0,), (10.0, 0.0, yaw, 1.5, 0.0), (1.5, 0.0), (0.0, 0.0))
 
 
 def test_speed_term_counts_speed_along_the_lane_only() -> None:

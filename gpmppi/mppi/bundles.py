@@ -28,7 +28,7 @@ from gpmppi.mppi.goal_field import GoalField
 from gpmppi.mppi.lane import LaneLookup
 
 __all__ = [
-    "CRITICS", "K_EXIT_DISCOUNT", "K_GOAL_GEODESIC", "N_COST_TERMS", "TASK_GOAL", "TASK_LANE", "CostBundle",
+    "CRITICS", "K_GOAL_GEODESIC", "N_COST_TERMS", "TASK_GOAL", "TASK_LANE", "CostBundle",
     "FieldSpec", "ModelArgs", "ModelBundle", "OutputArgs", "Outputs", "SamplingArgs", "SamplingBundle", "TaskArgs",
     "TaskBundle",
 ]
@@ -251,9 +251,8 @@ class SamplingBundle(_Bundle):
 
 # ------------------------------------------------------------------------------------------------- cost
 # the cost vector the kernels read (`registry.CriticLayout`): the goal-distance switch, each critic's weight, each
-# critic's parameters; the drivers read the lane-exit discount (they hold discount^k)
+# critic's parameters
 K_GOAL_GEODESIC = W_GOAL_GEODESIC
-K_EXIT_DISCOUNT = _LAYOUT.param_index("lane_exit", "discount")
 N_COST_TERMS = _LAYOUT.size
 
 

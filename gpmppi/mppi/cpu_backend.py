@@ -23,8 +23,16 @@ import numpy as np
 from numba import njit
 
 from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row, vector_phase
-from gpmppi.mppi.bundles import CRITICS, K_EXIT_DISCOUNT
-from gpmppi.mppi.costs import stage_cost, stage_critics, terminal_cost, terminal_critics, weight_vector
+from gpmppi.mppi.bundles import CRITICS
+from gpmppi.mppi.costs import (
+    advance_state,
+    stage_cost,
+    stage_critics,
+    start_state,
+    terminal_cost,
+    terminal_critics,
+    weight_vector,
+)
 from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, gp_scratch, velocity_coefficients
 from gpmppi.mppi.gp_table import block_keys, cell32, ensure_block_at, simplex_corner, simplex_params
 from gpmppi.mppi.rng import command_from_normals, normal_pair
@@ -81,13 +89,14 @@ def _draw_commands(
 @phase
 def _add_costs(
     n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray, total: np.ndarray, cost_w: np.ndarray, task: tuple,
-    bounds: tuple, discount_k: float,
+    bounds: tuple, state: tuple,
 ) -> None:
     """Add one step's stage cost to each sample's total: states `st` after the step, its commands and GP variances;
-    `bounds` = (this step's tightened half-width, its inflated radii)."""
+    `bounds` = (this step's tightened half-width, its inflated radii), `state` the stateful critics' values of the
+    step (`costs.start_state`)."""
     tightened_hw, radii = bounds
     for j in range(n_in):
-        total[j] += stage_cost(cost_w, task, tightened_hw, radii, discount_k,
+        total[j] += stage_cost(cost_w, task, tightened_hw, radii, state,
                                (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]), (cmd[0, j], cmd[1, j]),
                                (res[2, j], res[3, j]))
 
@@ -226,7 +235,6 @@ def rollout_worker(
     xy_out = out.xy_out
     coef, flat, next_group = plan_consts
     st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, noise, scratch, keys, seen, normals = work
-    discount = cost_w[K_EXIT_DISCOUNT]
     samples = eps_out.shape[0]
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
@@ -256,7 +264,7 @@ def rollout_worker(
                 xy_out[first + j, 0, 1] = x0[1]
         # step 0 as an int64, not the literal 0: numba would compile the phase a second time for `Literal[int](0)`
         _draw_commands(seed, counter0, horizon, np.int64(0), limits, first, n_in, eps_out, cmd, noise, normals)
-        discount_k = 1.0  # discount of step k - 1's cost
+        state = start_state(cost_w)  # the stateful critics' values of step k - 1
         # Step k: (1) the GP table rows of step k are requested (prefetch), (2) the next step's commands are
         # drawn and (3) the previous step's cost is added, both needing no table, while the rows arrive from
         # memory, (4) the rows are read, (5) the states advance. Costs are added in step order.
@@ -269,17 +277,18 @@ def rollout_worker(
                 _draw_commands(seed, counter0, horizon, k + 1, limits, first, n_in, eps_out, cmd_next, noise,
                                normals)
             if k > 0:
-                _add_costs(n_in, st, cmd_prev, res, total, cost_w, task, (tightened_hw[k], radii[k]), discount_k)
-                discount_k *= discount
+                _add_costs(n_in, st, cmd_prev, res, total, cost_w, task, (tightened_hw[k], radii[k]), state)
+                state = advance_state(state, cost_w)
             if simplex:
                 _read_rows(n_in, flat, nodes, node_w, res)
             elif dyn_mode == DYN_GP:
                 _gp_residuals(gp, scratch, n_in, st, cmd, res)
             _advance_group(dyn, dt, n_in, first, k, st, cmd, res, xy_out)
             cmd_prev, cmd, cmd_next = cmd, cmd_next, cmd_prev
-        _add_costs(n_in, st, cmd_prev, res, total, cost_w, task, (tightened_hw[horizon], radii[horizon]), discount_k)
+        _add_costs(n_in, st, cmd_prev, res, total, cost_w, task, (tightened_hw[horizon], radii[horizon]), state)
+        state = advance_state(state, cost_w)
         for j in range(n_in):
-            t = total[j] + terminal_cost(cost_w, task, tightened_hw[horizon], radii[horizon],
+            t = total[j] + terminal_cost(cost_w, task, tightened_hw[horizon], radii[horizon], state,
                                          (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]))
             if not np.isfinite(t):
                 t = np.inf
@@ -381,17 +390,16 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     dt = sampling.dt
     scratch = gp_scratch(model)
     cost_w = weight_vector(cost)
-    discount = cost_w[K_EXIT_DISCOUNT]
     x0 = sampling.x0
     s = (x0[0], x0[1], x0[2], x0[3], x0[4])
     d = (0.0, 0.0)
     out = np.zeros(len(CRITICS))
-    discount_k = 1.0
+    state = start_state(cost_w)
     for k in range(horizon):
         u, d, s, variances = sample_step(sampling.seed, k, k, inputs, scratch, dt, s, d)
-        stage_critics(cost_w, task, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, variances, out)
-        discount_k *= discount
-    terminal_critics(cost_w, task, tightened_hw[horizon], radii[horizon], s, out)
+        stage_critics(cost_w, task, tightened_hw[k + 1], radii[k + 1], state, s, u, variances, out)
+        state = advance_state(state, cost_w)
+    terminal_critics(cost_w, task, tightened_hw[horizon], radii[horizon], state, s, out)
     return out
 
 

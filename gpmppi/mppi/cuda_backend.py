@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import fields
 
 import numba
 import numpy as np
@@ -23,8 +24,8 @@ from numba import cuda
 from gpmppi.gp.cuda_kernels import device_version, set_device_version
 from gpmppi.mppi import costs as critic
 from gpmppi.mppi import dynamics, gp_table, step
-from gpmppi.mppi.bundles import K_EXIT_DISCOUNT, N_COST_TERMS
-from gpmppi.mppi.critics.registry import build_sums
+from gpmppi.mppi.bundles import N_COST_TERMS
+from gpmppi.mppi.critics.registry import build_states, build_sums
 from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX
 
 THREADS_PER_BLOCK = 128
@@ -50,10 +51,17 @@ set_device_version(dynamics.gp_residual, _grid_residual)
 _sample_step = device_version(step.sample_step)
 _step_inputs = device_version(step.step_inputs)
 _fill_velocity_coefficients = device_version(dynamics.fill_velocity_coefficients)
-# the critics' sums from the terms' device twins (the CPU sums are closures, which `device_version` cannot rebuild)
-for _kind, _sums in build_sums(cuda.jit(device=True, inline=True), device_version).items():
-    set_device_version(getattr(critic, f"_{_kind}_stage"), _sums.stage)
-    set_device_version(getattr(critic, f"_{_kind}_terminal"), _sums.terminal)
+# the critics' sums and state chains from the terms' device twins (the CPU ones are closures, which `device_version`
+# cannot rebuild), each made the twin of the CPU function it stands for
+_device_jit = cuda.jit(device=True, inline=True)
+for _kind, _sums in build_sums(_device_jit, device_version).items():
+    for _field in fields(_sums):
+        set_device_version(getattr(critic.SUMS[_kind], _field.name), getattr(_sums, _field.name))
+_states = build_states(_device_jit, device_version)
+for _field in fields(_states):
+    set_device_version(getattr(critic.STATES, _field.name), getattr(_states, _field.name))
+_start_state = device_version(critic.start_state)
+_advance_state = device_version(critic.advance_state)
 _stage_cost = device_version(critic.stage_cost)
 _terminal_cost = device_version(critic.terminal_cost)
 _fill_weight_vector = device_version(critic.fill_weight_vector)
@@ -76,7 +84,6 @@ def _rollout_kernel(model, task, sampling, cost, out):
     seed = sampling.seed
     cost_w = cuda.local.array(N_COST_TERMS, numba.float64)
     _fill_weight_vector(cost, cost_w)
-    discount = cost_w[K_EXIT_DISCOUNT]
     # `dynamics.velocity_coefficients` in a thread's own memory (a device function cannot make an array)
     coef = cuda.local.array(8, numba.float64)
     _fill_velocity_coefficients(model.theta, model.lateral, coef)
@@ -88,7 +95,7 @@ def _rollout_kernel(model, task, sampling, cost, out):
         xy_out[s, 0, 0] = st[0]
         xy_out[s, 0, 1] = st[1]
     total = 0.0
-    discount_k = 1.0
+    state = _start_state(cost_w)  # the stateful critics' values (`costs.start_state`)
     base = (sampling.iteration * samples + s) * horizon
     d = (0.0, 0.0)  # the unit noise of the last step (`rng.sampled_command`)
     for k in range(horizon):
@@ -99,9 +106,9 @@ def _rollout_kernel(model, task, sampling, cost, out):
         if s < n_xy:
             xy_out[s, k + 1, 0] = st[0]
             xy_out[s, k + 1, 1] = st[1]
-        total += _stage_cost(cost_w, task, tightened_hw[k + 1], radii[k + 1], discount_k, st, u, variances)
-        discount_k *= discount
-    total += _terminal_cost(cost_w, task, tightened_hw[horizon], radii[horizon], st)
+        total += _stage_cost(cost_w, task, tightened_hw[k + 1], radii[k + 1], state, st, u, variances)
+        state = _advance_state(state, cost_w)
+    total += _terminal_cost(cost_w, task, tightened_hw[horizon], radii[horizon], state, st)
     if math.isnan(total) or math.isinf(total):
         total = math.inf
     cost_out[s] = total
