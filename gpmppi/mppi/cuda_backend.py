@@ -230,8 +230,8 @@ def cuda_rollouts(
     if events:
         events[0].record()
     eps, costs, xy = out.eps_out, out.cost_out, out.xy_out
-    d_out = (device.output(eps.shape, eps.dtype), device.output(costs.shape, costs.dtype),
-             device.output(xy.shape if xy.size else (0, eps.shape[1] + 1, 2), xy.dtype))
+    d_out = out._replace(eps_out=device.output(eps.shape, eps.dtype), cost_out=device.output(costs.shape, costs.dtype),
+                         xy_out=device.output(xy.shape if xy.size else (0, eps.shape[1] + 1, 2), xy.dtype))
     t0 = time.perf_counter()
     d_model = device.bundle("model", model._replace(lazy=_NO_LAZY, table=_NO_TABLE) if per_terrain else model)
     d_task, d_sampling = device.bundle("task", task), device.bundle("sampling", sampling)
