@@ -10,6 +10,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from gpmppi.tasks import GoalTask, LaneTask, Task, distance_to_polyline
+from gpmppi.yaml_file import yaml_error
 
 
 @dataclass(frozen=True)
@@ -158,7 +159,7 @@ def _read_yaml(path: Path, kind: str) -> object:
     try:
         return yaml.safe_load(path.read_text())
     except yaml.YAMLError as e:
-        raise ScenarioFileError(f"{kind} file {path}: not valid YAML ({e})") from e
+        raise ScenarioFileError(f"{kind} file {yaml_error(path, e)}") from e
 
 
 def _validated(model: type[BaseModel], data: object, path: Path, kind: str) -> BaseModel:

@@ -9,6 +9,9 @@
 - The subscription is a FIFO channel, which never drops: when it is full Zenoh waits for us instead.
   Chunks are flushed at least every `flush_interval_s`, so a SIGKILL loses at most about that long;
   SIGINT / SIGTERM finish the file (summary and index). Files rotate by size or duration.
+- With `foxglove_scene`, the Foxglove scene (`services.view.foxglove_scene`: pose and transforms, lane, obstacles,
+  plan, rollouts, in Foxglove's own schemas) is written beside the messages, so Foxglove's 3D panel shows the
+  recording with nothing converted.
 - A write error (disk full, file-size limit) is logged once; the file so far stays readable, and the
   recorder keeps running (draining its input, so no publisher ever waits on it) with status "failing".
 """
@@ -24,10 +27,12 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import zenoh
 from pydantic import Field
 
+from schemas import DecodeError, decode, model_for_key
 from services.recording.mcap_io import REJECTED_SUFFIX, McapWriter
 from services.recording.recorder_meta import RunRecord, ServiceConfig, resolve_run_record
 from services.runtime.node import Node
 from services.runtime.node_settings import NodeSettings
+from services.view.foxglove_scene import FoxgloveSceneMapper, schema_of
 
 
 class Settings(NodeSettings):
@@ -42,6 +47,9 @@ class Settings(NodeSettings):
     max_bytes: int | None = Field(None, description="rotate past this file size [bytes] (None: never)")
     max_duration_s: float | None = Field(None, description="rotate past this file age [s] (None: never)")
     compression: str = Field("zstd", description="chunk compression: zstd, lz4 or none")
+    foxglove_scene: bool = Field(
+        False, description="also write the Foxglove scene channels (scene/<robot>/...), in Foxglove's own schemas"
+    )
     launch_file: str | None = Field(None, description="the launch file of this run, attached as launch.yaml")
     service_configs: dict[str, ServiceConfig] = Field(
         default_factory=dict,
@@ -73,6 +81,22 @@ def run(settings: Settings) -> int:
     # the write fails with EFBIG instead and is handled like a full disk
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     started_ns = time.time_ns()
+    scene = FoxgloveSceneMapper() if settings.foxglove_scene else None
+    scene_schemas: dict[str, tuple[str, str, bytes]] = {}
+
+    def write_scene(key: str, payload: bytes, log_time_ns: int) -> None:
+        """The scene of one recorded message (already validated) on its scene channels."""
+        assert scene is not None and writer is not None
+        try:
+            msg = decode(model_for_key(key), payload)
+        except (KeyError, DecodeError):
+            return
+        for out in scene.map(key, msg, log_time_ns):
+            if out.topic not in scene_schemas:
+                s = schema_of(out.topic)
+                scene_schemas[out.topic] = (s.name, s.encoding, bytes(s.data))
+            writer.write_encoded(out.topic, scene_schemas[out.topic], "protobuf", out.data, log_time_ns, out.stamp_ns)
+
     failure = ""
     writer: McapWriter | None = None
     try:
@@ -125,8 +149,11 @@ def run(settings: Settings) -> int:
                         unwritten += 1  # still taken off the queue: a failing recorder never blocks a sender
                         continue
                     payload = sample.payload.to_bytes()
+                    now = time.time_ns()
                     try:
-                        ok = writer.record(str(sample.key_expr), payload, time.time_ns(), settings.max_payload_bytes)
+                        ok = writer.record(str(sample.key_expr), payload, now, settings.max_payload_bytes)
+                        if ok and scene is not None:
+                            write_scene(str(sample.key_expr), payload, now)
                     except OSError as exc:
                         failed(exc)
                         unwritten += 1

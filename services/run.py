@@ -31,6 +31,7 @@ SERVICES: dict[str, str] = {
     "egress": "services.egress",
     "recorder": "services.recorder",
     "viewer": "services.viewer",
+    "foxglove": "services.foxglove",
 }
 
 

@@ -1,5 +1,5 @@
-"""The kernels' five input bundles: field names, order, numba types and index constants are pinned here, so a
-reordered field cannot compile silently into a kernel that reads the wrong array; bad fields are refused by name."""
+"""The kernels' five input bundles: field names, order and numba types of the named tuples the kernels take are
+pinned here; the kernels read them by name; bad fields are refused by name."""
 
 from __future__ import annotations
 
@@ -9,32 +9,31 @@ from numba import typeof
 
 from gpmppi.mppi import bundles
 from gpmppi.mppi.bundles import CRITICS, CostBundle, ModelBundle, Outputs, SamplingBundle, TaskBundle
+from gpmppi.mppi.critics.registry import layout
 from gpmppi.mppi.lane import build_lane_lookup
 
 A1, A2, A3 = "array(float64, 1d, C)", "array(float64, 2d, C)", "array(float64, 3d, C)"
 
-# bundle, index-constant prefix, fields in order with their numba types
+# bundle, its named tuple, fields in order with their numba types
 PINNED = {
-    ModelBundle: ("M", [
+    ModelBundle: (bundles.ModelArgs, [
         ("dyn_mode", "int64"), ("theta", A1), ("lateral", A1), ("edd5", A1), ("gp_mode", "int64"),
         ("table", "array(float32, 2d, C)"), ("dims", "array(int64, 1d, C)"), ("lo", A1), ("inv_step", A1),
         ("ex_scaled_x", A3), ("ex_inv_ls", A2), ("ex_outputscale", A1), ("ex_alpha", A2), ("ex_chol", A3),
         ("terrain_w", A1), ("table_src", "array(float32, 2d, C)"), ("lazy", "array(int64, 1d, C)"),
         ("collapse_w", A1),
     ]),
-    TaskBundle: ("T", [
+    TaskBundle: (bundles.TaskArgs, [
         ("kind", "int64"), ("seg", A2), ("cell_start", "array(int64, 1d, C)"), ("candidates", "array(int32, 1d, C)"),
         ("field", A3), ("origin", A1), ("inv_cell", "float64"), ("half_width", "float64"), ("tightened_hw", A1),
         ("speed_target", "float64"), ("goal", A1), ("obstacles", A2), ("radii", A2),
     ]),
-    SamplingBundle: ("S", [
+    SamplingBundle: (bundles.SamplingArgs, [
         ("x0", A1), ("nominal", A2), ("noise_std", A1), ("u_lo", A1), ("u_hi", A1), ("dt", "float64"),
         ("seed", "int64"), ("iteration", "int64"), ("noise_memory", "float64"), ("u_prev", A1), ("rate_step", A1),
     ]),
-    Outputs: ("O", [("eps_out", "array(float32, 3d, C)"), ("cost_out", A1), ("xy_out", A3)]),
+    Outputs: (bundles.OutputArgs, [("eps_out", "array(float32, 3d, C)"), ("cost_out", A1), ("xy_out", A3)]),
 }
-# the index constants whose name is not the field's own
-CONSTANT_NAMES = {"origin": "T_ORIGIN", "eps_out": "O_EPS", "cost_out": "O_COST", "xy_out": "O_XY"}
 
 
 def model_bundle(**changes: object) -> ModelBundle:
@@ -56,15 +55,14 @@ def examples() -> dict[type, object]:
 
 
 @pytest.mark.parametrize("cls", list(PINNED), ids=lambda c: c.__name__)
-def test_fields_order_types_and_index_constants_are_pinned(cls: type) -> None:
-    prefix, pinned = PINNED[cls]
+def test_fields_order_types_and_named_tuples_are_pinned(cls: type) -> None:
+    named, pinned = PINNED[cls]
     names = [name for name, _ in pinned]
     assert list(cls.SPECS) == names
     args = examples()[cls].args()
+    assert type(args) is named and named._fields == tuple(names)
     assert [str(t) for t in typeof(args).types] == [t for _, t in pinned]
-    for index, name in enumerate(names):
-        constant = CONSTANT_NAMES.get(name, f"{prefix}_{name.upper()}")
-        assert getattr(bundles, constant) == index, constant
+    assert typeof(args).fields == tuple(names)  # numba reads each field by its name
 
 
 def test_the_goal_task_has_the_lane_tasks_types() -> None:
@@ -93,7 +91,7 @@ def test_non_contiguous_read_only_and_positional_fields_are_refused_naming_the_f
         Outputs(eps_out=out.eps_out, cost_out=frozen, xy_out=out.xy_out).args()
     read_only = np.ones(6)
     read_only.flags.writeable = False
-    assert model_bundle(theta=read_only).args()[bundles.M_THETA] is read_only  # inputs may be read-only
+    assert model_bundle(theta=read_only).args().theta is read_only  # inputs may be read-only
     with pytest.raises(TypeError, match="given by position: eps_out, cost_out"):
         Outputs(out.eps_out, out.cost_out, xy_out=out.xy_out)  # type: ignore[misc]
 
@@ -105,7 +103,8 @@ def test_cost_bundle_takes_weights_by_critic_name() -> None:
     # the cost vector: the goal switch, the weights in CRITICS order, the critics' parameters
     assert cost.args() == (1.0, *weights.values(), 0.8, 0.0)
     assert typeof(cost.args()) == typeof((1.0,) * bundles.N_COST_TERMS)
-    assert cost.args()[bundles.K_EXIT_DISCOUNT] == 0.8 and cost.args()[bundles.K_GOAL_GEODESIC] == 1.0
+    assert cost.args()[layout().param_index("lane_exit", "discount")] == 0.8
+    assert cost.args()[bundles.K_GOAL_GEODESIC] == 1.0
     assert CostBundle.from_weights(weights).params == {**{n: {} for n in CRITICS}, "lane_exit": {"discount": 0.9},
                                                        "speed": {"along_lane": True}}
     with pytest.raises(ValueError, match=r"unknown \['slippage'\], missing \['slip'\]"):

@@ -197,6 +197,34 @@ ISSUE_CASES = [
     (["train", "{root}/text.mcap", "-o", "{root}/m.npz"], "not an MCAP file"),
     (["replay", "{input}", "--rerun", "save", "--rerun-target", "{root}/v.rrd", "--speed", "2"], "--speed"),
     (["launch", "{root}/view.rrd"], "--rerun-target"),
+    # further cases of ours: a file of the wrong kind or content is named with its line where it has one
+    (["launch", "{root}/bad.yaml"], "bad.yaml:2:1: YAML syntax error"),
+    (["service", "planner", "--config", "{root}/bad.yaml"], "bad.yaml:2:1: YAML syntax error"),
+    (["evaluate", "tracking", "--lane-file", "{root}/bad.yaml"], "bad.yaml:2:1: YAML syntax error"),
+    (["evaluate", "tracking", "--terrain-file", "{root}/bad.yaml"], "bad.yaml:2:1: YAML syntax error"),
+    (["evaluate", "tracking", "--launch-file", "{root}/bad.yaml"], "bad.yaml:2:1: YAML syntax error"),
+    (["evaluate", "tracking", "--plant", "residual-net", "--plant-file", "{input}"], "--plant-file"),
+    (["evaluate", "tracking", "--plant", "residual-net"], "--plant-file"),
+    (["evaluate", "table", "-o", "{root}/a-folder"], "--force"),
+    (["replay", "{input}"], "not an MCAP file"),
+    (["inspect", "{input}"], "not an MCAP file"),
+    (["replay", "{input}", "--start", "5", "--end", "2"], "--end"),
+    (["launch", "--rerun", "save"], "--rerun-target"),
+    (["launch", "--rerun-target", "{root}/v.rrd"], "--rerun-target"),
+    (["service", "bogus"], "unknown service"),
+    (["bench", "view", "--minutes", "abc"], "--minutes"),
+    (["evaluate", "tracking", "--switch", "abc"], "--switch"),
+    (["evaluate", "tracking", "--set", "bogus=1"], "--set"),
+    (["secure", "init", "{root}/nope/secrets"], "does not exist"),
+    # an option that only applies with another is an error without it, not ignored
+    (["bench", "planner", "--collapse-in-plan"], "--collapse-in-plan"),
+    (["bench", "planner", "-m", "edd5", "--gp", "exact"], "--gp"),
+    (["bench", "viewer-stall", "--mode", "stack", "--rate", "5"], "--rate"),
+    (["replay", "{input}", "--lockstep"], "--lockstep"),
+    (["replay", "{input}", "--set", "planner.samples=64"], "--set"),
+    (["secure", "init", "{root}/secrets", "--tls-endpoint", "tls/127.0.0.1:9"], "--tls-endpoint"),
+    (["secure", "init", "{root}/secrets", "--ros2-cmd-key", "a/b"], "--ros2-cmd-key"),
+    (["evaluate", "tracking", "--plant-file", "{input}"], "--plant-file"),
 ]
 
 
@@ -205,6 +233,8 @@ ISSUE_CASES = [
 def test_the_measured_cases_answer_at_once(args: list[str], named: str, root: Path) -> None:
     (root / "text.mcap").write_text("a text file named like a log\n")
     (root / "view.rrd").write_text("")
+    (root / "bad.yaml").write_text("a: [1, 2\n")
+    (root / "a-folder" / "table.md").write_text("an earlier table\n")
     filled = [a.format(input=root / "an-input.txt", root=root) for a in args]
     refused(filled, named, root)
 

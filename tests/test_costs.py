@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpmppi.mppi.bundles import N_COST_TERMS
+from gpmppi.mppi.bundles import N_COST_TERMS, TaskArgs
 from gpmppi.mppi.critics import collision, deviation, goal, lane_exit, slip, speed, terminal, variance
+from gpmppi.mppi.critics.base import Step
 from gpmppi.mppi.lane import LaneLookup, brute_force_distance, build_lane_lookup, lane_distance, polyline_segments
 from gpmppi.scenarios import circle_lane, square_lane
 
@@ -59,17 +60,18 @@ def test_degenerate_polyline_is_rejected() -> None:
 
 
 def _at(x: float = 0.0, y: float = 0.0, v: float = 0.0, w: float = 0.0, u: tuple = (0.0, 0.0),
-        var: tuple = (0.0, 0.0), hw: float = 1.0, radii: np.ndarray | None = None, discount_k: float = 1.0,
-        d: float = 0.0) -> tuple:
-    """A step as the critics' terms read it (`critics.base.AT_*`), lane direction +x."""
-    return (x, y, 0.0, v, w, u[0], u[1], var[0], var[1], hw, np.zeros(0) if radii is None else radii, discount_k, d,
-            1.0, 0.0)
+        var: tuple = (0.0, 0.0), hw: float = 1.0, radii: np.ndarray | None = None, d: float = 0.0) -> Step:
+    """A step as the critics' terms read it (`critics.base.Step`), lane direction +x."""
+    return Step(x, y, 0.0, v, w, u[0], u[1], var[0], var[1], hw, np.zeros(0) if radii is None else radii, (), d, 1.0,
+                0.0)
 
 
 def _geo(half_width: float = 1.0, speed_target: float = 0.0, obstacles: np.ndarray | None = None) -> tuple:
-    return (np.zeros((1, 5)), np.zeros(2, dtype=np.int64), np.zeros(0, dtype=np.int32), np.zeros((1, 1, 3)),
-            np.zeros(2), 1.0, half_width, speed_target, np.zeros(2),
-            np.zeros((0, 3)) if obstacles is None else obstacles)
+    """The task as the critics' terms read it (`TaskArgs`, by name)."""
+    return TaskArgs(kind=0, seg=np.zeros((1, 5)), cell_start=np.zeros(2, dtype=np.int64),
+                    candidates=np.zeros(0, dtype=np.int32), field=np.zeros((1, 1, 3)), origin=np.zeros(2), inv_cell=1.0,
+                    half_width=half_width, tightened_hw=np.ones(1), speed_target=speed_target, goal=np.zeros(2),
+                    obstacles=np.zeros((0, 3)) if obstacles is None else obstacles, radii=np.zeros((1, 0)))
 
 
 def test_cost_terms() -> None:
@@ -78,8 +80,8 @@ def test_cost_terms() -> None:
     assert variance.variance_cost(10.0, w, 0, g, _at(var=(0.01, 0.02))) == pytest.approx(0.3)
     assert deviation.deviation_cost(4.0, w, 0, _geo(half_width=2.0), _at(d=0.5)) == pytest.approx(0.25)
     assert slip.slip_cost(2.0, w, 0, g, _at(v=1.0, w=0.5, u=(1.5, 0.0))) == pytest.approx(1.0)
-    assert lane_exit.lane_exit_cost(100.0, w, 0, g, _at(d=1.0, hw=0.9, discount_k=0.9**3)) == pytest.approx(72.9)
-    assert lane_exit.lane_exit_cost(100.0, w, 0, g, _at(d=0.8, hw=0.9)) == 0.0
+    assert lane_exit.lane_exit_cost(100.0, w, 0, g, _at(d=1.0, hw=0.9), 0.9**3) == pytest.approx(72.9)
+    assert lane_exit.lane_exit_cost(100.0, w, 0, g, _at(d=0.8, hw=0.9), 1.0) == 0.0
     assert speed.speed_cost(1.0, w, 0, _geo(speed_target=1.75), _at(v=1.0)) == pytest.approx(0.5625)
     obstacles = np.array([[0.0, 0.0, 1.0], [5.0, 0.0, 0.5]])
     # the indicator compares distances with radii (not squared distance with a length)

@@ -1,5 +1,6 @@
-"""Critics as plug-ins: the config section `critics:` and its errors, and a new critic added in one module and one
-registration line, counted by the CPU kernel, the CUDA kernel (simulator) and the per-critic split."""
+"""Critics as plug-ins: the config section `critics:` and its errors, and new critics added in one module and one
+registration line each, counted by the CPU kernel, the CUDA kernel (simulator) and the per-critic split: a stateless
+one, and a stateful one that carries a value from step to step (`critics.base.StepState`)."""
 
 from __future__ import annotations
 
@@ -60,17 +61,47 @@ def test_the_old_weight_fields_are_gone_with_a_clear_error() -> None:
         PlannerConfig(w_speed=4.0)  # type: ignore[call-arg]
 
 
+# a stateful critic: one module (written beside the script) and one registration line (in the script). Its value is a
+# ramp carried from step to step: `first` at the first step, plus `growth` after each
+STATEFUL_MODULE = r"""
+from gpmppi.mppi.critics.base import Critic, Param, StepState, critic_term
+
+
+@critic_term
+def ramp_cost(weight, cost_w, p, geo, at, ramp):
+    return weight * ramp * at.omega * at.omega
+
+
+@critic_term
+def first_ramp(cost_w, p):
+    return cost_w[p]  # `first`
+
+
+@critic_term
+def next_ramp(ramp, cost_w, p):
+    return ramp + cost_w[p + 1]  # `growth`
+
+
+CRITIC = Critic("ramp", 0.5, ("lane", "goal"), ramp_cost, "ramp_k omega^2 per step, the ramp growing along the horizon",
+                params={"first": Param(0.25, "the ramp at the first step"),
+                        "growth": Param(0.5, "what the ramp grows by per step")},
+                state=StepState(first_ramp, next_ramp))
+"""
+
 # a critic that is one module (here: this script) and one registration line
 PLUGIN = r"""
 import json, sys
 import numpy as np
 from gpmppi.mppi.critics import register
-from gpmppi.mppi.critics.base import AT_OMEGA, Critic, critic_term
+from gpmppi.mppi.critics.base import Critic, critic_term
+import ramp_critic
+
+register(ramp_critic.CRITIC)
 
 
 @critic_term
 def turning_cost(weight, cost_w, p, geo, at):
-    return weight * at[AT_OMEGA] * at[AT_OMEGA]
+    return weight * at.omega * at.omega
 
 
 register(Critic("turning", 0.5, ("lane", "goal"), turning_cost, "omega^2 per step [cost / (rad/s)^2]"))
@@ -89,23 +120,31 @@ def recording_split(*bundles):  # the plan's nominal scoring, recorded to score 
     return split(*bundles)
 backends.critic_costs = recording_split
 out = {}
+critics = {"turning": {"weight": 2.0}, "ramp": {"weight": 3.0, "growth": 0.75}}
 for name, scenario in (("lane", circle_lane()), ("goal", paper_obstacle_scene())):
-    p = Planner(PlannerConfig(backend=backend, samples=32, horizon=8, critics={"turning": {"weight": 2.0}}), model)
+    p = Planner(PlannerConfig(backend=backend, samples=32, horizon=8, critics=critics), model)
     r = p.plan(scenario.start, scenario.task, np.array([0.5, 0.3, 0.2]))
-    # the nominal sequence's cost by the CPU rollout kernel, which must count the new critic as the split does
+    # the nominal sequence's cost by the CPU rollout kernel and this backend's, which must count the new critics as
+    # the split does
     kernel_cost = float(backends.rollouts("cpu", *scored[-1], 1, 0)[1][0])
+    backend_cost = float(backends.rollouts(backend, *scored[-1], 1, 0)[1][0])
     cost = p.kind(scenario.task).cost
-    out[name] = {"critics": r.critic_costs, "cost": r.cost, "kernel_cost": kernel_cost,
+    out[name] = {"critics": r.critic_costs, "cost": r.cost, "kernel_cost": kernel_cost, "backend_cost": backend_cost,
                  "sample_costs": r.sample_costs.tolist(), "weight": cost.weights["turning"]}
     p0 = Planner(PlannerConfig(backend=backend, samples=32, horizon=8, critics={"turning": {"enabled": False}}), model)
     off = p0.plan(scenario.start, scenario.task, np.array([0.5, 0.3, 0.2]))
     out[name]["sample_costs_off"] = off.sample_costs.tolist()
+# the kinematic unicycle: the state after step k turns at the step's command, so the ramp's share is known
+p = Planner(PlannerConfig(backend=backend, dynamics="unicycle", samples=32, horizon=8, critics=critics), model)
+r = p.plan(circle_lane().start, circle_lane().task, np.array([0.5, 0.3, 0.2]))
+out["unicycle"] = {"ramp": r.critic_costs["ramp"], "omega_ref": r.controls[:, 1].tolist()}
 print("RESULT", json.dumps(out))
 """
 
 
 BACKENDS = ["cpu", "cuda"]
 TEST_NAME = "test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported"
+STATEFUL_TEST_NAME = "test_a_new_stateful_critic_carries_its_value_along_the_horizon_on_both_backends"
 
 
 class PluginRuns:
@@ -127,6 +166,7 @@ class PluginRuns:
         d = self._tmp.mktemp(f"plugin-{backend}")
         script = d / "turning_critic.py"
         script.write_text(PLUGIN)
+        (d / "ramp_critic.py").write_text(STATEFUL_MODULE)
         settings = {"NUMBA_CACHE_DIR": str(self.cache), "PYTHONWARNINGS": "ignore::RuntimeWarning"}
         # CUDA: the simulator, or the GPU where the tests run on one (tests/cuda_mode.py)
         env = cuda_env(**settings) if backend == "cuda" else dict(os.environ, **settings)
@@ -150,7 +190,8 @@ class PluginRuns:
 def plugin_runs(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[PluginRuns]:
     """The plug-in runs of the backends whose test is selected (`PluginRuns`)."""
     wanted = {item.callspec.params["backend"] for item in request.session.items
-              if item.module is request.module and getattr(item, "originalname", "") == TEST_NAME}
+              if item.module is request.module
+              and getattr(item, "originalname", "") in (TEST_NAME, STATEFUL_TEST_NAME)}
     runs = PluginRuns(tmp_path_factory, wanted)
     yield runs
     for proc in runs.procs.values():  # a failed test leaves no compiling process behind
@@ -169,10 +210,39 @@ def test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported(
     stdout, stderr = (folder / "stdout").read_text(), (folder / "stderr").read_text()
     assert proc.returncode == 0, stderr[-3000:]
     out = json.loads(stdout.split("RESULT ", 1)[1])
-    for name, r in out.items():
+    for name in ("lane", "goal"):
+        r = out[name]
         assert list(r["critics"])[-1] == "turning" and r["critics"]["turning"] > 0.0, (name, r["critics"])
         assert sum(r["critics"].values()) == r["cost"], name
         assert r["cost"] == pytest.approx(r["kernel_cost"], rel=1e-8), name  # the kernel counts it as the split
         # the backend's kernel counts it: the same samples (same seed) cost more with it than without
         pairs = list(zip(r["sample_costs"], r["sample_costs_off"], strict=True))
         assert all(on >= off for on, off in pairs) and any(on > off for on, off in pairs), name
+
+
+def _plugin_result(backend: str, plugin_runs: PluginRuns) -> dict:
+    proc = plugin_runs.run(backend)
+    folder = Path(proc.args[1]).parent
+    stdout, stderr = (folder / "stdout").read_text(), (folder / "stderr").read_text()
+    assert proc.returncode == 0, stderr[-3000:]
+    return json.loads(stdout.split("RESULT ", 1)[1])
+
+
+@pytest.mark.slow(seconds=30)  # shares the plug-in runs of the test above (the same script, both critics)
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_new_stateful_critic_carries_its_value_along_the_horizon_on_both_backends(
+    backend: str, plugin_runs: PluginRuns
+) -> None:
+    out = _plugin_result(backend, plugin_runs)
+    # its value at step k: first + k * growth (the config's growth, the module's default first), added step by step
+    ramp, expected = 0.25, 0.0
+    for omega in out["unicycle"]["omega_ref"]:
+        expected += 3.0 * ramp * omega * omega
+        ramp += 0.75
+    assert out["unicycle"]["ramp"] == pytest.approx(expected, rel=1e-12)
+    for name in ("lane", "goal"):
+        r = out[name]
+        assert r["critics"]["ramp"] > 0.0 and sum(r["critics"].values()) == r["cost"], name
+        # the CPU kernel and this backend's kernel (the CUDA simulator's for cuda) carry the value as the split does
+        assert r["cost"] == pytest.approx(r["kernel_cost"], rel=1e-8), name
+        assert r["cost"] == pytest.approx(r["backend_cost"], rel=1e-8), name

@@ -96,16 +96,20 @@ if sys.argv[1] == "helpers_first":
     normal_pair(1, 2)
     sampled_command(1, 2, np.ones((3, 2)), 1, np.ones(2), np.zeros(2), np.full(2, 2.0), (0.5, 0.75**0.5), 0.1, 0.2,
                     (np.ones(2), np.full(2, np.inf)))
-    step = (0.0, 0.0, 0.1, 0.5, 0.1, 1.0, 0.2, 0.1, 0.2, 1.5, np.zeros(0), 0.9, 1.0, 1.0, 0.0)
-    for term in (variance.variance_cost, slip.slip_cost, lane_exit.lane_exit_cost):
+    from gpmppi.mppi.critics.base import Step
+
+    step = Step(0.0, 0.0, 0.1, 0.5, 0.1, 1.0, 0.2, 0.1, 0.2, 1.5, np.zeros(0), (0.9,), 1.0, 1.0, 0.0)
+    for term in (variance.variance_cost, slip.slip_cost):
         term(1.0, np.ones(N_COST_TERMS), 0, (), step)
+    lane_exit.lane_exit_cost(1.0, np.ones(N_COST_TERMS), 0, (), step, 0.9)
     tighten_lane(np.zeros((3, 5, 5)), 1.0, 5.99, 0.2)
     lane = build_lane_lookup(np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]), False, 1.0)
     lane_query(lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell, 0.5, 0.1,
                0.5)
-    geo = (lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell, 1.0, 1.0,
-           np.zeros(2), np.zeros((0, 3)))
-    stage_cost(0, np.ones(N_COST_TERMS), geo, 0.8, np.zeros(0), 1.0, (0.5, 0.1, 0.3, 0.5, 0.1), (1.0, 0.2),
+    from gpmppi.mppi.bundles import TaskBundle
+
+    task = TaskBundle.for_lane(lane, 1.0, np.full(3, 0.8), 1.0).args()
+    stage_cost(np.ones(N_COST_TERMS), task, 0.8, np.zeros(0), (1.0,), (0.5, 0.1, 0.3, 0.5, 0.1), (1.0, 0.2),
                (0.01, 0.02))
     # the delay predictor (its own kernel over the same helpers) compiled first: with the 'contract' fastmath flag
     # this history alone changed the rollout kernel's last bits

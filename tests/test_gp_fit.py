@@ -174,7 +174,7 @@ def test_csv_holds_data_out_by_default(tmp_path: Path, theta_file: Path) -> None
                                                    + rng.normal(0, 0.002, (100, 2))})
     out = tmp_path / "m.npz"
     result = runner.invoke(app, ["train", str(train), "--theta", str(theta_file), "--iters", "30",
-                                 "--grid-nodes", "0", "-o", str(out)])
+                                 "--min-coverage", "0", "--grid-nodes", "0", "-o", str(out)])
     assert result.exit_code == 0, result.output
     fit = GPModel.load(out).fit_report
     assert fit["held_out"] and fit["eval_set"] == "held-out 20%" and fit["hyperparameters"] == "fitted"
@@ -198,7 +198,7 @@ def _paper_fit(jackal: Path, seed: int):
     the paper's test set."""
     from tools.train import build_training_sets, csv_inputs, csv_residuals, read_csv_columns
 
-    sets, theta, edd5 = build_training_sets(jackal / "gp_train.csv", None, jackal / "theta.json",
+    sets, theta, edd5, _ = build_training_sets(jackal / "gp_train.csv", None, jackal / "theta.json",
                                             jackal / "edd5.json", 0.1, None, seed)
     cols = read_csv_columns(jackal / "gp_test.csv")
     tx, tres = csv_inputs(cols, jackal / "gp_test.csv"), csv_residuals(cols, jackal / "gp_test.csv")

@@ -135,7 +135,7 @@ def test_load_rejects_non_model_files(tmp_path: Path) -> None:
         GPModel.load(tmp_path / "absent.npz")
     text = tmp_path / "text.npz"
     text.write_text("hello")
-    with pytest.raises(ModelFileError, match="not a readable model file"):
+    with pytest.raises(ModelFileError, match="not a GP model file"):
         GPModel.load(text)
     m = small_model()
     good = tmp_path / "good.npz"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gpmppi.mppi.bundles import N_COST_TERMS, TASK_LANE
+from gpmppi.mppi.bundles import N_COST_TERMS, TaskBundle
 from gpmppi.mppi.costs import stage_cost
 from gpmppi.mppi.critics.registry import layout
 from gpmppi.mppi.lane import LaneLookup, build_lane_lookup, lane_query
@@ -70,9 +70,8 @@ def _lane_step_cost(lane: LaneLookup, yaw: float, along: bool) -> float:
     w = np.zeros(N_COST_TERMS)
     w[layout().weight_index("speed")] = 1.0
     w[layout().param_index("speed", "along_lane")] = float(along)
-    geo = (lane.segments, lane.cell_start, lane.candidates, lane.field, lane.origin, lane.inv_cell, 2.75, 1.5,
-           np.zeros(2), np.zeros((0, 3)))
-    return stage_cost(TASK_LANE, w, geo, 2.75, np.zeros(0), 1.0, (10.0, 0.0, yaw, 1.5, 0.0), (1.5, 0.0), (0.0, 0.0))
+    task = TaskBundle.for_lane(lane, 2.75, np.full(2, 2.75), 1.5).args()
+    return stage_cost(w, task, 2.75, np.zeros(0), (1.0,), (10.0, 0.0, yaw, 1.5, 0.0), (1.5, 0.0), (0.0, 0.0))
 
 
 def test_speed_term_counts_speed_along_the_lane_only() -> None:

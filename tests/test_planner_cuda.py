@@ -96,7 +96,6 @@ def test_cuda_simulator_matches_cpu_backend(sim_results: dict) -> None:
 UPLOADS = r"""
 import json
 import numpy as np
-from gpmppi.mppi.bundles import M_TABLE_SRC
 from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.scenarios import circle_lane
@@ -113,14 +112,13 @@ for weights in (w, w.copy(), np.array([0.2, 0.3, 0.5])):
     counts.append(dict(p.device.uploads))
     x = r.states[1]
     collapses.append(p.device.collapses)
-src_uploads = p.device._versions[("model", M_TABLE_SRC)]
+src_uploads = p.device._versions[("model", "table_src")]
 # a table marked lazily collapsed with no per-terrain rows to collapse it from is refused, by name
-from gpmppi.mppi.bundles import M_LAZY
 from gpmppi.mppi.cuda_backend import cuda_rollouts
-broken = list(p.terrain.set_weights(w).args())
-broken[M_TABLE_SRC], broken[M_LAZY] = np.zeros((1, 4), dtype=np.float32), np.ones(1, dtype=np.int64)
+broken = p.terrain.set_weights(w).args()._replace(table_src=np.zeros((1, 4), dtype=np.float32),
+                                                  lazy=np.ones(1, dtype=np.int64))
 try:
-    cuda_rollouts(tuple(broken), None, None, None, None)
+    cuda_rollouts(broken, None, None, None, None)
     refused = ""
 except ValueError as exc:
     refused = str(exc)

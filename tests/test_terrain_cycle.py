@@ -207,4 +207,4 @@ def test_gpmppi_launch_refuses_a_bad_setting_before_starting_anything(
     path.write_text(yaml.safe_dump({"router": {"enabled": False}, "services": [{"name": service, "config": config}]}))
     assert main([str(path)]) == 2
     err = capsys.readouterr().err
-    assert f"launch file {path}" in err and says in err, err
+    assert f"{path}:" in err and says in err, err  # the file with the line of the setting

@@ -13,7 +13,7 @@ from mcap.writer import Writer
 
 from schemas import BaseCommand, Heartbeat, State
 from services.recording.mcap_io import McapWriter
-from services.view import rerun_geometry as geo
+from services.view import geometry as geo
 from services.viewer import Ring
 from tools.bench_view import synthetic_log
 from tools.replay_rerun import convert, main

@@ -27,7 +27,7 @@ import typer
 from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.scenarios import circle_lane
 from tools.choices import ModelName
-from tools.cli_checks import fail
+from tools.cli_checks import fail, only_with
 
 
 class GpChoice(str, Enum):
@@ -237,6 +237,9 @@ def register(app: typer.Typer) -> None:
         ] = False,
     ) -> None:
         """Time planner iterations: p50/p99 ms and Hz (the machine's load adds noise: re-run when quiet)."""
+        only_with(online_weights, "--online-weights", {"--collapse-in-plan": collapse_in_plan})
+        only_with(model is ModelName.gp, "--model gp", {"--gp": gp is not GpChoice.grid,
+                                                        "--table-collapse": table_collapse is not CollapseChoice.lazy})
         try:
             res = run_bench(samples, horizon, model.value, gp.value, backend.value, vs.value if vs else None, iters,
                             online_weights=online_weights, prepare=not collapse_in_plan,

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
-from tools.cli_checks import fail
+from tools.cli_checks import fail, only_with
 
 # the demo stack's rates [Hz]: state, odom/raw, terrain/label, cmd, plan at the planner's 10 Hz, the base command
 # at egress's 20 Hz, terrain weights about 7 Hz, one heartbeat a second from each of 7 services
@@ -415,6 +415,9 @@ def register(bench_app: typer.Typer) -> None:
         show_logs: bool = typer.Option(False, help="stack mode: print the services' logs too"),
     ) -> None:
         """State -> command latency over Zenoh with the viewer running vs stopped (SIGSTOP), in turns."""
+        only_with(mode == "transport", "--mode transport",
+                  {"--rate": rate != 100.0, "--samples": samples != 16, "--drop-wait-us": drop_wait_us is not None})
+        only_with(mode == "stack", "--mode stack", {"--show-logs": show_logs})
         if mode == "transport":
             result = transport_stall_numbers(window, windows, port, rate, samples, drop_wait_us)
         elif mode == "stack":

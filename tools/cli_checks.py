@@ -177,9 +177,19 @@ def install_checks(group: Any) -> None:
     if getattr(group, "_checks_installed", False):
         return
     group._checks_installed = True
+    _plain_help(group)
     for _, cmd in leaf_commands(group):
         if cmd.callback is not None and not getattr(cmd.callback, "_checked", False):
             cmd.callback = _checked(cmd.callback, {p.name: p for p in cmd.params if p.name})
+
+
+def _plain_help(node: Any) -> None:
+    """Help as plain text: rich markup would take the units in option help ("[s]", "[m/s]") for style tags and
+    drop them."""
+    if hasattr(node, "rich_markup_mode"):
+        node.rich_markup_mode = None
+    for child in getattr(node, "commands", {}).values():
+        _plain_help(child)
 
 
 def _checked(callback: Callable[..., Any], params: dict[str, Any]) -> Callable[..., Any]:
@@ -292,3 +302,16 @@ class AtomicOutput:
             os.replace(self.tmp, self.path)
         else:
             self.tmp.unlink(missing_ok=True)
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write `text` to `path` through a temporary file renamed when complete."""
+    with AtomicOutput(path) as tmp:
+        tmp.write_text(text)
+
+
+def only_with(condition: bool, needs: str, given: dict[str, bool]) -> None:
+    """UserError naming the options of `given` that were set although they apply only with `needs`."""
+    named = [name for name, on in given.items() if on]
+    if named and not condition:
+        fail(f"{', '.join(named)}: only with {needs}")

@@ -39,7 +39,7 @@ from gpmppi.scenarios import (
 )
 from tools import terrain_cmd
 from tools.choices import ModelName
-from tools.cli_checks import OUT_DIR, check_output_dir, fail
+from tools.cli_checks import OUT_DIR, check_output_dir, fail, only_with
 
 
 class PlantName(str, Enum):
@@ -191,11 +191,19 @@ def _settings(
     overrides: list[str] | None, estimator: list[str] | None = None, oracle: bool = False,
     deploy: Path | None = None,
 ) -> EvalSettings:
+    only_with(plant is PlantName.residual_net, "--plant residual-net", {"--plant-file": plant_file is not None})
     if plant is PlantName.residual_net and plant_file is None:
         fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
     for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), ("--gp-model", gp_model)):
         if f is not None and not f.is_file():
             fail(f"{label} {f}: file not found")
+    if plant_file is not None:
+        from gpmppi.plant.residual_net import NetworkFileError, load_residual_net
+
+        try:
+            load_residual_net(plant_file)  # here, not first in a worker after the pool has started
+        except NetworkFileError as e:
+            fail(f"--plant-file: {e}")
     if gp_model is not None:
         from gpmppi.evaluation.runner import cached_gp_model
         from gpmppi.gp.model_file import ModelFileError

@@ -1,6 +1,8 @@
 """`gpmppi replay LOG.mcap`: a recording back onto Zenoh with its timing, optionally with live services in place
 of recorded ones (`--replace planner`) and their commands compared with the recorded ones (`--compare`); or
-converted offline for rerun (`--rerun save --rerun-target OUT.rrd | spawn | connect --rerun-target URL | serve`)."""
+converted offline for rerun (`--rerun save --rerun-target OUT.rrd | spawn | connect --rerun-target URL | serve`); or
+served to Foxglove while it plays (`--foxglove HOST:PORT`); or copied with its Foxglove scene added, offline
+(`--foxglove-scene OUT.mcap`)."""
 
 from __future__ import annotations
 
@@ -15,7 +17,7 @@ from typing import Any
 
 import typer
 
-from tools.cli_checks import check_output_file, fail
+from tools.cli_checks import OUT_FILE, check_output_file, fail, only_with
 from tools.replay_live import ReplaceError
 
 RERUN_MODES = ("save", "spawn", "connect", "serve")
@@ -43,6 +45,7 @@ class ReplayRequest:
     settle_s: float = 1.0
     progress: bool = True
     lockstep: bool = False
+    foxglove: tuple[str, int] | None = None
 
 
 def _say(line: str) -> None:
@@ -99,7 +102,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
     planners = [s for s in live if s.kind == "planner"]
     if req.compare and not planners:
         raise ReplaceError("--compare compares commands (cmd): it needs a planner among --replace")
-    start_router = (bool(live) and req.connect is None) or req.port is not None
+    start_router = ((bool(live) or req.foxglove is not None) and req.connect is None) or req.port is not None
     if req.connect is not None:
         endpoint = req.connect
     elif start_router:
@@ -152,7 +155,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
     stop = stop or threading.Event()
     result: dict[str, Any] = {"services": [s.name for s in live]}
     try:
-        if start_router or live:
+        if start_router or live or req.foxglove is not None:
             launch = LaunchFile(robot=robot)
             launch.router.listen = [endpoint]
             launcher = Launcher(launch, out=sys.stderr)
@@ -162,6 +165,10 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
                 launcher.add(s.name, s.kind, s.config, required=True)
                 _say(f"replay: live {s.name} ({s.kind}) from the "
                      f"{'recorded settings' if s.from_metadata else 'defaults'}; its recorded outputs are not replayed")
+            if req.foxglove is not None:  # served to Foxglove as it plays, like `gpmppi launch --foxglove`
+                zenoh_cfg = {"mode": "client", "connect": [endpoint]}
+                launcher.add("foxglove", "foxglove", {"robot": robot, "zenoh": zenoh_cfg, "host": req.foxglove[0],
+                                                      "port": req.foxglove[1], "nice": 10}, required=False)
             launcher.start_all()
         else:
             try:
@@ -188,8 +195,9 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
                 return lock.wait_for(lambda: any(c[0] == stamp for c in live_cmds[-8:]), timeout_s)
 
         subs = [session.declare_subscriber(f"gpmppi/{robot}/cmd", on_cmd)] if planners else []
-        if live:
-            _wait_ready(session, robot, live, launcher, req.ready_timeout_s, stop)
+        waiting = [*live, *([rl.LiveService("foxglove", "foxglove", {}, False)] if req.foxglove is not None else [])]
+        if waiting:
+            _wait_ready(session, robot, waiting, launcher, req.ready_timeout_s, stop)
         time.sleep(req.delay_s)  # subscriptions of listeners that just joined reach the router
         player = Player(session, lambda: iter_records(parts), options, stop=stop)
         player.declare(keys)
@@ -326,6 +334,14 @@ def register(app: typer.Typer) -> None:
         rerun_target: str | None = typer.Option(
             None, "--rerun-target", help="with --rerun save: the .rrd file to write; with --rerun connect: the URL"
         ),
+        foxglove: str | None = typer.Option(
+            None, "--foxglove", metavar="HOST:PORT",
+            help="serve the replay to Foxglove on this WebSocket address (HOST:PORT or PORT; loopback by default)",
+        ),
+        foxglove_scene: Path | None = typer.Option(
+            None, "--foxglove-scene", metavar=OUT_FILE,
+            help="offline, no Zenoh: write the recording with its Foxglove 3D scene added to this new MCAP file",
+        ),
         quiet: bool = typer.Option(False, help="no progress bar"),
         lockstep: bool = typer.Option(False, help="with --compare: put each state only after the live planner "
                                       "answered the one before (for a live planner slower than the recorded one)"),
@@ -333,9 +349,32 @@ def register(app: typer.Typer) -> None:
         """Replay a recording onto Zenoh (like `ros2 bag play`), with live services in place of recorded ones
         (`--replace`, like `dora replay --replace`), or convert it for rerun (`--rerun`)."""
         from services.recording.player_log import LogError
+        from tools.service_cmd import foxglove_address
 
         if start is not None and end is not None and end <= start:
             fail(f"--end {end}: must be after --start {start}")
+        if foxglove_scene is not None:
+            given = [name for name, on in {"--rerun": rerun is not None, "--foxglove": foxglove is not None,
+                                           "--replace": replace is not None, "--compare": compare, "--loop": loop,
+                                           "--start": start is not None, "--end": end is not None,
+                                           "--keys": keys is not None, "--exclude": exclude is not None}.items() if on]
+            if given:
+                fail(f"{', '.join(given)}: not with --foxglove-scene (an offline copy of the whole recording)")
+            from services.recording.player_log import LogError, check_log
+            from services.view.foxglove_log import add_scene
+
+            try:
+                check_log(log)
+            except LogError as exc:
+                fail(str(exc))
+            stats = add_scene(log, foxglove_scene)
+            typer.echo(json.dumps(stats) if as_json else
+                       f"wrote {foxglove_scene}: {stats['messages']} messages and {stats['scene_messages']} scene "
+                       f"messages in {stats['wall_s']:.2f} s (open it in Foxglove)")
+            return
+        address = foxglove_address(foxglove)
+        if rerun is not None and address is not None:
+            fail("--foxglove serves a replay onto Zenoh; --rerun converts offline: give one")
         if rerun is not None:
             live_only = {"--speed": speed != 1.0, "--loop": loop, "--robot": robot is not None,
                          "--keep-stamps": keep_stamps, "--replace": replace is not None, "--set": bool(set_),
@@ -366,11 +405,14 @@ def register(app: typer.Typer) -> None:
                 return
             if rerun_target is not None:
                 raise ValueError(f"--rerun-target {rerun_target!r}: only with --rerun save or --rerun connect")
+            only_with(replace is not None, "--replace SERVICE", {"--set": bool(set_), "--config": bool(config),
+                                                                 "--compare": compare})
+            only_with(compare, "--compare", {"--lockstep": lockstep})
             if port is not None and connect is not None:
                 raise ValueError("give --connect ENDPOINT (an existing router) or --port N (start one), not both")
             req = ReplayRequest(log, speed, start, end, keys, exclude, loop, robot, keep_stamps, replace, list(set_),
                                 list(config), compare, connect, port, delay, ready_timeout,
-                                progress=not (quiet or as_json), lockstep=lockstep)
+                                progress=not (quiet or as_json), lockstep=lockstep, foxglove=address)
             stop = threading.Event()
             import signal
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from tools.cli_checks import DIR, OUT_DIR
+from tools.cli_checks import DIR, OUT_DIR, only_with
 
 ROS2_CMD_KEY = "0/cmd_vel/*/*"  # rmw_zenoh: <domain>/<topic>/<type>/<hash>, Twist or TwistStamped
 ROS2_ODOM_KEY = "0/odometry/filtered/*/*"
@@ -49,6 +49,10 @@ def register(app: typer.Typer) -> None:
         from services.security.secure import ROLES, SecretsError, init_secrets
         from services.security.secure_check import check_secrets
 
+        only_with(tls, "--tls", {"--tls-endpoint": tls_endpoint != "tls/127.0.0.1:7448",
+                                 "--host": list(host) != ["localhost", "127.0.0.1"]})
+        only_with(ros2, "--ros2", {"--ros2-cmd-key": ros2_cmd_key != ROS2_CMD_KEY,
+                                   "--ros2-odom-key": ros2_odom_key != ROS2_ODOM_KEY})
         keys = {"cmd": ros2_cmd_key, "odom": ros2_odom_key} if ros2 else None
         try:
             written = init_secrets(directory, robot, tls, endpoint, tls_endpoint, host, keys, force)

@@ -5,16 +5,32 @@ from __future__ import annotations
 import json
 from enum import Enum
 from pathlib import Path
+from typing import Any
 
 import typer
 
-from tools.cli_checks import OUT_DIR, RECORDING, AtomicOutput, fail
+from tools.cli_checks import OUT_DIR, RECORDING, fail, write_text_atomic
 
-SERVICE_NAMES = ("router", "sim", "ingress", "terrain", "planner", "egress", "recorder", "viewer")
+SERVICE_NAMES = ("router", "sim", "ingress", "terrain", "planner", "egress", "recorder", "viewer", "foxglove")
 DurationOpt = typer.Option(
     None, "--duration", min=0.1, max=30 * 86400.0, help="stop after this many seconds once every service is up"
 )
 PortOpt = typer.Option(None, "--port", min=1, max=65535, help="router port on 127.0.0.1 (overrides the file)")
+FOXGLOVE_HELP = (
+    "serve the run to Foxglove on this WebSocket address, HOST:PORT or PORT (loopback unless HOST says otherwise; "
+    "see docs/foxglove.md)"
+)
+
+
+def foxglove_address(text: str | None) -> tuple[str, int] | None:
+    """`--foxglove HOST:PORT` or `PORT` (host 127.0.0.1) as (host, port); a bad address is one line, exit 2."""
+    if text is None:
+        return None
+    host, _, port = text.rpartition(":")
+    host = host.strip("[]") or "127.0.0.1"
+    if not port.isdigit() or not 1 <= int(port) <= 65535:
+        fail(f"--foxglove {text!r}: expected HOST:PORT or PORT with a port in 1..65535, e.g. 127.0.0.1:8765")
+    return host, int(port)
 
 
 class RerunMode(str, Enum):
@@ -29,23 +45,17 @@ class RerunMode(str, Enum):
 
 def _launch(
     launch_file: Path | None, duration: float | None, record: Path | None, rerun: list[str] | None,
-    port: int | None, secrets: Path | None = None,
-) -> int:
-    """Run a launch file through the launcher; a launch that cannot start is one line and exit 2."""
-    from services.launch.launcher import main
+    port: int | None, secrets: Path | None = None, foxglove: tuple[str, int] | None = None,
+) -> tuple[int, Any]:
+    """Run a launch file through the launcher: (exit code, summary); a launch that cannot start is one line."""
+    from services.launch.launcher import RouterUnreachable, run_launch
 
-    argv = [str(launch_file)] if launch_file is not None else []
-    if duration is not None:
-        argv += ["--duration", repr(duration)]
-    if record is not None:
-        argv += ["--record", str(record)]
-    if rerun:
-        argv += ["--rerun", *rerun]
-    if port is not None:
-        argv += ["--port", str(port)]
-    if secrets is not None:
-        argv += ["--secrets", str(secrets)]
-    return main(argv)
+    try:
+        return run_launch(launch_file, duration, None if record is None else str(record), rerun, port,
+                          secrets=None if secrets is None else str(secrets), foxglove=foxglove)
+    except (FileNotFoundError, ValueError, TimeoutError, RouterUnreachable) as exc:
+        fail(str(exc))
+        raise AssertionError from exc  # fail() raises
 
 
 def _rerun_args(mode: RerunMode | None, target: str | None) -> list[str] | None:
@@ -97,13 +107,16 @@ def register(app: typer.Typer) -> None:
             None, "--secrets", metavar="DIR",
             help="run with authentication and access control, with the identities of `gpmppi secure init DIR`",
         ),
+        foxglove: str | None = typer.Option(None, "--foxglove", metavar="HOST:PORT", help=FOXGLOVE_HELP),
     ) -> None:
         """Run a launch file: every service as its own process, restarted on a crash, stopped on Ctrl-C; then a
         summary."""
         if launch_file is not None and launch_file.suffix == ".rrd":
             fail(f"LAUNCH_FILE {launch_file}: a rerun file, not a launch file; to save the view give "
                  f"--rerun save --rerun-target {launch_file}")
-        raise typer.Exit(_launch(launch_file, duration, record, _rerun_args(rerun, rerun_target), port, secrets))
+        address = foxglove_address(foxglove)
+        code, _ = _launch(launch_file, duration, record, _rerun_args(rerun, rerun_target), port, secrets, address)
+        raise typer.Exit(code)
 
     @app.command("demo")
     def demo(
@@ -117,8 +130,8 @@ def register(app: typer.Typer) -> None:
         """The main job: the simulated Jackal on the circle lane for ~20 s, recorded to runs/demo.mcap and
         saved for rerun in runs/demo.rrd, then a summary."""
         out_dir.mkdir(parents=True, exist_ok=True)
-        code = _launch(None, duration, out_dir / "demo.mcap", ["save", str(out_dir / "demo.rrd")], port)
-        typer.echo(f"recording and rerun file in {out_dir} (the summary names them; open the .rrd with `rerun FILE`)")
+        code, summary = _launch(None, duration, out_dir / "demo.mcap", ["save", str(out_dir / "demo.rrd")], port)
+        typer.echo(f"recording: {summary.recording}  rerun: {summary.rerun_file} (open with `rerun FILE`)")
         raise typer.Exit(code)
 
     schemas_app = typer.Typer(help="Message schemas.", no_args_is_help=True)
@@ -141,8 +154,7 @@ def register(app: typer.Typer) -> None:
                  "add --force to replace them, or choose another folder")
         out_dir.mkdir(exist_ok=True)
         for name, text in files.items():
-            with AtomicOutput(out_dir / name) as tmp:
-                tmp.write_text(text)
+            write_text_atomic(out_dir / name, text)
         typer.echo(f"wrote {len(MODELS)} schemas and keys.json to {out_dir}")
 
     app.add_typer(schemas_app, name="schemas")

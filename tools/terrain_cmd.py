@@ -23,7 +23,7 @@ import typer
 import yaml
 from rich.console import Console
 
-from tools.cli_checks import OUT_DIR, OUT_FILE
+from tools.cli_checks import OUT_DIR, OUT_FILE, write_text_atomic
 
 SCENARIOS = ("circle", "square", "avoidance")
 DEFAULT_ESTIMATORS = (
@@ -133,7 +133,7 @@ def gains_cmd(
     gains = fit_command_gains(model, lambda t: PhysicsPlant(cached_terrain_set(None), t, seed=seed), distance, seed)
     text = command_gains_yaml(gains, _written_by())
     if out is not None:
-        out.write_text(text)
+        write_text_atomic(out, text)
     print(text, end="")
 
 
@@ -174,7 +174,7 @@ def response_cmd(
     response = fit_response(names, lambda t: make_plant(settings, t, seed), settle, average, distance, seed)
     text = response_yaml(response, _written_by())
     if out is not None:
-        out.write_text(text)
+        write_text_atomic(out, text)
     print(text if out is None else f"wrote {out}: terrains {names}, rates {np.round(response.rate, 3).tolist()}")
 
 
@@ -216,9 +216,9 @@ def separability_cmd(
     result["wall_time_s"] = round(time.perf_counter() - t0, 1)
     text = json.dumps(result, indent=1, default=float)
     if out is not None:
-        out.write_text(text)
+        write_text_atomic(out, text)
     if md is not None:
-        md.write_text(markdown(json.loads(text), names))
+        write_text_atomic(md, markdown(json.loads(text), names))
     print(text)
     _print_summary(result)
 

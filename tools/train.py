@@ -14,6 +14,14 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from gpmppi.gp.coverage import (
+    HOLD_S,
+    MIN_COVERED,
+    MIN_PER_CELL,
+    MIN_SAMPLES,
+    GroundCoverage,
+    ground_coverage,
+)
 from gpmppi.gp.grid_table import DEFAULT_SPACING
 from tools.cli_checks import OUT_FILE, fail
 
@@ -237,8 +245,10 @@ def _select(available: list[str], wanted: list[str] | None, where: str) -> list[
 def build_training_sets(
     data: Path, terrain: list[str] | None, theta_path: Path | None, edd5_path: Path | None,
     dt: float, robot: str | None, seed: int,
-) -> tuple[dict, np.ndarray, dict[str, np.ndarray]]:
-    """(terrain -> Transitions, theta, EDD5 per terrain) from a CSV or an MCAP log."""
+) -> tuple[dict, np.ndarray, dict[str, np.ndarray], dict[str, int | None]]:
+    """(terrain -> Transitions, theta, EDD5 per terrain, held commands per terrain) from a CSV or an MCAP log (a CSV
+    has no time series: its held commands are None)."""
+    from gpmppi.gp.coverage import held_commands
     from gpmppi.gp.train import Transitions, prepare_from_series
     from gpmppi.models.dynamic_unicycle import velocity_step_exact
     from gpmppi.models.identify import identify_edd5
@@ -262,7 +272,7 @@ def build_training_sets(
         else:  # EDD5 maps a command to the velocity it settles at: fit to the measured next velocities
             edd5 = {t: identify_edd5(x[:, 0], x[:, 1], s.next_vw[:, 0], s.next_vw[:, 1], seed=seed)
                     for t, s in sets.items()}
-        return sets, theta, edd5
+        return sets, theta, edd5, dict.fromkeys(terrains)
     if data.suffix.lower() != ".csv" and not is_mcap(data):
         raise DataError(f"{data}: not an MCAP file (nor a .csv); give a log recorded by `gpmppi launch --record` "
                         "or `gpmppi dataset`, or a residual CSV")
@@ -270,7 +280,33 @@ def build_training_sets(
     terrains = _select(sorted(series), terrain, str(data))
     th = _theta_from_json(theta_json, theta_path) if theta_json is not None else None
     ed = _edd5_from_json(edd5_json, terrains, edd5_path) if edd5_json is not None else None
-    return prepare_from_series({t: series[t] for t in terrains}, dt, theta=th, edd5=ed, seed=seed)
+    held = {t: held_commands(np.asarray(series[t]["v_ref"]), np.asarray(series[t]["w_ref"]),
+                             np.asarray(series[t]["seg"]), dt) for t in terrains}
+    return (*prepare_from_series({t: series[t] for t in terrains}, dt, theta=th, edd5=ed, seed=seed), held)
+
+
+def print_coverage(coverage: list[GroundCoverage], console: Console) -> None:
+    """Per ground: the share of the planner's command and state range its data covers, its held commands, and a
+    warning naming the thin command cells."""
+    table = Table(title="coverage of the planner's range (v 0-2 m/s, |omega| up to pi rad/s; a cell counts from "
+                        f"{MIN_PER_CELL} samples)")
+    for col in ("terrain", "samples", "commands covered", "states covered", f"held commands (>= {HOLD_S:g} s)"):
+        table.add_column(col, justify="right")
+    for c in coverage:
+        table.add_row(c.terrain, str(c.samples), f"{c.command_covered:.0%}", f"{c.state_covered:.0%}",
+                      "-" if c.held is None else str(c.held))
+    console.print(table)
+    for c in coverage:
+        thin = c.thin()
+        if thin:
+            Console(stderr=True, soft_wrap=True).print(
+                f"[yellow]warning:[/yellow] ground {c.terrain!r}: thin coverage in {len(thin)} of "
+                f"{c.command_cells.size} command cells, the GP extrapolates there; drive: {'; '.join(thin[:4])}"
+                + (" ..." if len(thin) > 4 else ""), highlight=False)
+        if c.held == 0:
+            Console(stderr=True, soft_wrap=True).print(
+                f"[yellow]warning:[/yellow] ground {c.terrain!r}: no held command (one kept {HOLD_S:g} s or more); "
+                "the terrain estimator's steady responses need some", highlight=False)
 
 
 def print_report(report, console: Console) -> None:
@@ -323,6 +359,11 @@ def register(app: typer.Typer) -> None:
             min=0.001, max=10.0,
             help="node spacing of the stored grid table as a fraction of each axis's smallest lengthscale")
         ] = DEFAULT_SPACING,
+        min_samples: Annotated[int, typer.Option(
+            min=1, help="refuse a ground with fewer one-step samples")] = MIN_SAMPLES,
+        min_coverage: Annotated[float, typer.Option(
+            min=0.0, max=1.0, help="refuse a ground whose commands cover a smaller share of the planner's range "
+                                   f"(cells with {MIN_PER_CELL} samples or more)")] = MIN_COVERED,
         force: Annotated[bool, typer.Option("--force", help="replace an existing --output file")] = False,
     ) -> None:
         """Train the per-terrain residual GPs and write the model file."""
@@ -333,7 +374,7 @@ def register(app: typer.Typer) -> None:
         try:
             if not 0.0 <= (holdout or 0.0) < 1.0:
                 raise DataError(f"--holdout must be in [0, 1), got {holdout}")
-            sets, th, ed = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
+            sets, th, ed, held = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
             test_sets = None
             if test_data is not None:
                 cols = read_csv_columns(test_data)
@@ -349,6 +390,10 @@ def register(app: typer.Typer) -> None:
                            if extra else "")
                     )
                 test_sets = {t: Transitions(tx, tres[t]) for t in sets}
+            coverage = [ground_coverage(t, s.x, held[t]) for t, s in sets.items()]
+            refused = [r for c in coverage if (r := c.problem(min_samples, min_coverage)) is not None]
+            if refused:
+                raise DataError("; ".join(refused))
             # given hyperparameters (the paper's procedure) condition on all the data, as the paper did
             hold = holdout if holdout is not None else (0.0 if test_sets is not None or hyperparameters else 0.2)
             model, report = train_model(
@@ -365,6 +410,7 @@ def register(app: typer.Typer) -> None:
             fail(str(e))
         model.save(output)
         print_report(report, console)
+        print_coverage(coverage, console)
         for line in model.fit_warnings():
             Console(stderr=True, soft_wrap=True).print(f"[yellow]warning:[/yellow] {line}", highlight=False)
         console.print(

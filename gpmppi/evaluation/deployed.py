@@ -18,6 +18,7 @@ from pydantic import BaseModel, ValidationError
 from gpmppi.safety import SafetyConfig
 from gpmppi.terrain.cycle import TerrainCycleConfig
 from gpmppi.terrain.settings import EstimatorConfig
+from gpmppi.yaml_file import yaml_error
 
 
 class DeployFileError(ValueError):
@@ -65,7 +66,7 @@ def deployed_path(path: str | Path) -> DeployedPath:
     try:
         data = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as exc:
-        raise DeployFileError(f"{path}: not YAML: {exc}") from None
+        raise DeployFileError(yaml_error(path, exc)) from None
     services = data.get("services", []) if isinstance(data, dict) else None
     if not isinstance(services, list):
         raise DeployFileError(f"{path}: `services` must be a list of service entries")

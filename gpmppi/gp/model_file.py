@@ -172,8 +172,9 @@ class GPModel:
         where = str(path)
         if not path.is_file():
             raise ModelFileError(f"{where}: no such model file (train one with `gpmppi train DATA -o {path.name}`)")
-        if not zipfile.is_zipfile(path):
-            raise ModelFileError(f"{where}: not a GP model file (an .npz written by `gpmppi train`)")
+        with open(path, "rb") as f:
+            if f.read(4) != b"PK\x03\x04":  # an .npz is a zip archive; a truncated one is reported below
+                raise ModelFileError(f"{where}: not a GP model file (an .npz written by `gpmppi train`)")
         try:
             with np.load(path, allow_pickle=False) as z:
                 names = set(z.files)

@@ -4,10 +4,9 @@ The cost bundle's layout derives from the registered critics (`gpmppi.mppi.criti
 
 Each bundle is a frozen, keyword-only dataclass; `.args()` checks every field against the bundle's
 `SPECS` (dtype, number of dimensions, C-contiguous, writeable where the kernels write) and returns
-the fixed-size tuple the kernels take. The kernels read a tuple's fields by the index constants
-below (`M_*`, `T_*`, `S_*`, `K_*`, `O_*`), once, at their top: the order is defined here only.
-`tests/test_bundles.py` pins names, order and numba types, so a reordered field cannot compile
-silently into a kernel that reads the wrong array.
+the named tuple the kernels take (`ModelArgs`, `TaskArgs`, `SamplingArgs`, `OutputArgs`, made from `SPECS`:
+numba compiles a named tuple as a tuple and reads its fields by name, `model.theta`, at compile time). No
+kernel indexes a bundle by position. `tests/test_bundles.py` pins names, order and numba types.
 
 The arrays a mode does not use (a grid table for the exact GP, the lane lookup for a goal task)
 still have to be arrays of the right type, so that one compiled kernel serves every mode; they are
@@ -16,6 +15,7 @@ built here, by the classmethods, and nowhere else.
 
 from __future__ import annotations
 
+from collections import namedtuple
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar, NamedTuple
@@ -28,8 +28,9 @@ from gpmppi.mppi.goal_field import GoalField
 from gpmppi.mppi.lane import LaneLookup
 
 __all__ = [
-    "CRITICS", "K_EXIT_DISCOUNT", "K_GOAL_GEODESIC", "N_COST_TERMS", "TASK_GOAL", "TASK_LANE", "CostBundle",
-    "FieldSpec", "ModelBundle", "Outputs", "SamplingBundle", "TaskBundle",
+    "CRITICS", "K_GOAL_GEODESIC", "N_COST_TERMS", "TASK_GOAL", "TASK_LANE", "CostBundle",
+    "FieldSpec", "ModelArgs", "ModelBundle", "OutputArgs", "Outputs", "SamplingArgs", "SamplingBundle", "TaskArgs",
+    "TaskBundle",
 ]
 
 # the registered critics (`gpmppi.mppi.critics`), each with its own weight, in the kernels' order
@@ -73,9 +74,10 @@ def _checked(bundle: str, name: str, spec: FieldSpec, value: Any) -> Any:
 
 
 class _Bundle:
-    """`.args()`: the fields in declaration order, each checked against `SPECS`."""
+    """`.args()`: the fields in declaration order, each checked against `SPECS`, as the bundle's `ARGS` named tuple."""
 
     SPECS: ClassVar[dict[str, FieldSpec]]
+    ARGS: ClassVar[type]
 
     def __new__(cls, *args: Any, **kwargs: Any) -> _Bundle:
         # the dataclass's own error for positional arguments names no field; this one names them
@@ -86,7 +88,7 @@ class _Bundle:
 
     def args(self) -> tuple:
         cls = type(self).__name__
-        return tuple(_checked(cls, name, spec, getattr(self, name)) for name, spec in self.SPECS.items())
+        return self.ARGS(*(_checked(cls, name, spec, getattr(self, name)) for name, spec in self.SPECS.items()))
 
     @classmethod
     def _check_specs(cls) -> None:
@@ -96,11 +98,6 @@ class _Bundle:
 
 
 # ------------------------------------------------------------------------------------------------ model
-M_DYN_MODE, M_THETA, M_LATERAL, M_EDD5, M_GP_MODE, M_TABLE, M_DIMS, M_LO, M_INV_STEP = range(9)
-M_EX_SCALED_X, M_EX_INV_LS, M_EX_OUTPUTSCALE, M_EX_ALPHA, M_EX_CHOL, M_TERRAIN_W = range(9, 15)
-M_TABLE_SRC, M_LAZY, M_COLLAPSE_W = range(15, 18)
-
-
 @dataclass(frozen=True, kw_only=True)
 class ModelBundle(_Bundle):
     """The rollout model: dynamics choice and parameters, and the GP residual (grid table or exact GP)."""
@@ -161,10 +158,6 @@ class ModelBundle(_Bundle):
 
 
 # ------------------------------------------------------------------------------------------------- task
-T_KIND, T_SEG, T_CELL_START, T_CANDIDATES, T_FIELD, T_ORIGIN, T_INV_CELL = range(7)
-T_HALF_WIDTH, T_TIGHTENED_HW, T_SPEED_TARGET, T_GOAL, T_OBSTACLES, T_RADII = range(7, 13)
-
-
 @dataclass(frozen=True, kw_only=True)
 class TaskBundle(_Bundle):
     """The task: a lane (lookup grid, half-widths, speed target) or a goal among obstacles (distance field, circles).
@@ -230,10 +223,6 @@ class TaskBundle(_Bundle):
 
 
 # --------------------------------------------------------------------------------------------- sampling
-(S_X0, S_NOMINAL, S_NOISE_STD, S_U_LO, S_U_HI, S_DT, S_SEED, S_ITERATION, S_NOISE_MEMORY, S_U_PREV,
- S_RATE_STEP) = range(11)
-
-
 @dataclass(frozen=True, kw_only=True)
 class SamplingBundle(_Bundle):
     """Where the rollouts start and how their commands are drawn: nominal + noise, clipped to the limits, the first
@@ -262,9 +251,8 @@ class SamplingBundle(_Bundle):
 
 # ------------------------------------------------------------------------------------------------- cost
 # the cost vector the kernels read (`registry.CriticLayout`): the goal-distance switch, each critic's weight, each
-# critic's parameters; the drivers read the lane-exit discount (they hold discount^k)
+# critic's parameters
 K_GOAL_GEODESIC = W_GOAL_GEODESIC
-K_EXIT_DISCOUNT = _LAYOUT.param_index("lane_exit", "discount")
 N_COST_TERMS = _LAYOUT.size
 
 
@@ -320,9 +308,6 @@ class CostBundle:
 
 
 # ---------------------------------------------------------------------------------------------- outputs
-O_EPS, O_COST, O_XY = range(3)
-
-
 @dataclass(frozen=True, kw_only=True)
 class Outputs(_Bundle):
     """What the rollout kernels write: per sample the applied perturbation, the total cost, and some XY."""
@@ -344,3 +329,9 @@ class Outputs(_Bundle):
 
 for _cls in (ModelBundle, TaskBundle, SamplingBundle, Outputs):
     _cls._check_specs()
+
+# the kernels' inputs: each bundle's fields by name (module-level names, so that they pickle for `compile_ahead`)
+ModelArgs = ModelBundle.ARGS = namedtuple("ModelArgs", list(ModelBundle.SPECS))
+TaskArgs = TaskBundle.ARGS = namedtuple("TaskArgs", list(TaskBundle.SPECS))
+SamplingArgs = SamplingBundle.ARGS = namedtuple("SamplingArgs", list(SamplingBundle.SPECS))
+OutputArgs = Outputs.ARGS = namedtuple("OutputArgs", list(Outputs.SPECS))

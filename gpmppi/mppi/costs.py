@@ -36,16 +36,20 @@ from scipy.special import chdtri, ndtri
 
 from gpmppi.kernel_flags import FASTMATH
 from gpmppi.mppi.bundles import CRITICS, TASK_LANE
-from gpmppi.mppi.critics.registry import build_sums, layout
+from gpmppi.mppi.critics.base import Step
+from gpmppi.mppi.critics.registry import build_states, build_sums, layout
 from gpmppi.mppi.lane import lane_query
 
 __all__ = [
-    "CRITICS", "ChanceQuantiles", "fill_weight_vector", "inflate_obstacles", "stage_cost", "stage_critics",
+    "CRITICS", "STATES", "SUMS", "ChanceQuantiles", "advance_state", "fill_weight_vector", "inflate_obstacles",
+    "stage_cost", "stage_critics", "start_state",
     "terminal_cost", "terminal_critics", "tighten_lane", "weight_vector", "xy_lambda_max",
 ]
 
-# the registered critics' terms, summed and split, per task kind (`gpmppi.mppi.critics.registry`)
-_SUMS = build_sums()
+# the registered critics' terms, summed and split, per task kind (`gpmppi.mppi.critics.registry`; the CUDA backend
+# makes each of these functions' device twin from the same terms)
+SUMS = build_sums()
+_SUMS = SUMS
 _lane_stage = _SUMS["lane"].stage
 _goal_stage = _SUMS["goal"].stage
 _lane_stage_split = _SUMS["lane"].stage_split
@@ -55,6 +59,10 @@ _goal_terminal = _SUMS["goal"].terminal
 _lane_terminal_split = _SUMS["lane"].terminal_split
 _goal_terminal_split = _SUMS["goal"].terminal_split
 _LANE_TERMINAL = bool(layout().terms("lane", True))  # whether a terminal critic reads the lane at the horizon's end
+# the stateful critics' values, carried by the drivers from step to step (`registry.build_states`)
+STATES = build_states()
+start_state = STATES.start  # start_state(cost_w): the values at a rollout's first step
+advance_state = STATES.advance  # advance_state(state, cost_w): the next step's
 
 
 @njit(cache=True, inline="always")
@@ -79,74 +87,79 @@ def weight_vector(cost: tuple) -> np.ndarray:
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def _step(
-    query_lane: bool, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple, u: tuple,
+    query_lane: bool, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, u: tuple,
     var: tuple,
-) -> tuple:
-    """What the critics' terms read of a step (`critics.base.AT_*`); with `query_lane` the lane query at the state,
+) -> Step:
+    """What the critics' terms read of a step (`critics.base.Step`); with `query_lane` the lane query at the state,
     once for all the lane critics (else zeros)."""
-    seg, cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles = geo
     px, py, yaw, v, w = s
     d, tx, ty = 0.0, 0.0, 0.0
     if query_lane:
-        d, tx, ty = lane_query(seg, cell_start, candidates, field, origin, inv_cell, px, py, tightened_hw)
-    return (px, py, yaw, v, w, u[0], u[1], var[0], var[1], tightened_hw, radii, discount_k, d, tx, ty)
+        d, tx, ty = lane_query(task.seg, task.cell_start, task.candidates, task.field, task.origin, task.inv_cell, px,
+                               py, tightened_hw)
+    return Step(px, py, yaw, v, w, u[0], u[1], var[0], var[1], tightened_hw, radii, state, d, tx, ty)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def stage_cost(
-    kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple,
-    u: tuple, var: tuple,
+    cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, u: tuple,
+    var: tuple,
 ) -> float:
     """Cost of one rollout step: the sum of the task kind's stage critics, in `CRITICS` order.
 
-    `cost_w` the cost bundle as the kernels hold it (`weight_vector`); `geo` the task's geometry (seg,
-    cell_start, candidates, field, origin, inv_cell, half_width, speed_target, goal, obstacles: `TaskBundle`
-    fields); `tightened_hw` this step's tightened half-width (the lane distance is exact near it), `radii` (K,) this
-    step's inflated radii; `discount_k` the lane-exit discount of this step; `s` the state after the step (x, y,
-    yaw, v, omega), `u` its command, `var` its GP variances. `kind` is `TASK_LANE` or `TASK_GOAL`: `TaskBundle.args`
-    refuses any other, so the goal critics here are the goal kind's.
+    `cost_w` the cost bundle as the kernels hold it (`weight_vector`); `task` the task bundle's tuple (`TaskArgs`;
+    the critics read its geometry by name); `tightened_hw` this step's tightened half-width (the lane distance is
+    exact near it), `radii` (K,) this step's inflated radii; `state` the stateful critics' values of this step
+    (`start_state`, `advance_state`); `s` the state after the step (x, y, yaw, v, omega), `u` its command, `var` its
+    GP variances. `task.kind` is `TASK_LANE` or `TASK_GOAL`: `TaskBundle.args` refuses any other, so the goal critics
+    here are the goal kind's.
     """
-    at = _step(kind == TASK_LANE, geo, tightened_hw, radii, discount_k, s, u, var)
-    if kind == TASK_LANE:
-        return _lane_stage(0.0, cost_w, geo, at)
-    return _goal_stage(0.0, cost_w, geo, at)
+    lane = task.kind == TASK_LANE
+    at = _step(lane, task, tightened_hw, radii, state, s, u, var)
+    if lane:
+        return _lane_stage(0.0, cost_w, task, at)
+    return _goal_stage(0.0, cost_w, task, at)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def stage_critics(
-    kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, discount_k: float, s: tuple,
-    u: tuple, var: tuple, out: np.ndarray,
+    cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, u: tuple,
+    var: tuple, out: np.ndarray,
 ) -> None:
     """Add each stage critic's cost of one step to `out` (`CRITICS` order; arguments as `stage_cost`): the kernels
     need only the sum, the plan reports each."""
-    at = _step(kind == TASK_LANE, geo, tightened_hw, radii, discount_k, s, u, var)
-    if kind == TASK_LANE:
-        _lane_stage_split(cost_w, geo, at, out)
+    lane = task.kind == TASK_LANE
+    at = _step(lane, task, tightened_hw, radii, state, s, u, var)
+    if lane:
+        _lane_stage_split(cost_w, task, at, out)
     else:
-        _goal_stage_split(cost_w, geo, at, out)
+        _goal_stage_split(cost_w, task, at, out)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
 def terminal_cost(
-    kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, s: tuple,
+    cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple,
 ) -> float:
-    """The sum of the task kind's terminal critics at the state after the last step (`s`; bounds of that step)."""
-    at = _step(kind == TASK_LANE and _LANE_TERMINAL, geo, tightened_hw, radii, 1.0, s, (0.0, 0.0), (0.0, 0.0))
-    if kind == TASK_LANE:
-        return _lane_terminal(0.0, cost_w, geo, at)
-    return _goal_terminal(0.0, cost_w, geo, at)
+    """The sum of the task kind's terminal critics at the state after the last step (`s`; bounds of that step; `state`
+    the stateful critics' values after it)."""
+    lane = task.kind == TASK_LANE
+    at = _step(lane and _LANE_TERMINAL, task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
+    if lane:
+        return _lane_terminal(0.0, cost_w, task, at)
+    return _goal_terminal(0.0, cost_w, task, at)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def terminal_critics(
-    kind: int, cost_w: np.ndarray, geo: tuple, tightened_hw: float, radii: np.ndarray, s: tuple, out: np.ndarray,
+    cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, out: np.ndarray,
 ) -> None:
     """Add each terminal critic's cost to `out` (`CRITICS` order; arguments as `terminal_cost`)."""
-    at = _step(kind == TASK_LANE and _LANE_TERMINAL, geo, tightened_hw, radii, 1.0, s, (0.0, 0.0), (0.0, 0.0))
-    if kind == TASK_LANE:
-        _lane_terminal_split(cost_w, geo, at, out)
+    lane = task.kind == TASK_LANE
+    at = _step(lane and _LANE_TERMINAL, task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
+    if lane:
+        _lane_terminal_split(cost_w, task, at, out)
     else:
-        _goal_terminal_split(cost_w, geo, at, out)
+        _goal_terminal_split(cost_w, task, at, out)
 
 
 @dataclass(frozen=True)

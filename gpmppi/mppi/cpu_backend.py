@@ -23,63 +23,20 @@ import numpy as np
 from numba import njit
 
 from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row, vector_phase
-from gpmppi.mppi.bundles import (
-    CRITICS,
-    K_EXIT_DISCOUNT,
-    M_COLLAPSE_W,
-    M_DIMS,
-    M_DYN_MODE,
-    M_EDD5,
-    M_EX_ALPHA,
-    M_GP_MODE,
-    M_INV_STEP,
-    M_LATERAL,
-    M_LAZY,
-    M_LO,
-    M_TABLE,
-    M_TABLE_SRC,
-    M_THETA,
-    O_COST,
-    O_EPS,
-    O_XY,
-    S_DT,
-    S_ITERATION,
-    S_NOISE_MEMORY,
-    S_NOISE_STD,
-    S_NOMINAL,
-    S_RATE_STEP,
-    S_SEED,
-    S_U_HI,
-    S_U_LO,
-    S_U_PREV,
-    S_X0,
-    T_CANDIDATES,
-    T_CELL_START,
-    T_FIELD,
-    T_GOAL,
-    T_HALF_WIDTH,
-    T_INV_CELL,
-    T_KIND,
-    T_OBSTACLES,
-    T_ORIGIN,
-    T_RADII,
-    T_SEG,
-    T_SPEED_TARGET,
-    T_TIGHTENED_HW,
+from gpmppi.mppi.bundles import CRITICS
+from gpmppi.mppi.costs import (
+    advance_state,
+    stage_cost,
+    stage_critics,
+    start_state,
+    terminal_cost,
+    terminal_critics,
+    weight_vector,
 )
-from gpmppi.mppi.costs import stage_cost, stage_critics, terminal_cost, terminal_critics, weight_vector
-from gpmppi.mppi.dynamics import (
-    DYN_GP,
-    GP_SIMPLEX,
-    advance,
-    gp_inputs,
-    gp_residual,
-    gp_scratch,
-    velocity_coefficients,
-)
+from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, gp_scratch, velocity_coefficients
 from gpmppi.mppi.gp_table import block_keys, cell32, ensure_block_at, simplex_corner, simplex_params
 from gpmppi.mppi.rng import command_from_normals, normal_pair
-from gpmppi.mppi.step import sample_step
+from gpmppi.mppi.step import sample_step, step_inputs
 
 __all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", "softmax_update"]
 
@@ -131,14 +88,15 @@ def _draw_commands(
 
 @phase
 def _add_costs(
-    n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray, total: np.ndarray, kind: int, cost_w: np.ndarray,
-    geo: tuple, bounds: tuple, discount_k: float,
+    n_in: int, st: np.ndarray, cmd: np.ndarray, res: np.ndarray, total: np.ndarray, cost_w: np.ndarray, task: tuple,
+    bounds: tuple, state: tuple,
 ) -> None:
     """Add one step's stage cost to each sample's total: states `st` after the step, its commands and GP variances;
-    `bounds` = (this step's tightened half-width, its inflated radii)."""
+    `bounds` = (this step's tightened half-width, its inflated radii), `state` the stateful critics' values of the
+    step (`costs.start_state`)."""
     tightened_hw, radii = bounds
     for j in range(n_in):
-        total[j] += stage_cost(kind, cost_w, geo, tightened_hw, radii, discount_k,
+        total[j] += stage_cost(cost_w, task, tightened_hw, radii, state,
                                (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]), (cmd[0, j], cmd[1, j]),
                                (res[2, j], res[3, j]))
 
@@ -263,44 +221,32 @@ def rollout_worker(
     their own, each compiled once."""
     # every field is read here, once, outside the sample loops: read from the tuples inside them the kernel ran
     # slower and its results differed in the last bits
-    dyn_mode = model[M_DYN_MODE]
-    gp_mode = model[M_GP_MODE]
-    table = model[M_TABLE]
-    task_kind = task[T_KIND]
-    field = task[T_FIELD]
-    grid_origin = task[T_ORIGIN]
-    inv_cell = task[T_INV_CELL]
-    tightened_hw = task[T_TIGHTENED_HW]
-    goal = task[T_GOAL]
-    radii = task[T_RADII]
-    x0 = sampling[S_X0]
-    nominal = sampling[S_NOMINAL]
-    dt = sampling[S_DT]
-    seed = sampling[S_SEED]
-    eps_out = out[O_EPS]
-    cost_out = out[O_COST]
-    xy_out = out[O_XY]
+    dyn_mode = model.dyn_mode
+    gp_mode = model.gp_mode
+    table = model.table
+    tightened_hw = task.tightened_hw
+    radii = task.radii
+    x0 = sampling.x0
+    nominal = sampling.nominal
+    dt = sampling.dt
+    seed = sampling.seed
+    eps_out = out.eps_out
+    cost_out = out.cost_out
+    xy_out = out.xy_out
     coef, flat, next_group = plan_consts
     st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, noise, scratch, keys, seen, normals = work
-    discount = cost_w[K_EXIT_DISCOUNT]
     samples = eps_out.shape[0]
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
     n_groups = (samples + GROUP - 1) // GROUP
-    counter0 = sampling[S_ITERATION] * samples
-    dyn = (dyn_mode, coef, model[M_EDD5])
-    grid = simplex_params(model[M_DIMS], model[M_LO], model[M_INV_STEP])
-    memory = sampling[S_NOISE_MEMORY]
-    ar = (memory, np.sqrt(1.0 - memory * memory))  # `rng.sampled_command`
-    limits = (nominal, sampling[S_NOISE_STD], sampling[S_U_LO], sampling[S_U_HI], ar,
-              (sampling[S_U_PREV], sampling[S_RATE_STEP]))
-    gp = gp_inputs(model)
-    geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], field, grid_origin, inv_cell, task[T_HALF_WIDTH],
-           task[T_SPEED_TARGET], goal, task[T_OBSTACLES])
+    counter0 = sampling.iteration * samples
+    inputs = step_inputs(model, sampling, sampling.noise_std, sampling.noise_memory, coef)
+    dyn, limits, gp = inputs.dyn, inputs.limits, inputs.gp
+    grid = simplex_params(model.dims, model.lo, model.inv_step)
     simplex = dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX
-    lazy = model[M_LAZY]
+    lazy = model.lazy
     lazy_collapse = simplex and lazy[0] != 0
-    lazy_table = (lazy, model[M_TABLE_SRC], model[M_COLLAPSE_W], table, model[M_DIMS])
+    lazy_table = (lazy, model.table_src, model.collapse_w, table, model.dims)
     while True:
         g = fetch_add(next_group, 1)
         if g >= n_groups:
@@ -318,7 +264,7 @@ def rollout_worker(
                 xy_out[first + j, 0, 1] = x0[1]
         # step 0 as an int64, not the literal 0: numba would compile the phase a second time for `Literal[int](0)`
         _draw_commands(seed, counter0, horizon, np.int64(0), limits, first, n_in, eps_out, cmd, noise, normals)
-        discount_k = 1.0  # discount of step k - 1's cost
+        state = start_state(cost_w)  # the stateful critics' values of step k - 1
         # Step k: (1) the GP table rows of step k are requested (prefetch), (2) the next step's commands are
         # drawn and (3) the previous step's cost is added, both needing no table, while the rows arrive from
         # memory, (4) the rows are read, (5) the states advance. Costs are added in step order.
@@ -331,19 +277,18 @@ def rollout_worker(
                 _draw_commands(seed, counter0, horizon, k + 1, limits, first, n_in, eps_out, cmd_next, noise,
                                normals)
             if k > 0:
-                _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[k], radii[k]),
-                           discount_k)
-                discount_k *= discount
+                _add_costs(n_in, st, cmd_prev, res, total, cost_w, task, (tightened_hw[k], radii[k]), state)
+                state = advance_state(state, cost_w)
             if simplex:
                 _read_rows(n_in, flat, nodes, node_w, res)
             elif dyn_mode == DYN_GP:
                 _gp_residuals(gp, scratch, n_in, st, cmd, res)
             _advance_group(dyn, dt, n_in, first, k, st, cmd, res, xy_out)
             cmd_prev, cmd, cmd_next = cmd, cmd_next, cmd_prev
-        _add_costs(n_in, st, cmd_prev, res, total, task_kind, cost_w, geo, (tightened_hw[horizon], radii[horizon]),
-                   discount_k)
+        _add_costs(n_in, st, cmd_prev, res, total, cost_w, task, (tightened_hw[horizon], radii[horizon]), state)
+        state = advance_state(state, cost_w)
         for j in range(n_in):
-            t = total[j] + terminal_cost(task_kind, cost_w, geo, tightened_hw[horizon], radii[horizon],
+            t = total[j] + terminal_cost(cost_w, task, tightened_hw[horizon], radii[horizon], state,
                                          (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]))
             if not np.isfinite(t):
                 t = np.inf
@@ -356,8 +301,8 @@ def _thread_buffers(model: tuple) -> tuple:
     unit-stride rows let the loop that fills them run as vector code), the unit noise of the last step drawn, and
     the exact GP's work arrays, (`_ensure_slabs`) the lookups' cell keys and the cells whose table slabs this
     thread made current, and (`_unit_normals`) the standard normals of the step being drawn."""
-    n_tasks, n_train = model[M_EX_ALPHA].shape
-    dims = model[M_DIMS]
+    n_tasks, n_train = model.ex_alpha.shape
+    dims = model.dims
     return (np.empty((5, GROUP)), np.empty(GROUP), np.empty((2, GROUP)), np.empty((2, GROUP)), np.empty((2, GROUP)),
             np.zeros((4, GROUP)), np.zeros((5, GROUP), dtype=np.uint64), np.zeros((5, GROUP), dtype=np.float32),
             np.zeros((2, GROUP)), (np.empty(n_train), np.empty(n_tasks), np.empty(n_tasks)),
@@ -367,10 +312,10 @@ def _thread_buffers(model: tuple) -> tuple:
 def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out: tuple) -> None:
     """Every sample's rollout and total cost (the bundles' tuples, `gpmppi.mppi.bundles`, `.args()`): `rollout_worker`
     on this thread and on `numba.get_num_threads() - 1` pool threads, which share out the sample groups."""
-    samples = out[O_EPS].shape[0]
+    samples = out.eps_out.shape[0]
     n_groups = (samples + GROUP - 1) // GROUP
     threads = max(1, min(numba.get_num_threads(), n_groups))
-    plan_consts = (velocity_coefficients(model[M_THETA], model[M_LATERAL]), model[M_TABLE].reshape(-1),
+    plan_consts = (velocity_coefficients(model.theta, model.lateral), model.table.reshape(-1),
                    np.zeros(1, dtype=np.int64))
     head = (model, task, sampling, weight_vector(cost), out, plan_consts)
     calls = [(*head, _thread_buffers(model)) for _ in range(threads)]
@@ -437,32 +382,24 @@ def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple
     pose step round differently and the sum strayed 5e-9 from the kernel's cost): the kernels add the critics of a
     step into one cost, this keeps them apart; their sum is the kernels' cost.
     """
-    kind = task[T_KIND]
-    tightened_hw = task[T_TIGHTENED_HW]
-    radii = task[T_RADII]
-    geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], task[T_FIELD], task[T_ORIGIN], task[T_INV_CELL],
-           task[T_HALF_WIDTH], task[T_SPEED_TARGET], task[T_GOAL], task[T_OBSTACLES])
-    nominal = sampling[S_NOMINAL]
-    horizon = nominal.shape[0]
+    tightened_hw = task.tightened_hw
+    radii = task.radii
+    horizon = sampling.nominal.shape[0]
     # the sampling bundle's own limits, but no noise: whatever its noise std, the sequence scored is the nominal
-    limits = (nominal, np.zeros(2), sampling[S_U_LO], sampling[S_U_HI], (0.0, 1.0),
-              (sampling[S_U_PREV], sampling[S_RATE_STEP]))
-    dt = sampling[S_DT]
-    dyn = (model[M_DYN_MODE], velocity_coefficients(model[M_THETA], model[M_LATERAL]), model[M_EDD5])
-    gp = gp_inputs(model)
+    inputs = step_inputs(model, sampling, np.zeros(2), 0.0, velocity_coefficients(model.theta, model.lateral))
+    dt = sampling.dt
     scratch = gp_scratch(model)
     cost_w = weight_vector(cost)
-    discount = cost_w[K_EXIT_DISCOUNT]
-    x0 = sampling[S_X0]
+    x0 = sampling.x0
     s = (x0[0], x0[1], x0[2], x0[3], x0[4])
     d = (0.0, 0.0)
     out = np.zeros(len(CRITICS))
-    discount_k = 1.0
+    state = start_state(cost_w)
     for k in range(horizon):
-        u, d, s, variances = sample_step(sampling[S_SEED], k, k, limits, dyn, gp, scratch, dt, s, d)
-        stage_critics(kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, s, u, variances, out)
-        discount_k *= discount
-    terminal_critics(kind, cost_w, geo, tightened_hw[horizon], radii[horizon], s, out)
+        u, d, s, variances = sample_step(sampling.seed, k, k, inputs, scratch, dt, s, d)
+        stage_critics(cost_w, task, tightened_hw[k + 1], radii[k + 1], state, s, u, variances, out)
+        state = advance_state(state, cost_w)
+    terminal_critics(cost_w, task, tightened_hw[horizon], radii[horizon], state, s, out)
     return out
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import fields
 
 import numba
 import numpy as np
@@ -23,47 +24,8 @@ from numba import cuda
 from gpmppi.gp.cuda_kernels import device_version, set_device_version
 from gpmppi.mppi import costs as critic
 from gpmppi.mppi import dynamics, gp_table, step
-from gpmppi.mppi.bundles import (
-    K_EXIT_DISCOUNT,
-    M_COLLAPSE_W,
-    M_DYN_MODE,
-    M_EDD5,
-    M_GP_MODE,
-    M_LATERAL,
-    M_LAZY,
-    M_TABLE,
-    M_TABLE_SRC,
-    M_THETA,
-    N_COST_TERMS,
-    O_COST,
-    O_EPS,
-    O_XY,
-    S_DT,
-    S_ITERATION,
-    S_NOISE_MEMORY,
-    S_NOISE_STD,
-    S_NOMINAL,
-    S_RATE_STEP,
-    S_SEED,
-    S_U_HI,
-    S_U_LO,
-    S_U_PREV,
-    S_X0,
-    T_CANDIDATES,
-    T_CELL_START,
-    T_FIELD,
-    T_GOAL,
-    T_HALF_WIDTH,
-    T_INV_CELL,
-    T_KIND,
-    T_OBSTACLES,
-    T_ORIGIN,
-    T_RADII,
-    T_SEG,
-    T_SPEED_TARGET,
-    T_TIGHTENED_HW,
-)
-from gpmppi.mppi.critics.registry import build_sums
+from gpmppi.mppi.bundles import N_COST_TERMS
+from gpmppi.mppi.critics.registry import build_states, build_sums
 from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX
 
 THREADS_PER_BLOCK = 128
@@ -87,11 +49,19 @@ def _grid_residual(gp, scratch, v_ref, w_ref, v, w):  # noqa: ANN001, ANN202 - a
 
 set_device_version(dynamics.gp_residual, _grid_residual)
 _sample_step = device_version(step.sample_step)
-_gp_inputs = device_version(dynamics.gp_inputs)
-# the critics' sums from the terms' device twins (the CPU sums are closures, which `device_version` cannot rebuild)
-for _kind, _sums in build_sums(cuda.jit(device=True, inline=True), device_version).items():
-    set_device_version(getattr(critic, f"_{_kind}_stage"), _sums.stage)
-    set_device_version(getattr(critic, f"_{_kind}_terminal"), _sums.terminal)
+_step_inputs = device_version(step.step_inputs)
+_fill_velocity_coefficients = device_version(dynamics.fill_velocity_coefficients)
+# the critics' sums and state chains from the terms' device twins (the CPU ones are closures, which `device_version`
+# cannot rebuild), each made the twin of the CPU function it stands for
+_device_jit = cuda.jit(device=True, inline=True)
+for _kind, _sums in build_sums(_device_jit, device_version).items():
+    for _field in fields(_sums):
+        set_device_version(getattr(critic.SUMS[_kind], _field.name), getattr(_sums, _field.name))
+_states = build_states(_device_jit, device_version)
+for _field in fields(_states):
+    set_device_version(getattr(critic.STATES, _field.name), getattr(_states, _field.name))
+_start_state = device_version(critic.start_state)
+_advance_state = device_version(critic.advance_state)
 _stage_cost = device_version(critic.stage_cost)
 _terminal_cost = device_version(critic.terminal_cost)
 _fill_weight_vector = device_version(critic.fill_weight_vector)
@@ -100,41 +70,24 @@ _fill_weight_vector = device_version(critic.fill_weight_vector)
 @cuda.jit(cache=True)
 def _rollout_kernel(model, task, sampling, cost, out):
     s = cuda.grid(1)
-    eps_out = out[O_EPS]
-    cost_out = out[O_COST]
-    xy_out = out[O_XY]
+    eps_out = out.eps_out
+    cost_out = out.cost_out
+    xy_out = out.xy_out
     samples = eps_out.shape[0]
     if s >= samples:
         return
-    theta = model[M_THETA]
-    lateral = model[M_LATERAL]
-    task_kind = task[T_KIND]
-    tightened_hw = task[T_TIGHTENED_HW]
-    radii = task[T_RADII]
-    geo = (task[T_SEG], task[T_CELL_START], task[T_CANDIDATES], task[T_FIELD], task[T_ORIGIN], task[T_INV_CELL],
-           task[T_HALF_WIDTH], task[T_SPEED_TARGET], task[T_GOAL], task[T_OBSTACLES])
-    x0 = sampling[S_X0]
-    nominal = sampling[S_NOMINAL]
-    dt = sampling[S_DT]
-    seed = sampling[S_SEED]
-    memory = sampling[S_NOISE_MEMORY]
-    limits = (nominal, sampling[S_NOISE_STD], sampling[S_U_LO], sampling[S_U_HI],
-              (memory, math.sqrt(1.0 - memory * memory)), (sampling[S_U_PREV], sampling[S_RATE_STEP]))
+    tightened_hw = task.tightened_hw
+    radii = task.radii
+    x0 = sampling.x0
+    nominal = sampling.nominal
+    dt = sampling.dt
+    seed = sampling.seed
     cost_w = cuda.local.array(N_COST_TERMS, numba.float64)
     _fill_weight_vector(cost, cost_w)
-    discount = cost_w[K_EXIT_DISCOUNT]
     # `dynamics.velocity_coefficients` in a thread's own memory (a device function cannot make an array)
     coef = cuda.local.array(8, numba.float64)
-    coef[0] = theta[2] / theta[0]
-    coef[1] = theta[3] / theta[0]
-    coef[2] = 1.0 / theta[0]
-    coef[3] = theta[4] / theta[1]
-    coef[4] = theta[5] / theta[1]
-    coef[5] = 1.0 / theta[1]
-    coef[6] = lateral[0]
-    coef[7] = lateral[1]
-    dyn = (model[M_DYN_MODE], coef, model[M_EDD5])
-    gp = _gp_inputs(model)
+    _fill_velocity_coefficients(model.theta, model.lateral, coef)
+    inputs = _step_inputs(model, sampling, sampling.noise_std, sampling.noise_memory, coef)
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
     st = (x0[0], x0[1], x0[2], x0[3], x0[4])
@@ -142,20 +95,20 @@ def _rollout_kernel(model, task, sampling, cost, out):
         xy_out[s, 0, 0] = st[0]
         xy_out[s, 0, 1] = st[1]
     total = 0.0
-    discount_k = 1.0
-    base = (sampling[S_ITERATION] * samples + s) * horizon
+    state = _start_state(cost_w)  # the stateful critics' values (`costs.start_state`)
+    base = (sampling.iteration * samples + s) * horizon
     d = (0.0, 0.0)  # the unit noise of the last step (`rng.sampled_command`)
     for k in range(horizon):
         # the step every backend takes (`step.sample_step`); the exact GP's work arrays: none on the device
-        u, d, st, variances = _sample_step(seed, base + k, k, limits, dyn, gp, (), dt, st, d)
+        u, d, st, variances = _sample_step(seed, base + k, k, inputs, (), dt, st, d)
         eps_out[s, k, 0] = u[0] - nominal[k, 0]
         eps_out[s, k, 1] = u[1] - nominal[k, 1]
         if s < n_xy:
             xy_out[s, k + 1, 0] = st[0]
             xy_out[s, k + 1, 1] = st[1]
-        total += _stage_cost(task_kind, cost_w, geo, tightened_hw[k + 1], radii[k + 1], discount_k, st, u, variances)
-        discount_k *= discount
-    total += _terminal_cost(task_kind, cost_w, geo, tightened_hw[horizon], radii[horizon], st)
+        total += _stage_cost(cost_w, task, tightened_hw[k + 1], radii[k + 1], state, st, u, variances)
+        state = _advance_state(state, cost_w)
+    total += _terminal_cost(cost_w, task, tightened_hw[horizon], radii[horizon], state, st)
     if math.isnan(total) or math.isinf(total):
         total = math.inf
     cost_out[s] = total
@@ -192,11 +145,11 @@ class DeviceInputs:
     """
 
     def __init__(self, timed: bool = False) -> None:
-        self._copies: dict[tuple[str, int], tuple[np.ndarray, object]] = {}
+        self._copies: dict[tuple[str, str], tuple[np.ndarray, object]] = {}
         self._outputs: dict[tuple, object] = {}
         self.uploads: dict[str, int] = {"model": 0, "task": 0, "sampling": 0}
         self.collapses = 0  # the tables collapsed on the device (`collapsed_table`)
-        self._versions: dict[tuple[str, int], int] = {}  # uploads per array: what a device copy holds
+        self._versions: dict[tuple[str, str], int] = {}  # uploads per (bundle, field): what a device copy holds
         # (the rows' and weights' versions it was collapsed from, the device's collapsed table)
         self._collapsed: tuple[tuple[int, int], object] | None = None
         # with `timed`, each call's phases in ms between CUDA events on the GPU's timeline (host work between two
@@ -207,11 +160,12 @@ class DeviceInputs:
                                                  "host_bundles": [], "host_launch": []}
 
     def bundle(self, name: str, args: tuple) -> tuple:
-        """A bundle's tuple with its arrays replaced by their device copies (scalars as they are)."""
-        return tuple(self._array(name, i, a) if isinstance(a, np.ndarray) else a for i, a in enumerate(args))
+        """A bundle's named tuple (`.args()`) with its arrays replaced by their device copies (scalars as they are)."""
+        return type(args)(*(self._array(name, f, a) if isinstance(a, np.ndarray) else a
+                            for f, a in zip(args._fields, args, strict=True)))
 
-    def _array(self, name: str, index: int, host: np.ndarray) -> object:
-        key = (name, index)
+    def _array(self, name: str, field: str, host: np.ndarray) -> object:
+        key = (name, field)
         kept = self._copies.get(key)
         if kept is not None:
             source, device = kept
@@ -236,9 +190,9 @@ class DeviceInputs:
     def collapsed_table(self, src: np.ndarray, collapse_w: np.ndarray) -> object:
         """The device's table collapsed from the per-terrain rows `src` with `collapse_w` (`gp_table.collapse_weights`):
         `src` uploaded once, the collapse run again only when the weights' bytes change."""
-        d_src = self._array("model", M_TABLE_SRC, src)
-        d_w = self._array("model", M_COLLAPSE_W, collapse_w)
-        held = (self._versions[("model", M_TABLE_SRC)], self._versions[("model", M_COLLAPSE_W)])
+        d_src = self._array("model", "table_src", src)
+        d_w = self._array("model", "collapse_w", collapse_w)
+        held = (self._versions[("model", "table_src")], self._versions[("model", "collapse_w")])
         if self._collapsed is not None and self._collapsed[0] == held:
             return self._collapsed[1]
         table = self._collapsed[1] if self._collapsed is not None else None
@@ -265,29 +219,28 @@ def cuda_rollouts(
     """Run the kernel on the bundles' tuples (`.args()`, as the CPU kernel takes them); fill out's arrays.
 
     `device` keeps the inputs on the device between calls (a planner holds one); None uploads everything."""
-    if model[M_DYN_MODE] == DYN_GP and model[M_GP_MODE] == GP_EXACT:
+    if model.dyn_mode == DYN_GP and model.gp_mode == GP_EXACT:
         raise ValueError("the CUDA backend evaluates the GP by grid only; use gp_mode='grid' or backend='cpu'")
-    per_terrain = model[M_TABLE_SRC].shape[0] > 1  # the host collapses lazily: the device collapses its own
-    if not per_terrain and model[M_LAZY][0] != 0:
+    per_terrain = model.table_src.shape[0] > 1  # the host collapses lazily: the device collapses its own
+    if not per_terrain and model.lazy[0] != 0:
         raise ValueError("the model's GP table is marked lazily collapsed but carries no per-terrain rows "
                          "(table_src) to collapse it from")
     device = device if device is not None else DeviceInputs()
     events = [cuda.event() for _ in range(5)] if device.timed else None
     if events:
         events[0].record()
-    eps, costs, xy = out[O_EPS], out[O_COST], out[O_XY]
-    d_out = (device.output(eps.shape, eps.dtype), device.output(costs.shape, costs.dtype),
-             device.output(xy.shape if xy.size else (0, eps.shape[1] + 1, 2), xy.dtype))
-    placeholders = {M_LAZY: _NO_LAZY, M_TABLE: _NO_TABLE} if per_terrain else {}
+    eps, costs, xy = out.eps_out, out.cost_out, out.xy_out
+    d_out = out._replace(eps_out=device.output(eps.shape, eps.dtype), cost_out=device.output(costs.shape, costs.dtype),
+                         xy_out=device.output(xy.shape if xy.size else (0, eps.shape[1] + 1, 2), xy.dtype))
     t0 = time.perf_counter()
-    d_model = device.bundle("model", tuple(placeholders.get(i, a) for i, a in enumerate(model)))
+    d_model = device.bundle("model", model._replace(lazy=_NO_LAZY, table=_NO_TABLE) if per_terrain else model)
     d_task, d_sampling = device.bundle("task", task), device.bundle("sampling", sampling)
     t1 = time.perf_counter()
     if events:
         events[1].record()
     if per_terrain:
-        table = device.collapsed_table(model[M_TABLE_SRC], model[M_COLLAPSE_W])
-        d_model = tuple(table if i == M_TABLE else a for i, a in enumerate(d_model))
+        table = device.collapsed_table(model.table_src, model.collapse_w)
+        d_model = d_model._replace(table=table)
     if events:
         events[2].record()
     blocks = (eps.shape[0] + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
@@ -297,10 +250,10 @@ def cuda_rollouts(
     t3 = time.perf_counter()
     if events:
         events[3].record()
-    d_out[O_EPS].copy_to_host(eps)
-    d_out[O_COST].copy_to_host(costs)
+    d_out.eps_out.copy_to_host(eps)
+    d_out.cost_out.copy_to_host(costs)
     if xy.size:
-        d_out[O_XY].copy_to_host(xy)
+        d_out.xy_out.copy_to_host(xy)
     if events:
         events[4].record()
         events[4].synchronize()

@@ -24,26 +24,6 @@ from gpmppi.kernel_flags import FASTMATH
 from gpmppi.models.dynamic_unicycle import jacobian
 from gpmppi.models.edd5 import edd5_velocity
 from gpmppi.models.lateral_slip import lateral_velocity
-from gpmppi.mppi.bundles import (
-    M_COLLAPSE_W,
-    M_DIMS,
-    M_DYN_MODE,
-    M_EDD5,
-    M_EX_ALPHA,
-    M_EX_CHOL,
-    M_EX_INV_LS,
-    M_EX_OUTPUTSCALE,
-    M_EX_SCALED_X,
-    M_GP_MODE,
-    M_INV_STEP,
-    M_LATERAL,
-    M_LAZY,
-    M_LO,
-    M_TABLE,
-    M_TABLE_SRC,
-    M_TERRAIN_W,
-    M_THETA,
-)
 from gpmppi.mppi.gp_table import cell32, ensure_block, interp4, interp4_simplex, simplex_params
 from gpmppi.trig import cos_sin
 
@@ -100,24 +80,46 @@ def gp_residual(
 @njit(cache=True, inline="always")
 def gp_inputs(model: tuple) -> tuple:
     """The GP fields of a model bundle's tuple, as `gp_residual` takes them (called once, before any loop)."""
-    return (model[M_GP_MODE], model[M_TABLE], model[M_DIMS], model[M_LO], model[M_INV_STEP], model[M_EX_SCALED_X],
-            model[M_EX_INV_LS], model[M_EX_OUTPUTSCALE], model[M_EX_ALPHA], model[M_EX_CHOL], model[M_TERRAIN_W],
-            model[M_TABLE_SRC], model[M_LAZY], model[M_COLLAPSE_W])
+    return (model.gp_mode, model.table, model.dims, model.lo, model.inv_step, model.ex_scaled_x,
+            model.ex_inv_ls, model.ex_outputscale, model.ex_alpha, model.ex_chol, model.terrain_w,
+            model.table_src, model.lazy, model.collapse_w)
 
 
 @njit(cache=True, inline="always")
 def gp_scratch(model: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Work arrays of the exact GP for one thread: (n,) and the (2M,) means and variances."""
-    alpha = model[M_EX_ALPHA]
+    alpha = model.ex_alpha
     return np.empty(alpha.shape[1]), np.empty(alpha.shape[0]), np.empty(alpha.shape[0])
 
 
 @njit(cache=True, inline="always")
+def fill_velocity_coefficients(theta: np.ndarray, lateral: np.ndarray, coef: np.ndarray) -> None:
+    """Write [th3/th1, th4/th1, 1/th1, th5/th2, th6/th2, 1/th2, a, b] into `coef` (8,): divisions done once, not at
+    every sample-step; (a, b) the terrain-weighted lateral slip coefficients (`gpmppi.models.lateral_slip`). The CUDA
+    kernel fills a thread's own array with it (a device function cannot make an array)."""
+    coef[0] = theta[2] / theta[0]
+    coef[1] = theta[3] / theta[0]
+    coef[2] = 1.0 / theta[0]
+    coef[3] = theta[4] / theta[1]
+    coef[4] = theta[5] / theta[1]
+    coef[5] = 1.0 / theta[1]
+    coef[6] = lateral[0]
+    coef[7] = lateral[1]
+
+
+@njit(cache=True, inline="always")
 def velocity_coefficients(theta: np.ndarray, lateral: np.ndarray) -> np.ndarray:
-    """[th3/th1, th4/th1, 1/th1, th5/th2, th6/th2, 1/th2, a, b]: divisions done once, not at every sample-step;
-    (a, b) the terrain-weighted lateral slip coefficients (`gpmppi.models.lateral_slip`)."""
-    return np.array([theta[2] / theta[0], theta[3] / theta[0], 1.0 / theta[0],
-                     theta[4] / theta[1], theta[5] / theta[1], 1.0 / theta[1], lateral[0], lateral[1]])
+    """`fill_velocity_coefficients` into a new array."""
+    coef = np.empty(8)
+    fill_velocity_coefficients(theta, lateral, coef)
+    return coef
+
+
+@njit(cache=True, inline="always")
+def dyn_inputs(model: tuple, coef: np.ndarray) -> tuple:
+    """The model fields of a model bundle's tuple as `step_state` takes them, (dyn_mode, coef, edd5), with `coef` its
+    `velocity_coefficients` (called once, before any loop)."""
+    return (model.dyn_mode, coef, model.edd5)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -219,10 +221,10 @@ def propagate(
     residual. Other models carry no uncertainty, so their covariances stay zero. The returned step
     variances are the predictive ones too.
     """
-    dyn_mode = model[M_DYN_MODE]
-    theta = model[M_THETA]
-    lateral = model[M_LATERAL]
-    dyn = (dyn_mode, velocity_coefficients(theta, lateral), model[M_EDD5])
+    dyn_mode = model.dyn_mode
+    theta = model.theta
+    lateral = model.lateral
+    dyn = dyn_inputs(model, velocity_coefficients(theta, lateral))
     gp = gp_inputs(model)
     scratch = gp_scratch(model)
     n = controls.shape[0]
@@ -265,10 +267,10 @@ def predict_ahead(
     h/dt of its mean and of its variance (the residual spread evenly over the step); `noise_v`, `noise_w` as in
     `propagate`. Models without a GP leave the covariance as it is.
     """
-    dyn_mode = model[M_DYN_MODE]
-    theta = model[M_THETA]
-    lateral = model[M_LATERAL]
-    dyn = (dyn_mode, velocity_coefficients(theta, lateral), model[M_EDD5])
+    dyn_mode = model.dyn_mode
+    theta = model.theta
+    lateral = model.lateral
+    dyn = dyn_inputs(model, velocity_coefficients(theta, lateral))
     gp = gp_inputs(model)
     scratch = gp_scratch(model)
     n = max(1, int(math.ceil(delay / 0.01)))

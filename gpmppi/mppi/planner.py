@@ -21,6 +21,7 @@ from gpmppi.mppi import backends, compile_ahead
 from gpmppi.mppi.bundles import ModelBundle, Outputs, SamplingBundle
 from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.costs import ChanceQuantiles
+from gpmppi.mppi.critics.registry import layout
 from gpmppi.mppi.dynamics import predict_ahead, propagate
 from gpmppi.mppi.task_kinds import TaskKind, kind_class_for, registered_kinds
 from gpmppi.mppi.temperature import temperature_for_effective_samples
@@ -233,10 +234,11 @@ class Planner:
             ahead.wait()
         eps, costs, xy = backends.rollouts(self.backend, model, task_bundle, sampling, cost, c.samples, n_xy,
                                            self.device)
-        # exact GP: the kernels' variance cost is latent; the noise adds the same to every rollout (the update
-        # is unchanged), added here so that costs are those of the predictive variance in every mode
-        noise_cost = c.horizon * cost.weights["variance"] * sum(self.terrain.exact_noise_var(w))
-        costs = costs + noise_cost
+        # exact GP: the kernels' variances are latent; the likelihood noise adds the same to every rollout's cost
+        # (the update is unchanged), added here so that costs are those of the predictive variance in every mode,
+        # for each critic that declares it reads the variances (`Critic.noise_cost`)
+        noise_costs = layout().noise_costs(cost.weights, c.horizon, *self.terrain.exact_noise_var(w))
+        costs = costs + sum(noise_costs.values())
         t2 = time.perf_counter()
 
         temperature = self._temperature(costs)
@@ -252,7 +254,8 @@ class Planner:
         # the nominal sequence scored once: each critic's share, whose sum is its cost (the kernels add the same
         # terms step by step; tests/test_critics.py compares the sum with the kernel's cost of this sequence)
         critic_costs = backends.critic_costs(model, task_bundle, nominal_sampling, cost)
-        critic_costs["variance"] += noise_cost
+        for name, extra in noise_costs.items():
+            critic_costs[name] += extra
         nominal_cost = sum(critic_costs.values())
         if not np.isfinite(nominal_cost):
             nominal_cost = np.inf  # as the kernels score a rollout that left the finite

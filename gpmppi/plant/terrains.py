@@ -17,6 +17,8 @@ from pathlib import Path
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from gpmppi.yaml_file import yaml_error
+
 TERRAIN_FILE_VERSION = 1
 TERRAIN_NAME = re.compile(r"[a-z][a-z0-9_-]*")
 
@@ -111,7 +113,7 @@ def load_terrains(path: str | Path | None = None) -> TerrainSet:
     except OSError as exc:
         raise TerrainFileError(f"{file}: cannot read terrain file ({exc.strerror}); check the path") from exc
     except yaml.YAMLError as exc:
-        raise TerrainFileError(f"{file}: not valid YAML: {exc}") from exc
+        raise TerrainFileError(yaml_error(file, exc)) from exc
     if not isinstance(raw, dict):
         raise TerrainFileError(f"{file}: expected a mapping with keys 'terrains' (and optionally 'robot', 'version')")
     try:

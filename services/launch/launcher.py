@@ -1,5 +1,5 @@
 """The launcher (supervisor): `gpmppi launch [LAUNCH.yaml] [--duration S] [--record FILE.mcap]
-[--rerun spawn|save FILE|connect URL|serve|off] [--port N] [--secrets DIR]`.
+[--rerun spawn|save FILE|connect URL|serve|off] [--port N] [--secrets DIR] [--foxglove HOST:PORT]`.
 
 Starts the Zenoh router and each service as its own process (`python -m services.run NAME --config FILE`),
 prefixes their logs, restarts a crashed service with backoff (a thread waits on each process, so a death is
@@ -31,6 +31,9 @@ from services.runtime.node_settings import ZenohSettings
 from services.runtime.session import StoppedWhileWaiting
 from services.security.secure_check import check_launch_secrets
 
+# services that join a secured stack as another identity: the Foxglove server reads everything, as the viewer does
+VIEWER_IDENTITIES = {"foxglove": "viewer"}
+
 
 class RouterUnreachable(RuntimeError):
     """The launch file starts no router and none answers at its endpoint."""
@@ -43,13 +46,16 @@ def build(
     port: int | None,
     secrets: str | None = None,
     launch_path: str | Path | None = None,
+    foxglove: tuple[str, int] | None = None,
 ) -> tuple[Launcher, list[str]]:
     if port is not None:
         endpoint = f"tcp/127.0.0.1:{port}"
         launch.router.listen = [endpoint]
         launch.zenoh.connect = [endpoint]
     # --secrets: checked before anything starts; each session joins as its own identity (services/security/secure.py)
-    secured = check_launch_secrets(launch, secrets, record, rerun) if secrets is not None else None
+    secured = None
+    if secrets is not None:
+        secured = check_launch_secrets(launch, secrets, record, rerun, foxglove is not None)
     launcher = Launcher(launch)
     common = {"robot": launch.robot, "zenoh": launch.zenoh.model_dump()}
     if launch.router.enabled:
@@ -62,7 +68,9 @@ def build(
     if record:
         # recorder and viewer start first so they see the others' first messages; both at a lower CPU priority
         # (nice) than the control path, which they must never delay
-        entries.insert(0, ServiceEntry(name="recorder", required=False, config={"path": record, "nice": 10}))
+        # with --foxglove the recording carries the Foxglove scene too, so it opens in Foxglove as the run looked live
+        config = {"path": record, "nice": 10, **({"foxglove_scene": True} if foxglove is not None else {})}
+        entries.insert(0, ServiceEntry(name="recorder", required=False, config=config))
     if rerun and rerun[0] != "off":
         mode = rerun[0]
         config: dict[str, Any] = {"mode": mode, "nice": 10}
@@ -71,11 +79,16 @@ def build(
         elif mode == "connect" and len(rerun) > 1:
             config["url"] = rerun[1]
         entries.insert(0, ServiceEntry(name="viewer", required=False, config=config))
+    if foxglove is not None:
+        # the Foxglove server: a viewer like rerun's, at the same lower priority, never required
+        config = {"host": foxglove[0], "port": foxglove[1], "nice": 10}
+        entries.insert(0, ServiceEntry(name="foxglove", required=False, config=config))
     entries = _describe_run_to_recorders(launcher, entries, launch_path)
     for e in entries:
         config = {**common, **e.config, "service": e.name}
         if secured is not None:
-            config["zenoh"] = {**config["zenoh"], "config_file": str(secured.client_file(e.kind or e.name))}
+            identity = VIEWER_IDENTITIES.get(e.kind or e.name, e.kind or e.name)
+            config["zenoh"] = {**config["zenoh"], "config_file": str(secured.client_file(identity))}
         launcher.add(e.name, e.kind or e.name, config, e.required)
     if secured is not None:
         launch.zenoh.config_file = str(secured.client_file("launcher"))  # the launcher's own Monitor session
@@ -185,6 +198,7 @@ def run_launch(
     ready_timeout_s: float = 600.0,
     then: Callable[[Launcher, Monitor], None] | None = None,
     secrets: str | None = None,
+    foxglove: tuple[str, int] | None = None,
 ) -> tuple[int, Summary]:
     """Run a launch file (default: the simulated Jackal) for `duration` seconds after every service is up
     (first heartbeat; a cold numba cache can take minutes), or until Ctrl-C; (exit code, summary).
@@ -197,7 +211,7 @@ def run_launch(
     launch, marks = load_launch(path)
     check_launch(launch, path, marks)
     record, rerun, notes = resolve_outputs(record, rerun)
-    launcher, service_names = build(launch, record, rerun, port, secrets, path)
+    launcher, service_names = build(launch, record, rerun, port, secrets, path, foxglove)
     launcher.out = out or sys.stdout
     for note in notes:
         launcher.say("launch", note)
@@ -315,7 +329,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument(
         "--secrets", default=None, metavar="DIR", help="run secured with the identities of `gpmppi secure init DIR`"
     )
+    parser.add_argument(
+        "--foxglove", default=None, metavar="HOST:PORT", help="serve the run to Foxglove on this WebSocket address"
+    )
     args = parser.parse_args(argv)
+    if args.foxglove is not None:
+        host, _, port = args.foxglove.rpartition(":")
+        if not port.isdigit() or not 1 <= int(port) <= 65535:
+            parser.error(f"--foxglove takes HOST:PORT or PORT, got {args.foxglove}")
+        args.foxglove = (host.strip("[]") or "127.0.0.1", int(port))
     if args.rerun and (args.rerun[0] not in ("spawn", "save", "connect", "serve", "off") or len(args.rerun) > 2):
         parser.error(f"--rerun takes spawn | save FILE | connect URL | serve | off, got {' '.join(args.rerun)}")
     return args
@@ -325,7 +347,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         code, _ = run_launch(
-            args.launch_file, args.duration, args.record, args.rerun, args.port, secrets=args.secrets
+            args.launch_file, args.duration, args.record, args.rerun, args.port, secrets=args.secrets,
+            foxglove=args.foxglove,
         )
     except (FileNotFoundError, ValueError, TimeoutError, RouterUnreachable) as exc:
         print(f"gpmppi launch: {exc}", file=sys.stderr)

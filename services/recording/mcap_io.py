@@ -41,6 +41,9 @@ log = logging.getLogger(__name__)
 PROFILE = ""  # no ROS profile: plain JSON messages
 LIBRARY = "gpmppi"
 SCHEMA_PREFIX = "gpmppi."
+# the Foxglove scene (services.view.foxglove_scene): channels in Foxglove's own schemas, written beside the messages
+# for Foxglove's 3D panel; they are views, not gpmppi messages, and reading a recording leaves them out
+FOXGLOVE_SCHEMA_PREFIX = "foxglove."
 REJECTED_SUFFIX = "/_rejected"  # quarantine: payloads that break their key's model, raw and schema-less
 RAW_ENCODING = "application/octet-stream"
 
@@ -118,6 +121,7 @@ class McapWriter:
         self._channels: dict[str, int] = {}
         self._sequences: dict[str, int] = {}
         self._models: dict[str, type[Message] | None] = {}
+        self._foreign: dict[str, tuple[str, str, bytes, str]] = {}  # topic -> its schema and message encoding
         self._metadata: list[tuple[str, dict[str, str]]] = []  # repeated at the start of every rotated part
         self._pending_bytes = 0
         self._data_start = 0
@@ -237,6 +241,49 @@ class McapWriter:
             topic=topic, message_encoding=encoding, schema_id=schema_id
         )
         return self._channels[topic]
+
+    def _foreign_channel(self, topic: str) -> int:
+        assert self._writer is not None
+        if topic not in self._channels:
+            name, schema_encoding, data, encoding = self._foreign[topic]
+            if name not in self._schemas:
+                self._schemas[name] = self._writer.register_schema(name=name, encoding=schema_encoding, data=data)
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding=encoding, schema_id=self._schemas[name]
+            )
+        return self._channels[topic]
+
+    def write_encoded(
+        self,
+        topic: str,
+        schema: tuple[str, str, bytes],
+        message_encoding: str,
+        payload: bytes,
+        log_time_ns: int,
+        publish_time_ns: int | None = None,
+    ) -> None:
+        """Record a message of another schema family on its own channel: `schema` is (name, encoding, data), e.g.
+        Foxglove's scene (`foxglove.SceneUpdate`, protobuf). The topic keeps the schema it was first written with."""
+        self._check_open()
+        self._guarded(self._maybe_rotate)
+        self._foreign.setdefault(topic, (*schema, message_encoding))
+        assert self._writer is not None
+        writer = self._writer
+        channel_id = self._foreign_channel(topic)
+        sequence = self._sequences.get(topic, 0)
+        self._sequences[topic] = sequence + 1
+        log_time = int(log_time_ns)
+        publish_time = log_time if publish_time_ns is None else int(publish_time_ns)
+        self._guarded(
+            lambda: writer.add_message(
+                channel_id=channel_id, log_time=log_time, data=payload, publish_time=publish_time,
+                sequence=sequence & 0xFFFFFFFF,
+            )
+        )  # fmt: skip
+        self.messages_written += 1
+        self._pending_bytes += len(payload)
+        if self._pending_bytes >= self._chunk_size or time.monotonic() - self._last_flush >= self._flush_interval_s:
+            self.flush()
 
     def _model(self, key: str) -> type[Message] | None:
         if key not in self._models:
@@ -424,8 +471,8 @@ def read_messages(
     for part in recording_files(path) or [path]:
         part_skipped: dict[str, tuple[int, str]] = {}
         for topic, name, record in _iter_raw(part, wanted):
-            if topic.endswith(REJECTED_SUFFIX):
-                continue
+            if topic.endswith(REJECTED_SUFFIX) or (name or "").startswith(FOXGLOVE_SCHEMA_PREFIX):
+                continue  # quarantined payloads and the Foxglove scene are not gpmppi messages
             model = by_name.get(name) if name else None
             try:
                 model = model or model_for_key(topic)

@@ -29,6 +29,7 @@ import numpy as np
 import zenoh
 
 from schemas.codec import ENCODING
+from services.recording.mcap_io import FOXGLOVE_SCHEMA_PREFIX
 from services.recording.player_log import QUARANTINE_SUFFIX, Record
 
 
@@ -168,6 +169,9 @@ class Player:
         s = self.stats
         if rec.key.endswith(QUARANTINE_SUFFIX):
             s.quarantined += 1
+            return False
+        if (rec.schema or "").startswith(FOXGLOVE_SCHEMA_PREFIX):  # the Foxglove scene, a view: never put on Zenoh
+            s.filtered += 1
             return False
         if rec.key in self.o.suppress:
             s.suppressed += 1

@@ -16,6 +16,8 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
+from gpmppi.yaml_file import yaml_error
+
 Loc = tuple[str | int, ...]
 Marks = dict[Loc, tuple[int, int]]  # key path -> (line, column), both from 1
 
@@ -45,15 +47,8 @@ def read_yaml(path: str | Path) -> tuple[Any, Marks]:
     try:
         node = loader.get_single_node()
         data = loader.construct_document(node) if node is not None else None
-    except yaml.MarkedYAMLError as exc:
-        mark = exc.problem_mark or exc.context_mark
-        problem = _one_line(exc.problem or exc.context or "invalid YAML")
-        if exc.context and exc.problem:
-            problem = f"{problem} ({_one_line(exc.context)})"
-        where = (mark.line + 1, mark.column + 1) if mark is not None else None
-        raise ConfigFileError(f"{_where(path, where)}: YAML syntax error: {problem}") from None
     except yaml.YAMLError as exc:
-        raise ConfigFileError(f"{path}: YAML syntax error: {_one_line(str(exc))}") from None
+        raise ConfigFileError(yaml_error(path, exc)) from None
     finally:
         loader.dispose()
     marks: Marks = {}

@@ -251,11 +251,14 @@ def _check_tls(config: dict[str, Any], path: Path, side: str) -> None:
         raise SecretsError(str(exc)) from None
 
 
-def check_launch_secrets(launch: Any, directory: str | Path, record: str | None, rerun: list[str] | None) -> Secrets:
+def check_launch_secrets(
+    launch: Any, directory: str | Path, record: str | None, rerun: list[str] | None, foxglove: bool = False
+) -> Secrets:
     """Check `directory` for a launch file (services.launch.launch_file.LaunchFile): the identities its sessions use are
-    each enabled service's kind, the recorder and viewer when asked for, and the launcher's own monitor."""
+    each enabled service's kind, the recorder and viewer when asked for (the Foxglove server joins as the viewer),
+    and the launcher's own monitor."""
     kinds = [e.kind or e.name for e in launch.services if e.enabled]
-    kinds += ["recorder"] * bool(record) + ["viewer"] * bool(rerun and rerun[0] != "off")
+    kinds += ["recorder"] * bool(record) + ["viewer"] * bool((rerun and rerun[0] != "off") or foxglove)
     unknown = sorted({k for k in kinds if k not in ROLES})
     if unknown:
         raise SecretsError(

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from schemas import BaseCommand, Command, EStop, Heartbeat, Message, Plan, State, Task, TerrainWeights
-from services.view import rerun_geometry as geo
+from services.view import geometry as geo
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -43,10 +43,8 @@ SERIES: dict[str, tuple[str, tuple[int, int, int], float]] = {
 PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
            (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]  # fmt: skip
 
-# map layers, bottom to top
-DRAW = {"edges": 10.0, "centre": 11.0, "tightened": 12.0, "inflated": 13.0, "obstacles": 14.0, "goal": 15.0,
-        "samples": 20.0, "covariance": 25.0, "nominal": 30.0, "path": 40.0, "robot": 50.0}  # fmt: skip
-ROBOT_COLOUR = (200, 0, 110)  # magenta: apart from the blue path, the orange plan and the grey lane
+# map layers, bottom to top: the draw order of each (the colours and widths are in `geometry.LAYERS`, shared)
+DRAW = {name: layer.order for name, layer in geo.LAYERS.items()}
 
 
 # heartbeat counters / flags that change in normal operation: egress limiting a ramp is shaping, not an event
@@ -55,15 +53,20 @@ ROUTINE_HEALTH = frozenset({"limited"})
 
 
 @dataclass
-class ViewOptions:
-    """How much per-plan data is drawn (the big part of a recording)."""
+class ViewOptions(geo.Decimation):
+    """How much per-plan data is drawn (`geometry.Decimation`, shared with Foxglove), and the timing plot's
+    start-up cut."""
 
-    samples_every: int = 2  # draw the rollouts of every n-th plan
-    max_samples: int = 32  # at most this many rollouts of a plan
-    sample_stride: int = 2  # every n-th point along a rollout
-    ellipse_every: int = 8  # every n-th covariance ellipse of the plan
-    path_chunk: int = 50  # driven-path states per strip entity
     timing_warmup_plans: int = 5  # a (re)started planner's first plans: reported as an event, not plotted
+
+
+def _line(layer: str, **fields: Any) -> rr.LineStrips2D:
+    """The static style of a line layer of `geometry.LAYERS` (colour, radius, draw order)."""
+    import rerun as rr
+
+    style = geo.LAYERS[layer]
+    colors = {"colors": [style.color]} if style.color is not None else {}
+    return rr.LineStrips2D.from_fields(**colors, radii=[style.radius], draw_order=style.order, **fields)
 
 
 def _strips(strips: list) -> np.ndarray | list[np.ndarray]:
@@ -82,8 +85,7 @@ class RerunMapper:
         self.task: Task | None = None
         self._series: dict[str, tuple[list[int], list[float]]] = {}
         self._styled: set[str] = set()
-        self._path_chunk_index = 0
-        self._path_points: list[list[float]] = []
+        self._path = geo.PathStrips(self.opt.path_chunk)
         self._plans = 0  # plans since the planner (re)started
         self._plan_seq = -1
         self._warmup_ms: list[float] = []
@@ -172,21 +174,16 @@ class RerunMapper:
         import rerun as rr
 
         self._at(t)
-        self._static(
-            "map/robot", rr.LineStrips2D.from_fields(colors=[ROBOT_COLOUR], radii=[0.05], draw_order=DRAW["robot"])
-        )
+        self._static("map/robot", _line("robot"))
         self.rec.log(
             "map/robot", rr.LineStrips2D.from_fields(strips=_strips([geo.robot_outline(msg.x, msg.y, msg.theta)]))
         )
         # the driven path: a strip per `path_chunk` states, starting where the previous one ended
-        if len(self._path_points) >= self.opt.path_chunk:
-            self._path_chunk_index += 1
-            self._path_points = self._path_points[-1:]
-        self._path_points.append([msg.x, msg.y])
-        entity = f"map/driven_path/{self._path_chunk_index:05d}"
-        self._static(entity, rr.LineStrips2D.from_fields(colors=[(0, 60, 200)], radii=[0.05], draw_order=DRAW["path"]))
-        if len(self._path_points) >= 2:
-            self.rec.log(entity, rr.LineStrips2D.from_fields(strips=_strips([self._path_points])))
+        index, points = self._path.add(msg.x, msg.y)
+        entity = f"map/driven_path/{index:05d}"
+        self._static(entity, _line("path"))
+        if len(points) >= 2:
+            self.rec.log(entity, rr.LineStrips2D.from_fields(strips=_strips([points])))
         self._scalar("plots/v/state", t, msg.v)
         self._scalar("plots/omega/state", t, msg.omega)
 
@@ -219,47 +216,41 @@ class RerunMapper:
         first = self.task is None
         self.task = msg
         if msg.kind == "lane":
-            c = np.asarray(msg.centerline, dtype=np.float64)
-            edges = [geo.offset(c, msg.half_width, msg.closed), geo.offset(c, -msg.half_width, msg.closed)]
+            edges, centre = geo.lane_lines(msg)
+            e, c = geo.LAYERS["edges"], geo.LAYERS["centre"]
             # the lane is static (the map); a later, different task replaces it
             self.rec.log(
                 "map/lane/edges",
-                rr.LineStrips2D(edges, colors=[(50, 50, 50)], radii=0.06, draw_order=DRAW["edges"]),
+                rr.LineStrips2D(edges, colors=[e.color], radii=e.radius, draw_order=e.order),
                 static=True,
             )
             self.rec.log(
                 "map/lane/centre",
-                rr.LineStrips2D(
-                    [geo.closed_polyline(c, msg.closed)],
-                    colors=[(160, 160, 160)],
-                    radii=0.02,
-                    draw_order=DRAW["centre"],
-                ),
+                rr.LineStrips2D([centre], colors=[c.color], radii=c.radius, draw_order=c.order),
                 static=True,
             )
-            text = f"task: lane, {len(c)} points, half-width {msg.half_width:.2f} m, speed {msg.speed_target:.2f} m/s"
+            n = len(msg.centerline)
+            text = f"task: lane, {n} points, half-width {msg.half_width:.2f} m, speed {msg.speed_target:.2f} m/s"
         else:
             obs = msg.obstacles
             if obs:
+                style = geo.LAYERS["obstacles"]
                 self.rec.log(
                     "map/obstacles",
                     rr.Points2D(
                         [[o.x, o.y] for o in obs],
                         radii=[o.r for o in obs],
-                        colors=[(200, 40, 40, 220)],
-                        draw_order=DRAW["obstacles"],
+                        colors=[style.color],
+                        draw_order=style.order,
                     ),
                     static=True,
                 )
-            if msg.goal is not None:
+            goal = geo.goal_circle(msg)
+            if goal is not None:
+                style = geo.LAYERS["goal"]
                 self.rec.log(
                     "map/goal",
-                    rr.LineStrips2D(
-                        [geo.circle(*msg.goal, msg.goal_tolerance)],
-                        colors=[(30, 170, 30)],
-                        radii=0.05,
-                        draw_order=DRAW["goal"],
-                    ),
+                    rr.LineStrips2D([goal], colors=[style.color], radii=style.radius, draw_order=style.order),
                     static=True,
                 )
             text = f"task: goal {msg.goal}, {len(obs)} obstacles"
@@ -279,43 +270,26 @@ class RerunMapper:
                 self.event(t, text, "WARN" if msg.weights_stale else "INFO")
             self._stale = msg.weights_stale
         self._at(t)
-        states = np.asarray(msg.states, dtype=np.float64)
-        if states.ndim == 2 and states.shape[0] >= 2:
-            self._static(
-                "map/plan/nominal",
-                rr.LineStrips2D.from_fields(colors=[(255, 140, 0)], radii=[0.06], draw_order=DRAW["nominal"]),
-            )
+        states = geo.plan_states(msg)
+        if states is not None:
+            self._static("map/plan/nominal", _line("nominal"))
             self.rec.log("map/plan/nominal", rr.LineStrips2D.from_fields(strips=_strips([states[:, :2]])))
-            if msg.cov_xy:
-                n = min(len(msg.cov_xy), len(states))
-                every = self.opt.ellipse_every
-                # from step `every` on (step 0 is the known start, no spread) and always the horizon's end
-                ks = sorted({*range(every, n, every), n - 1})
-                ellipses = geo.ellipses(states[ks, :2], np.asarray(msg.cov_xy, dtype=np.float64)[ks])
-                self._static(
-                    "map/plan/covariance",
-                    rr.LineStrips2D.from_fields(colors=[(150, 60, 220)], radii=[0.02], draw_order=DRAW["covariance"]),
-                )
+            ellipses = geo.plan_ellipses(msg, states, self.opt.ellipse_every)
+            if ellipses is not None:
+                self._static("map/plan/covariance", _line("covariance"))
                 self.rec.log("map/plan/covariance", rr.LineStrips2D.from_fields(strips=_strips(ellipses)))
             if msg.tightened:
                 self._tightened(msg, states, t)
-        if msg.samples and self.opt.max_samples > 0 and (self._plans - 1) % self.opt.samples_every == 0:
-            k = min(len(msg.samples), self.opt.max_samples)
-            costs = np.asarray(msg.sample_costs[:k] if len(msg.sample_costs) >= k else np.zeros(k))
-            self._static("map/plan/rollouts", rr.LineStrips2D.from_fields(radii=[0.02], draw_order=DRAW["samples"]))
+        if (self._plans - 1) % self.opt.samples_every == 0 and (
+            drawn := geo.rollouts(msg, self.opt.max_samples, self.opt.sample_stride)
+        ) is not None:
+            self._static("map/plan/rollouts", _line("samples"))
             # every `sample_stride`-th point of each rollout (and its last): smooth curves, a fraction of the bytes
-            rollouts = np.asarray(msg.samples[:k], dtype=np.float32)
-            keep = np.unique(np.r_[np.arange(0, rollouts.shape[1], self.opt.sample_stride), rollouts.shape[1] - 1])
-            self.rec.log(
-                "map/plan/rollouts",
-                rr.LineStrips2D.from_fields(strips=rollouts[:, keep], colors=geo.pack_rgba(geo.cost_colors(costs))),
-            )
-        if msg.sample_costs:
-            costs = np.asarray(msg.sample_costs, dtype=np.float64)
-            finite = costs[np.isfinite(costs)]
-            if finite.size:
-                self._scalar("plots/cost/min", t, float(finite.min()))
-                self._scalar("plots/cost/median", t, float(np.median(finite)))
+            points, colors = drawn
+            self.rec.log("map/plan/rollouts", rr.LineStrips2D.from_fields(strips=points, colors=geo.pack_rgba(colors)))
+        if (summary := geo.rollout_cost_summary(msg)) is not None:
+            self._scalar("plots/cost/min", t, summary[0])
+            self._scalar("plots/cost/median", t, summary[1])
         for name, value in msg.critic_costs.items():
             self._scalar(f"plots/critics/{name}", t, value, name)
         if msg.effective_samples is not None:
@@ -326,30 +300,23 @@ class RerunMapper:
         import rerun as rr
 
         task = self.task
-        tightened = np.asarray(msg.tightened, dtype=np.float64)
+        ends = geo.tightening(msg)
+        assert ends is not None  # called with a tightening only
         if task is not None and task.kind == "lane":
             self._scalar("plots/tightening/nominal", t, task.half_width)
-            self._scalar("plots/tightening/first", t, tightened[min(1, len(tightened) - 1)])
-            self._scalar("plots/tightening/last", t, tightened[-1])
+            self._scalar("plots/tightening/first", t, ends[0])
+            self._scalar("plots/tightening/last", t, ends[1])
             # per step of the horizon, the tightened half-width on either side of the centre, where the plan is
-            steps = tightened if len(tightened) == len(states) else np.resize(tightened, len(states))
-            bounds = geo.tightened_bounds(states[:, :2], steps, np.asarray(task.centerline), task.closed)
+            bounds = geo.plan_tightened_bounds(msg, states, task)
             if bounds:
-                self._static(
-                    "map/lane/tightened",
-                    rr.LineStrips2D.from_fields(colors=[(240, 180, 0)], radii=[0.05], draw_order=DRAW["tightened"]),
-                )
+                self._static("map/lane/tightened", _line("tightened"))
                 self.rec.log("map/lane/tightened", rr.LineStrips2D.from_fields(strips=_strips(bounds)))
         else:
-            inflation = float(tightened.max())
-            self._scalar("plots/tightening/first", t, tightened[min(1, len(tightened) - 1)])
-            self._scalar("plots/tightening/last", t, tightened[-1])
-            if task is not None and task.obstacles:
-                circles = [geo.circle(o.x, o.y, o.r + inflation) for o in task.obstacles]
-                self._static(
-                    "map/obstacles_inflated",
-                    rr.LineStrips2D.from_fields(colors=[(255, 120, 120)], radii=[0.03], draw_order=DRAW["inflated"]),
-                )
+            self._scalar("plots/tightening/first", t, ends[0])
+            self._scalar("plots/tightening/last", t, ends[1])
+            circles = geo.inflated_obstacles(msg, task) if task is not None else []
+            if circles:
+                self._static("map/obstacles_inflated", _line("inflated"))
                 self.rec.log("map/obstacles_inflated", rr.LineStrips2D.from_fields(strips=_strips(circles)))
 
     def _timings(self, msg: Plan, t: int) -> None:

@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmppi.mppi.critics.base import AT_RADII, AT_X, AT_Y, G_OBSTACLES, Critic, critic_term
+from gpmppi.mppi.critics.base import Critic, critic_term
 
 
 @critic_term
 def collision_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
-    obstacles = geo[G_OBSTACLES]
-    radii = at[AT_RADII]
-    x = at[AT_X]
-    y = at[AT_Y]
+    obstacles = geo.obstacles
+    radii = at.radii
+    x = at.x
+    y = at.y
     for j in range(obstacles.shape[0]):
         dx = x - obstacles[j, 0]
         dy = y - obstacles[j, 1]

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmppi.mppi.critics.base import AT_LANE_DIST, G_HALF_WIDTH, Critic, critic_term
+from gpmppi.mppi.critics.base import Critic, critic_term
 
 
 @critic_term
 def deviation_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
-    e = at[AT_LANE_DIST] / geo[G_HALF_WIDTH]
+    e = at.lane_dist / geo.half_width
     return weight * e * e
 
 

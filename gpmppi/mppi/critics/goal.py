@@ -7,17 +7,7 @@ import math
 
 import numpy as np
 
-from gpmppi.mppi.critics.base import (
-    AT_X,
-    AT_Y,
-    G_FIELD,
-    G_GOAL,
-    G_INV_CELL,
-    G_ORIGIN,
-    W_GOAL_GEODESIC,
-    Critic,
-    critic_term,
-)
+from gpmppi.mppi.critics.base import W_GOAL_GEODESIC, Critic, critic_term
 from gpmppi.mppi.goal_field import goal_distance
 
 
@@ -42,7 +32,7 @@ def goal_term(
 
 @critic_term
 def goal_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
-    return goal_term(cost_w, geo[G_FIELD], geo[G_ORIGIN], geo[G_INV_CELL], geo[G_GOAL], at[AT_X], at[AT_Y], weight)
+    return goal_term(cost_w, geo.field, geo.origin, geo.inv_cell, geo.goal, at.x, at.y, weight)
 
 
 CRITIC = Critic("goal", 1.0, ("goal",), goal_cost, "distance to the goal per step [cost / m]")

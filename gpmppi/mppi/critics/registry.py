@@ -8,12 +8,17 @@ each critic's weight (registration order), then each critic's parameters (regist
 The kernels' sums are built here from the registered terms, as a chain of small compiled functions, one per term
 (`_chain`): the summed cost adds the terms in registration order, the split adds each to its own slot. numba
 resolves a chain's calls when it compiles, so they are plain calls that LLVM inlines (a tuple of functions would
-be called through pointers). CUDA gets the same chains built from the terms' device twins (`device_chains`).
+be called through pointers). CUDA gets the same chains built from the terms' device twins (`build_sums(jit, twin)`).
+
+Stateful critics (`base.StepState`) get their state chains here too (`build_states`): the drivers start the tuple of
+every stateful critic's value before a rollout's first step and advance it after each; a stateful term is called
+with its own value (`Step.state[slot]`). What the planner adds for critics of the step's variances under the exact
+GP comes from `CriticLayout.noise_costs`. No driver and no planner code names a critic.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from numba import njit
@@ -21,7 +26,7 @@ from numba import njit
 from gpmppi.kernel_flags import FASTMATH
 from gpmppi.mppi.critics.base import TASK_KINDS, W_GOAL_GEODESIC, Critic
 
-__all__ = ["CriticLayout", "Sums", "build_sums", "layout", "register"]
+__all__ = ["CriticLayout", "States", "Sums", "build_states", "build_sums", "layout", "register"]
 
 _REGISTERED: list[Critic] = []
 _LAYOUT: CriticLayout | None = None
@@ -73,10 +78,29 @@ class CriticLayout:
     def size(self) -> int:
         return W_GOAL_GEODESIC + 1 + len(self.critics) + sum(len(c.params) for c in self.critics)
 
-    def terms(self, task: str, terminal: bool) -> tuple[tuple[int, int, Callable], ...]:
-        """(weight index, first parameter index, term) of the critics of a task kind, stage or terminal."""
-        return tuple((self.weight_index(c.name), self.first_param(c.name), c.term) for c in self.critics
-                     if task in c.tasks and c.terminal == terminal)
+    def terms(self, task: str, terminal: bool) -> tuple[tuple[int, int, int, Callable], ...]:
+        """(weight index, first parameter index, state slot (-1: stateless), term) of the critics of a task kind, stage
+        or terminal."""
+        return tuple((self.weight_index(c.name), self.first_param(c.name), self.state_slot(c.name), c.term)
+                     for c in self.critics if task in c.tasks and c.terminal == terminal)
+
+    @property
+    def stateful(self) -> tuple[Critic, ...]:
+        """The critics that carry a value from step to step (`base.StepState`), in the order of the drivers' tuple."""
+        return tuple(c for c in self.critics if c.state is not None)
+
+    def state_slot(self, name: str) -> int:
+        """Where critic `name`'s value is in the drivers' state tuple (`Step.state`); -1 for a stateless critic."""
+        names = [c.name for c in self.stateful]
+        return names.index(name) if name in names else -1
+
+    def noise_costs(
+        self, weights: Mapping[str, float], horizon: int, noise_v: float, noise_w: float
+    ) -> dict[str, float]:
+        """Each critic's cost of the likelihood noise the kernels leave out of the step's variances, by name: the
+        critics that declare one (`Critic.noise_cost`), with their `weights`."""
+        return {c.name: c.noise_cost(weights[c.name], horizon, noise_v, noise_w) for c in self.critics
+                if c.noise_cost is not None}
 
 
 def layout() -> CriticLayout:
@@ -100,14 +124,26 @@ class Sums:
 
 
 def _chain(terms: tuple, jit: Callable, twin: Callable, names: tuple[str, ...], weights0: int) -> tuple:
-    """The summed and the split function of `terms` ((weight index, parameter index, term), ...), compiled by `jit`
-    with each term replaced by `twin(term)`."""
+    """The summed and the split function of `terms` ((weight index, parameter index, state slot, term), ...),
+    compiled by `jit` with each term replaced by `twin(term)`."""
     summed = jit(lambda c, cost_w, geo, at: c)
     split = jit(lambda cost_w, geo, at, out: None)
-    for wi, pi, term in reversed(terms):
-        summed = _link_sum(jit, twin(term), wi, pi, summed)
-        split = _link_split(jit, twin(term), wi, pi, wi - weights0, split)
+    for wi, pi, si, term in reversed(terms):
+        one = _with_state(jit, twin(term), si)
+        summed = _link_sum(jit, one, wi, pi, summed)
+        split = _link_split(jit, one, wi, pi, wi - weights0, split)
     return summed, split
+
+
+def _with_state(jit: Callable, term: Callable, slot: int) -> Callable:
+    """`term` as a stateless term: a stateful one (`slot` >= 0) called with its own value of the step."""
+    if slot < 0:
+        return term
+
+    def stateful(weight: float, cost_w, p: int, geo: tuple, at: tuple) -> float:  # noqa: ANN001 - an array
+        return term(weight, cost_w, p, geo, at, at.state[slot])
+
+    return jit(stateful)
 
 
 def _link_sum(jit: Callable, term: Callable, wi: int, pi: int, rest: Callable) -> Callable:
@@ -123,6 +159,43 @@ def _link_split(jit: Callable, term: Callable, wi: int, pi: int, slot: int, rest
         rest(cost_w, geo, at, out)
 
     return jit(add)
+
+
+@dataclass(frozen=True)
+class States:
+    """The stateful critics' values as the drivers carry them, a tuple (`CriticLayout.stateful` order):
+    `start(cost_w)` before a rollout's first step, `advance(state, cost_w)` after each step."""
+
+    start: Callable
+    advance: Callable
+
+
+def build_states(jit: Callable | None = None, twin: Callable | None = None) -> States:
+    """The state chains of the registered stateful critics, compiled as `build_sums`'s."""
+    jit = jit or njit(fastmath=FASTMATH, inline="always")
+    twin = twin or (lambda f: f)
+    lay = layout()
+    start = jit(lambda cost_w: ())
+    advance = jit(lambda state, cost_w: ())
+    for c in reversed(lay.stateful):
+        pi, si = lay.first_param(c.name), lay.state_slot(c.name)
+        start = _link_start(jit, twin(c.state.start), pi, start)
+        advance = _link_advance(jit, twin(c.state.advance), pi, si, advance)
+    return States(start, advance)
+
+
+def _link_start(jit: Callable, first: Callable, pi: int, rest: Callable) -> Callable:
+    def start(cost_w) -> tuple:  # noqa: ANN001 - an array, or a CUDA array
+        return (first(cost_w, pi),) + rest(cost_w)
+
+    return jit(start)
+
+
+def _link_advance(jit: Callable, step: Callable, pi: int, si: int, rest: Callable) -> Callable:
+    def advance(state: tuple, cost_w) -> tuple:  # noqa: ANN001 - an array, or a CUDA array
+        return (step(state[si], cost_w, pi),) + rest(state, cost_w)
+
+    return jit(advance)
 
 
 def build_sums(jit: Callable | None = None, twin: Callable | None = None) -> dict[str, Sums]:

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmppi.mppi.critics.base import AT_OMEGA, AT_OMEGA_REF, AT_V, AT_V_REF, Critic, critic_term
+from gpmppi.mppi.critics.base import Critic, critic_term
 
 
 @critic_term
 def slip_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
-    dv = at[AT_V_REF] - at[AT_V]
-    dw = at[AT_OMEGA_REF] - at[AT_OMEGA]
+    dv = at.v_ref - at.v
+    dw = at.omega_ref - at.omega
     return weight * (dv * dv + dw * dw)
 
 

@@ -9,20 +9,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmppi.mppi.critics.base import AT_LANE_TX, AT_LANE_TY, AT_V, AT_YAW, G_SPEED_TARGET, Critic, Param, critic_term
+from gpmppi.mppi.critics.base import Critic, Param, critic_term
 from gpmppi.trig import cos_sin
 
 
 @critic_term
 def speed_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
-    v = at[AT_V]
-    yaw = at[AT_YAW]
+    v = at.v
+    yaw = at.yaw
     if cost_w[p] > 0.0:
         c, s = cos_sin(yaw)
-        v_lane = v * (c * at[AT_LANE_TX] + s * at[AT_LANE_TY])
+        v_lane = v * (c * at.lane_tx + s * at.lane_ty)
     else:
         v_lane = v
-    e = v_lane - geo[G_SPEED_TARGET]
+    e = v_lane - geo.speed_target
     return weight * e * e
 
 

@@ -1,0 +1,175 @@
+"""foxglove: serves the running stack to Foxglove (foxglove-sdk's WebSocket server, protocol `foxglove.websocket.v1`).
+
+- Every `gpmppi/**` key is a channel of its own, JSON with the JSON Schema of its pydantic model (as in the MCAP
+  recording); the payload goes out as it was received, once it has decoded.
+- The 3D scene (robot pose and frame transforms, lane and tightened bounds, obstacles and their inflation, plan and
+  covariance ellipses, rollouts coloured by cost) goes on `scene/<robot>/...` in Foxglove's own schemas, from the
+  one mapping `services.view.foxglove_scene` (shared with the recorder's scene channels and `gpmppi replay`).
+
+The control path comes first. The subscription's callback keeps only the newest sample of each key (a ring of one
+per key: a key that arrives again before it was handled replaces the waiting one, counted as `dropped`), so it never
+blocks Zenoh's receive thread, and the service falls behind by at most one sample per key. The server keeps at most
+`backlog` messages per client and drops the oldest for a slow client; a client that stops reading never holds the
+service up. The server listens on loopback unless `host` says otherwise (see docs/foxglove.md for a secured stack).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+
+import zenoh
+from pydantic import Field
+
+from schemas import KEYS, DecodeError, decode, model_for_key
+from services.recording.mcap_io import schema_name
+from services.runtime.node import Node
+from services.runtime.node_settings import NodeSettings
+from services.view.foxglove_scene import FoxgloveSceneMapper, scene_topics, schema_of
+from services.view.geometry import Decimation
+
+
+class Settings(NodeSettings):
+    service: str = Field("foxglove", description="service name")
+    host: str = Field(
+        "127.0.0.1", description="address the WebSocket server listens on (loopback: reach it through an SSH tunnel)"
+    )
+    port: int = Field(8765, ge=0, lt=65536, description="WebSocket port (0: any free port, printed at the start)")
+    key_expr: str = Field("gpmppi/**", description="what to serve")
+    backlog: int = Field(
+        256, gt=0, description="messages waiting for one client at most; beyond, the oldest are dropped for it"
+    )
+    samples_every: int = Field(2, ge=1, description="draw the rollouts of every n-th plan")
+    max_samples: int = Field(32, ge=0, description="draw at most this many rollouts of a plan")
+    sample_stride: int = Field(2, ge=1, description="draw every n-th point along a rollout")
+    ellipse_every: int = Field(8, ge=1, description="draw every n-th covariance ellipse of the plan")
+    path_chunk: int = Field(50, ge=2, description="driven-path states per strip (the path grows by strips)")
+
+    def options(self) -> Decimation:
+        return Decimation(
+            samples_every=self.samples_every,
+            max_samples=self.max_samples,
+            sample_stride=self.sample_stride,
+            ellipse_every=self.ellipse_every,
+            path_chunk=self.path_chunk,
+        )
+
+
+class Newest:
+    """The newest sample of each key, filled by a Zenoh callback: a key that arrives again before it was taken
+    replaces the waiting sample (a ring of one per key, counted in `dropped`); putting never waits on the reader."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()  # held for a dict assignment or swap only
+        self._waiting: dict[str, zenoh.Sample] = {}
+        self.dropped = 0
+
+    def push(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        with self._lock:
+            if key in self._waiting:
+                self.dropped += 1
+            self._waiting[key] = sample
+
+    def take(self) -> list[zenoh.Sample]:
+        with self._lock:
+            waiting, self._waiting = self._waiting, {}
+        return list(waiting.values())
+
+
+class Channels:
+    """The server's channels, created on first use: `gpmppi/**` keys as JSON with their JSON Schema, scene topics
+    in Foxglove's protobuf schemas."""
+
+    def __init__(self, context: object) -> None:
+        self.context = context
+        self._channels: dict[str, object] = {}
+
+    def json(self, key: str) -> object:
+        channel = self._channels.get(key)
+        if channel is None:
+            import foxglove
+
+            model = model_for_key(key)
+            schema = foxglove.Schema(
+                name=schema_name(model), encoding="jsonschema", data=json.dumps(model.model_json_schema()).encode()
+            )
+            channel = foxglove.Channel(key, schema=schema, message_encoding="json", context=self.context)
+            self._channels[key] = channel
+        return channel
+
+    def scene(self, topic: str) -> object:
+        channel = self._channels.get(topic)
+        if channel is None:
+            import foxglove
+
+            channel = foxglove.Channel(
+                topic, schema=schema_of(topic), message_encoding="protobuf", context=self.context
+            )
+            self._channels[topic] = channel
+        return channel
+
+
+def run(settings: Settings) -> int:
+    import foxglove
+
+    log = logging.getLogger(f"gpmppi.{settings.service}")
+    context = foxglove.Context()
+    channels = Channels(context)
+    # the robot's fixed keys and its scene are advertised from the start, so a layout finds its topics at once
+    for template, _ in KEYS.values():
+        if "{service}" not in template:
+            channels.json(template.format(robot=settings.robot))
+    for topic in scene_topics(settings.robot):
+        channels.scene(topic)
+    try:
+        server = foxglove.start_server(
+            name=f"gpmppi {settings.robot}",
+            host=settings.host,
+            port=settings.port,
+            context=context,
+            message_backlog_size=settings.backlog,
+        )
+    except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types for a port in use, a bad address
+        log.error(
+            "cannot serve Foxglove on %s:%d: %s; give another --foxglove HOST:PORT", settings.host, settings.port, exc
+        )
+        return 2
+    print(f"foxglove: serving ws://{settings.host}:{server.port} (open it in Foxglove: Open connection)", flush=True)
+    mapper = FoxgloveSceneMapper(settings.options())
+    try:
+        with Node(settings) as node:
+            assert node.session is not None
+            newest = Newest()
+            sub = node.session.declare_subscriber(settings.key_expr, zenoh.handlers.Callback(newest.push))
+            reported = 0
+            node.counters.flags["serving"] = True
+            while node.ok():
+                handled = 0
+                for sample in newest.take():
+                    key = str(sample.key_expr)
+                    payload = sample.payload.to_bytes()
+                    try:
+                        msg = decode(model_for_key(key), payload, settings.max_payload_bytes)
+                    except (KeyError, DecodeError) as exc:
+                        node.reject(f"{key}: {exc}")
+                        continue
+                    now = time.time_ns()
+                    channels.json(key).log(payload, log_time=now)  # type: ignore[attr-defined]
+                    for scene in mapper.map(key, msg, now):
+                        channels.scene(scene.topic).log(scene.data, log_time=now)  # type: ignore[attr-defined]
+                    handled += 1
+                if handled:
+                    with node.counters.lock:
+                        node.counters.received += handled
+                    node.cycle()
+                if newest.dropped != reported:
+                    node.counters.count("dropped", newest.dropped - reported)
+                    reported = newest.dropped
+                node.spin_once(0.02)
+            sub.undeclare()
+    finally:
+        server.stop()
+    return 0

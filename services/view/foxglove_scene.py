@@ -1,0 +1,278 @@
+"""The one message -> Foxglove scene mapping, shared by the live `foxglove` service, the recorder's scene channels
+and `gpmppi replay --foxglove-scene` (a recording's scene added offline).
+
+It draws what `services.view.geometry` computes (the same geometry, colours and decimation as the rerun view) and
+only translates it into Foxglove's own schemas (protobuf, `foxglove.*`), so Foxglove's 3D panel shows it with
+nothing converted. Per robot, on topics outside `gpmppi/**` (they are views, never Zenoh keys):
+
+- `scene/<robot>/tf` (foxglove.FrameTransforms): map -> base_link, from each state;
+- `scene/<robot>/pose` (foxglove.PoseInFrame): the robot's pose in map;
+- `scene/<robot>/robot` (foxglove.SceneUpdate): the robot's footprint, the driven path (in strips: only the growing
+  one is sent);
+- `scene/<robot>/task` (foxglove.SceneUpdate): lane edges and centre, or obstacles and goal, with each task message;
+- `scene/<robot>/plan` (foxglove.SceneUpdate): the nominal plan, its covariance ellipses, the tightened lane bounds
+  or the inflated obstacles, and the rollouts coloured by cost rank;
+- `scene/<robot>/events` (foxglove.Log): e-stop, safety overrides, task changes, service status.
+
+Lines lie in the ground plane, lifted by their layer's draw order (1 mm per step) so the layers stack as in rerun.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from schemas import BaseCommand, EStop, Heartbeat, Message, Plan, State, Task
+from services.view import geometry as geo
+
+if TYPE_CHECKING:
+    import foxglove
+
+SCENE_PREFIX = "scene/"
+MAP_FRAME = "map"
+BASE_FRAME = "base_link"
+# topic (after scene/<robot>/) -> the Foxglove schema of its messages
+SCENE_SCHEMAS = {
+    "tf": "FrameTransforms",
+    "pose": "PoseInFrame",
+    "robot": "SceneUpdate",
+    "task": "SceneUpdate",
+    "plan": "SceneUpdate",
+    "events": "Log",
+}
+
+
+def scene_topic(robot: str, name: str) -> str:
+    return f"{SCENE_PREFIX}{robot}/{name}"
+
+
+def is_scene_topic(topic: str) -> bool:
+    return topic.startswith(SCENE_PREFIX)
+
+
+def scene_topics(robot: str) -> list[str]:
+    """Every scene topic of one robot."""
+    return [scene_topic(robot, name) for name in SCENE_SCHEMAS]
+
+
+def schema_of(topic: str) -> foxglove.Schema:
+    """The Foxglove schema (protobuf) of a scene topic."""
+    from foxglove import messages
+
+    return getattr(messages, SCENE_SCHEMAS[topic.rsplit("/", 1)[-1]]).get_schema()
+
+
+@dataclass(frozen=True)
+class SceneMessage:
+    """One encoded scene message: its topic, the Foxglove schema name, protobuf bytes, and its time [ns]."""
+
+    topic: str
+    schema: str
+    data: bytes
+    stamp_ns: int
+
+
+def _robot(key: str) -> str:
+    parts = key.split("/")
+    return parts[1] if len(parts) >= 3 and parts[0] == "gpmppi" else "robot"
+
+
+class FoxgloveSceneMapper:
+    """Maps gpmppi messages to Foxglove scene messages: `map(key, msg, fallback_ns)` returns what to send."""
+
+    def __init__(self, options: geo.Decimation | None = None) -> None:
+        from foxglove import messages as fm
+        from foxglove.messages import Duration, Timestamp
+
+        self.fm = fm
+        self._timestamp = Timestamp
+        self._forever = Duration(0, 0)
+        self.opt = options or geo.Decimation()
+        self.task: dict[str, Task] = {}
+        self._paths: dict[str, geo.PathStrips] = {}
+        self._plans: dict[str, int] = {}
+        self._plan_seq: dict[str, int] = {}
+        self._estop: dict[str, bool] = {}
+        self._reason: dict[str, str] = {}
+        self._status: dict[tuple[str, str], str] = {}
+
+    # ---- translation helpers ----------------------------------------------------------------------------------
+    def _ts(self, stamp_ns: int) -> Any:
+        return self._timestamp(int(stamp_ns) // 1_000_000_000, int(stamp_ns) % 1_000_000_000)
+
+    def _color(self, rgba: Sequence[int] | np.ndarray) -> Any:
+        c = [float(v) / 255.0 for v in rgba]
+        return self.fm.Color(r=c[0], g=c[1], b=c[2], a=c[3] if len(c) > 3 else 1.0)
+
+    def _line(self, points: np.ndarray, layer: str, color: Sequence[int] | np.ndarray | None = None) -> Any:
+        style = geo.LAYERS[layer]
+        z = style.order / 1000.0
+        pts = [self.fm.Point3(x=float(x), y=float(y), z=z) for x, y in np.asarray(points, dtype=np.float64)[:, :2]]
+        rgba = color if color is not None else style.color
+        assert rgba is not None and style.radius is not None
+        return self.fm.LinePrimitive(
+            type=self.fm.LinePrimitiveLineType.LineStrip,
+            thickness=2.0 * style.radius,
+            scale_invariant=False,
+            points=pts,
+            color=self._color(rgba),
+        )
+
+    def _entity(self, entity_id: str, stamp_ns: int, **primitives: Any) -> Any:
+        return self.fm.SceneEntity(
+            timestamp=self._ts(stamp_ns), frame_id=MAP_FRAME, id=entity_id, lifetime=self._forever, **primitives
+        )
+
+    def _update(self, topic: str, stamp_ns: int, entities: list[Any], deletions: list[str] = ()) -> SceneMessage:
+        dels = [
+            self.fm.SceneEntityDeletion(
+                timestamp=self._ts(stamp_ns), type=self.fm.SceneEntityDeletionType.MatchingId, id=i
+            )
+            for i in deletions
+        ]
+        msg = self.fm.SceneUpdate(deletions=dels, entities=entities)
+        return SceneMessage(topic, "foxglove.SceneUpdate", msg.encode(), stamp_ns)
+
+    def _log(self, robot: str, stamp_ns: int, text: str, level: str = "Info") -> SceneMessage:
+        msg = self.fm.Log(
+            timestamp=self._ts(stamp_ns), level=getattr(self.fm.LogLevel, level), message=text, name="gpmppi"
+        )
+        return SceneMessage(scene_topic(robot, "events"), "foxglove.Log", msg.encode(), stamp_ns)
+
+    # ---- messages ---------------------------------------------------------------------------------------------
+    def map(self, key: str, msg: Message, fallback_ns: int) -> list[SceneMessage]:
+        """The scene messages for one message received on `key` (`fallback_ns` when its header has no stamp)."""
+        t = msg.header.stamp_ns or fallback_ns
+        robot = _robot(key)
+        if isinstance(msg, State):
+            return self._state(robot, msg, t) if key.endswith("/state") else []
+        if isinstance(msg, Plan):
+            return self._plan(robot, msg, t)
+        if isinstance(msg, Task):
+            return self._task(robot, msg, t)
+        if isinstance(msg, EStop):
+            if msg.engaged != self._estop.get(robot):
+                self._estop[robot] = msg.engaged
+                text = f"e-stop {'engaged' if msg.engaged else 'released'}{': ' + msg.reason if msg.reason else ''}"
+                return [self._log(robot, t, text, "Warning" if msg.engaged else "Info")]
+        if isinstance(msg, BaseCommand):
+            reason = msg.reason if msg.reason in ("watchdog", "estop") else "planner"
+            previous = self._reason.get(robot)
+            self._reason[robot] = reason
+            if reason != previous and (previous is not None or reason != "planner"):
+                text = f"egress: {reason} override" if reason != "planner" else f"egress: {previous} override ended"
+                return [self._log(robot, t, text, "Warning" if reason != "planner" else "Info")]
+        if isinstance(msg, Heartbeat):
+            previous = self._status.get((robot, msg.service))
+            self._status[(robot, msg.service)] = msg.status
+            if msg.status != previous:
+                level = {"ok": "Info", "degraded": "Warning", "failing": "Error"}[msg.status]
+                text = f"{msg.service}: {'up' if previous is None else 'status ' + previous + ' ->'} {msg.status}"
+                return [self._log(robot, t, text, level)]
+        return []
+
+    def _state(self, robot: str, msg: State, t: int) -> list[SceneMessage]:
+        fm = self.fm
+        half = msg.theta / 2.0
+        rotation = fm.Quaternion(x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half)))
+        tf = fm.FrameTransforms(
+            transforms=[
+                fm.FrameTransform(
+                    timestamp=self._ts(t),
+                    parent_frame_id=MAP_FRAME,
+                    child_frame_id=BASE_FRAME,
+                    translation=fm.Vector3(x=msg.x, y=msg.y, z=0.0),
+                    rotation=rotation,
+                )
+            ]
+        )
+        pose = fm.PoseInFrame(
+            timestamp=self._ts(t),
+            frame_id=MAP_FRAME,
+            pose=fm.Pose(position=fm.Vector3(x=msg.x, y=msg.y, z=0.0), orientation=rotation),
+        )
+        path = self._paths.setdefault(robot, geo.PathStrips(self.opt.path_chunk))
+        index, points = path.add(msg.x, msg.y)
+        entities = [self._entity("robot", t, lines=[self._line(geo.robot_outline(msg.x, msg.y, msg.theta), "robot")])]
+        if len(points) >= 2:
+            entities.append(self._entity(f"driven_path/{index:05d}", t, lines=[self._line(np.asarray(points), "path")]))
+        return [
+            SceneMessage(scene_topic(robot, "tf"), "foxglove.FrameTransforms", tf.encode(), t),
+            SceneMessage(scene_topic(robot, "pose"), "foxglove.PoseInFrame", pose.encode(), t),
+            self._update(scene_topic(robot, "robot"), t, entities),
+        ]
+
+    def _task(self, robot: str, msg: Task, t: int) -> list[SceneMessage]:
+        previous = self.task.get(robot)
+        changed = previous is None or previous.model_dump(exclude={"header"}) != msg.model_dump(exclude={"header"})
+        self.task[robot] = msg
+        # sent with every task message (the planner re-publishes it once a second), so a client that connects late,
+        # or a recording opened in the middle, shows the map within a second
+        if msg.kind == "lane":
+            edges, centre = geo.lane_lines(msg)
+            entities = [
+                self._entity("lane/edges", t, lines=[self._line(e, "edges") for e in edges]),
+                self._entity("lane/centre", t, lines=[self._line(centre, "centre")]),
+            ]
+            gone = ["obstacles", "goal"]
+            text = f"task: lane, {len(msg.centerline)} points, half-width {msg.half_width:.2f} m"
+        else:
+            style = geo.LAYERS["obstacles"]
+            cylinders = [
+                self.fm.CylinderPrimitive(
+                    pose=self.fm.Pose(
+                        position=self.fm.Vector3(x=o.x, y=o.y, z=0.1),
+                        orientation=self.fm.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+                    ),
+                    size=self.fm.Vector3(x=2 * o.r, y=2 * o.r, z=0.2),
+                    bottom_scale=1.0,
+                    top_scale=1.0,
+                    color=self._color(style.color or (200, 40, 40)),
+                )
+                for o in msg.obstacles
+            ]
+            entities = [self._entity("obstacles", t, cylinders=cylinders)]
+            goal = geo.goal_circle(msg)
+            if goal is not None:
+                entities.append(self._entity("goal", t, lines=[self._line(goal, "goal")]))
+            gone = ["lane/edges", "lane/centre"] + (["goal"] if goal is None else [])
+            text = f"task: goal {msg.goal}, {len(msg.obstacles)} obstacles"
+        out = [self._update(scene_topic(robot, "task"), t, entities, gone if changed else [])]
+        if changed:
+            out.append(self._log(robot, t, text if previous is None else "task changed: " + text))
+        return out
+
+    def _plan(self, robot: str, msg: Plan, t: int) -> list[SceneMessage]:
+        if msg.header.seq < self._plan_seq.get(robot, -1):  # a new planner process counts from 0 again
+            self._plans[robot] = 0
+        self._plan_seq[robot] = msg.header.seq
+        plans = self._plans[robot] = self._plans.get(robot, 0) + 1
+        entities = []
+        states = geo.plan_states(msg)
+        task = self.task.get(robot)
+        if states is not None:
+            entities.append(self._entity("plan/nominal", t, lines=[self._line(states, "nominal")]))
+            ellipses = geo.plan_ellipses(msg, states, self.opt.ellipse_every)
+            if ellipses is not None:
+                lines = [self._line(e, "covariance") for e in ellipses]
+                entities.append(self._entity("plan/covariance", t, lines=lines))
+            if msg.tightened and task is not None:
+                if task.kind == "lane":
+                    bounds = geo.plan_tightened_bounds(msg, states, task)
+                    lines = [self._line(b, "tightened") for b in bounds]
+                    entities.append(self._entity("lane/tightened", t, lines=lines))
+                else:
+                    circles = geo.inflated_obstacles(msg, task)
+                    entities.append(
+                        self._entity("obstacles/inflated", t, lines=[self._line(c, "inflated") for c in circles])
+                    )
+        if (plans - 1) % self.opt.samples_every == 0:
+            drawn = geo.rollouts(msg, self.opt.max_samples, self.opt.sample_stride)
+            if drawn is not None:
+                points, colors = drawn
+                lines = [self._line(p, "samples", c) for p, c in zip(points, colors, strict=True)]
+                entities.append(self._entity("plan/rollouts", t, lines=lines))
+        return [self._update(scene_topic(robot, "plan"), t, entities)] if entities else []

@@ -1,0 +1,275 @@
+"""The Foxglove view: the live server speaks Foxglove's WebSocket protocol (a real client, a real router), the
+recorder's scene channels and `gpmppi replay --foxglove-scene` write Foxglove's schemas into the MCAP, and the
+shipped layout names only topics that are served."""
+
+from __future__ import annotations
+
+import base64
+import json
+import struct
+import time
+from pathlib import Path
+from typing import Any
+
+import jsonschema
+import numpy as np
+import pytest
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from mcap.reader import make_reader
+
+from schemas import Command, EStop, Heartbeat, Plan, State, Task, encode
+from services.view.foxglove_scene import SCENE_SCHEMAS, scene_topics
+from tests.zenoh_helpers import Collector, ServiceProcess, client, free_port, heartbeats, router, settings, wait_for
+
+pytest.importorskip("foxglove")
+websockets_sync = pytest.importorskip("websockets.sync.client")
+
+REPO = Path(__file__).resolve().parents[1]
+# Foxglove's WebSocket protocol: foxglove-sdk 0.30's server names it `foxglove.sdk.v1` (the same protocol as
+# `foxglove.websocket.v1`, renamed; it refuses the old name); a client offers both, as Foxglove does
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+LAYOUT = REPO / "deploy" / "foxglove" / "gpmppi-layout.json"
+
+
+def protobuf_class(schema_name: str, descriptor_set: bytes) -> Any:
+    """The message class of `schema_name` from a serialized FileDescriptorSet (Foxglove's protobuf schemas)."""
+    files = descriptor_pb2.FileDescriptorSet.FromString(descriptor_set)
+    pool = descriptor_pool.DescriptorPool()
+    for f in files.file:
+        pool.Add(f)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema_name))
+
+
+def _stack_messages(robot: str, i: int) -> list[tuple[str, bytes]]:
+    """One cycle of what the stack publishes: a state, a command, a plan with rollouts, a heartbeat."""
+    t = time.time_ns()
+    st = State(x=0.1 * i, y=0.2, theta=0.3, v=1.0, omega=0.1)
+    st.header.stamp_ns, st.header.seq = t, i
+    cmd = Command(v_ref=1.0, omega_ref=0.1)
+    cmd.header.stamp_ns, cmd.header.seq = t, i
+    rng = np.random.default_rng(i)
+    plan = Plan(
+        command=cmd, controls=[[1.0, 0.0]] * 10, states=[[0.1 * k, 0.01 * k, 0.0, 1.0, 0.0] for k in range(11)],
+        cov_xy=[[1e-3 * k, 0.0, 2e-3 * k] for k in range(11)], tightened=[1.5 - 0.01 * k for k in range(11)],
+        samples=rng.normal(size=(6, 11, 2)).round(3).tolist(), sample_costs=rng.gamma(2.0, 1.0, 6).tolist(),
+        timings_ms={"total": 5.0},
+    )  # fmt: skip
+    plan.header.stamp_ns, plan.header.seq = t, i
+    hb = Heartbeat(service="planner", rate_hz=10.0)
+    hb.header.stamp_ns, hb.header.seq = t, i
+    return [
+        (f"gpmppi/{robot}/state", encode(st)),
+        (f"gpmppi/{robot}/cmd", encode(cmd)),
+        (f"gpmppi/{robot}/plan", encode(plan)),
+        (f"gpmppi/{robot}/health/planner", encode(hb)),
+        (f"gpmppi/{robot}/estop", encode(EStop(engaged=i % 20 == 10))),
+    ]
+
+
+def lane_task() -> Task:
+    a = np.linspace(0.0, 2 * np.pi, 60, endpoint=False)
+    return Task(kind="lane", centerline=np.stack([5 * np.cos(a), 5 * np.sin(a)], 1).tolist(), closed=True)
+
+
+def test_live_server_speaks_the_foxglove_websocket_protocol(tmp_path: Path) -> None:
+    """A WebSocket client (subprotocol foxglove.websocket.v1) gets every channel advertised with its schema,
+    subscribes, and receives messages that validate against the advertised JSON Schemas (our keys) or decode with
+    Foxglove's protobuf schemas (the scene); the shipped layout's topics are all among those advertised."""
+    port, ws_port = free_port(), free_port()
+    robot = "jackal"  # the layout's robot
+    with router(port):
+        observer = client(port)
+        col = Collector(observer, f"gpmppi/{robot}/health/foxglove")
+        service = ServiceProcess("foxglove", {**settings("foxglove", port, robot), "port": ws_port}, tmp_path)
+        try:
+            assert wait_for(lambda: len(heartbeats(col, robot, "foxglove")) >= 1, 60.0), service.log()
+            with websockets_sync.connect(f"ws://127.0.0.1:{ws_port}", subprotocols=SUBPROTOCOLS, open_timeout=10) as ws:
+                assert ws.subprotocol in SUBPROTOCOLS
+                channels: dict[int, dict] = {}
+                server_info = None
+                deadline = time.monotonic() + 10
+                wanted = {*scene_topics(robot), f"gpmppi/{robot}/state", f"gpmppi/{robot}/plan", f"gpmppi/{robot}/task"}
+                while not wanted <= {c["topic"] for c in channels.values()} and time.monotonic() < deadline:
+                    frame = json.loads(ws.recv(timeout=5))
+                    if frame["op"] == "serverInfo":
+                        server_info = frame
+                    elif frame["op"] == "advertise":
+                        channels.update({c["id"]: c for c in frame["channels"]})
+                assert server_info is not None
+                assert wanted <= {c["topic"] for c in channels.values()}
+                for c in channels.values():  # every channel comes with its schema
+                    assert c["schemaName"] and c["schema"], c
+                    if c["topic"].startswith("gpmppi/"):
+                        assert (c["encoding"], c["schemaEncoding"]) == ("json", "jsonschema")
+                        jsonschema.Draft202012Validator.check_schema(json.loads(c["schema"]))
+                    else:
+                        assert (c["encoding"], c["schemaEncoding"]) == ("protobuf", "protobuf")
+                        assert c["schemaName"] == "foxglove." + SCENE_SCHEMAS[c["topic"].rsplit("/", 1)[-1]]
+                ws.send(json.dumps({
+                    "op": "subscribe", "subscriptions": [{"id": cid, "channelId": cid} for cid in channels],
+                }))  # fmt: skip
+                observer.put(f"gpmppi/{robot}/task", encode(lane_task()))
+                received: dict[str, list[bytes]] = {}
+                deadline = time.monotonic() + 30
+                i = 0
+                needed = {*scene_topics(robot), f"gpmppi/{robot}/state", f"gpmppi/{robot}/plan", f"gpmppi/{robot}/cmd"}
+                while not needed <= set(received) and time.monotonic() < deadline:
+                    for key, payload in _stack_messages(robot, i):
+                        observer.put(key, payload)
+                    if i % 10 == 0:
+                        observer.put(f"gpmppi/{robot}/task", encode(lane_task()))
+                    i += 1
+                    try:
+                        while True:
+                            frame = ws.recv(timeout=0.05)
+                            if isinstance(frame, bytes):
+                                assert frame[0] == 0x01  # message data
+                                sub_id, _log_time = struct.unpack_from("<IQ", frame, 1)
+                                channel = channels.get(sub_id)
+                                if channel is not None:
+                                    received.setdefault(channel["topic"], []).append(frame[13:])
+                            elif json.loads(frame)["op"] == "advertise":
+                                for c in json.loads(frame)["channels"]:
+                                    channels[c["id"]] = c
+                    except TimeoutError:
+                        pass
+                assert needed <= set(received), (sorted(received), service.log()[-3000:])
+        finally:
+            code = service.stop(20.0)
+            observer.close()
+    assert code == 0, service.log()
+    by_topic = {c["topic"]: c for c in channels.values()}
+    for topic, payloads in received.items():
+        c = by_topic[topic]
+        if c["encoding"] == "json":
+            validator = jsonschema.Draft202012Validator(json.loads(c["schema"]))
+            for p in payloads:
+                validator.validate(json.loads(p))
+        else:
+            cls = protobuf_class(c["schemaName"], base64.b64decode(c["schema"]))
+            for p in payloads:
+                cls.FromString(p)
+    named = layout_topics(json.loads(LAYOUT.read_text()))
+    assert named and named <= set(by_topic), sorted(named - set(by_topic))
+    # the scene says what we sent
+    tf_cls = protobuf_class("foxglove.FrameTransforms", base64.b64decode(by_topic[f"scene/{robot}/tf"]["schema"]))
+    tf = tf_cls.FromString(received[f"scene/{robot}/tf"][-1]).transforms[0]
+    assert (tf.parent_frame_id, tf.child_frame_id) == ("map", "base_link") and tf.translation.y == pytest.approx(0.2)
+    scene_cls = protobuf_class("foxglove.SceneUpdate", base64.b64decode(by_topic[f"scene/{robot}/plan"]["schema"]))
+    ids = {e.id for p in received[f"scene/{robot}/plan"] for e in scene_cls.FromString(p).entities}
+    assert {"plan/nominal", "plan/covariance", "plan/rollouts"} <= ids
+    ids = {e.id for p in received[f"scene/{robot}/task"] for e in scene_cls.FromString(p).entities}
+    assert {"lane/edges", "lane/centre"} <= ids
+
+
+def _check_scene_mcap(path: Path, robot: str) -> dict[str, int]:
+    """Every scene channel of the MCAP at `path` has Foxglove's schema and every message decodes with it;
+    returns the messages per scene topic."""
+    counts: dict[str, int] = {}
+    classes: dict[int, Any] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages():
+            if not channel.topic.startswith("scene/"):
+                continue
+            assert schema is not None and schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
+            assert schema.name == "foxglove." + SCENE_SCHEMAS[channel.topic.rsplit("/", 1)[-1]]
+            if schema.id not in classes:
+                classes[schema.id] = protobuf_class(schema.name, schema.data)
+            classes[schema.id].FromString(message.data)
+            counts[channel.topic] = counts.get(channel.topic, 0) + 1
+    assert set(scene_topics(robot)) - {f"scene/{robot}/events"} <= set(counts), counts
+    return counts
+
+
+def test_recorder_writes_the_scene_channels(tmp_path: Path) -> None:
+    """With `foxglove_scene: true` the recorder writes the scene beside the messages: Foxglove's schemas, every
+    message decodes, and the gpmppi channels read back as before."""
+    from services.recording.mcap_io import read_messages
+
+    port = free_port()
+    robot = "r1"
+    out = tmp_path / "rec.mcap"
+    with router(port):
+        observer = client(port)
+        col = Collector(observer, f"gpmppi/{robot}/health/recorder")
+        rec = ServiceProcess(
+            "recorder", settings("recorder", port, robot, path=str(out), foxglove_scene=True), tmp_path
+        )
+        try:
+            assert wait_for(lambda: len(heartbeats(col, robot, "recorder")) >= 1, 60.0), rec.log()
+            observer.put(f"gpmppi/{robot}/task", encode(lane_task()))
+            for i in range(20):
+                for key, payload in _stack_messages(robot, i):
+                    observer.put(key, payload)
+                time.sleep(0.01)
+            assert wait_for(lambda: heartbeats(col, robot, "recorder")[-1].received >= 101, 15.0), rec.log()
+        finally:
+            code = rec.stop(20.0)
+            observer.close()
+    assert code == 0, rec.log()
+    counts = _check_scene_mcap(out, robot)
+    assert counts[f"scene/{robot}/tf"] == 20
+    keys = {k for k, _, _ in read_messages(out)}  # the scene is not a gpmppi message: left out, no warning
+    assert f"gpmppi/{robot}/state" in keys and not any(k.startswith("scene/") for k in keys)
+
+
+def test_replay_adds_the_scene_offline_and_it_grows_linearly(tmp_path: Path) -> None:
+    """`gpmppi replay LOG --foxglove-scene OUT.mcap`: the recording with its scene added; a run twice as long gives
+    about twice the bytes (linear growth)."""
+    from typer.testing import CliRunner
+
+    from tools.bench_view import synthetic_log
+    from tools.cli import app
+
+    sizes = {}
+    for seconds in (15.0, 30.0):
+        log = tmp_path / f"log{seconds:g}.mcap"
+        synthetic_log(log, seconds, robot="r1")
+        out = tmp_path / f"scene{seconds:g}.mcap"
+        result = CliRunner().invoke(app, ["replay", str(log), "--foxglove-scene", str(out), "--json"])
+        assert result.exit_code == 0, result.output
+        counts = _check_scene_mcap(out, "r1")
+        assert counts["scene/r1/tf"] == int(seconds * 10)
+        sizes[seconds] = (out.stat().st_size, log.stat().st_size)
+    added = {s: out_b - log_b for s, (out_b, log_b) in sizes.items()}
+    assert 1.6 < added[30.0] / added[15.0] < 2.4, sizes
+
+
+def test_layout_names_only_served_topics() -> None:
+    """Every topic the shipped layout names is a channel the server serves for the default robot (its fixed keys
+    and its scene; the live test checks the same against a running server's advertisements)."""
+    from schemas import KEYS
+
+    layout = json.loads(LAYOUT.read_text())
+    served = {t.format(robot="jackal") for t, _ in (v for v in KEYS.values()) if "{service}" not in t}
+    served |= set(scene_topics("jackal"))
+    named = layout_topics(layout)
+    assert named, "the layout names no topics"
+    assert named <= served, sorted(named - served)
+    assert {"scene/jackal/plan", "gpmppi/jackal/state", "gpmppi/jackal/plan"} <= named
+
+
+def layout_topics(layout: dict) -> set[str]:
+    """The topics a Foxglove layout names: the 3D panel's topic settings, message paths' quoted topics, and the
+    log panel's topic."""
+    import re
+
+    topics: set[str] = set()
+
+    def walk(node: object, key: str = "") -> None:
+        if isinstance(node, dict):
+            for k, v in node.items():
+                if key == "topics" and isinstance(v, dict):
+                    topics.add(k)
+                walk(v, k)
+        elif isinstance(node, list):
+            for v in node:
+                walk(v, key)
+        elif isinstance(node, str) and key in ("value", "topicPath", "topicToRender"):
+            # a message path names its topic in quotes ("gpmppi/jackal/state".v); a topic setting names it bare
+            quoted = re.match(r'^"([^"]+)"', node)
+            topics.add(quoted.group(1) if quoted else node.split(".")[0])
+
+    walk(layout.get("configById", layout))
+    return topics
