@@ -11,6 +11,7 @@ A `TaskRun` is bound to one task type (as the planner's kinds are, `gpmppi.mppi.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
 import numpy as np
@@ -27,7 +28,7 @@ from gpmppi.tasks import GoalTask, LaneTask, Task, polyline_length
 __all__ = ["GoalRun", "LaneRun", "TaskRun", "register", "run_for"]
 
 
-class TaskRun:
+class TaskRun(ABC):
     """How a closed loop on a task of one type (`task_type`) is limited, stopped and scored. `cfg` below is the run's
     `ClosedLoopConfig`."""
 
@@ -36,17 +37,17 @@ class TaskRun:
     def __init__(self, task: Task) -> None:
         self.task = task
 
+    @abstractmethod
     def limits(self, lane_distance_m: float, goal_time_limit_s: float) -> dict[str, Any]:
         """The closed loop's limits for this task (`ClosedLoopConfig` fields)."""
-        raise NotImplementedError
 
     def stop(self, true_state: np.ndarray, driven_m: float, cfg: Any) -> str | None:  # noqa: ANN401
         """The run's status if it stops after reaching `true_state` having driven `driven_m`, else None."""
         return None
 
+    @abstractmethod
     def score(self, positions: np.ndarray, times: np.ndarray, status: str, cfg: Any) -> dict[str, Any]:  # noqa: ANN401
         """The task's own scores of a run (`RunScore` fields) from its true positions (T+1, 2) at `times`."""
-        raise NotImplementedError
 
 
 _RUNS: dict[type, type[TaskRun]] = {}

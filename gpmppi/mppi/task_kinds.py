@@ -17,6 +17,7 @@ task whose type has no registered kind is refused with a `ValueError` naming the
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from typing import ClassVar
 
 import numpy as np
@@ -32,7 +33,7 @@ from gpmppi.tasks import GoalTask, LaneTask
 __all__ = ["GoalKind", "LaneKind", "TaskKind", "kind_class_for", "register", "registered_kinds"]
 
 
-class TaskKind:
+class TaskKind(ABC):
     """What the planner does for the tasks of one type (`task_type`): checks, bounds, the kernels' task input and
     critic chain. One instance per planner (it may cache per task); `reset` with the planner's."""
 
@@ -49,19 +50,19 @@ class TaskKind:
         self.cost: CostBundle = config.cost_bundle(self.critics)  # the critic chain as the kernels read it
         self.noise_std = np.array(config.noise_std, dtype=np.float64)  # the sampling noise of its rollouts
 
-    def reset(self) -> None:
+    def reset(self) -> None:  # noqa: B027 - a hook: a kind with nothing to forget keeps it
         """Forget what depends on where the planner started planning (plans repeat from here)."""
 
-    def check(self, task: object) -> None:
+    def check(self, task: object) -> None:  # noqa: B027 - a hook: a kind with no checks of its own keeps it
         """Raise a ValueError if the planner cannot plan for `task` (the task's own checks are its type's)."""
 
+    @abstractmethod
     def bounds(self, task: object, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
         """The chance-constrained bounds (N+1, ...) along `states` with covariances `covs`, and the clamp count."""
-        raise NotImplementedError
 
+    @abstractmethod
     def task_bundle(self, task: object, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
         """The kernels' task input for `task` with `bounds`, planning from state `x`."""
-        raise NotImplementedError
 
     def reach(self) -> float:
         """How far [m] one horizon can drive at the largest speed."""
