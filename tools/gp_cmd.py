@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import csv
-import os
-import tempfile
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -12,25 +10,17 @@ import numpy as np
 import typer
 from rich.console import Console
 
-from tools.cli_checks import OUT_FILE, fail
+from tools.cli_checks import OUT_FILE, AtomicOutput, fail
 from tools.train import INPUT_COLUMNS, DataError, csv_inputs, read_csv_columns
 
 
 def write_csv_atomic(path: Path, header: list[str], rows: np.ndarray) -> None:
     """Write a numeric CSV via a temp file in the same folder, then rename (no half-written output)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(header)
-            for r in rows:
-                w.writerow([repr(float(v)) for v in r])
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with AtomicOutput(path) as tmp, tmp.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(header)
+        for r in rows:
+            w.writerow([repr(float(v)) for v in r])
 
 
 def register(app: typer.Typer) -> None:

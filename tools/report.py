@@ -9,13 +9,13 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 from pathlib import Path
 
 import numpy as np
 
 from gpmppi.scenarios import Scenario
 from gpmppi.tasks import GoalTask, LaneTask
+from tools.cli_checks import AtomicOutput, write_text_atomic
 
 MODEL_LABELS = {"gp": "GP-MPPI", "edd5": "EDD5-MPPI", "unicycle": "Unicycle-MPPI"}
 MODEL_COLOURS = {"gp": "tab:blue", "edd5": "tab:orange", "unicycle": "tab:green"}
@@ -75,12 +75,6 @@ def markdown_table(results: dict, models: list[str], terrains: list[str]) -> str
     return "\n".join(lines) + "\n"
 
 
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def write_tables(results: dict, meta: dict, out_dir: Path, models: list[str], terrains: list[str]) -> list[Path]:
     """results.md (paper layout + details), results.csv (one row per cell), results.json."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -106,16 +100,14 @@ def write_tables(results: dict, meta: dict, out_dir: Path, models: list[str], te
     command = meta.get("command", "")
     text = f"# Closed-loop evaluation\n\nCommand: `{command}`\n\n{md}" + "\n".join(details) + "\n" + COLUMNS_NOTE
     paths = [out_dir / "results.md", out_dir / "results.csv", out_dir / "results.json"]
-    _atomic_write(paths[0], text)
+    write_text_atomic(paths[0], text)
     if rows:
         fields = list(rows[0])
-        tmp = paths[1].with_name("results.csv.tmp")
-        with tmp.open("w", newline="") as fh:
+        with AtomicOutput(paths[1]) as tmp, tmp.open("w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=fields)
             w.writeheader()
             w.writerows(rows)
-        os.replace(tmp, paths[1])
-    _atomic_write(paths[2], json.dumps({"results": results, "meta": meta}, indent=2, default=float))
+    write_text_atomic(paths[2], json.dumps({"results": results, "meta": meta}, indent=2, default=float))
     return paths
 
 
