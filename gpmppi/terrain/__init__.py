@@ -5,6 +5,7 @@
 - `estimator`: the estimators (the Bayesian filter, the paper's convex problem) and `make_estimator`;
 - `response`: each terrain's velocity response to a command (steady map and rate), the filter's second evidence;
 - `cycle`: the terrain service's cycle, free of any transport (pairing, gating, timing, clean-up);
+- `terrain_calibration`: what the estimator learns per ground besides the GP (gains, response), stored in the profile;
 - `calibration`: fitting the command-change gains and the responses on drives of a plant;
 - `separability`: how well the terrains can be told apart on recorded transitions, and replaying estimators.
 
