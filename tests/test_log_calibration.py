@@ -89,7 +89,95 @@ def test_the_steady_map_from_a_small_jackal_log_recovers_the_plant_fitted_one() 
     for terrain, run in _jackal_runs(800.0, 4).items():
         holds = settled_holds(run)
         assert len(holds) >= 25
-        d = np.abs(fit_steady_map(holds) - shipped.steady[list(shipped.terrains).index(terrain)])
+        fitted = fit_steady_map(holds, RESPONSE_V_REF, RESPONSE_OMEGA_REF)
+        d = np.abs(fitted - shipped.steady[list(shipped.terrains).index(terrain)])
         assert d[core][:, 0].mean() < 0.006 and d[core][:, 1].mean() < 0.02, terrain
         assert d[core][:, 0].max() < 0.03 and d[core][:, 1].max() < 0.12, terrain
         assert d[..., 0].mean() < 0.1 and d[..., 1].mean() < 0.2, terrain
+
+
+def test_the_wheel_speed_clamp_is_found_from_the_holds() -> None:
+    """Holds of a map that bends where a wheel setpoint reaches 1.5 m/s (half track 0.3 m): cross-validation finds the
+    clamp, and the fit with it is closer to the map than the fit without."""
+    from gpmppi.terrain.log_calibration import Hold, fit_wheel_limit, wheel_limited
+
+    rng = np.random.default_rng(3)
+
+    def steady(u: np.ndarray) -> np.ndarray:
+        c = wheel_limited(u, 0.3, 1.5)
+        return np.column_stack([0.97 * c[:, 0], 0.9 * c[:, 1] - 0.05 * c[:, 1] * c[:, 0]])
+
+    u = np.column_stack([rng.uniform(0, 2, 80), rng.uniform(-3, 3, 80)])
+    s = steady(u) + rng.normal(0, 0.004, (80, 2))
+    holds = [Hold(u[i], s[i], 3.0) for i in range(80)]
+    half_track, wheel_max = fit_wheel_limit({"a": holds})
+    assert abs(half_track - 0.3) <= 0.04 and abs(wheel_max - 1.5) <= 0.1
+    grid = np.stack(np.meshgrid(RESPONSE_V_REF, RESPONSE_OMEGA_REF, indexing="ij"), axis=-1).reshape(-1, 2)
+    truth = steady(grid).reshape(len(RESPONSE_V_REF), len(RESPONSE_OMEGA_REF), 2)
+    grid_args = (RESPONSE_V_REF, RESPONSE_OMEGA_REF)
+    with_clamp = np.abs(fit_steady_map(holds, *grid_args, limit=(half_track, wheel_max)) - truth)
+    without = np.abs(fit_steady_map(holds, RESPONSE_V_REF, RESPONSE_OMEGA_REF) - truth)
+    assert with_clamp.mean() < 0.5 * without.mean()
+
+
+@lru_cache(maxsize=1)
+def _light_robot() -> tuple:
+    """The light robot's GP and log calibration, both from its own 600 m a ground of excitation log."""
+    from gpmppi.gp.train import prepare_from_series, train_model
+    from gpmppi.plant.excitation import runs_to_series
+
+    terrains = load_terrains(LIGHT)
+    runs = simulate_dataset(terrains, ["carpet", "dirt", "ice"], distance=600.0, seed=2)
+    sets, theta, edd5 = prepare_from_series(runs_to_series(runs), 0.1, seed=0)
+    model, _ = train_model(sets, theta, edd5, points=120, iters=60, seed=0, holdout=0.0)
+    calibration = calibrate_from_runs(model, {t: [r] for t, r in runs.items()})
+    return terrains, model, calibration
+
+
+def _smooth_drive_weights(terrains, model, config, ground: str, seed: int) -> float:
+    """The estimator's mean weight on `ground` after 3 s of a 30 s drive of smooth, slowly turning commands."""
+    from gpmppi.plant.physics import PhysicsPlant
+    from gpmppi.terrain.estimator import make_estimator
+
+    plant = PhysicsPlant(terrains, ground, seed=seed)
+    plant.reset(np.zeros(5))
+    est = make_estimator(model, config)
+    k = np.arange(300)
+    u = np.column_stack([np.minimum(0.3 * k * 0.1, 1.0 + 0.3 * np.sin(0.2 * k * 0.1)),
+                         0.8 * np.sin(0.15 * k * 0.1 + seed)])
+    x = plant.measure()
+    weights = []
+    for c in u:
+        plant.step(c, 0.1)
+        x1 = plant.measure()
+        est.observe(x, c, x1)
+        weights.append(est.estimate().weights)
+        x = x1
+    return float(np.mean(np.array(weights)[30:, list(model.terrains).index(ground)]))
+
+
+@pytest.mark.slow(seconds=40)
+def test_a_robot_the_project_has_not_seen_is_identified_with_the_calibration_of_its_own_log(tmp_path: Path) -> None:
+    """The light robot (tests/data/light_fast.yaml: 9 kg, stiff fast motors, carpet / dirt / ice): its GP and the
+    estimator's calibration fitted from 600 m a ground of its log; on 30 s drives of smooth commands (the planner's
+    kind) every ground gets a mean weight of at least 0.8 after 3 s. With the calibration zeroed (no command-change
+    gains, every ground the same steady map) the GP's evidence alone does not get there."""
+    from gpmppi.terrain.response import TerrainResponse
+    from gpmppi.terrain.settings import EstimatorConfig
+
+    terrains, model, cal = _light_robot()
+    names = list(model.terrains)
+    response_file = tmp_path / "response.yaml"
+    response_file.write_text(cal.response.to_yaml())
+    config = EstimatorConfig(command_gains={t: tuple(cal.command_gain[i]) for i, t in enumerate(names)},
+                             response_file=str(response_file))
+    got = {g: _smooth_drive_weights(terrains, model, config, g, seed=5) for g in names}
+    assert min(got.values()) >= 0.8, got
+    same = TerrainResponse(cal.response.v_ref, cal.response.omega_ref, cal.response.terrains,
+                           np.repeat(cal.response.steady.mean(axis=0, keepdims=True), len(names), axis=0),
+                           np.repeat(cal.response.rate.mean(axis=0, keepdims=True), len(names), axis=0))
+    (tmp_path / "same.yaml").write_text(same.to_yaml())
+    zero = config.model_copy(update={"command_gains": dict.fromkeys(names, (0.0, 0.0)),
+                                     "response_file": str(tmp_path / "same.yaml")})
+    without = {g: _smooth_drive_weights(terrains, model, zero, g, seed=5) for g in names}
+    assert min(without.values()) < 0.8, without

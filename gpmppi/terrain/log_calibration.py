@@ -8,10 +8,11 @@ the command and the ground's label (`gpmppi dataset` writes them, `tools.dataset
 - gains: `fit_command_gain` (already log-based) over every run of a ground, pooled as one least-squares fit;
 - steady map: the log's held commands (a command kept unchanged for `min_hold_s` or more, as the excitation's
   "hold" segments and a robot driven by hand both have) whose velocities settled; the measured velocity averaged
-  over each hold's tail after `settle_s` is one scattered sample of the map. The map on the response grid
-  (`RESPONSE_V_REF` x `RESPONSE_OMEGA_REF`) is a smoothing thin-plate-spline fit to those samples, with their
-  left-right mirror images (a skid-steer base turns alike both ways) and the stop under a zero command. Compared
-  with the plant-fitted map in docs/terrain_identification.md ("Calibration from logs");
+  over each hold's tail after `settle_s` is one scattered sample of the map. The map on a grid (`LOG_V_REF` x
+  `LOG_OMEGA_REF`, the shipped response's at half its spacing) is a smoothing thin-plate-spline fit to those samples,
+  with their left-right mirror images (a skid-steer base turns alike both ways) and the stop under a zero command,
+  in coordinates where the base's wheel-speed clamp (found by cross-validation) does not bend it. Compared with the
+  plant-fitted map in docs/terrain_identification.md ("Calibration from logs");
 - rate: the pooled least-squares one-step rate of approach to that map (`fit_rate`'s model) on every step.
 """
 
@@ -25,7 +26,7 @@ from scipy.interpolate import RBFInterpolator
 
 from gpmppi.gp.model_file import GPModel
 from gpmppi.plant.excitation import TerrainRun
-from gpmppi.terrain.calibration import RESPONSE_OMEGA_REF, RESPONSE_V_REF, fit_command_gain
+from gpmppi.terrain.calibration import fit_command_gain
 from gpmppi.terrain.response import TerrainResponse
 from gpmppi.terrain.terrain_calibration import CalibrationDataError, TerrainCalibration
 
@@ -40,6 +41,17 @@ MIN_OMEGA = 1.0  # ... and reaching |omega_ref| of at least this [rad/s]
 # against the plant-fitted map (docs/terrain_identification.md, "Calibration from logs")
 SMOOTHING = 1e-4
 EXTRAPOLATION_MARGIN = 0.05  # the fitted map is kept within the measured velocities' range widened by this share
+# the candidates of the command mapping's half track [m] (track x skid-steer multiplier / 2) and wheel-speed limit
+# [m/s] (`fit_wheel_limit`)
+WHEEL_HALF_TRACKS = np.round(np.arange(0.10, 0.501, 0.04), 3)
+WHEEL_LIMITS = np.round(np.arange(1.0, 3.01, 0.1), 2)
+# the grid the map is written on: the shipped response's (gpmppi.terrain.calibration.RESPONSE_V_REF, _OMEGA_REF)
+# at half its spacing. The estimator reads it bilinearly, and where a wheel setpoint reaches its clamp the map bends
+# within less than a 0.2 m/s cell: on the 45 kg robot (docs/robots/heavy_wide.yaml, clamp 1.6 m/s) at its circle
+# lane's command (1.485 m/s, 0.217 rad/s) the 0.2 grid read gravel's steady omega as 0.152 rad/s against the plant's
+# 0.194 and wet concrete's as 0.170 against 0.212; the 0.1 grid reads 0.185 and 0.211
+LOG_V_REF = np.round(np.arange(0.0, 2.0 + 1e-9, 0.1), 4)  # [m/s]
+LOG_OMEGA_REF = np.round(np.arange(-3.2, 3.2 + 1e-9, 0.1), 4) + 0.0  # [rad/s] (no -0.0)
 _SCALE = np.array([2.0, 3.2])  # m/s, rad/s: the response grid's extent, so both inputs weigh alike in the fit
 
 
@@ -104,14 +116,18 @@ def _check_holds(terrain: str, holds: list[Hold], min_hold_s: float) -> None:
         "-3..3 rad/s, both ways")
 
 
-def fit_steady_map(holds: list[Hold], v_ref: np.ndarray = RESPONSE_V_REF, omega_ref: np.ndarray = RESPONSE_OMEGA_REF,
-                   smoothing: float = SMOOTHING, mirror: bool = True) -> np.ndarray:
-    """(A, B, 2) the steady (v, omega) on the grid from scattered held commands: a smoothing thin-plate spline per
-    output (degree-1 polynomial tail, so it extrapolates linearly past the data).
+def wheel_limited(commands: np.ndarray, half_track: float, wheel_max: float) -> np.ndarray:
+    """(N, 2) the commands as a skid-steer base's command mapping passes them on: wheel-speed setpoints
+    `v -+ omega half_track`, each clamped to +-`wheel_max` [m/s], mapped back to (v, omega). Past the clamp the steady
+    map bends sharply; in these coordinates it is smooth, so a smooth fit holds up to the clamp."""
+    u = np.asarray(commands, dtype=np.float64).reshape(-1, 2)
+    left = np.clip(u[:, 0] - u[:, 1] * half_track, -wheel_max, wheel_max)
+    right = np.clip(u[:, 0] + u[:, 1] * half_track, -wheel_max, wheel_max)
+    return np.column_stack([0.5 * (left + right), (right - left) / (2.0 * half_track)])
 
-    `mirror`: add each hold's left-right image (v_ref, -omega_ref) -> (v, -omega), and the stop under a zero
-    command; a skid-steer base is built symmetric, and the images halve the noise and fill the other turn.
-    """
+
+def _samples(holds: Sequence[Hold], mirror: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(commands (K, 2), steady (K, 2)): one sample per distinct command, with the mirror images and the stop."""
     u = np.array([h.command for h in holds], dtype=np.float64).reshape(-1, 2)
     s = np.array([h.steady for h in holds], dtype=np.float64).reshape(-1, 2)
     if mirror:
@@ -121,15 +137,68 @@ def fit_steady_map(holds: list[Hold], v_ref: np.ndarray = RESPONSE_V_REF, omega_
     key, inverse = np.unique(np.round(u, 6), axis=0, return_inverse=True)
     mean = np.zeros((len(key), 2))
     np.add.at(mean, inverse.reshape(-1), s)
-    mean /= np.bincount(inverse.reshape(-1))[:, None]
-    fit = RBFInterpolator(key / _SCALE, mean, kernel="thin_plate_spline", smoothing=smoothing, degree=1)
-    grid = np.stack(np.meshgrid(v_ref, omega_ref, indexing="ij"), axis=-1).reshape(-1, 2)
-    steady = fit(grid / _SCALE).reshape(len(v_ref), len(omega_ref), 2)
-    # far from the data (a corner of the grid no hold reached) the linear tail runs off: no steady velocity beyond
-    # what the log measured, with a margin of EXTRAPOLATION_MARGIN of its range
-    lo, hi = mean.min(axis=0), mean.max(axis=0)
+    return key, mean / np.bincount(inverse.reshape(-1))[:, None]
+
+
+def _fit(holds: Sequence[Hold], smoothing: float, mirror: bool, limit: tuple[float, float] | None):
+    """The smoothing thin-plate spline of the holds' steady velocities: a function of commands (N, 2) -> (N, 2)."""
+    u, s = _samples(holds, mirror)
+    x = u if limit is None else wheel_limited(u, *limit)
+    rbf = RBFInterpolator(x / _SCALE, s, kernel="thin_plate_spline", smoothing=smoothing, degree=1)
+    lo, hi = s.min(axis=0), s.max(axis=0)
     margin = EXTRAPOLATION_MARGIN * (hi - lo)
-    return np.clip(steady, lo - margin, hi + margin)
+
+    def at(commands: np.ndarray) -> np.ndarray:
+        c = np.asarray(commands, dtype=np.float64).reshape(-1, 2)
+        c = c if limit is None else wheel_limited(c, *limit)
+        # far from the data (a corner no hold reached) the linear tail runs off: no steady velocity beyond what the
+        # log measured, with a margin of EXTRAPOLATION_MARGIN of its range
+        return np.clip(rbf(c / _SCALE), lo - margin, hi + margin)
+
+    return at
+
+
+def fit_wheel_limit(holds_by_ground: dict[str, list[Hold]], smoothing: float = SMOOTHING, folds: int = 4,
+                    seed: int = 0) -> tuple[float, float] | None:
+    """The robot's command mapping (half track [m], wheel-speed limit [m/s]) that best predicts held-out holds, by
+    `folds`-fold cross-validation of the steady-map fit pooled over the grounds (the limit is the robot's, not the
+    ground's); None when no clamp predicts better than none (no wheel limit inside the logged commands)."""
+    rng = np.random.default_rng(seed)
+    split = {t: rng.permutation(len(h)) % folds for t, h in holds_by_ground.items()}
+
+    def cv_error(limit: tuple[float, float] | None) -> float:
+        err = 0.0
+        for t, holds in holds_by_ground.items():
+            u = np.array([h.command for h in holds])
+            s = np.array([h.steady for h in holds])
+            for f in range(folds):
+                test = split[t] == f
+                train = [h for h, k in zip(holds, ~test, strict=True) if k]
+                err += float(np.sum((_fit(train, smoothing, True, limit)(u[test]) - s[test]) ** 2))
+        return err
+
+    best, best_err = None, cv_error(None)
+    for half_track in WHEEL_HALF_TRACKS:
+        for wheel_max in WHEEL_LIMITS:
+            e = cv_error((float(half_track), float(wheel_max)))
+            if e < best_err:
+                best, best_err = (float(half_track), float(wheel_max)), e
+    return best
+
+
+def fit_steady_map(holds: list[Hold], v_ref: np.ndarray = LOG_V_REF, omega_ref: np.ndarray = LOG_OMEGA_REF,
+                   smoothing: float = SMOOTHING, mirror: bool = True,
+                   limit: tuple[float, float] | None = None) -> np.ndarray:
+    """(A, B, 2) the steady (v, omega) on the grid from scattered held commands: a smoothing thin-plate spline per
+    output (degree-1 polynomial tail, so it extrapolates linearly past the data, within the measured range).
+
+    `mirror`: add each hold's left-right image (v_ref, -omega_ref) -> (v, -omega), and the stop under a zero
+    command; a skid-steer base is built symmetric, and the images halve the noise and fill the other turn.
+    `limit`: (half track [m], wheel-speed limit [m/s]) of the base's command mapping (`fit_wheel_limit`): the fit is
+    made in `wheel_limited` coordinates, where the map does not bend at the clamp.
+    """
+    grid = np.stack(np.meshgrid(v_ref, omega_ref, indexing="ij"), axis=-1).reshape(-1, 2)
+    return _fit(holds, smoothing, mirror, limit)(grid).reshape(len(v_ref), len(omega_ref), 2)
 
 
 def fit_rate_runs(steady_at, runs: Sequence[TerrainRun]) -> np.ndarray:
@@ -166,12 +235,13 @@ def fit_gain_runs(model: GPModel, runs: Sequence[TerrainRun], terrain: str) -> n
 
 def calibrate_from_runs(
     model: GPModel, runs: dict[str, list[TerrainRun]], min_hold_s: float = MIN_HOLD_S, settle_s: float = SETTLE_S,
-    smoothing: float = SMOOTHING,
+    smoothing: float = SMOOTHING, wheel_limit: tuple[float, float] | None | str = "fit",
 ) -> TerrainCalibration:
     """The terrain estimator's calibration of every ground of `model` from its logged runs (`read_dataset`'s form).
 
-    Raises CalibrationDataError naming a ground the runs lack, or one with too few settled held commands (and what
-    to drive).
+    `wheel_limit`: the base's command mapping for the steady map's fit (`fit_steady_map`'s `limit`); "fit": found
+    from the holds (`fit_wheel_limit`). Raises CalibrationDataError naming a ground the runs lack, or one with too
+    few settled held commands (and what to drive).
     """
     names = list(model.terrains)
     missing = [t for t in names if not runs.get(t)]
@@ -179,14 +249,16 @@ def calibrate_from_runs(
         raise CalibrationDataError(f"ground(s) {missing} of the GP model have no runs in the log (it has "
                                    f"{sorted(runs)}); calibrate from the log the model was trained on")
     gains = np.zeros((len(names), 2))
-    steady = np.zeros((len(names), len(RESPONSE_V_REF), len(RESPONSE_OMEGA_REF), 2))
+    steady = np.zeros((len(names), len(LOG_V_REF), len(LOG_OMEGA_REF), 2))
     rates = np.zeros((len(names), 2))
+    holds = {t: [h for run in runs[t] for h in settled_holds(run, min_hold_s, settle_s)] for t in names}
+    for terrain in names:
+        _check_holds(terrain, holds[terrain], min_hold_s)
+    limit = fit_wheel_limit(holds, smoothing) if wheel_limit == "fit" else wheel_limit
     for m, terrain in enumerate(names):
-        holds = [h for run in runs[terrain] for h in settled_holds(run, min_hold_s, settle_s)]
-        _check_holds(terrain, holds, min_hold_s)
-        steady[m] = fit_steady_map(holds, smoothing=smoothing)
-        one = TerrainResponse(RESPONSE_V_REF, RESPONSE_OMEGA_REF, (terrain,), steady[m:m + 1], np.ones((1, 2)))
+        steady[m] = fit_steady_map(holds[terrain], smoothing=smoothing, limit=limit)
+        one = TerrainResponse(LOG_V_REF, LOG_OMEGA_REF, (terrain,), steady[m:m + 1], np.ones((1, 2)))
         rates[m] = fit_rate_runs(lambda c, one=one: one.steady_at(c)[0], runs[terrain])
         gains[m] = fit_gain_runs(model, runs[terrain], terrain)
-    response = TerrainResponse(RESPONSE_V_REF, RESPONSE_OMEGA_REF, tuple(names), steady, rates)
+    response = TerrainResponse(LOG_V_REF, LOG_OMEGA_REF, tuple(names), steady, rates)
     return TerrainCalibration(tuple(names), gains, response)
