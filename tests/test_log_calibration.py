@@ -182,3 +182,20 @@ def test_a_robot_the_project_has_not_seen_is_identified_with_the_calibration_of_
                                      "response_file": str(tmp_path / "same.yaml")})
     without = {g: _smooth_drive_weights(terrains, model, zero, g, seed=5) for g in names}
     assert min(without.values()) < 0.5, without
+
+
+def test_the_cli_refuses_a_log_without_holds_in_one_line(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+    from tools.dataset import write_dataset
+
+    rng = np.random.default_rng(4)
+    u = np.clip(np.cumsum(rng.normal(0, 0.05, (200, 2)), axis=0) + [1.0, 0.0], 0.0, 2.0)
+    log = tmp_path / "jittery.mcap"
+    write_dataset(log, {t: _run(u, u.copy(), t) for t in ("asphalt", "grass", "tile")})
+    out = tmp_path / "response.yaml"
+    res = CliRunner().invoke(app, ["evaluate", "terrain-log-calibration", str(log), "--response-output", str(out)])
+    assert res.exit_code == 2, res.output
+    assert "ground 'asphalt': 0 usable held commands" in res.output and "Traceback" not in res.output
+    assert not out.exists()  # nothing half-written
