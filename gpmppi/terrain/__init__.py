@@ -7,6 +7,7 @@
 - `cycle`: the terrain service's cycle, free of any transport (pairing, gating, timing, clean-up);
 - `terrain_calibration`: what the estimator learns per ground besides the GP (gains, response), stored in the profile;
 - `calibration`: fitting the command-change gains and the responses on drives of a plant;
+- `log_calibration`: fitting the same calibration from a robot's logs alone (held commands, every step);
 - `separability`: how well the terrains can be told apart on recorded transitions, and replaying estimators.
 
 Services and tools call into these modules; nothing outside the package computes the evidence. This module imports
