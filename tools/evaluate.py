@@ -60,7 +60,8 @@ PlantFileOpt = Annotated[Path | None, typer.Option("--plant-file", help="Residua
 TerrainFileOpt = Annotated[Path | None, typer.Option("--terrain-file", help="Terrain set YAML for the physics plant.")]
 SceneFileOpt = Annotated[list[Path] | None, typer.Option("--scene-file", help="Obstacle scene YAML (repeat).")]
 LaneFileOpt = Annotated[list[Path] | None, typer.Option("--lane-file", help="Lane YAML (repeat).")]
-GpModelOpt = Annotated[Path | None, typer.Option("--gp-model", help="GP model file (default: the shipped one).")]
+ProfileOpt = Annotated[Path | None, typer.Option(
+    "--profile", help="Robot profile from `gpmppi train` (default: the shipped Jackal profile).")]
 QuickOpt = Annotated[bool, typer.Option("--quick", help="Reduced run: one terrain, few trials, 25 m of lane.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object {results: {task: {terrain: {model}}}}.")]
 OutOpt = Annotated[
@@ -119,6 +120,21 @@ def _default_terrains(settings: EvalSettings) -> list[str]:
     from gpmppi.evaluation.runner import cached_gp_model
 
     return list(cached_gp_model(settings.gp_model).terrains)
+
+
+def _check_profile_grounds(profile: Path, grounds: list[str], terrain_file: Path | None) -> None:
+    """One line when the profile has a ground the physics plant's terrain set lacks (a profile of another robot)."""
+    from gpmppi.plant.terrains import TerrainFileError, load_terrains
+
+    try:
+        names = load_terrains(terrain_file).names
+    except TerrainFileError as e:
+        fail(str(e))
+    missing = [g for g in grounds if g not in names]
+    if missing:
+        where = f"--terrain-file {terrain_file}" if terrain_file else "the shipped terrain set (no --terrain-file)"
+        fail(f"--profile {profile}: ground {missing[0]!r} of the profile (its grounds: {grounds}) is not in "
+             f"{where}, which has {list(names)}; pass the --terrain-file of the profile's robot")
 
 
 def _check_terrains(settings: EvalSettings, terrains: list[str]) -> None:
@@ -194,7 +210,7 @@ def _settings(
     only_with(plant is PlantName.residual_net, "--plant residual-net", {"--plant-file": plant_file is not None})
     if plant is PlantName.residual_net and plant_file is None:
         fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
-    for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), ("--gp-model", gp_model)):
+    for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), ("--profile", gp_model)):
         if f is not None and not f.is_file():
             fail(f"{label} {f}: file not found")
     if plant_file is not None:
@@ -209,9 +225,11 @@ def _settings(
         from gpmppi.gp.model_file import ModelFileError
 
         try:
-            cached_gp_model(str(gp_model))
+            grounds = list(cached_gp_model(str(gp_model)).terrains)
         except (ModelFileError, OSError) as e:
-            fail(f"--gp-model: {e}")
+            fail(f"--profile: {e}")
+        if plant is PlantName.physics:
+            _check_profile_grounds(gp_model, grounds, terrain_file)
     lane_m = distance if distance is not None else (25.0 if quick else 100.0)
     planner_overrides = _parse_overrides(overrides)
     try:
@@ -432,7 +450,7 @@ def register(app: typer.Typer) -> None:
         def command(
             terrain: TerrainOpt = None, model: ModelOpt = None, trials: TrialsOpt = None, seed: SeedOpt = 0,
             plant: PlantOpt = PlantName.physics, plant_file: PlantFileOpt = None, terrain_file: TerrainFileOpt = None,
-            scene_file: SceneFileOpt = None, lane_file: LaneFileOpt = None, gp_model: GpModelOpt = None,
+            scene_file: SceneFileOpt = None, lane_file: LaneFileOpt = None, gp_model: ProfileOpt = None,
             quick: QuickOpt = False, as_json: JsonOpt = False, out: OutOpt = None, workers: WorkersOpt = 2,
             samples: SamplesOpt = 1024, distance: DistanceOpt = None, latency: LatencyOpt = 0.0,
             latency_cycles: LatencyCyclesOpt = 0, compensate: CompensateOpt = True, noise: NoiseOpt = True,

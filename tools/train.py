@@ -1,4 +1,5 @@
-"""`gpmppi train DATA -o MODEL`: fit the per-terrain residual GPs from an MCAP log or a residual CSV."""
+"""`gpmppi train DATA -o PROFILE`: fit a robot profile from an MCAP log (the per-terrain residual GPs, the nominal
+model, EDD5, lateral slip and the terrain estimator's calibration), or the GPs alone from a residual CSV."""
 
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from gpmppi.gp.coverage import (
     ground_coverage,
 )
 from gpmppi.gp.grid_table import DEFAULT_SPACING
+from schemas.keys import DEFAULT_ROBOT
 from tools.cli_checks import OUT_FILE, fail
 
 INPUT_COLUMNS = ("cmd_lin", "cmd_ang", "curr_lin", "curr_ang")
@@ -149,7 +151,9 @@ def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | Non
             raise DataError(f"{path}: expected state and cmd of one robot, found robots {robots}; pass --robot")
         robot = robots[0]
     if robot not in robots:
-        raise DataError(f"{path}: no state + cmd messages for robot {robot!r} (robots with both: {robots})")
+        found = [f"gpmppi/{r}/state" for r in sorted(states)]
+        raise DataError(f"{path}: no state + cmd messages for robot {robot!r} (gpmppi/{robot}/state); the log holds "
+                        f"{found or 'no gpmppi/<robot>/state keys'}; pass --robot NAME")
     st = np.array(sorted(states[robot]))
     cm = np.array(sorted(cmds[robot]))
     lab = sorted(labels.get(robot, []))
@@ -245,13 +249,14 @@ def _select(available: list[str], wanted: list[str] | None, where: str) -> list[
 def build_training_sets(
     data: Path, terrain: list[str] | None, theta_path: Path | None, edd5_path: Path | None,
     dt: float, robot: str | None, seed: int,
-) -> tuple[dict, np.ndarray, dict[str, np.ndarray], dict[str, int | None]]:
-    """(terrain -> Transitions, theta, EDD5 per terrain, held commands per terrain) from a CSV or an MCAP log (a CSV
-    has no time series: its held commands are None)."""
+) -> tuple[dict, np.ndarray, dict[str, np.ndarray], dict[str, int | None], dict[str, list] | None]:
+    """(terrain -> Transitions, theta, EDD5 per terrain, held commands per terrain, terrain -> logged runs) from a
+    CSV or an MCAP log (a CSV has no time series: its held commands and runs are None)."""
     from gpmppi.gp.coverage import held_commands
     from gpmppi.gp.train import Transitions, prepare_from_series
     from gpmppi.models.dynamic_unicycle import velocity_step_exact
     from gpmppi.models.identify import identify_edd5
+    from tools.profile_fit import runs_from_series
 
     theta_json, edd5_json = _load_json(theta_path, "theta"), _load_json(edd5_path, "EDD5")
     if data.suffix.lower() == ".csv":
@@ -272,7 +277,7 @@ def build_training_sets(
         else:  # EDD5 maps a command to the velocity it settles at: fit to the measured next velocities
             edd5 = {t: identify_edd5(x[:, 0], x[:, 1], s.next_vw[:, 0], s.next_vw[:, 1], seed=seed)
                     for t, s in sets.items()}
-        return sets, theta, edd5, dict.fromkeys(terrains)
+        return sets, theta, edd5, dict.fromkeys(terrains), None
     if data.suffix.lower() != ".csv" and not is_mcap(data):
         raise DataError(f"{data}: not an MCAP file (nor a .csv); give a log recorded by `gpmppi launch --record` "
                         "or `gpmppi dataset`, or a residual CSV")
@@ -282,7 +287,8 @@ def build_training_sets(
     ed = _edd5_from_json(edd5_json, terrains, edd5_path) if edd5_json is not None else None
     held = {t: held_commands(np.asarray(series[t]["v_ref"]), np.asarray(series[t]["w_ref"]),
                              np.asarray(series[t]["seg"]), dt) for t in terrains}
-    return (*prepare_from_series({t: series[t] for t in terrains}, dt, theta=th, edd5=ed, seed=seed), held)
+    chosen = {t: series[t] for t in terrains}
+    return (*prepare_from_series(chosen, dt, theta=th, edd5=ed, seed=seed), held, runs_from_series(chosen, dt))
 
 
 def print_coverage(coverage: list[GroundCoverage], console: Console) -> None:
@@ -334,7 +340,8 @@ def register(app: typer.Typer) -> None:
     @app.command("train")
     def train_cmd(
         data: Annotated[Path, typer.Argument(help="MCAP log (state, cmd, terrain labels) or residual CSV")],
-        output: Annotated[Path, typer.Option("--output", "-o", metavar=OUT_FILE, help="model file to write (.npz)")],
+        output: Annotated[Path, typer.Option("--output", "-o", metavar=OUT_FILE,
+                                             help="robot profile to write (.npz)")],
         terrain: Annotated[list[str] | None, typer.Option(
             "--terrain", "-t", help="terrain name of an unlabeled log; or, repeated, the terrains to keep")] = None,
         hyperparameters: Annotated[Path | None, typer.Option(
@@ -350,7 +357,8 @@ def register(app: typer.Typer) -> None:
         iters: Annotated[int, typer.Option(min=0, help="Adam iterations of the hyperparameter fit")] = 200,
         seed: Annotated[int, typer.Option(min=0, help="seed of k-means, the holdout split and the fit")] = 0,
         dt: Annotated[float, typer.Option(min=0.001, max=10.0, help="sampling step of the data [s]")] = 0.1,
-        robot: Annotated[str | None, typer.Option(help="robot name in the log keys (auto when only one)")] = None,
+        robot: Annotated[str, typer.Option(
+            help="the robot: its name in the log keys gpmppi/{robot}/..., stored in the profile")] = DEFAULT_ROBOT,
         grid_nodes: Annotated[int | None, typer.Option(
             min=0, max=200,
             help="grid predictor nodes on every axis of the stored table (0: store none, build on first use; "
@@ -366,15 +374,16 @@ def register(app: typer.Typer) -> None:
                                    f"(cells with {MIN_PER_CELL} samples or more)")] = MIN_COVERED,
         force: Annotated[bool, typer.Option("--force", help="replace an existing --output file")] = False,
     ) -> None:
-        """Train the per-terrain residual GPs and write the model file."""
+        """Fit a robot profile from a log: the per-terrain residual GPs and the terrain calibration."""
         from gpmppi.gp.grid_table import build_grid
         from gpmppi.gp.train import Transitions, train_model
+        from tools.profile_fit import _calibrate_placeholder, train_command
 
         console = Console()
         try:
             if not 0.0 <= (holdout or 0.0) < 1.0:
                 raise DataError(f"--holdout must be in [0, 1), got {holdout}")
-            sets, th, ed, held = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
+            sets, th, ed, held, runs = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
             test_sets = None
             if test_data is not None:
                 cols = read_csv_columns(test_data)
@@ -406,6 +415,10 @@ def register(app: typer.Typer) -> None:
                 raise DataError(f"--grid-spacing must be positive, got {grid_spacing}")
             if grid_nodes != 0:
                 model.set_grid(build_grid(model, grid_nodes, spacing=grid_spacing))
+            model.robot = robot
+            model.made_by = train_command(str(data), str(output), robot, terrain, points, iters, seed, holdout)
+            if runs is not None:  # the lead swaps this call for gpmppi.terrain.log_calibration.calibrate_from_runs
+                model.calibration = _calibrate_placeholder(model, runs)
         except ValueError as e:
             fail(str(e))
         model.save(output)
@@ -419,3 +432,12 @@ def register(app: typer.Typer) -> None:
         )
         lateral = ", ".join(f"{t} ({p[0]:+.4f}, {p[1]:+.4f})" for t, p in model.lateral_slip.items())
         console.print(f"lateral slip (a, b) of v_y = (a + b |omega|) v omega: {lateral}")
+        if model.calibration is None:
+            Console(stderr=True, soft_wrap=True).print(
+                "[yellow]warning:[/yellow] no terrain calibration: the data has no time series (a residual CSV); the "
+                "terrain estimator needs command_change: online and response: none with this file", highlight=False)
+        else:
+            gains = ", ".join(f"{t} ({g[0]:+.3f}, {g[1]:+.3f})"
+                              for t, g in zip(model.terrains, model.calibration.command_gain, strict=True))
+            console.print(f"robot profile of {model.robot!r}: terrain calibration of {list(model.terrains)}; "
+                          f"command-change gains (v, omega): {gains}")
