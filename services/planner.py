@@ -51,7 +51,8 @@ class Settings(NodeSettings, CycleConfig):
     scenario: str = Field(
         "circle", description="task: 'circle', 'square', 'paper_obstacles', or a lane_*.yaml / scene_*.yaml file"
     )
-    model_file: str | None = Field(None, description="GP model file (None: the shipped model)")
+    model_file: str | None = Field(None, description="the robot profile (.npz from `gpmppi train`; a launch "
+                                   "file's top-level `profile` fills it; None: the shipped Jackal profile)")
     trigger: Literal["state", "rate"] = Field("state", description="plan on each new state, or at rate_hz")
     rate_hz: float = Field(10.0, gt=0, description="planning rate when trigger == 'rate' [Hz]")
     actuation_delay_s: float = Field(

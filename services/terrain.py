@@ -30,7 +30,8 @@ class Settings(NodeSettings, TerrainCycleConfig):
     command_wait_s), the estimator's and the model file."""
 
     service: str = Field("terrain", description="service name")
-    model_file: str | None = Field(None, description="GP model file (None: the shipped model)")
+    model_file: str | None = Field(None, description="the robot profile (.npz from `gpmppi train`; a launch "
+                                   "file's top-level `profile` fills it; None: the shipped Jackal profile)")
     estimator: EstimatorConfig = Field(
         default_factory=EstimatorConfig, description="the estimator: method ('bayes', the default, or the paper's "
         "convex problem 'paper') and its parameters (gpmppi.terrain.settings.EstimatorConfig)"

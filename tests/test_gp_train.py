@@ -26,11 +26,13 @@ def true_residual(x: np.ndarray, terrain: int) -> np.ndarray:
 
 
 def synthetic_runs(n: int, seed: int) -> dict[str, dict[str, np.ndarray]]:
-    """Two terrains driven by random held commands; next velocity = nominal + true residual + noise."""
+    """Two terrains driven by random held commands; next velocity = nominal + true residual + noise. Commands are
+    held 0.5 s, every tenth 3 s (the terrain calibration's steady responses need some held that long)."""
     rng = np.random.default_rng(seed)
     out = {}
     for m, name in enumerate(("tile", "grass")):
-        cmd = np.repeat(rng.uniform([0.0, -2.0], [2.0, 2.0], (n // 5 + 1, 2)), 5, axis=0)[:n]
+        held = np.where(np.arange(n // 5 + 1) % 10 == 0, 30, 5)
+        cmd = np.repeat(rng.uniform([0.0, -2.0], [2.0, 2.0], (n // 5 + 1, 2)), held, axis=0)[:n]
         v, w = np.zeros(n), np.zeros(n)
         for k in range(n - 1):
             x = np.array([[cmd[k, 0], cmd[k, 1], v[k], w[k]]])

@@ -282,6 +282,19 @@ def test_a_launch_file_driving_a_ground_the_profile_lacks_is_refused_in_one_line
     assert str(bad) in line
 
 
+def test_a_launch_file_naming_a_v1_model_for_the_terrain_service_is_refused_before_it_starts(tmp_path: Path) -> None:
+    _profile().save(tmp_path / "old.npz")
+    _rewrite_metadata(tmp_path / "old.npz", version=1)
+    bad = tmp_path / "launch.yaml"
+    bad.write_text("profile: old.npz\nservices:\n  - name: terrain\n  - name: planner\n")
+    with pytest.raises(LaunchFileError, match="v1 GP model without a terrain calibration"):
+        check_profile_grounds(load_launch(bad)[0], bad)
+    # GP-only use of it is fine: the paper's estimator, or the Bayes filter without the calibration
+    bad.write_text("profile: old.npz\nservices:\n  - name: terrain\n    config: {estimator: {command_change: "
+                   "online, response: none}}\n  - name: planner\n")
+    check_profile_grounds(load_launch(bad)[0], bad)
+
+
 def test_evaluate_refuses_a_profile_of_grounds_its_plant_lacks(tmp_path: Path) -> None:
     other = synthetic_model(terrains=("gravel", "mulch"))
     other.save(tmp_path / "other.npz")

@@ -30,26 +30,51 @@ def runs_from_series(series: dict[str, dict[str, np.ndarray]], dt: float) -> dic
     return runs
 
 
-def _held(command: np.ndarray, dt: float, hold_s: float) -> int:
-    """Runs of one unchanged command lasting `hold_s` or longer."""
-    changed = np.r_[True, np.any(np.abs(np.diff(command, axis=0)) > 1e-6, axis=1)]
-    lengths = np.diff(np.r_[np.flatnonzero(changed), len(command)])
-    return int(np.sum(lengths * dt >= hold_s - 1e-9))
+def _holds(run: TerrainRun, hold_s: float, settle_s: float = 1.2) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(command (2,), mean measured (v, omega) after `settle_s`) of each command held `hold_s` or longer."""
+    changed = np.r_[True, np.any(np.abs(np.diff(run.command, axis=0)) > 1e-6, axis=1)]
+    starts = np.flatnonzero(changed)
+    out = []
+    for lo, hi in zip(starts, np.r_[starts[1:], len(run.command)], strict=True):
+        if (hi - lo) * run.dt >= hold_s - 1e-9:
+            out.append((run.command[lo], run.state[lo + int(round(settle_s / run.dt)):hi, 3:5].mean(axis=0)))
+    return out
+
+
+def _placeholder_response(terrain: str, runs: list[TerrainRun], holds: list[tuple[np.ndarray, np.ndarray]]):
+    """PLACEHOLDER for a ground the shipped response lacks: the steady map on the response grid as the
+    inverse-distance mean of the held commands' settled velocities, and the rate fitted on the runs."""
+    from gpmppi.terrain.calibration import RESPONSE_OMEGA_REF, RESPONSE_V_REF, fit_rate
+    from gpmppi.terrain.response import TerrainResponse
+
+    u = np.array([h[0] for h in holds])
+    y = np.array([h[1] for h in holds])
+    grid = np.stack(np.meshgrid(RESPONSE_V_REF, RESPONSE_OMEGA_REF, indexing="ij"), axis=-1)  # (A, B, 2)
+    d2 = np.sum(((grid[:, :, None, :] - u[None, None]) / np.array([2.0, 3.2])) ** 2, axis=-1)  # (A, B, H)
+    w = 1.0 / (d2 + 1e-3)
+    steady = np.einsum("abh,hc->abc", w, y) / w.sum(axis=-1, keepdims=True)
+    one = TerrainResponse(RESPONSE_V_REF, RESPONSE_OMEGA_REF, (terrain,), steady[None], np.ones((1, 2)))
+    rates = [fit_rate(lambda c: one.steady_at(c)[0], r.state, r.command[:-1]) for r in runs if len(r.command) > 2]
+    return steady, np.mean(rates, axis=0)
 
 
 def _calibrate_placeholder(model: GPModel, runs: dict[str, list[TerrainRun]]) -> TerrainCalibration:
     """PLACEHOLDER for `gpmppi.terrain.log_calibration.calibrate_from_runs` (same signature; the lead swaps the one
     call in tools/train.py when merging): the gains fitted on the logs (`fit_command_gain`), the response taken from
-    the shipped, plant-fitted gpmppi/data/terrain_response.yaml. Raises CalibrationDataError for a ground without
-    enough held commands, as the real fit does."""
+    the shipped, plant-fitted gpmppi/data/terrain_response.yaml (a ground it lacks: `_placeholder_response`).
+    Raises CalibrationDataError for a ground without enough held commands, as the real fit does."""
     from gpmppi.terrain.calibration import fit_command_gain
-    from gpmppi.terrain.response import load_response
+    from gpmppi.terrain.response import TerrainResponse, load_response
 
     names = list(model.terrains)
     gains = np.zeros((len(names), 2))
+    shipped = load_response()
+    steady = np.zeros((len(names), len(shipped.v_ref), len(shipped.omega_ref), 2))
+    rates = np.zeros((len(names), 2))
     for m, terrain in enumerate(names):
         mine = runs.get(terrain, [])
-        held = sum(_held(r.command, r.dt, _PLACEHOLDER_HOLD_S) for r in mine)
+        holds = [h for r in mine for h in _holds(r, _PLACEHOLDER_HOLD_S)]
+        held = len(holds)
         if held < _PLACEHOLDER_MIN_HOLDS:
             raise CalibrationDataError(
                 f"ground {terrain!r}: {held} commands held >= {_PLACEHOLDER_HOLD_S:g} s, {_PLACEHOLDER_MIN_HOLDS} "
@@ -62,7 +87,12 @@ def _calibrate_placeholder(model: GPModel, runs: dict[str, list[TerrainRun]]) ->
             num += fit_command_gain(model, r.state, r.command[:-1], terrain) * w
             den += w
         gains[m] = np.where(den > 1e-12, num / np.maximum(den, 1e-12), 0.0)
-    response = load_response().select(names, source="shipped terrain response (placeholder)")
+        if terrain in shipped.terrains:
+            one = shipped.select([terrain])
+            steady[m], rates[m] = one.steady[0], one.rate[0]
+        else:
+            steady[m], rates[m] = _placeholder_response(terrain, mine, holds)
+    response = TerrainResponse(shipped.v_ref, shipped.omega_ref, tuple(names), steady, rates)
     return TerrainCalibration(tuple(names), gains, response)
 
 

@@ -264,13 +264,13 @@ class GPModel:
 
 
 def load_default_model() -> GPModel:
-    """The trained model shipped with the package (`gpmppi/data/default_gp_model.npz`).
+    """The simulated Jackal's robot profile shipped with the package (`gpmppi/data/default_gp_model.npz`).
 
-    It is regenerated from the physics plant with the default settings (tile, asphalt, grass;
-    2000 m each; seed 0) by
+    It is regenerated from logs of the physics plant with the default settings (tile, asphalt, grass;
+    2000 m each; seed 0) by (docs/training.md, "The shipped model")
 
         gpmppi dataset -o /tmp/default.mcap
-        gpmppi train /tmp/default.mcap -o gpmppi/data/default_gp_model.npz
+        gpmppi train /tmp/default.mcap -o gpmppi/data/default_gp_model.npz --robot jackal
     """
     return GPModel.load(DEFAULT_MODEL_PATH)
 

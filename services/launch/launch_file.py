@@ -119,16 +119,23 @@ def profile_configs(launch: LaunchFile, entries: list[ServiceEntry]) -> list[Ser
 
 
 def check_profile_grounds(launch: LaunchFile, path: str | Path) -> None:
-    """LaunchFileError (one line) when the launch file's `profile` is not a readable profile, or a service names a
-    ground it lacks: the sim's `terrain`, a terrain service's `estimator.command_gains`."""
+    """LaunchFileError (one line) when the launch file's `profile` is not a readable profile, lacks the terrain
+    calibration a terrain service's estimator needs, or a service names a ground it lacks: the sim's `terrain`, a
+    terrain service's `estimator.command_gains`."""
     from gpmppi.gp.model_file import GPModel, ModelFileError
+    from gpmppi.terrain.settings import EstimatorConfig, profile_calibration
 
     if launch.profile is None:
         return
     try:
-        grounds = list(GPModel.load(launch.profile).terrains)
-    except ModelFileError as exc:
+        model = GPModel.load(launch.profile)
+        for e in launch.services:
+            if e.enabled and (e.kind or e.name) == "terrain" and (e.config.get("estimator") or {}).get(
+                    "method", "bayes") == "bayes":
+                profile_calibration(EstimatorConfig.model_validate(e.config.get("estimator") or {}), model)
+    except (ModelFileError, ValueError) as exc:
         raise LaunchFileError(f"{path}: profile: {exc}") from None
+    grounds = list(model.terrains)
     for e in launch.services:
         kind = e.kind or e.name
         named: list[str] = []
