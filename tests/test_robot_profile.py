@@ -314,3 +314,13 @@ def test_replay_gives_its_profile_to_the_replaced_planner_and_terrain(tmp_path: 
     (tmp_path / "junk.npz").write_text("no")
     with pytest.raises(ModelFileError, match="junk.npz"):
         finalize(live, info, "jackal", "tcp/127.0.0.1:1", tmp_path, tmp_path / "junk.npz")
+
+
+def test_the_terrain_service_refuses_a_v1_model_in_one_line_before_it_joins(tmp_path: Path, capsys) -> None:
+    from services.terrain import Settings, run
+
+    _profile().save(tmp_path / "old.npz")
+    _rewrite_metadata(tmp_path / "old.npz", version=1)
+    assert run(Settings(model_file=str(tmp_path / "old.npz"))) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "v1 GP model without a terrain calibration" in err[0] and "gpmppi train" in err[0]
