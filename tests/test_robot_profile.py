@@ -219,13 +219,13 @@ def test_train_writes_a_whole_profile_from_a_log(dataset: Path, tmp_path: Path) 
     make_estimator(p, EstimatorConfig())  # the defaults run on it
 
 
-def _relabelled(dataset: Path, out: Path, robot: str = "jackal", zigzag: bool = False, labels: bool = True) -> Path:
-    """The dataset written again: under another robot name, with every command nudged each tick (no command is
-    ever held), or with no terrain labels."""
+def _relabelled(dataset: Path, out: Path, robot: str = "jackal", zigzag: int = 0, labels: bool = True) -> Path:
+    """The dataset written again: under another robot name, with every command nudged every `zigzag` ticks (no
+    command is held longer), or with no terrain labels."""
     runs = {t: rs[0] for t, rs in read_dataset(dataset).items()}
     if zigzag:
         for r in runs.values():
-            r.command[:, 0] += 0.002 * (-1.0) ** np.arange(len(r.command))
+            r.command[:, 0] += 0.002 * (-1.0) ** (np.arange(len(r.command)) // zigzag)
     write_dataset(out, runs, robot=robot)
     if not labels:
         from services.recording.mcap_io import McapWriter, read_messages
@@ -251,8 +251,12 @@ def test_train_refuses_a_log_without_terrain_labels(dataset: Path, tmp_path: Pat
     _one_line_refusal(["train", str(log), "-o", str(out), *FAST], "no terrain labels", "--terrain", written=out)
 
 
-def test_train_refuses_a_log_without_held_commands_naming_the_ground(dataset: Path, tmp_path: Path) -> None:
-    log = _relabelled(dataset, tmp_path / "jittery.mcap", zigzag=True)
+@pytest.mark.parametrize("zigzag", [1, 15], ids=["never-held", "held-1.5s"])
+def test_train_refuses_a_log_without_held_commands_naming_the_ground(dataset: Path, tmp_path: Path,
+                                                                    zigzag: int) -> None:
+    """Never held: the coverage check refuses before the GP fit; held only 1.5 s: the calibration fit refuses
+    (CalibrationDataError: its steady map needs commands held 2 s and more)."""
+    log = _relabelled(dataset, tmp_path / "jittery.mcap", zigzag=zigzag)
     out = tmp_path / "p.npz"
     _one_line_refusal(["train", str(log), "-o", str(out), *FAST], "ground 'grass'", "hold commands", written=out)
 

@@ -309,10 +309,6 @@ def print_coverage(coverage: list[GroundCoverage], console: Console) -> None:
                 f"[yellow]warning:[/yellow] ground {c.terrain!r}: thin coverage in {len(thin)} of "
                 f"{c.command_cells.size} command cells, the GP extrapolates there; drive: {'; '.join(thin[:4])}"
                 + (" ..." if len(thin) > 4 else ""), highlight=False)
-        if c.held == 0:
-            Console(stderr=True, soft_wrap=True).print(
-                f"[yellow]warning:[/yellow] ground {c.terrain!r}: no held command (one kept {HOLD_S:g} s or more); "
-                "the terrain estimator's steady responses need some", highlight=False)
 
 
 def print_report(report, console: Console) -> None:
