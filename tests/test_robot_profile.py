@@ -304,6 +304,10 @@ def test_evaluate_refuses_a_profile_of_grounds_its_plant_lacks(tmp_path: Path) -
     other.save(tmp_path / "other.npz")
     _one_line_refusal(["evaluate", "tracking", "--profile", str(tmp_path / "other.npz"), "--quick"],
                       "ground 'gravel'", "['gravel', 'mulch']", "--terrain-file")
+    # the same profile named once, in the launch file evaluate runs the deployed path of
+    (tmp_path / "launch.yaml").write_text("profile: other.npz\nservices:\n  - name: planner\n")
+    _one_line_refusal(["evaluate", "tracking", "--launch-file", str(tmp_path / "launch.yaml"), "--quick"],
+                      "ground 'gravel'", str(tmp_path / "other.npz"))
 
 
 def test_replay_gives_its_profile_to_the_replaced_planner_and_terrain(tmp_path: Path) -> None:

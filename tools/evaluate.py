@@ -133,7 +133,7 @@ def _check_profile_grounds(profile: Path, grounds: list[str], terrain_file: Path
     missing = [g for g in grounds if g not in names]
     if missing:
         where = f"--terrain-file {terrain_file}" if terrain_file else "the shipped terrain set (no --terrain-file)"
-        fail(f"--profile {profile}: ground {missing[0]!r} of the profile (its grounds: {grounds}) is not in "
+        fail(f"profile {profile}: ground {missing[0]!r} of the profile (its grounds: {grounds}) is not in "
              f"{where}, which has {list(names)}; pass the --terrain-file of the profile's robot")
 
 
@@ -210,7 +210,19 @@ def _settings(
     only_with(plant is PlantName.residual_net, "--plant residual-net", {"--plant-file": plant_file is not None})
     if plant is PlantName.residual_net and plant_file is None:
         fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
-    for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), ("--profile", gp_model)):
+    # the deployed command path: egress's limits, the terrain service's cycle and estimator of the launch file, and
+    # its robot profile unless --profile names one
+    from gpmppi.evaluation.deployed import DeployFileError, deployed_path
+    from services.launch.launch_file import DEFAULT_LAUNCH
+
+    try:
+        deployed = deployed_path(deploy or DEFAULT_LAUNCH)
+    except DeployFileError as e:
+        fail(f"--launch-file: {e}")
+    profile_label = "--profile"
+    if gp_model is None and deployed.profile is not None:
+        gp_model, profile_label = Path(deployed.profile), f"--launch-file {deployed.source}: profile"
+    for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), (profile_label, gp_model)):
         if f is not None and not f.is_file():
             fail(f"{label} {f}: file not found")
     if plant_file is not None:
@@ -227,7 +239,7 @@ def _settings(
         try:
             grounds = list(cached_gp_model(str(gp_model)).terrains)
         except (ModelFileError, OSError) as e:
-            fail(f"--profile: {e}")
+            fail(f"{profile_label}: {e}")
         if plant is PlantName.physics:
             _check_profile_grounds(gp_model, grounds, terrain_file)
     lane_m = distance if distance is not None else (25.0 if quick else 100.0)
@@ -236,14 +248,6 @@ def _settings(
         estimator_fields = terrain_cmd.estimator_settings(estimator or [])
     except ValueError as e:
         fail(f"--estimator: {e}")
-    # the deployed command path: egress's limits, the terrain service's cycle and estimator of the launch file
-    from gpmppi.evaluation.deployed import DeployFileError, deployed_path
-    from services.launch.launch_file import DEFAULT_LAUNCH
-
-    try:
-        deployed = deployed_path(deploy or DEFAULT_LAUNCH)
-    except DeployFileError as e:
-        fail(f"--launch-file: {e}")
     estimator_fields = (*deployed.estimator.model_dump(exclude_unset=True).items(), *estimator_fields)
     return EvalSettings(
         plant=plant.value,  # type: ignore[arg-type]
