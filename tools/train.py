@@ -412,6 +412,9 @@ def register(app: typer.Typer) -> None:
             if grid_nodes != 0:
                 model.set_grid(build_grid(model, grid_nodes, spacing=grid_spacing))
             model.robot = robot
+            model.fit_report = {**(model.fit_report or {}), "coverage": [  # what the drive reached, per ground
+                {"terrain": c.terrain, "samples": c.samples, "commands_covered": c.command_covered,
+                 "states_covered": c.state_covered, "held_commands": c.held} for c in coverage]}
             model.made_by = train_command(str(data), str(output), robot, terrain, points, iters, seed, holdout)
             if runs is not None:  # the lead swaps this call for gpmppi.terrain.log_calibration.calibrate_from_runs
                 model.calibration = _calibrate_placeholder(model, runs)
