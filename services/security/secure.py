@@ -56,6 +56,8 @@ ROLES: dict[str, Role] = {
     "planner": Role("GP-MPPI planner", puts=("cmd", "plan", "task"),
                     reads=("state", "terrain/weights", "task", "plan")),
     "egress": Role("motor-command egress (owns safety)", puts=("base/cmd",), reads=("cmd", "estop")),
+    # reads the task too: a goal keeps the scene (obstacles) of the task the planner plans for
+    "nav": Role("ROS 2 paths and goals into tasks", puts=("task",), reads=("task",)),
     "recorder": Role("MCAP recorder (reads everything)", reads=("**",)),
     "viewer": Role("rerun viewer (reads everything)", reads=("**",)),
     "launcher": Role(
