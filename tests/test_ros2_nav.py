@@ -70,7 +70,9 @@ def test_paths_and_goals_from_ros2_drive_a_running_stack(tmp_path: Path) -> None
         "ingress": settings("ingress", port, ROBOT, source="sim"),
         "planner": settings("planner", port, ROBOT, scenario="none", trigger="state", heartbeat_hz=5.0,
                             planner={"samples": 256}, ros2_plan={"enabled": True, "gid_seed": 1}),
-        "egress": settings("egress", port, ROBOT, output="sim"),
+        # a watchdog of 0.5 s, not 0.25: a planner that stops commanding still shows as zero, a loaded machine's
+        # scheduling gap does not
+        "egress": settings("egress", port, ROBOT, output="sim", watchdog_timeout_s=0.5),
         "nav": _nav_config(port, "nav", "rmw_zenoh", "jazzy"),
         "nav_bridge": _nav_config(port, "nav_bridge", "bridge", "humble", "/robot"),
     }
@@ -154,8 +156,12 @@ def _drive(s: zenoh.Session, col: Collector, plans: Collector) -> None:
                   if decode(Task, p).centerline[-1] == pytest.approx(curve[-1].tolist())]
     assert task_times and task_times[0] - swap_at < 1.5, "the planner did not take the new path"
     window = _commands(col, swap_at - 0.5)
-    times = np.array([t for t, _ in window])
-    assert len(window) > 15 and np.max(np.diff(times)) < 0.25, np.diff(times).round(3).tolist()
+    # every state is answered (the command carries its state's stamp), or at most one in a row is skipped: counted
+    # in planner cycles, not wall-clock gaps, which the load of a shared test machine stretches
+    answered = {c.header.stamp_ns for _, c in window}
+    missed = [st.header.stamp_ns not in answered for t, st in _states(col) if swap_at - 0.4 <= t <= swap_at + 2.0]
+    in_a_row = max((len(run) for run in "".join("x" if m else "." for m in missed).split(".")), default=0)
+    assert len(missed) > 15 and in_a_row <= 1, missed
     assert min(c.v_ref for _, c in window) > 0.3, [round(c.v_ref, 2) for _, c in window]
     base = [decode(BaseCommand, p) for t, p, _ in col.on(f"gpmppi/{ROBOT}/base/cmd") if t >= swap_at - 0.5]
     assert all(b.reason != "watchdog" and b.v > 0.3 for b in base), [(b.reason, round(b.v, 2)) for b in base]
