@@ -40,6 +40,11 @@ class Settings(NodeSettings):
                             description="the geometry_msgs/PoseStamped goal topic (RViz's `2D Goal Pose`: `goal_pose`)")
     half_width: float = Field(1.0, gt=0, description="half-width of the lane a path becomes [m]")
     speed_target: float = Field(1.0, ge=0, description="speed along a path [m/s]")
+    path_spacing: float = Field(
+        0.25, ge=0, description="a path's positions are thinned to this spacing [m]: the planner's lane lookup costs "
+        "time per segment on the first command after a swap (0: keep every distinct position)"
+    )
+    max_path_points: int = Field(2000, ge=2, description="paths with more positions (after thinning) are refused")
     goal_tolerance: float = Field(0.5, gt=0, description="a goal is reached within this distance [m]")
 
 
@@ -50,8 +55,8 @@ def run(settings: Settings) -> int:
 
 def serve(node: Node, settings: Settings) -> int:
     """The nav service's loop on an open node, until it is stopped."""
-    nav = NavTasks(settings.frame_id, LaneFromPath(settings.half_width, settings.speed_target),
-                   settings.goal_tolerance)
+    lane = LaneFromPath(settings.half_width, settings.speed_target, settings.path_spacing, settings.max_path_points)
+    nav = NavTasks(settings.frame_id, lane, settings.goal_tolerance)
     out = node.publisher("task")
     scene = node.subscribe("task", remote_only=True)  # what the planner plans for (it re-publishes it)
     path_key, goal_key = settings.path.key_expr(PATH_TYPE, subscribe=True), settings.goal.key_expr(GOAL_TYPE, True)

@@ -11,6 +11,7 @@ import pytest
 from rosbags.typesys import Stores, get_typestore
 
 from gpmppi.scenarios import load_lane, shipped_lane_files
+from gpmppi.tasks import distance_to_polyline
 from schemas import Circle, Task
 from services.codec import ros2
 from services.codec.convert import task_from_message
@@ -87,6 +88,24 @@ def test_a_path_is_an_open_lane_and_a_goal_keeps_the_scene(distro: str) -> None:
     assert goal.goal == [4.0, 0.0] and goal.obstacles == scene
 
 
+def test_a_dense_path_is_thinned_to_the_spacing_and_keeps_its_ends() -> None:
+    # Nav2's planner: a pose every 5 cm, here along a quarter circle of radius 3 m, and its first pose twice
+    a = np.linspace(0.0, np.pi / 2, 95)
+    arc = np.column_stack([3.0 * np.cos(a), 3.0 * np.sin(a)])
+    dense = np.vstack([arc[:1], arc])
+    lane = task_from_message(_nav().from_path(path_cdr(dense), 0))
+    c = lane.centerline
+    steps = np.hypot(*np.diff(c, axis=0).T)
+    assert c.shape[0] < dense.shape[0] / 4 and np.all(steps >= 0.25 - 1e-9) and np.all(steps < 0.5)
+    np.testing.assert_array_equal(c[0], arc[0])
+    np.testing.assert_array_equal(c[-1], arc[-1])
+    # the thinned polyline stays within a centimetre of the circle (its longest chord, the last: 0.45^2 / (8 * 3) m)
+    assert distance_to_polyline(arc, c, closed=False).max() < 0.01
+    # spacing 0 keeps every distinct position (the repeat still goes)
+    every = NavTasks("odom", LaneFromPath(1.0, 1.0, spacing=0.0), 0.5).from_path(path_cdr(dense), 0)
+    assert len(every.centerline) == arc.shape[0]
+
+
 def test_bad_paths_and_goals_are_refused_by_name() -> None:
     nav = _nav()
     line = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
@@ -102,6 +121,8 @@ def test_bad_paths_and_goals_are_refused_by_name() -> None:
     inf = line.copy()
     inf[2, 0] = np.inf
     assert _refusal(nav.from_path, path_cdr(inf), 0).name == "path_nonfinite"
+    long = _refusal(NavTasks("odom", LaneFromPath(1.0, 1.0, max_points=2), 0.5).from_path, path_cdr(line), 0)
+    assert long.name == "path_long" and "3 positions" in str(long)
     assert _refusal(nav.from_path, b"\x00\x01\x00\x00junk", 0).name == "path_invalid"
     # a goal on the path key is no path either
     assert _refusal(nav.from_path, goal_cdr(1.0, 1.0), 0).name == "path_invalid"

@@ -2,13 +2,15 @@
 
 Free of Zenoh (the nav service is a thin shell over `NavTasks`), so each rule is tested on its own:
 
-- a path is a lane: its centre line is the poses' positions in order (repeats dropped), open (a path has an end),
-  with the half-width and speed from the settings;
+- a path is a lane: its centre line is the poses' positions in order, thinned to one every `spacing` metres (Nav2's
+  come every 5 cm; the planner builds a lookup grid per lane whose cost grows with the segments, on the path of the
+  first command after a swap), open (a path has an end), with the half-width and speed from the settings;
 - a goal is a goal task with the settings' tolerance and the obstacles of the last goal task seen on `task` (the
   current scene), none if there was none;
 - a path or goal whose `header.frame_id` is not the odometry's frame is refused, naming both frames: nothing here
   transforms between frames, and a plan in the wrong frame would drive the robot somewhere else;
-- an empty path, a path of one position, a non-finite position and malformed CDR are refused.
+- an empty path, a path of one position, one of more than `max_points` positions (after thinning), a non-finite
+  position and malformed CDR are refused.
 
 Every refusal is a `NavInputError` whose `name` is the heartbeat counter it is counted under.
 """
@@ -24,7 +26,7 @@ from services.codec import ros2
 
 # the heartbeat counters of refused input, by name (each refusal is one of these)
 REFUSALS = (
-    "path_invalid", "path_frame", "path_empty", "path_short", "path_nonfinite",
+    "path_invalid", "path_frame", "path_empty", "path_short", "path_long", "path_nonfinite",
     "goal_invalid", "goal_frame", "goal_nonfinite",
 )
 
@@ -45,6 +47,22 @@ class LaneFromPath:
 
     half_width: float  # [m]
     speed_target: float  # [m/s]
+    spacing: float = 0.25  # keep a position only this far [m] from the last one kept (and always the last)
+    max_points: int = 2000  # longer paths (after thinning) are refused
+
+
+def thin(points: np.ndarray, spacing: float) -> np.ndarray:
+    """The positions (P, 2) at least `spacing` [m] apart, walking from the first; the last is kept (replacing the last
+    kept one when that is nearer than `spacing`, so the path still ends where it ended). Exact repeats are always
+    dropped (a zero-length segment has no direction)."""
+    kept = [0]
+    for i in range(1, points.shape[0]):
+        d = float(np.hypot(*(points[i] - points[kept[-1]])))
+        if d > 0.0 and (d >= spacing or i == points.shape[0] - 1):
+            kept.append(i)
+    if len(kept) > 2 and float(np.hypot(*(points[kept[-1]] - points[kept[-2]]))) < spacing:
+        del kept[-2]
+    return points[kept]
 
 
 def _check_frame(kind: str, frame_id: str, odom_frame: str) -> None:
@@ -67,12 +85,13 @@ def lane_task_from_path(reading: ros2.PathReading, odom_frame: str, lane: LaneFr
     if bad.size:
         raise NavInputError("path_nonfinite", f"path pose {int(bad[0])} of {points.shape[0]} is not finite "
                             f"{points[bad[0]].tolist()} (kept the last task)")
-    # repeated positions (a planner's first pose at the robot, twice) are zero-length segments: no direction
-    keep = np.concatenate([[True], np.any(np.diff(points, axis=0) != 0.0, axis=1)])
-    points = points[keep]
+    points = thin(points, lane.spacing)
     if points.shape[0] < 2:
         raise NavInputError("path_short", f"path has {points.shape[0]} distinct position; a lane needs 2 or more "
                             "(kept the last task)")
+    if points.shape[0] > lane.max_points:
+        raise NavInputError("path_long", f"path has {points.shape[0]} positions {lane.spacing} m apart, more than "
+                            f"{lane.max_points}: send a shorter path (kept the last task)")
     return Task(
         header=Header(stamp_ns=stamp_ns, frame_id=odom_frame),
         kind="lane",
