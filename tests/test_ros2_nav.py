@@ -145,7 +145,9 @@ def _drive(s: zenoh.Session, col: Collector, plans: Collector) -> None:
     # the warm start forgotten at the swap, as before, v_ref fell to 0.2 m/s here)
     swap_at = time.monotonic()
     x0 = _states(col)[-1][1].x
-    curve = np.column_stack([x0 + np.linspace(0.0, 30.0, 61), 0.6 * np.sin(np.linspace(0.0, 3.0, 61))])
+    # as Nav2's planner sends it: a pose every 5 cm (thinned to 25 cm by the nav service)
+    s_new = np.arange(0.0, 30.0, 0.05)
+    curve = np.column_stack([x0 + s_new, 0.6 * np.sin(s_new / 10.0)])
     bridge_path.put(path_cdr(curve, distro="humble"))
     # and bad input while driving: refused, the robot drives on the last good path
     time.sleep(1.0)
