@@ -32,6 +32,7 @@ SERVICES: dict[str, str] = {
     "recorder": "services.recorder",
     "viewer": "services.viewer",
     "foxglove": "services.foxglove",
+    "calibrate": "services.calibrate",
 }
 
 
