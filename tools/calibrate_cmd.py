@@ -97,7 +97,9 @@ def register(app: typer.Typer) -> None:
 
     @calibrate_app.command("drive")
     def drive(
-        ground: str = typer.Option(..., "--ground", help="name of the ground driven on (recorded as its label)"),
+        terrain: str = typer.Option(
+            ..., "--ground", "--terrain", "-t", help="name of the ground driven on (recorded as its terrain label)"
+        ),
         area: float = typer.Option(
             20.0, "--area", min=MIN_AREA_M, max=10_000.0,
             help="side of the free square, centred on the robot's start pose, the drive stays inside [m]",
@@ -125,6 +127,7 @@ def register(app: typer.Typer) -> None:
         `gpmppi train` fits a robot from)."""
         from services.launch.launch_file import DEFAULT_LAUNCH
 
+        ground = terrain
         if (distance is None) == (minutes is None):
             fail("give one target: --distance METRES or --minutes MINUTES")
         if not GROUND_NAME.match(ground):
