@@ -28,6 +28,7 @@ def drive_log(terrain: str, seed: int, minutes: float, area: float = 20.0, v_max
     plant.reset(np.zeros(5))
     drive = CalibrationDrive(DriveConfig(area_m=area, v_max=v_max, duration_s=minutes * 60.0, seed=seed))
     states, cmds, dist = [], [], []
+    edge = np.inf  # the true position's closest approach to an edge of the area [m]
     k = 0
     while not drive.reached:
         x = plant.measure()
@@ -36,9 +37,12 @@ def drive_log(terrain: str, seed: int, minutes: float, area: float = 20.0, v_max
         cmds.append(cmd)
         dist.append(drive.distance)
         for _ in range(10):
-            plant.step(cmd, 0.01)
+            true = plant.step(cmd, 0.01)
+            a = drive.area
+            assert a is not None
+            edge = min(edge, a.half_x - abs(true[0] - a.cx), a.half_y - abs(true[1] - a.cy))
         k += 1
-    return {"state": np.array(states), "cmd": np.array(cmds), "dist": np.array(dist)}
+    return {"state": np.array(states), "cmd": np.array(cmds), "dist": np.array(dist), "edge": edge}
 
 
 def first_pass(log: dict, min_samples: int, min_covered: float, step_s: float = 5.0) -> tuple[float, float] | None:
@@ -62,8 +66,11 @@ def main(argv: list[str] | None = None) -> None:
     print("| ground | coverage target | minutes (median, max) | metres (median, max) | command cells covered after "
           f"{args.minutes:g} min |")
     print("|---|---|---|---|---|")
+    notes = []
     for ground in args.grounds.split(","):
         logs = [drive_log(ground, seed, args.minutes) for seed in range(args.seeds)]
+        notes.append(f"{ground}: mean speed {np.mean([lg['dist'][-1] for lg in logs]) / (args.minutes * 60):.2f} m/s, "
+                     f"closest to an edge {min(lg['edge'] for lg in logs):.2f} m")
         final = []
         for log in logs:
             v, w, vr, wr, _, _ = one_step_pairs(log["state"][:, 3], log["state"][:, 4], log["cmd"][:, 0],
@@ -79,6 +86,7 @@ def main(argv: list[str] | None = None) -> None:
             m = np.array(ok)
             print(f"| {ground} | {label} | {np.median(m[:, 0]):.1f}, {m[:, 0].max():.1f} | "
                   f"{np.median(m[:, 1]):.0f}, {m[:, 1].max():.0f} | {np.median(final):.0%} |")
+    print("\n".join(notes))
 
 
 if __name__ == "__main__":

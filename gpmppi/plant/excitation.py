@@ -133,7 +133,7 @@ class AreaExcitation:
     Before each segment its path is predicted from the robot's pose (`predict_path`, braking room included); a
     segment that would come closer than `margin` to an edge is drawn again (up to `tries` times), and when none
     fits, or the robot is already in the margin, the segment turns back toward the centre instead: a held turn
-    (a loop of radius 1 m or less, or on the spot where there is no room for one) until the robot faces the centre,
+    (a loop of radius 0.5 m or less, or on the spot where there is no room for one) until the robot faces the centre,
     then a held straight run toward it. The turns back are steady commands too, so they feed the terrain calibration.
     """
 
@@ -189,13 +189,13 @@ class AreaExcitation:
         to_centre = np.array([self.area.cx, self.area.cy]) - pose[:2]
         err = float(np.angle(np.exp(1j * (np.arctan2(to_centre[1], to_centre[0]) - pose[2]))))
         # room to turn: half the margin stays free even when the loop swings outward
-        keep = 0.5 * min(self.margin, 1.0)
+        keep = min(0.5 * self.margin, 1.0)
         turn = np.zeros((0, 2))
         if abs(err) > 0.2:
             w_top = min(self.w_max, 2.5)
             for _ in range(self.tries + 1):
                 w = float(np.sign(err) * self.rng.uniform(1.0, w_top))
-                v = float(self.rng.uniform(0.0, min(1.0, self.v_max, abs(w))))  # radius v / w <= 1 m
+                v = float(self.rng.uniform(0.0, min(1.0, self.v_max, 0.5 * abs(w))))  # radius v / w <= 0.5 m
                 # held a little past the heading change: the lag eats the first part of the turn
                 n = max(1, int(np.ceil((abs(err) / abs(w) + MOTOR_LAG_S) / self.dt)))
                 turn = np.tile([v, w], (n, 1))
