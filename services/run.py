@@ -33,6 +33,7 @@ SERVICES: dict[str, str] = {
     "recorder": "services.recorder",
     "viewer": "services.viewer",
     "foxglove": "services.foxglove",
+    "calibrate": "services.calibrate",
 }
 
 

@@ -198,3 +198,22 @@ def test_labeled_log_rejects_an_unknown_terrain(runs, tmp_path: Path) -> None:
     result = runner.invoke(app, ["train", str(log), "-o", str(out), "--terrain", "sand"])
     assert result.exit_code == 2 and "unknown terrain(s) ['sand']" in " ".join(result.output.split())
     assert not out.exists()
+
+
+def test_log_reader_restarts_its_grid_after_a_gap_of_no_whole_ticks(runs, tmp_path: Path) -> None:
+    """A stack recording's first state can come 1.37 s before the rest (the drive starts later): the ticks after
+    the gap are read on a grid of their own, not lost for being 70 ms off the first state's."""
+    from schemas.messages import Command, Header, State, TerrainLabel
+    from services.recording.mcap_io import McapWriter
+
+    r = runs["tile"]
+    log = tmp_path / "gap.mcap"
+    with McapWriter(log) as w:
+        for k, stamp in [(0, 0)] + [(k, 1_370_000_000 + k * int(DT * 1e9)) for k in range(1, 200)]:
+            h = Header(stamp_ns=stamp)
+            w.write("gpmppi/jackal/state", State(header=h, x=0, y=0, theta=0, v=r["v"][k], omega=r["w"][k]))
+            w.write("gpmppi/jackal/cmd", Command(header=h, v_ref=r["v_ref"][k], omega_ref=r["w_ref"][k]))
+            w.write("gpmppi/jackal/terrain/label", TerrainLabel(header=h, terrain="tile"))
+    series = read_log_series(log, DT, None, None)["tile"]
+    np.testing.assert_allclose(series["v"], r["v"][:200])
+    assert len(np.unique(series["seg"])) == 2  # the lone first state, then one segment

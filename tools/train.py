@@ -119,9 +119,10 @@ def csv_residuals(cols: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarr
 def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | None) -> dict[str, dict]:
     """terrain -> {"v", "w", "v_ref", "w_ref", "seg", "x", "y", "yaw"} series on a dt grid from a recorded log.
 
-    Ticks are the state stamps resampled every dt; the command over [t_k, t_k + dt) is the last one
-    stamped at or before t_k (+dt/4 for clock jitter) and at most 2 dt old; a terrain label the same.
-    A segment ends where a tick is missing, the command is stale, or the label changes.
+    Ticks are the state stamps resampled every dt (the grid restarts at the next state where a tick has none);
+    the command over [t_k, t_k + dt) is the last one stamped at or before t_k (+dt/4 for clock jitter) and at most
+    2 dt old; a terrain label the same. A segment ends where a tick is missing, the command is stale, or the label
+    changes.
     """
     from services.recording.mcap_io import read_messages
 
@@ -167,14 +168,25 @@ def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | Non
     out: dict[str, dict[str, list]] = {}
     seg_id = 0
     prev: tuple[int, str] | None = None  # (tick index, terrain) of the previous usable tick
-    tick = 0
-    t0 = int(t_state[0])
-    n_ticks = int((t_state[-1] - t0) // dt_ns) + 1
-    for tick in range(n_ticks):
-        t = t0 + tick * dt_ns
+    tick = -1
+    t = int(t_state[0]) - dt_ns
+    while True:
+        tick += 1
+        t += dt_ns
         i = int(np.searchsorted(t_state, t))
+        if i >= len(t_state) and t - int(t_state[-1]) > tol:
+            break
         cand = [j for j in (i - 1, i) if 0 <= j < len(t_state)]
         j = min(cand, key=lambda j: abs(int(t_state[j]) - t))
+        if abs(int(t_state[j]) - t) > tol:
+            # no state on this tick (a pause, a late start): the grid restarts at the next state, so the states
+            # after a gap that is not a whole number of ticks are still on it
+            nxt = int(np.searchsorted(t_state, t + tol, side="right"))
+            if nxt >= len(t_state):
+                break
+            prev = None
+            t = int(t_state[nxt]) - dt_ns
+            continue
         c = int(np.searchsorted(t_cmd, t + tol, side="right")) - 1
         name = terrain
         if lab:

@@ -208,16 +208,23 @@ def run_launch(
     then: Callable[[Launcher, Monitor], None] | None = None,
     secrets: str | None = None,
     foxglove: tuple[str, int] | None = None,
+    edit: Callable[[LaunchFile], LaunchFile] | None = None,
 ) -> tuple[int, Summary]:
     """Run a launch file (default: the simulated Jackal) for `duration` seconds after every service is up
     (first heartbeat; a cold numba cache can take minutes), or until Ctrl-C; (exit code, summary).
 
     `then`, if given, runs in a thread once every service is up, instead of the `duration`; the run ends when
-    it returns (it should return soon after `launcher.stop_event` is set). Its exception is raised here."""
+    it returns (it should return soon after `launcher.stop_event` is set; the services are stopped after it
+    returns, so it may still talk to them then). Its exception is raised here.
+
+    `edit`, if given, changes the loaded launch file before it is checked (a command that runs a launch file with a
+    service of its own in place of one of the file's, as `gpmppi calibrate drive` does)."""
     # everything that can be checked is checked before any process starts (or any file is written)
     check_run(duration, port)
     path = launch_path or DEFAULT_LAUNCH
     launch, marks = load_launch(path)
+    if edit is not None:
+        launch = edit(launch)
     check_launch(launch, path, marks)
     check_profile_grounds(launch, path)
     record, rerun, notes = resolve_outputs(record, rerun)
