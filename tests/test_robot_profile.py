@@ -221,6 +221,34 @@ def test_train_writes_a_whole_profile_from_a_log(dataset: Path, tmp_path: Path) 
     assert [c["terrain"] for c in coverage] == GROUNDS and all(c["held_commands"] > 0 for c in coverage)
 
 
+def test_train_fits_one_profile_from_several_logs_one_ground_each(dataset: Path, tmp_path: Path) -> None:
+    """A calibration drive records one log per ground (and per resumed run): train takes them all at once, and no
+    one-step pair spans two logs (each log's series keeps its own segments)."""
+    from tools.train import read_log_series, read_logs_series
+
+    runs = read_dataset(dataset)
+    logs = []
+    for ground in GROUNDS:
+        logs.append(tmp_path / f"{ground}.mcap")
+        write_dataset(logs[-1], {ground: runs[ground][0]})
+    merged = read_logs_series(logs + [logs[0]], 0.1, None, None)  # a ground's second run appended to its first
+    first = read_log_series(logs[0], 0.1, None, None)[GROUNDS[0]]
+    assert sorted(merged) == GROUNDS
+    assert len(merged[GROUNDS[0]]["v"]) == 2 * len(first["v"])
+    segs = merged[GROUNDS[0]]["seg"]
+    assert set(segs[: len(first["seg"])]).isdisjoint(segs[len(first["seg"]):])
+    out = tmp_path / "p.npz"
+    result = runner.invoke(app, ["train", *map(str, logs), "-o", str(out), *FAST])
+    assert result.exit_code == 0, result.output
+    p = GPModel.load(out)
+    assert p.terrains == GROUNDS and p.calibration is not None and p.calibration.terrains == tuple(GROUNDS)
+    assert p.made_by is not None and p.made_by.startswith(f"gpmppi train {logs[0]} {logs[1]} -o {out}")
+    csv = tmp_path / "r.csv"
+    csv.write_text("a\n1\n")
+    result = runner.invoke(app, ["train", str(logs[0]), str(csv), "-o", str(tmp_path / "q.npz"), *FAST])
+    assert result.exit_code == 2 and "not both" in result.output and not (tmp_path / "q.npz").exists()
+
+
 def _relabelled(dataset: Path, out: Path, robot: str = "jackal", zigzag: int = 0, labels: bool = True) -> Path:
     """The dataset written again: under another robot name, with every command nudged every `zigzag` ticks (no
     command is held longer), or with no terrain labels."""

@@ -96,10 +96,10 @@ def _calibrate_placeholder(model: GPModel, runs: dict[str, list[TerrainRun]]) ->
     return TerrainCalibration(tuple(names), gains, response)
 
 
-def train_command(data: str, output: str, robot: str, terrain: list[str] | None, points: int, iters: int,
-                  seed: int, holdout: float | None) -> str:
+def train_command(data: list[str], output: str, robot: str, terrain: list[str] | None, points: int,
+                  iters: int, seed: int, holdout: float | None) -> str:
     """The `gpmppi train` command line that makes a profile, for its `made_by` metadata."""
-    args = [data, "-o", output, "--robot", robot, *[a for t in terrain or [] for a in ("--terrain", t)],
+    args = [*data, "-o", output, "--robot", robot, *[a for t in terrain or [] for a in ("--terrain", t)],
             "--points", str(points), "--iters", str(iters), "--seed", str(seed)]
     if holdout is not None:
         args += ["--holdout", f"{holdout:g}"]

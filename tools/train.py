@@ -258,12 +258,35 @@ def _select(available: list[str], wanted: list[str] | None, where: str) -> list[
     return [by_lower[t.lower()] for t in wanted]
 
 
+def read_logs_series(paths: list[Path], dt: float, terrain: str | None, robot: str | None) -> dict[str, dict]:
+    """`read_log_series` of every log, each ground's series concatenated in the order given (a calibration drive is
+    one log per ground and run: stopped and resumed, or one ground at a time). Segment ids are kept apart across
+    logs, so no one-step pair spans two logs."""
+    merged: dict[str, dict[str, list[np.ndarray]]] = {}
+    next_seg = 0
+    for path in paths:
+        series = read_log_series(path, dt, terrain, robot)
+        top = next_seg
+        for name, s in series.items():
+            into = merged.setdefault(name, {k: [] for k in s})
+            for k, a in s.items():
+                into[k].append(a + next_seg if k == "seg" else a)
+            top = max(top, next_seg + int(np.max(s["seg"])) + 1)
+        next_seg = top
+    return {name: {k: np.concatenate(parts) for k, parts in s.items()} for name, s in merged.items()}
+
+
 def build_training_sets(
-    data: Path, terrain: list[str] | None, theta_path: Path | None, edd5_path: Path | None,
+    data: Path | list[Path], terrain: list[str] | None, theta_path: Path | None, edd5_path: Path | None,
     dt: float, robot: str | None, seed: int,
 ) -> tuple[dict, np.ndarray, dict[str, np.ndarray], dict[str, int | None], dict[str, list] | None]:
     """(terrain -> Transitions, theta, EDD5 per terrain, held commands per terrain, terrain -> logged runs) from a
-    CSV or an MCAP log (a CSV has no time series: its held commands and runs are None)."""
+    CSV or from one or more MCAP logs (a CSV has no time series: its held commands and runs are None)."""
+    paths = [data] if isinstance(data, Path) else list(data)
+    if len(paths) > 1 and any(p.suffix.lower() == ".csv" for p in paths):
+        raise DataError(f"give one residual CSV, or one or more MCAP logs, not both or several CSVs: "
+                        f"{[str(p) for p in paths]}")
+    data = paths[0]
     from gpmppi.gp.coverage import held_commands
     from gpmppi.gp.train import Transitions, prepare_from_series
     from gpmppi.models.dynamic_unicycle import velocity_step_exact
@@ -290,11 +313,12 @@ def build_training_sets(
             edd5 = {t: identify_edd5(x[:, 0], x[:, 1], s.next_vw[:, 0], s.next_vw[:, 1], seed=seed)
                     for t, s in sets.items()}
         return sets, theta, edd5, dict.fromkeys(terrains), None
-    if data.suffix.lower() != ".csv" and not is_mcap(data):
-        raise DataError(f"{data}: not an MCAP file (nor a .csv); give a log recorded by `gpmppi launch --record` "
-                        "or `gpmppi dataset`, or a residual CSV")
-    series = read_log_series(data, dt, terrain[0] if terrain and len(terrain) == 1 else None, robot)
-    terrains = _select(sorted(series), terrain, str(data))
+    for path in paths:
+        if not is_mcap(path):
+            raise DataError(f"{path}: not an MCAP file (nor a .csv); give logs recorded by `gpmppi calibrate drive`, "
+                            "`gpmppi launch --record` or `gpmppi dataset`, or a residual CSV")
+    series = read_logs_series(paths, dt, terrain[0] if terrain and len(terrain) == 1 else None, robot)
+    terrains = _select(sorted(series), terrain, ", ".join(str(p) for p in paths))
     th = _theta_from_json(theta_json, theta_path) if theta_json is not None else None
     ed = _edd5_from_json(edd5_json, terrains, edd5_path) if edd5_json is not None else None
     held = {t: held_commands(np.asarray(series[t]["v_ref"]), np.asarray(series[t]["w_ref"]),
@@ -347,7 +371,9 @@ def register(app: typer.Typer) -> None:
 
     @app.command("train")
     def train_cmd(
-        data: Annotated[Path, typer.Argument(help="MCAP log (state, cmd, terrain labels) or residual CSV")],
+        data: Annotated[list[Path], typer.Argument(
+            help="MCAP logs (state, cmd, terrain labels; one or more, e.g. one per ground and run) or one residual "
+                 "CSV")],
         output: Annotated[Path, typer.Option("--output", "-o", metavar=OUT_FILE,
                                              help="robot profile to write (.npz)")],
         terrain: Annotated[list[str] | None, typer.Option(
@@ -427,7 +453,8 @@ def register(app: typer.Typer) -> None:
             model.fit_report = {**(model.fit_report or {}), "coverage": [  # what the drive reached, per ground
                 {"terrain": c.terrain, "samples": c.samples, "commands_covered": c.command_covered,
                  "states_covered": c.state_covered, "held_commands": c.held} for c in coverage]}
-            model.made_by = train_command(str(data), str(output), robot, terrain, points, iters, seed, holdout)
+            model.made_by = train_command([str(p) for p in data], str(output), robot, terrain, points, iters, seed,
+                                          holdout)
             if runs is not None:  # the lead swaps this call for gpmppi.terrain.log_calibration.calibrate_from_runs
                 model.calibration = _calibrate_placeholder(model, runs)
         except ValueError as e:
