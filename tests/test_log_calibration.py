@@ -12,10 +12,10 @@ import pytest
 
 from gpmppi.plant.excitation import TerrainRun, simulate_dataset
 from gpmppi.plant.terrains import load_terrains
+from gpmppi.profile.response import load_response
+from gpmppi.profile.terrain_calibration import CalibrationDataError
 from gpmppi.terrain.calibration import RESPONSE_OMEGA_REF, RESPONSE_V_REF
 from gpmppi.terrain.log_calibration import calibrate_from_runs, fit_steady_map, held_segments, settled_holds
-from gpmppi.terrain.response import load_response
-from gpmppi.terrain.terrain_calibration import CalibrationDataError
 
 LIGHT = Path(__file__).parent / "data" / "light_fast.yaml"
 
@@ -163,7 +163,7 @@ def test_a_robot_the_project_has_not_seen_is_identified_with_the_calibration_of_
     planner's kind) every ground gets a mean weight of at least 0.75 after 3 s (measured: 0.91-1.00 and, ice on the
     second drive, 0.78). With the calibration zeroed (no command-change gains, every ground the same steady map) the
     GP's evidence alone gives ice 0.31."""
-    from gpmppi.terrain.response import TerrainResponse
+    from gpmppi.profile.response import TerrainResponse
     from gpmppi.terrain.settings import EstimatorConfig
 
     terrains, model, cal = _light_robot()

@@ -155,7 +155,7 @@ def response_cmd(
     out: Annotated[Path | None, typer.Option("--output", "-o", metavar=OUT_FILE, help="Write the YAML here.")
                    ] = None,
 ) -> None:
-    """Fit each terrain's velocity response (gpmppi.terrain.response) on drives of the plant.
+    """Fit each terrain's velocity response (gpmppi.profile.response) on drives of the plant.
 
     Per terrain of the GP model (--profile; default the shipped one) on --plant: holds every command of a
     (v_ref, omega_ref) grid from rest for --settle s and

@@ -26,9 +26,9 @@ from scipy.interpolate import RBFInterpolator
 
 from gpmppi.gp.model_file import GPModel
 from gpmppi.plant.excitation import TerrainRun
+from gpmppi.profile.response import TerrainResponse
+from gpmppi.profile.terrain_calibration import CalibrationDataError, TerrainCalibration
 from gpmppi.terrain.calibration import fit_command_gain
-from gpmppi.terrain.response import TerrainResponse
-from gpmppi.terrain.terrain_calibration import CalibrationDataError, TerrainCalibration
 
 MIN_HOLD_S = 2.0  # a command kept unchanged this long [s] is a candidate hold
 SETTLE_S = 1.6  # the head of a hold left out while the velocities settle [s]
