@@ -181,8 +181,8 @@ def response_cmd(
 def log_calibration_cmd(
     data: Annotated[Path, typer.Argument(help="MCAP log with state, cmd and terrain labels (`gpmppi dataset` or a "
                                          "robot's log).")],
-    gp_model: Annotated[Path | None, typer.Option("--gp-model", help="GP model trained on that log (default: the "
-                                                  "shipped one).")] = None,
+    gp_model: Annotated[Path | None, typer.Option(
+        "--profile", help="Robot profile (its GP) trained on that log (default: the shipped one).")] = None,
     gains_out: Annotated[Path | None, typer.Option("--gains-output", metavar=OUT_FILE, help="Write the gains YAML "
                                                    "here.")] = None,
     response_out: Annotated[Path | None, typer.Option("--response-output", metavar=OUT_FILE, help="Write the "
