@@ -128,6 +128,8 @@ def plan_message(
     if isinstance(task, GoalTask) and tightened.ndim == 2:
         # per step: the largest inflation of any obstacle radius
         radii = task.obstacles[:, 2] if task.obstacles.shape[0] else np.zeros(0)
+        # a costmap's column (after the circles') is its whole radius: the robot's plus the inflation
+        radii = np.concatenate([radii, np.zeros(tightened.shape[1] - radii.size)])
         tightened = (tightened - radii[None, :]).max(axis=1) if radii.size else np.zeros(tightened.shape[0])
     # rollouts are for the viewer: 1 mm is plenty, and short numbers make the bulk of the message (3/4 of its
     # bytes at full precision) cheaper to encode, send, record and decode
