@@ -54,6 +54,9 @@ class TaskKind(ABC):
     def reset(self) -> None:  # noqa: B027 - a hook: a kind with nothing to forget keeps it
         """Forget what depends on where the planner started planning (plans repeat from here)."""
 
+    def prepare(self, task: object, x: np.ndarray) -> None:  # noqa: B027 - a hook: nothing to build ahead
+        """Build now what this kind caches per task for plans from state `x` (`Planner.prepare_task`)."""
+
     def check(self, task: object) -> None:  # noqa: B027 - a hook: a kind with no checks of its own keeps it
         """Raise a ValueError if the planner cannot plan for `task` (the task's own checks are its type's)."""
 
@@ -186,6 +189,12 @@ class GoalKind(TaskKind):
             half_step = 0.5 * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
             radii = np.sqrt(radii * radii + half_step * half_step)
         return radii, capped
+
+    def prepare(self, task: GoalTask, x: np.ndarray) -> None:
+        """A grid's kernel arrays (its distance transform) and the goal field of the task's scene."""
+        if task.costmap is not None:
+            task.costmap.kernel_arrays()
+        self.goal_field(task, x)
 
     def task_bundle(self, task: GoalTask, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
         return TaskBundle.for_goal(task.goal, task.obstacles, bounds, self.goal_field(task, x), task.costmap)

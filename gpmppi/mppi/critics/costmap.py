@@ -18,20 +18,25 @@ from gpmppi.mppi.critics.base import Critic, Param, critic_term
 
 # the grid frame's slots (`gpmppi.costmap.Costmap.kernel_arrays`)
 _HAS_GRID, _OX, _OY, _COS, _SIN, _INV_RES = 0, 1, 2, 3, 4, 5
+_FAR = 1.5 * 1.4142135623730951 + 1e-6  # [cells]: a cell's diagonal and a half
 
 
 @critic_term
-def grid_lookup(grid: np.ndarray, frame: np.ndarray, x: float, y: float) -> tuple[bool, float, float]:
-    """(inside the grid, the distance [m] to the nearest lethal cell centre interpolated bilinearly between the four
-    nearest cell centres, the value fraction of the cell the point lies in) at world point (x, y)."""
+def grid_cell(frame: np.ndarray, w: int, h: int, x: float, y: float) -> tuple[bool, float, float]:
+    """(inside the grid, the grid's x and y [cells]) of world point (x, y)."""
     dx = x - frame[_OX]
     dy = y - frame[_OY]
     gx = (frame[_COS] * dx + frame[_SIN] * dy) * frame[_INV_RES]  # in cells, in the grid's frame
     gy = (frame[_COS] * dy - frame[_SIN] * dx) * frame[_INV_RES]
+    return gx >= 0.0 and gy >= 0.0 and gx < w and gy < h, gx, gy
+
+
+@critic_term
+def interpolated_distance(grid: np.ndarray, gx: float, gy: float) -> float:
+    """The distance [m] to the nearest lethal cell centre at grid point (gx, gy) [cells], bilinear between the four
+    nearest cell centres."""
     h = grid.shape[0]
     w = grid.shape[1]
-    if not (gx >= 0.0 and gy >= 0.0 and gx < w and gy < h):
-        return False, 0.0, 0.0
     fc = fmin(fmax(gx - 0.5, 0.0), w - 1.0)  # (float min / max: the CUDA target compiles these)
     fr = fmin(fmax(gy - 0.5, 0.0), h - 1.0)
     c = int(fc)
@@ -40,9 +45,18 @@ def grid_lookup(grid: np.ndarray, frame: np.ndarray, x: float, y: float) -> tupl
     r1 = r + 1 if r + 1 < h else r
     tx = fc - c
     ty = fr - r
-    d = (1.0 - ty) * ((1.0 - tx) * grid[r, c, 1] + tx * grid[r, c1, 1]) + ty * (
+    return (1.0 - ty) * ((1.0 - tx) * grid[r, c, 1] + tx * grid[r, c1, 1]) + ty * (
         (1.0 - tx) * grid[r1, c, 1] + tx * grid[r1, c1, 1])
-    return True, d, grid[int(gy), int(gx), 0]
+
+
+@critic_term
+def grid_lookup(grid: np.ndarray, frame: np.ndarray, x: float, y: float) -> tuple[bool, float, float]:
+    """(inside the grid, the interpolated distance [m] to the nearest lethal cell centre, the value fraction of the cell
+    the point lies in) at world point (x, y)."""
+    inside, gx, gy = grid_cell(frame, grid.shape[1], grid.shape[0], x, y)
+    if not inside:
+        return False, 0.0, 0.0
+    return True, interpolated_distance(grid, gx, gy), grid[int(gy), int(gx), 0]
 
 
 @critic_term
@@ -50,12 +64,18 @@ def costmap_cost(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tupl
     frame = geo.grid_frame
     if frame[_HAS_GRID] == 0.0 or weight == 0.0:
         return 0.0
-    inside, d, value = grid_lookup(geo.grid, frame, at.x, at.y)
+    grid = geo.grid
+    inside, gx, gy = grid_cell(frame, grid.shape[1], grid.shape[0], at.x, at.y)
     if not inside:
         return 0.0
-    if d < at.radii[geo.obstacles.shape[0]]:  # this step's radius: the column after the circles'
+    r = int(gy)
+    c = int(gx)
+    radius = at.radii[geo.obstacles.shape[0]]  # this step's radius: the column after the circles'
+    # the interpolation only where it can decide: the four centres it reads lie within a cell's diagonal of the point
+    # and the point within half of one of its own cell's centre, so a cell this far off leaves it above the radius
+    if grid[r, c, 1] <= radius + _FAR / frame[_INV_RES] and interpolated_distance(grid, gx, gy) < radius:
         return weight
-    return weight * cost_w[p] * value  # p: `value_scale`
+    return weight * cost_w[p] * grid[r, c, 0]  # p: `value_scale`
 
 
 CRITIC = Critic("costmap", 1000.0, ("goal",), costmap_cost,
