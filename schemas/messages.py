@@ -188,7 +188,7 @@ class Plan(Message):
     critic_costs: dict[str, float] = Field(
         default_factory=dict,
         description="each critic's cost of the nominal sequence, by critic name (variance, deviation, slip, "
-        "lane_exit, speed, collision, goal, terminal); they sum to the nominal sequence's cost [cost]",
+        "lane_exit, speed, collision, costmap, goal, terminal); they sum to the nominal sequence's cost [cost]",
     )
     effective_samples: float | None = Field(
         None,

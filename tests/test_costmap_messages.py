@@ -112,3 +112,28 @@ def test_the_planner_service_plans_among_a_grid_and_refuses_bad_ones(tmp_path: P
             assert planner.alive()
         finally:
             assert planner.stop() == 0, planner.log()[-3000:]
+
+
+def test_a_new_grid_keeps_the_warm_start_and_is_prepared_between_states() -> None:
+    from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.mppi.synthetic import synthetic_model
+    from gpmppi.scenarios import paper_obstacle_scene
+
+    scene = paper_obstacle_scene()
+    planner = Planner(PlannerConfig(backend="cpu", samples=32, horizon=8), synthetic_model(nodes=4, n_train=20))
+    cycle = PlannerCycle(planner, scene.task, CycleConfig(compensate_delay=False), 3)
+    now = time.time_ns()
+    assert isinstance(cycle.on_state(scene.start, now, time.monotonic(), now), Planned)
+    grid = costmap_from_message(_wall_grid("odom", now))
+    cycle.set_costmap(grid)
+    assert cycle.task.costmap is grid and np.array_equal(cycle.task.obstacles, scene.task.obstacles)
+    assert planner._iteration == 1  # not reset: the warm start stays
+    assert "kernel" in grid._arrays  # its distance transform was built on arrival
+    kind = planner.kind(cycle.task)
+    assert kind._goal_scene is not None and grid.digest() in kind._goal_scene  # and its goal field
+    out = cycle.on_state(scene.start, now + 100_000_000, time.monotonic(), now + 100_000_000)
+    assert isinstance(out, Planned) and out.result.tightened.shape[1] == scene.task.obstacles.shape[0] + 1
+    # a new goal task without a grid of its own plans among the cycle's grid
+    cycle.set_task(type(scene.task)(goal=np.array([6.0, 6.0])))
+    assert cycle.task.costmap is grid and planner._iteration == 0
