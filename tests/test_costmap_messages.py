@@ -137,3 +137,5 @@ def test_a_new_grid_keeps_the_warm_start_and_is_prepared_between_states() -> Non
     # a new goal task without a grid of its own plans among the cycle's grid
     cycle.set_task(type(scene.task)(goal=np.array([6.0, 6.0])))
     assert cycle.task.costmap is grid and planner._iteration == 0
+    cycle.set_costmap(None)  # the grid withdrawn: the circles alone
+    assert cycle.task.costmap is None

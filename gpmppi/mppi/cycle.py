@@ -224,7 +224,9 @@ class PlannerCycle:
     def _with_costmap(self, task: Task, replace_own: bool = False) -> Task:
         from gpmppi.tasks import GoalTask
 
-        if not isinstance(task, GoalTask) or self.costmap is None or (task.costmap is not None and not replace_own):
+        if not isinstance(task, GoalTask) or (task.costmap is not None and not replace_own):
+            return task
+        if self.costmap is None and not replace_own:
             return task
         return dataclasses.replace(task, costmap=self.costmap)
 
