@@ -35,6 +35,7 @@ from services.codec.convert import (
     task_from_message,
     task_to_message,
 )
+from services.codec.ros2_topic import Ros2Topic
 from services.runtime.node import Node, TypedSubscription
 from services.runtime.node_settings import NodeSettings
 from services.runtime.scheduling import process_age_s
@@ -48,6 +49,14 @@ if TYPE_CHECKING:
     from gpmppi.tasks import GoalTask, LaneTask
 
 
+class Ros2PlanOutput(Ros2Topic):
+    """The nominal plan as a ROS 2 nav_msgs/Path (what a Nav2 controller publishes as its local plan)."""
+
+    enabled: bool = Field(False, description="publish each Plan's nominal trajectory as nav_msgs/Path CDR")
+    topic: str = Field("local_plan", description="ROS 2 topic (relative to namespace)")
+    gid_seed: int | None = Field(None, description="seed of the rmw_zenoh source gid (None: random)")
+
+
 class Settings(NodeSettings, CycleConfig):
     """The planner service's settings; the planning cycle's checks and delay compensation (`CycleConfig`) are
     top-level fields."""
@@ -55,9 +64,12 @@ class Settings(NodeSettings, CycleConfig):
     service: str = Field("planner", description="service name")
     planner: PlannerConfig = Field(default_factory=PlannerConfig, description="GP-MPPI settings")
     scenario: str = Field(
-        "circle", description="task: 'circle', 'square', 'paper_obstacles', or a lane_*.yaml / scene_*.yaml file"
+        "circle", description="task: 'circle', 'square', 'paper_obstacles', a lane_*.yaml / scene_*.yaml file, or "
+        "'none' (no task until one arrives on `task`, e.g. from the nav service: nothing is planned until then, so "
+        "egress holds the robot at zero)"
     )
-    model_file: str | None = Field(None, description="GP model file (None: the shipped model)")
+    model_file: str | None = Field(None, description="the robot profile (.npz from `gpmppi train`; a launch "
+                                   "file's top-level `profile` fills it; None: the shipped Jackal profile)")
     trigger: Literal["state", "rate"] = Field("state", description="plan on each new state, or at rate_hz")
     rate_hz: float = Field(10.0, gt=0, description="planning rate when trigger == 'rate' [Hz]")
     actuation_delay_s: float = Field(
@@ -66,6 +78,10 @@ class Settings(NodeSettings, CycleConfig):
     plan_samples: int = Field(16, ge=0, description="rollouts (XY) included in each Plan message")
     plan_every: int = Field(1, ge=1, description="publish a Plan every n-th cycle (cmd every cycle)")
     task_period_s: float = Field(1.0, gt=0, description="re-publish the task this often [s]")
+    ros2_plan: Ros2PlanOutput = Field(
+        default_factory=Ros2PlanOutput, description="the plan for ROS 2: nav_msgs/Path in the state's (odometry's) "
+        "frame, one pose per step stamped when the plan reaches it; with every Plan (`plan_every`)"
+    )
 
     def cycle_config(self) -> CycleConfig:
         return CycleConfig(**{name: getattr(self, name) for name in CycleConfig.model_fields})
@@ -89,6 +105,14 @@ class StateSubscription(TypedSubscription[State]):
             return None
         self.last = msg
         return msg
+
+
+NO_TASK = "none"  # the `scenario` of a planner that waits for its task on `task`
+
+
+def warm_up_scenario(name: str) -> Scenario:
+    """The scenario the kernels are compiled on before going live: the configured one, the circle for 'none'."""
+    return load_scenario("circle" if name == NO_TASK else name)
 
 
 def load_scenario(name: str) -> Scenario:
@@ -174,7 +198,7 @@ def run(settings: Settings) -> int:
         loading = pool.submit(load_model, settings.model_file)
         from gpmppi.mppi.planner import Planner
 
-        scenario = load_scenario(settings.scenario)
+        scenario = warm_up_scenario(settings.scenario)
         model = loading.result()
     startup["planner_import_and_model_s"] = time.monotonic() - t
     # everything that does not need the session is done before it opens: the kernels loaded (or compiled) and the
@@ -194,7 +218,8 @@ def run(settings: Settings) -> int:
         pending_grid: OccupancyGrid | None = None  # a grid that came before the first state (its frame unchecked)
         outputs = Outputs(node, settings, startup)
         outputs.started = time.monotonic()
-        cycle = PlannerCycle(planner, scenario.task, settings.cycle_config(), len(model.terrains), model.terrains)
+        initial_task = None if settings.scenario == NO_TASK else scenario.task
+        cycle = PlannerCycle(planner, initial_task, settings.cycle_config(), len(model.terrains), model.terrains)
         if (last := node.handed_over("plan", Plan)) is not None:
             # a predecessor's last plan (the launcher saw it): the first plan starts from its sequence, shifted to
             # the first state, never from zero commands at speed
@@ -244,7 +269,7 @@ def run(settings: Settings) -> int:
                                  latest.covariance)
             report(cycle.drain_events())
             if isinstance(out, Planned):  # else no command this cycle: egress's watchdog stops the robot if it lasts
-                outputs.publish(out, cycle.task)
+                outputs.publish(out, cycle.task, latest.header.frame_id)
                 node.cycle()
             node.spin_once(0.0)
     return 0
@@ -276,6 +301,8 @@ class Outputs:
         self.task = node.publisher("task")
         self.costmap = node.publisher("costmap")
         self._grid: tuple[object, OccupancyGrid] | None = None  # the last grid published and its message
+        self.ros_plan = Ros2PlanPublisher(node, settings.ros2_plan, settings.planner.dt) \
+            if settings.ros2_plan.enabled else None
         self.published = 0
         self.started = time.monotonic()  # when the loop started, for the time to the first command [monotonic s]
 
@@ -291,7 +318,7 @@ class Outputs:
         msg.header.stamp_ns = time.time_ns()
         return msg
 
-    def publish(self, out: Planned, task: LaneTask | GoalTask) -> None:
+    def publish(self, out: Planned, task: LaneTask | GoalTask, frame_id: str) -> None:
         result = out.result
         cmd = Command(v_ref=float(result.control[0]), omega_ref=float(result.control[1]))
         cmd.header.stamp_ns = out.stamp_ns
@@ -312,7 +339,41 @@ class Outputs:
             except DecodeError as exc:  # e.g. non-finite sample costs: the command went out, the plan cannot
                 self.node.counters.count("plan_invalid")
                 self.node.error(f"plan not published: {exc}")
+            if self.ros_plan is not None:
+                self.ros_plan.put(out, frame_id)
         self.published += 1
+
+
+class Ros2PlanPublisher:
+    """Each plan's nominal trajectory as nav_msgs/Path CDR: in the state's frame, pose k stamped when the plan
+    reaches it (the state's stamp + the delay it planned ahead + k dt); on the rmw_zenoh key with its attachment,
+    or the bridge key."""
+
+    def __init__(self, node: Node, settings: Ros2PlanOutput, dt: float) -> None:
+        import zenoh
+
+        from services.codec import ros2
+
+        assert node.session is not None
+        self.ros2, self.settings, self.dt, self.node = ros2, settings, dt, node
+        key = settings.key_expr("nav_msgs/msg/Path")
+        self.publisher = node.session.declare_publisher(key, encoding=zenoh.Encoding("application/cdr"))
+        self.gid = ros2.new_gid(settings.gid_seed)
+        self.sequence = 1  # ROS 2 publishers count from 1
+        node.log.info("ROS 2 plan (nav_msgs/msg/Path) on %s", key)
+
+    def put(self, out: Planned, frame_id: str) -> None:
+        states = np.asarray(out.result.states, dtype=np.float64)
+        steps = np.arange(states.shape[0], dtype=np.float64)
+        stamps = out.stamp_ns + np.round((out.delay_s + steps * self.dt) * 1e9).astype(np.int64)
+        payload = self.ros2.path_cdr(states[:, :3], stamps, frame_id, int(stamps[0]), self.settings.distro)
+        attachment = None
+        if self.settings.key_style == "rmw_zenoh":
+            attachment = self.ros2.Attachment(self.sequence, time.time_ns(), self.gid).to_bytes()
+        self.publisher.put(payload, attachment=attachment)
+        self.sequence += 1
+        with self.node.counters.lock:
+            self.node.counters.published += 1
 
 
 def warm_up(node: Node, planner: Planner, scenario: Scenario) -> None:

@@ -29,9 +29,11 @@ SERVICES: dict[str, str] = {
     "terrain": "services.terrain",
     "planner": "services.planner",
     "egress": "services.egress",
+    "nav": "services.nav",
     "recorder": "services.recorder",
     "viewer": "services.viewer",
     "foxglove": "services.foxglove",
+    "calibrate": "services.calibrate",
 }
 
 

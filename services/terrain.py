@@ -7,6 +7,7 @@ publishing the prior before it builds its solver (cvxpy), the slow part of its s
 
 from __future__ import annotations
 
+import sys
 import time
 from typing import TYPE_CHECKING
 
@@ -30,7 +31,8 @@ class Settings(NodeSettings, TerrainCycleConfig):
     command_wait_s), the estimator's and the model file."""
 
     service: str = Field("terrain", description="service name")
-    model_file: str | None = Field(None, description="GP model file (None: the shipped model)")
+    model_file: str | None = Field(None, description="the robot profile (.npz from `gpmppi train`; a launch "
+                                   "file's top-level `profile` fills it; None: the shipped Jackal profile)")
     estimator: EstimatorConfig = Field(
         default_factory=EstimatorConfig, description="the estimator: method ('bayes', the default, or the paper's "
         "convex problem 'paper') and its parameters (gpmppi.terrain.settings.EstimatorConfig)"
@@ -44,9 +46,16 @@ def command_array(msg: BaseCommand | Command) -> list[float]:
 
 def run(settings: Settings) -> int:
     # not services.planner's loader: that module imports the planner (its kernels) for nothing here
-    from gpmppi.gp.model_file import GPModel, load_default_model
+    from gpmppi.gp.model_file import GPModel, ModelFileError, load_default_model
+    from gpmppi.terrain.settings import profile_calibration
 
-    model = load_default_model() if settings.model_file is None else GPModel.load(settings.model_file)
+    try:
+        model = load_default_model() if settings.model_file is None else GPModel.load(settings.model_file)
+        if settings.estimator.method == "bayes":  # a profile without the calibration its settings need: one line
+            profile_calibration(settings.estimator, model)
+    except ModelFileError as exc:
+        print(f"gpmppi service terrain: {exc}", file=sys.stderr)
+        return 2
     # the estimator's modules (cvxpy for the paper's method) before the session: a process started ahead of need
     # waits in `Node.open` with them imported (services.runtime.role)
     import gpmppi.terrain.estimator  # noqa: F401

@@ -35,7 +35,8 @@ CONCEPTS = {
     "planner model (gp, edd5, unicycle)": lambda p: _ann(p) is ModelName,
     "output file or folder": lambda p: p.param_type_name == "option" and p.name in ("output", "out", "out_dir"),
     "worker processes": lambda p: p.name == "workers",
-    "GP model file (.npz from `gpmppi train`)": lambda p: p.name in ("gp_model", "model_path")
+    "robot profile (.npz from `gpmppi train`: GP, nominal model, terrain calibration)": lambda p: p.name in (
+        "gp_model", "model_path", "profile")
     or (_ann(p) is Path and p.name == "model"),
     "launch file (YAML)": lambda p: p.param_type_name == "option" and p.name in ("launch_file", "launch", "deploy"),
     "terrain estimator setting": lambda p: p.name == "estimator" and "KEY=VALUE" in (p.help or "")
@@ -90,7 +91,7 @@ def test_the_short_flags_mean_one_thing() -> None:
 
 
 def test_no_path_option_is_called_model() -> None:
-    """--model is the planner model everywhere; a GP model file is --gp-model."""
+    """--model is the planner model everywhere; a robot profile (the GP model file) is --profile."""
     for path, cmd in TREE:
         for p in cmd.params:
             if "--model" in p.opts:

@@ -44,6 +44,15 @@ def test_square_and_open_polyline_distance_match_brute_force() -> None:
     _check_lookup(zigzag, False, (-3, 15, -4, 6), 2)
 
 
+def test_a_long_winding_path_matches_brute_force() -> None:
+    # many segments, each cell searching only its block's list (a Nav2-like path: 0.25 m steps that wander)
+    rng = np.random.default_rng(5)
+    heading = np.cumsum(rng.normal(0.0, 0.3, 240))
+    pts = np.cumsum(0.25 * np.column_stack([np.cos(heading), np.sin(heading)]), axis=0)
+    lo, hi = pts.min(0), pts.max(0)
+    _check_lookup(pts, False, (lo[0], hi[0], lo[1], hi[1]), 3)
+
+
 def test_open_polyline_has_no_closing_segment() -> None:
     pts = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
     assert polyline_segments(pts, closed=False).shape[0] == 2

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from gpmppi.plant import load_terrains
 from gpmppi.plant.excitation import Excitation, runs_to_series, simulate_dataset
-from schemas.messages import Command, Header, State
+from schemas.messages import Command, Header, State, TerrainLabel
 from services.recording.mcap_io import McapWriter
 from tools.cli import app
 from tools.dataset import read_dataset
@@ -120,3 +120,83 @@ def test_runs_to_series_matches_the_trainer_layout(small_dataset: Path) -> None:
         assert len({len(a) for a in s.values()}) == 1
         np.testing.assert_array_equal(s["v_ref"], runs[name][0].command[:, 0])
         np.testing.assert_array_equal(s["w"], runs[name][0].state[:, 4])
+
+
+def read_dataset_by_exact_stamp(path: Path, dt: float = 0.1) -> dict[str, list]:
+    """The reader before stack recordings (states and commands matched by exact stamp), kept to hold the new
+    pairing rule to it on dataset files."""
+    from services.recording.mcap_io import read_messages
+
+    keys = {"gpmppi/jackal/state": "state", "gpmppi/jackal/cmd": "cmd", "gpmppi/jackal/terrain/label": "label"}
+    states, commands, labels = {}, {}, {}
+    for key, _, msg in read_messages(path, keys=keys):
+        stamp = msg.header.stamp_ns
+        if keys[key] == "state":
+            states[stamp] = msg.as_array()
+        elif keys[key] == "cmd":
+            commands[stamp] = [msg.v_ref, msg.omega_ref]
+        else:
+            labels[stamp] = msg.terrain
+    stamps = sorted(set(states) & set(commands))
+    runs: dict[str, list] = {}
+    start = 0
+    for i in range(1, len(stamps) + 1):
+        if i < len(stamps):
+            gap = (stamps[i] - stamps[i - 1]) / 1e9 > 1.5 * dt
+            if not (gap or labels.get(stamps[i]) != labels.get(stamps[i - 1])):
+                continue
+        chunk = stamps[start:i]
+        st = np.array([states[s] for s in chunk])
+        runs.setdefault(labels[chunk[0]], []).append(
+            ((np.array(chunk) - chunk[0]) / 1e9, st, np.array([commands[s] for s in chunk])))
+        start = i
+    return runs
+
+
+def test_a_dataset_file_reads_bit_identical_to_exact_stamp_pairing(small_dataset: Path) -> None:
+    new, old = read_dataset(small_dataset), read_dataset_by_exact_stamp(small_dataset)
+    assert list(new) == list(old)
+    for name in old:
+        assert len(new[name]) == len(old[name])
+        for run, (t, st, cmd) in zip(new[name], old[name], strict=True):
+            assert run.time.tobytes() == t.tobytes()
+            assert run.state.tobytes() == st.tobytes() and run.true_state.tobytes() == st.tobytes()
+            assert run.command.tobytes() == cmd.tobytes()
+
+
+def test_a_stack_recording_pairs_each_state_with_the_command_in_force(tmp_path: Path) -> None:
+    """Odometry at 50 Hz with jitter, commands on their own later stamps, a lost stretch of commands, labels only
+    now and then: 0.1 s ticks, each with the latest command at or before it, split where none is in force."""
+    rng = np.random.default_rng(0)
+    path = tmp_path / "stack.mcap"
+    ms = 1_000_000
+    with McapWriter(path) as writer:
+        for k in range(200):  # 4 s of odometry at 50 Hz, a few ms of jitter
+            stamp = 1_000 * ms + k * 20 * ms + int(rng.integers(0, 3 * ms))
+            writer.write("gpmppi/jackal/state",
+                         State(header=Header(stamp_ns=stamp), x=0.01 * k, y=0, theta=0, v=k, omega=0.0))
+        for j in range(40):  # a command every 0.1 s, 30 ms after its tick; none from 1.8 s to 2.6 s
+            if 18 <= j < 26:
+                continue
+            stamp = 1_000 * ms + j * 100 * ms + 30 * ms
+            writer.write("gpmppi/jackal/cmd", Command(header=Header(stamp_ns=stamp), v_ref=float(j), omega_ref=0.0))
+        for stamp, name in ((900 * ms, "gravel"), (3_500 * ms, "mud")):
+            writer.write("gpmppi/jackal/terrain/label",
+                         TerrainLabel(header=Header(stamp_ns=stamp), terrain=name))
+    runs = read_dataset(path)
+    assert set(runs) == {"gravel", "mud"}
+    for rs in runs.values():
+        for run in rs:
+            gaps = np.diff(run.time)
+            assert np.all((gaps > 0.075) & (gaps < 0.15)), gaps  # 50 Hz thinned to 0.1 s ticks
+            tick_ms = 1_000 + 20 * run.state[:, 3]  # the state's odometry index gives its nominal stamp [ms]
+            # the command in force: the latest stamped at or before the state (1000 + 100 j + 30 ms <= stamp)
+            sent = np.array([j for j in range(40) if not 18 <= j < 26])
+            latest = [sent[1_030 + 100 * sent <= t].max() for t in tick_ms]
+            assert np.array_equal(run.command[:, 0], latest)
+            assert np.all(tick_ms - (1_030 + 100 * run.command[:, 0]) <= 200)  # within the bound (2 dt)
+    gravel, mud = runs["gravel"], runs["mud"]
+    # the last command before the lost stretch (2.73 s) stays in force for 2 dt: the run (from 1.1 s) ends at 2.9 s; the
+    # next command (3.63 s) comes after the label changed (3.5 s)
+    assert len(gravel) == 1 and gravel[0].time[-1] == pytest.approx(1.8, abs=0.01) and gravel[0].command[-1, 0] == 17
+    assert len(mud) == 1 and mud[0].command[0, 0] == 26.0 and mud[0].terrain == "mud"

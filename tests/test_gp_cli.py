@@ -38,7 +38,7 @@ def _inputs(path: Path, header: str, n: int = 25) -> tuple[Path, np.ndarray]:
 def test_predict_writes_means_and_variances(model_path: Path, tmp_path: Path, header: str, mode: str) -> None:
     inputs, x = _inputs(tmp_path / "in.csv", header)
     out = tmp_path / "out.csv"
-    result = runner.invoke(app, ["gp", "predict", str(inputs), "--gp-model", str(model_path),
+    result = runner.invoke(app, ["gp", "predict", str(inputs), "--profile", str(model_path),
                                  "-o", str(out), "--mode", mode])
     assert result.exit_code == 0, result.output
     cols = out.read_text().splitlines()[0].split(",")
@@ -57,20 +57,20 @@ def test_predict_writes_means_and_variances(model_path: Path, tmp_path: Path, he
 def test_predict_errors(model_path: Path, tmp_path: Path) -> None:
     out = tmp_path / "out.csv"
     bad, _ = _inputs(tmp_path / "bad.csv", "cmd_lin,cmd_ang,curr_lin,speed")
-    result = runner.invoke(app, ["gp", "predict", str(bad), "--gp-model", str(model_path),
+    result = runner.invoke(app, ["gp", "predict", str(bad), "--profile", str(model_path),
                                  "-o", str(out)])
     assert result.exit_code == 2 and "missing input column 'curr_ang'" in result.output and not out.exists()
     good, _ = _inputs(tmp_path / "good.csv", "cmd_lin,cmd_ang,curr_lin,curr_ang")
-    result = runner.invoke(app, ["gp", "predict", str(good), "--gp-model", str(model_path),
+    result = runner.invoke(app, ["gp", "predict", str(good), "--profile", str(model_path),
                                  "-o", str(out), "--mode", "fast"])
     assert result.exit_code == 2 and "--mode" in result.output and not out.exists()
-    result = runner.invoke(app, ["gp", "predict", str(good), "--gp-model", str(good),
+    result = runner.invoke(app, ["gp", "predict", str(good), "--profile", str(good),
                                  "-o", str(out)])
     assert result.exit_code == 2 and "not a GP model file" in result.output and not out.exists()
 
 
 def test_bench_reports_accuracy_and_rates(model_path: Path) -> None:
-    result = runner.invoke(app, ["bench", "gp", "--gp-model", str(model_path), "--points", "3000", "--json"])
+    result = runner.invoke(app, ["bench", "gp", "--profile", str(model_path), "--points", "3000", "--json"])
     assert result.exit_code == 0, result.output
     r = json.loads(result.output)
     assert r["grid_nodes"] == 10 and len(r["tasks"]) == 4

@@ -46,6 +46,9 @@ def test_a_narrow_drive_is_thin_and_a_wide_one_covers_the_range() -> None:
     assert (c.command_cells >= MIN_PER_CELL).all()
     few = ground_coverage("ice", wide[:50])
     assert "50 one-step samples" in few.problem()
+    still = ground_coverage("grass", wide, held=0)  # a log whose commands never stay put: no calibration
+    assert "no command held 1 s or longer" in still.problem() and "hold commands" in still.problem()
+    assert ground_coverage("grass", wide, held=None).problem() is None  # a CSV has no time series to hold
 
 
 def _csv(path: Path, x: np.ndarray, terrain: str) -> Path:

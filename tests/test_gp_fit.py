@@ -198,7 +198,7 @@ def _paper_fit(jackal: Path, seed: int):
     the paper's test set."""
     from tools.train import build_training_sets, csv_inputs, csv_residuals, read_csv_columns
 
-    sets, theta, edd5, _ = build_training_sets(jackal / "gp_train.csv", None, jackal / "theta.json",
+    sets, theta, edd5, _, _ = build_training_sets(jackal / "gp_train.csv", None, jackal / "theta.json",
                                             jackal / "edd5.json", 0.1, None, seed)
     cols = read_csv_columns(jackal / "gp_test.csv")
     tx, tres = csv_inputs(cols, jackal / "gp_test.csv"), csv_residuals(cols, jackal / "gp_test.csv")

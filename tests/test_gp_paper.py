@@ -64,7 +64,7 @@ def paper_model(paper_model_file: Path) -> Path:
 
 def test_exact_predict_matches_gpytorch(jackal: Path, paper_model: Path, tmp_path: Path) -> None:
     pred = tmp_path / "pred.csv"
-    result = runner.invoke(app, ["gp", "predict", str(jackal / "gp_test.csv"), "--gp-model", str(paper_model),
+    result = runner.invoke(app, ["gp", "predict", str(jackal / "gp_test.csv"), "--profile", str(paper_model),
                                  "-o", str(pred), "--mode", "exact"])
     assert result.exit_code == 0, result.output
     header, ours = _read(pred)
@@ -92,7 +92,7 @@ def test_gp_beats_nominal_on_paper_test_set(jackal: Path, paper_model: Path, tmp
     header, test = _read(jackal / "gp_test.csv")
     for mode in ("exact", "grid"):
         pred = tmp_path / f"{mode}.csv"
-        assert runner.invoke(app, ["gp", "predict", str(jackal / "gp_test.csv"), "--gp-model", str(paper_model),
+        assert runner.invoke(app, ["gp", "predict", str(jackal / "gp_test.csv"), "--profile", str(paper_model),
                                    "-o", str(pred), "--mode", mode]).exit_code == 0
         pheader, ours = _read(pred)
         for terrain in ("Asphalt", "Grass", "Tile"):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gpmppi.mppi.cycle import CycleConfig, Event, Planned, PlannerCycle
-from gpmppi.tasks import LaneTask
+from gpmppi.tasks import GoalTask, LaneTask
 
 NS = 1_000_000_000
 LANE = LaneTask(np.array([[0.0, 0.0], [100.0, 0.0]]), half_width=1.0, closed=False)
@@ -84,7 +84,7 @@ def test_each_refusal_is_named_counted_and_gives_no_plan() -> None:
     assert cycle.drain_events() == []
 
 
-def test_a_new_task_and_an_odometry_jump_reset_the_warm_start() -> None:
+def test_a_task_of_another_kind_and_an_odometry_jump_reset_the_warm_start() -> None:
     cycle, planner = make()
     assert isinstance(cycle.on_state(X0, NS, 0.0, NS), Planned)
     step = X0 + np.array([0.1, 0.0, 0.0, 0.0, 0.0])
@@ -93,9 +93,15 @@ def test_a_new_task_and_an_odometry_jump_reset_the_warm_start() -> None:
     jumped = X0 + np.array([5.0, 0.0, 0.0, 0.0, 0.0])
     assert isinstance(cycle.on_state(jumped, NS + NS // 5, 0.2, NS + NS // 5), Planned)  # still plans, from scratch
     assert planner.resets == 1 and cycle.counts["odom_jump"] == 1
+    # a replanned path (a lane for a lane) keeps the warm start: the robot drives on through the swap
     other = LaneTask(np.array([[0.0, 0.0], [0.0, 50.0]]), half_width=1.0, closed=False)
     cycle.set_task(other)
-    assert planner.resets == 2 and cycle.task is other
+    assert planner.resets == 1 and cycle.task is other
+    goal = GoalTask(goal=np.array([10.0, 0.0]))
+    cycle.set_task(goal)
+    assert planner.resets == 2 and cycle.task is goal
+    cycle.set_task(GoalTask(goal=np.array([12.0, 1.0])))  # a moved goal keeps it too
+    assert planner.resets == 2
 
 
 def test_start_covariance_from_the_state_or_the_configured_one() -> None:

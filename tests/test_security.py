@@ -475,10 +475,10 @@ def test_secured_stack_drives(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
 
 # ---- the robot: ROS 2 nodes on the same (rmw_zenoh) router -----------------------------------------------------
 def test_ros2_identity_shares_the_router_but_cannot_command_the_base(tmp_path: Path) -> None:
-    from tools.secure_cmd import ROS2_CMD_KEY, ROS2_ODOM_KEY
+    from tools.secure_cmd import ROS2_CMD_KEY, ROS2_NAV_KEYS, ROS2_ODOM_KEY
 
     secrets = tmp_path / "s"
-    init_secrets(secrets, robot=ROBOT, ros2={"cmd": ROS2_CMD_KEY, "odom": ROS2_ODOM_KEY})
+    init_secrets(secrets, robot=ROBOT, ros2={"cmd": ROS2_CMD_KEY, "odom": ROS2_ODOM_KEY, **ROS2_NAV_KEYS})
     assert "ros2" in check_secrets(secrets, ROBOT).users
     port = free_port()
     router = _router_process(secrets, [endpoint(port)], tmp_path)
@@ -497,6 +497,13 @@ def test_ros2_identity_shares_the_router_but_cannot_command_the_base(tmp_path: P
             time.sleep(0.01)
         assert wait_for(lambda: (egress.put(cmd_vel, b"egress"), b"egress" in at_base.payloads())[1], 10.0)
         assert wait_for(lambda: (base_driver.put(odom, b"odom"), b"odom" in at_ingress.payloads())[1], 10.0)
+        # Nav2's path reaches the nav service, and the planner's plan reaches the ROS 2 nodes
+        path = "0/plan/nav_msgs::msg::dds_::Path_/RIHS01_89ab"
+        plan = "0/local_plan/nav_msgs::msg::dds_::Path_/RIHS01_89ab"
+        nav, planner = s("nav"), s("planner")
+        at_nav, at_ros = Inbox(nav, path), Inbox(teleop, plan)
+        assert wait_for(lambda: (teleop.put(path, b"path"), b"path" in at_nav.payloads())[1], 10.0)
+        assert wait_for(lambda: (planner.put(plan, b"plan"), b"plan" in at_ros.payloads())[1], 10.0)
         # a token declared before the subscription reached the router is not replayed to it: declare another
         # (same node, next id) until one is seen
         def seen() -> bool:
@@ -512,14 +519,19 @@ def test_ros2_identity_shares_the_router_but_cannot_command_the_base(tmp_path: P
         router.stop()
 
 
-def test_the_robot_launch_file_runs_secured_without_a_router_of_its_own(tmp_path: Path) -> None:
+@pytest.mark.parametrize("launch", ["robot.yaml", "ros2_nav2.yaml"])
+def test_the_robot_launch_file_runs_secured_without_a_router_of_its_own(tmp_path: Path, launch: str) -> None:
     import yaml
 
+    from tools.secure_cmd import ROS2_NAV_KEYS
+
     secrets = tmp_path / "s"
-    init_secrets(secrets, robot="jackal", ros2={"cmd": "0/cmd_vel/*/*", "odom": "0/odometry/filtered/*/*"})
-    launcher, _ = build(LaunchFile.load(REPO / "deploy" / "robot.yaml"), None, None, None, secrets=str(secrets))
+    init_secrets(secrets, robot="jackal",
+                 ros2={"cmd": "0/cmd_vel/*/*", "odom": "0/odometry/filtered/*/*", **ROS2_NAV_KEYS})
+    launcher, _ = build(LaunchFile.load(REPO / "deploy" / launch), None, None, None, secrets=str(secrets))
     kinds = {c.kind for c in launcher.children}
     assert "router" not in kinds and {"ingress", "planner", "egress", "recorder"} <= kinds
+    assert ("nav" in kinds) == (launch == "ros2_nav2.yaml")
     for child in launcher.children:
         config = yaml.safe_load(child.config_path.read_text())
         assert config["zenoh"]["config_file"] == str(secrets.resolve() / f"{child.kind}.json5")

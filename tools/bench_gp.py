@@ -115,7 +115,7 @@ def register(app: typer.Typer) -> None:
     @app.command("gp")
     def bench_gp_cmd(
         model: Annotated[Path | None, typer.Option(
-            "--gp-model", help="GP model file (default: the shipped model)")] = None,
+            "--profile", help="robot profile (default: the shipped Jackal profile)")] = None,
         points: Annotated[int, typer.Option(
             min=1, max=10_000_000, help="random in-domain inputs")] = 100_000,
         seed: Annotated[int, typer.Option(min=0, help="seed of the inputs")] = 0,

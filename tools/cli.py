@@ -7,7 +7,19 @@ from __future__ import annotations
 
 import typer
 
-from tools import bench, dataset, evaluate, gp_cmd, inspect_cmd, replay, secure_cmd, service_cmd, train, warm
+from tools import (
+    bench,
+    calibrate_cmd,
+    dataset,
+    evaluate,
+    gp_cmd,
+    inspect_cmd,
+    replay,
+    secure_cmd,
+    service_cmd,
+    train,
+    warm,
+)
 from tools.cli_checks import CheckedGroup
 
 app = typer.Typer(
@@ -30,7 +42,9 @@ def main(
     """Chance-constrained GP-MPPI for skid-steer robots."""
 
 
-for _module in (dataset, train, gp_cmd, bench, evaluate, service_cmd, secure_cmd, inspect_cmd, replay, warm):
+for _module in (
+    dataset, train, gp_cmd, bench, evaluate, service_cmd, secure_cmd, inspect_cmd, replay, warm, calibrate_cmd
+):
     _module.register(app)
 
 if __name__ == "__main__":

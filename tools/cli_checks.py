@@ -47,6 +47,8 @@ USER_ERRORS = frozenset({
     "gpmppi.gp.model_file.ModelFileError",
     "gpmppi.plant.residual_net.NetworkFileError",
     "gpmppi.plant.terrains.TerrainFileError",
+    "gpmppi.terrain.real_data.RealDataError",
+    "gpmppi.terrain.terrain_calibration.CalibrationDataError",
     "services.launch.launcher.RouterUnreachable",
     "services.recording.output_files.OutputPathError",
     "services.runtime.config_file.ConfigFileError",

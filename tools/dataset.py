@@ -63,13 +63,28 @@ def write_dataset(path: Path, runs: dict[str, TerrainRun], robot: str = DEFAULT_
     return ticks
 
 
+COMMAND_BOUND_TICKS = 2.0  # a command older than this many dt at a state's stamp is no longer in force
+TICK_TOLERANCE = 0.25  # the next tick is the state nearest one dt on, within this fraction of dt
+
+
 def read_dataset(
     path: str | Path, robot: str = DEFAULT_ROBOT, terrain: str | None = None, dt: float = DATASET_DT
 ) -> dict[str, list[TerrainRun]]:
-    """Per-terrain contiguous runs from a recording: states and commands matched by stamp.
+    """Per-terrain contiguous runs of dt ticks from a recording: a `gpmppi dataset` file or a stack recording
+    (`gpmppi calibrate drive`, `gpmppi launch --record`, a robot log with state + cmd).
 
-    Labels come from `terrain/label` when present, else every tick is `terrain` (required then).
-    A run is split wherever consecutive stamps are more than 1.5 dt apart or the label changes.
+    The pairing rule: each state is paired with the command in force over the interval that follows it, the latest
+    command stamped at or before the state's stamp, if that command is at most COMMAND_BOUND_TICKS dt older than the
+    state; a state with no such command is left out. In a dataset file every state has its command on its own stamp;
+    in the stack a command carries the stamp of the state it was planned from (or, from another source, its own
+    later stamp: then the state pairs with the command before, the one the base still held). The label is the
+    latest at or before the state's stamp (`terrain` when the recording has none; required then).
+
+    Ticks: from a run's first state, each next tick is the state nearest one dt later, within TICK_TOLERANCE dt
+    (odometry faster than 1 / dt is thinned to dt ticks; jitter is tolerated). Where there is none (a lost or late
+    state), or a state has no command in force, or the label changes, the run ends and a new one starts at the
+    next usable state. `TerrainRun.time` holds the
+    ticks' own stamps (seconds since the run's first). A dataset file reads as it was written, tick for tick.
     """
     keys = {key_for(name, robot): name for name in ("state", "cmd", "terrain_label")}
     states: dict[int, list[float]] = {}
@@ -86,27 +101,52 @@ def read_dataset(
         else:
             assert isinstance(msg, TerrainLabel)
             labels[stamp] = msg.terrain
-    stamps = sorted(set(states) & set(commands))
-    if not stamps:
+    if not states or not commands:
         raise ValueError(f"{path}: no tick has both a state and a command on {robot!r} (wrong --robot?)")
     if not labels and terrain is None:
         raise ValueError(f"{path}: the recording has no terrain labels; name the terrain explicitly")
+    cmd_stamps = np.array(sorted(commands), dtype=np.int64)
+    label_stamps = np.array(sorted(labels), dtype=np.int64)
+    state_stamps = np.array(sorted(states), dtype=np.int64)
+    bound = int(round(COMMAND_BOUND_TICKS * dt * NS))
+    step, tol = int(round(dt * NS)), int(round(TICK_TOLERANCE * dt * NS))
+    # (state stamp, command stamp, label, whether a run starts here)
+    ticks: list[tuple[int, int, str, bool]] = []
+    i, fresh = 0, True
+    while i < len(state_stamps):
+        stamp = int(state_stamps[i])
+        c = int(np.searchsorted(cmd_stamps, stamp, side="right")) - 1
+        lab = int(np.searchsorted(label_stamps, stamp, side="right")) - 1
+        name = labels[int(label_stamps[lab])] if lab >= 0 else terrain
+        if c >= 0 and stamp - int(cmd_stamps[c]) <= bound and name is not None:
+            ticks.append((stamp, int(cmd_stamps[c]), name, fresh))
+            fresh = False
+        else:
+            fresh = True
+        # the next tick: the state nearest one dt on, within the tolerance; none there: a new run from the next state
+        target = stamp + step
+        lo = int(np.searchsorted(state_stamps, target - tol, side="left"))
+        hi = int(np.searchsorted(state_stamps, target + tol, side="right"))
+        if lo < hi:
+            i = lo + int(np.argmin(np.abs(state_stamps[lo:hi] - target)))
+        else:
+            i, fresh = hi, True
+    if not ticks:
+        raise ValueError(f"{path}: no state has a command in force on {robot!r} (wrong --robot?)")
     runs: dict[str, list[TerrainRun]] = {}
     start = 0
-    for i in range(1, len(stamps) + 1):
-        at_end = i == len(stamps)
+    for i in range(1, len(ticks) + 1):
+        at_end = i == len(ticks)
         if not at_end:
-            gap = (stamps[i] - stamps[i - 1]) / NS > 1.5 * dt
-            relabel = labels.get(stamps[i], terrain) != labels.get(stamps[i - 1], terrain)
-            if not (gap or relabel):
+            gap = (ticks[i][0] - ticks[i - 1][0]) / NS > 1.5 * dt
+            if not (gap or ticks[i][3] or ticks[i][2] != ticks[i - 1][2]):
                 continue
-        chunk = stamps[start:i]
-        name = labels.get(chunk[0], terrain)
-        assert name is not None
-        st = np.array([states[s] for s in chunk])
-        t = (np.array(chunk) - chunk[0]) / NS
+        chunk = ticks[start:i]
+        name = chunk[0][2]
+        st = np.array([states[s] for s, _, _, _ in chunk])
+        t = (np.array([s for s, _, _, _ in chunk]) - chunk[0][0]) / NS
         runs.setdefault(name, []).append(
-            TerrainRun(name, dt, t, st, np.array([commands[s] for s in chunk]), st.copy())
+            TerrainRun(name, dt, t, st, np.array([commands[c] for _, c, _, _ in chunk]), st.copy())
         )
         start = i
     return runs

@@ -40,6 +40,7 @@ from gpmppi.scenarios import (
 from tools import terrain_cmd
 from tools.choices import ModelName
 from tools.cli_checks import OUT_DIR, check_output_dir, fail, only_with
+from tools.real_data_cmd import real_data_cmd
 
 
 class PlantName(str, Enum):
@@ -60,7 +61,8 @@ PlantFileOpt = Annotated[Path | None, typer.Option("--plant-file", help="Residua
 TerrainFileOpt = Annotated[Path | None, typer.Option("--terrain-file", help="Terrain set YAML for the physics plant.")]
 SceneFileOpt = Annotated[list[Path] | None, typer.Option("--scene-file", help="Obstacle scene YAML (repeat).")]
 LaneFileOpt = Annotated[list[Path] | None, typer.Option("--lane-file", help="Lane YAML (repeat).")]
-GpModelOpt = Annotated[Path | None, typer.Option("--gp-model", help="GP model file (default: the shipped one).")]
+ProfileOpt = Annotated[Path | None, typer.Option(
+    "--profile", help="Robot profile from `gpmppi train` (default: the shipped Jackal profile).")]
 QuickOpt = Annotated[bool, typer.Option("--quick", help="Reduced run: one terrain, few trials, 25 m of lane.")]
 JsonOpt = Annotated[bool, typer.Option("--json", help="Print one JSON object {results: {task: {terrain: {model}}}}.")]
 OutOpt = Annotated[
@@ -119,6 +121,21 @@ def _default_terrains(settings: EvalSettings) -> list[str]:
     from gpmppi.evaluation.runner import cached_gp_model
 
     return list(cached_gp_model(settings.gp_model).terrains)
+
+
+def _check_profile_grounds(profile: Path, grounds: list[str], terrain_file: Path | None) -> None:
+    """One line when the profile has a ground the physics plant's terrain set lacks (a profile of another robot)."""
+    from gpmppi.plant.terrains import TerrainFileError, load_terrains
+
+    try:
+        names = load_terrains(terrain_file).names
+    except TerrainFileError as e:
+        fail(str(e))
+    missing = [g for g in grounds if g not in names]
+    if missing:
+        where = f"--terrain-file {terrain_file}" if terrain_file else "the shipped terrain set (no --terrain-file)"
+        fail(f"profile {profile}: ground {missing[0]!r} of the profile (its grounds: {grounds}) is not in "
+             f"{where}, which has {list(names)}; pass the --terrain-file of the profile's robot")
 
 
 def _check_terrains(settings: EvalSettings, terrains: list[str]) -> None:
@@ -194,7 +211,19 @@ def _settings(
     only_with(plant is PlantName.residual_net, "--plant residual-net", {"--plant-file": plant_file is not None})
     if plant is PlantName.residual_net and plant_file is None:
         fail("--plant residual-net needs --plant-file (the network JSON, e.g. fcnn.json)")
-    for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), ("--gp-model", gp_model)):
+    # the deployed command path: egress's limits, the terrain service's cycle and estimator of the launch file, and
+    # its robot profile unless --profile names one
+    from gpmppi.evaluation.deployed import DeployFileError, deployed_path
+    from services.launch.launch_file import DEFAULT_LAUNCH
+
+    try:
+        deployed = deployed_path(deploy or DEFAULT_LAUNCH)
+    except DeployFileError as e:
+        fail(f"--launch-file: {e}")
+    profile_label = "--profile"
+    if gp_model is None and deployed.profile is not None:
+        gp_model, profile_label = Path(deployed.profile), f"--launch-file {deployed.source}: profile"
+    for label, f in (("--plant-file", plant_file), ("--terrain-file", terrain_file), (profile_label, gp_model)):
         if f is not None and not f.is_file():
             fail(f"{label} {f}: file not found")
     if plant_file is not None:
@@ -209,23 +238,17 @@ def _settings(
         from gpmppi.gp.model_file import ModelFileError
 
         try:
-            cached_gp_model(str(gp_model))
+            grounds = list(cached_gp_model(str(gp_model)).terrains)
         except (ModelFileError, OSError) as e:
-            fail(f"--gp-model: {e}")
+            fail(f"{profile_label}: {e}")
+        if plant is PlantName.physics:
+            _check_profile_grounds(gp_model, grounds, terrain_file)
     lane_m = distance if distance is not None else (25.0 if quick else 100.0)
     planner_overrides = _parse_overrides(overrides)
     try:
         estimator_fields = terrain_cmd.estimator_settings(estimator or [])
     except ValueError as e:
         fail(f"--estimator: {e}")
-    # the deployed command path: egress's limits, the terrain service's cycle and estimator of the launch file
-    from gpmppi.evaluation.deployed import DeployFileError, deployed_path
-    from services.launch.launch_file import DEFAULT_LAUNCH
-
-    try:
-        deployed = deployed_path(deploy or DEFAULT_LAUNCH)
-    except DeployFileError as e:
-        fail(f"--launch-file: {e}")
     estimator_fields = (*deployed.estimator.model_dump(exclude_unset=True).items(), *estimator_fields)
     return EvalSettings(
         plant=plant.value,  # type: ignore[arg-type]
@@ -432,7 +455,7 @@ def register(app: typer.Typer) -> None:
         def command(
             terrain: TerrainOpt = None, model: ModelOpt = None, trials: TrialsOpt = None, seed: SeedOpt = 0,
             plant: PlantOpt = PlantName.physics, plant_file: PlantFileOpt = None, terrain_file: TerrainFileOpt = None,
-            scene_file: SceneFileOpt = None, lane_file: LaneFileOpt = None, gp_model: GpModelOpt = None,
+            scene_file: SceneFileOpt = None, lane_file: LaneFileOpt = None, gp_model: ProfileOpt = None,
             quick: QuickOpt = False, as_json: JsonOpt = False, out: OutOpt = None, workers: WorkersOpt = 2,
             samples: SamplesOpt = 1024, distance: DistanceOpt = None, latency: LatencyOpt = 0.0,
             latency_cycles: LatencyCyclesOpt = 0, compensate: CompensateOpt = True, noise: NoiseOpt = True,
@@ -454,5 +477,6 @@ def register(app: typer.Typer) -> None:
     ev.command("avoidance")(make("avoidance", "Obstacle avoidance (the paper's scene or --scene-file): success."))
     ev.command("table")(make("table", "The whole grid (terrains x models x {circle, square, avoidance}) into -o DIR."))
     terrain_cmd.register(ev)
+    ev.command("terrain-real-data")(real_data_cmd)
     app.add_typer(ev, name="evaluate")
 

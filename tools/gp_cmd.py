@@ -30,7 +30,7 @@ def register(app: typer.Typer) -> None:
     @gp_app.command("predict")
     def predict_cmd(
         inputs: Annotated[Path, typer.Argument(help=f"CSV with columns {','.join(INPUT_COLUMNS)} (or gp_ip_*)")],
-        model_path: Annotated[Path, typer.Option("--gp-model", help="GP model file from `gpmppi train`")],
+        model_path: Annotated[Path, typer.Option("--profile", help="robot profile from `gpmppi train`")],
         output: Annotated[Path, typer.Option("--output", "-o", metavar=OUT_FILE, help="CSV to write")],
         mode: Annotated[str, typer.Option(help="exact | grid")] = "exact",
         force: Annotated[bool, typer.Option("--force", help="replace an existing --output file")] = False,

@@ -46,6 +46,7 @@ class ReplayRequest:
     progress: bool = True
     lockstep: bool = False
     foxglove: tuple[str, int] | None = None
+    profile: Path | None = None  # the robot profile the replaced planner and terrain services run with
 
 
 def _say(line: str) -> None:
@@ -110,7 +111,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
     else:
         endpoint = DEFAULT_ROUTER  # where `gpmppi launch` and the services look by default
     tmp = rl.temp_dir()
-    rl.finalize(live, info, robot, endpoint, tmp)
+    rl.finalize(live, info, robot, endpoint, tmp, req.profile)
 
     def rkey(rel: str, r: str = recorded_robot) -> str:
         return f"gpmppi/{r}/{rel}"
@@ -342,6 +343,9 @@ def register(app: typer.Typer) -> None:
             None, "--foxglove-scene", metavar=OUT_FILE,
             help="offline, no Zenoh: write the recording with its Foxglove 3D scene added to this new MCAP file",
         ),
+        profile: Path | None = typer.Option(
+            None, help="with --replace: the robot profile (`gpmppi train`) the replaced planner and terrain services "
+            "run with (default: the one the recording attached)"),
         quiet: bool = typer.Option(False, help="no progress bar"),
         lockstep: bool = typer.Option(False, help="with --compare: put each state only after the live planner "
                                       "answered the one before (for a live planner slower than the recorded one)"),
@@ -405,14 +409,14 @@ def register(app: typer.Typer) -> None:
                 return
             if rerun_target is not None:
                 raise ValueError(f"--rerun-target {rerun_target!r}: only with --rerun save or --rerun connect")
-            only_with(replace is not None, "--replace SERVICE", {"--set": bool(set_), "--config": bool(config),
-                                                                 "--compare": compare})
+            only_with(replace is not None, "--replace SERVICE", {
+                "--set": bool(set_), "--config": bool(config), "--compare": compare, "--profile": profile is not None})
             only_with(compare, "--compare", {"--lockstep": lockstep})
             if port is not None and connect is not None:
                 raise ValueError("give --connect ENDPOINT (an existing router) or --port N (start one), not both")
             req = ReplayRequest(log, speed, start, end, keys, exclude, loop, robot, keep_stamps, replace, list(set_),
                                 list(config), compare, connect, port, delay, ready_timeout,
-                                progress=not (quiet or as_json), lockstep=lockstep, foxglove=address)
+                                progress=not (quiet or as_json), lockstep=lockstep, foxglove=address, profile=profile)
             stop = threading.Event()
             import signal
 

@@ -187,15 +187,24 @@ def apply_overrides(services: list[LiveService], configs: list[str], sets: list[
         _set_in(live.config, path, value)
 
 
-def finalize(services: list[LiveService], info: RunInfo, robot: str, endpoint: str, tmp: Path) -> None:
-    """Point each service at the replay's router and robot, give the planner the attached model, validate."""
+def finalize(
+    services: list[LiveService], info: RunInfo, robot: str, endpoint: str, tmp: Path, profile: Path | None = None
+) -> None:
+    """Point each service at the replay's router and robot, give the planner and terrain services `profile` (a
+    robot profile; None: the planner the attached model), validate."""
+    from gpmppi.gp.model_file import GPModel
     from services.run import settings_class
+
+    if profile is not None:
+        GPModel.load(profile)  # ModelFileError (one line) before any service starts
 
     models = {name.split("/", 1)[1]: data for name, data in info.attachments.items() if name.startswith("model/")}
     for live in services:
         c = live.config
         c.update(service=live.name, robot=robot, zenoh={"mode": "client", "connect": [endpoint]})
-        if live.kind == "planner":
+        if profile is not None and live.kind in ("planner", "terrain"):
+            c["model_file"] = str(Path(profile).resolve())
+        elif live.kind == "planner":
             recorded = c.get("model_file")
             name = Path(recorded).name if recorded else None
             data = models.get(name) if name else (next(iter(models.values())) if len(models) == 1 else None)

@@ -10,6 +10,8 @@ from tools.cli_checks import DIR, OUT_DIR, only_with
 
 ROS2_CMD_KEY = "0/cmd_vel/*/*"  # rmw_zenoh: <domain>/<topic>/<type>/<hash>, Twist or TwistStamped
 ROS2_ODOM_KEY = "0/odometry/filtered/*/*"
+# deploy/ros2_nav2.yaml's: Nav2's path and goal (the nav service reads them), the planner's plan out
+ROS2_NAV_KEYS = {"path": "0/plan/*/*", "goal": "0/goal_pose/*/*", "plan": "0/local_plan/*/*"}
 
 
 def register(app: typer.Typer) -> None:
@@ -38,7 +40,7 @@ def register(app: typer.Typer) -> None:
             False,
             "--ros2",
             help="the router is the robot's rmw_zenoh router: add a "
-            "'ros2' identity for its ROS 2 nodes and the ROS 2 keys egress and ingress use",
+            "'ros2' identity for its ROS 2 nodes and the ROS 2 keys egress, ingress, nav and the planner use",
         ),
         ros2_cmd_key: str = typer.Option(ROS2_CMD_KEY, help="with --ros2: the base's command key (only egress)"),
         ros2_odom_key: str = typer.Option(ROS2_ODOM_KEY, help="with --ros2: the odometry key ingress reads"),
@@ -53,7 +55,7 @@ def register(app: typer.Typer) -> None:
                                  "--host": list(host) != ["localhost", "127.0.0.1"]})
         only_with(ros2, "--ros2", {"--ros2-cmd-key": ros2_cmd_key != ROS2_CMD_KEY,
                                    "--ros2-odom-key": ros2_odom_key != ROS2_ODOM_KEY})
-        keys = {"cmd": ros2_cmd_key, "odom": ros2_odom_key} if ros2 else None
+        keys = {"cmd": ros2_cmd_key, "odom": ros2_odom_key, **ROS2_NAV_KEYS} if ros2 else None
         try:
             written = init_secrets(directory, robot, tls, endpoint, tls_endpoint, host, keys, force)
             check_secrets(directory, robot)  # what was written passes the launch's own check

@@ -11,7 +11,8 @@ import typer
 
 from tools.cli_checks import OUT_DIR, RECORDING, fail, write_text_atomic
 
-SERVICE_NAMES = ("router", "sim", "ingress", "terrain", "planner", "egress", "recorder", "viewer", "foxglove")
+SERVICE_NAMES = ("router", "sim", "ingress", "terrain", "planner", "egress", "nav", "recorder", "viewer", "foxglove",
+                 "calibrate")
 DurationOpt = typer.Option(
     None, "--duration", min=0.1, max=30 * 86400.0, help="stop after this many seconds once every service is up"
 )

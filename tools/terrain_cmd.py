@@ -150,14 +150,14 @@ def response_cmd(
                                        "simulator, with --plant-file).")] = "physics",
     plant_file: Annotated[Path | None, typer.Option("--plant-file", help="Residual-net JSON (the paper's "
                                                     "fcnn.json).")] = None,
-    gp_model: Annotated[Path | None, typer.Option("--gp-model", help="GP model whose terrains to fit (and, "
+    gp_model: Annotated[Path | None, typer.Option("--profile", help="Robot profile whose terrains to fit (and, "
                                                   "for residual-net, whose nominal model).")] = None,
     out: Annotated[Path | None, typer.Option("--output", "-o", metavar=OUT_FILE, help="Write the YAML here.")
                    ] = None,
 ) -> None:
     """Fit each terrain's velocity response (gpmppi.terrain.response) on drives of the plant.
 
-    Per terrain of the GP model (--gp-model; default the shipped one) on --plant: holds every command of a
+    Per terrain of the GP model (--profile; default the shipped one) on --plant: holds every command of a
     (v_ref, omega_ref) grid from rest for --settle s and
     averages the measured (sensor-noisy) velocities over the next --average s (the steady map); then fits the
     one-step rate of approach to it on the training data's excitation commands. On a robot, the same drives:

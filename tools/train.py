@@ -1,4 +1,5 @@
-"""`gpmppi train DATA -o MODEL`: fit the per-terrain residual GPs from an MCAP log or a residual CSV."""
+"""`gpmppi train DATA -o PROFILE`: fit a robot profile from an MCAP log (the per-terrain residual GPs, the nominal
+model, EDD5, lateral slip and the terrain estimator's calibration), or the GPs alone from a residual CSV."""
 
 from __future__ import annotations
 
@@ -23,6 +24,7 @@ from gpmppi.gp.coverage import (
     ground_coverage,
 )
 from gpmppi.gp.grid_table import DEFAULT_SPACING
+from schemas.keys import DEFAULT_ROBOT
 from tools.cli_checks import OUT_FILE, fail
 
 INPUT_COLUMNS = ("cmd_lin", "cmd_ang", "curr_lin", "curr_ang")
@@ -117,9 +119,10 @@ def csv_residuals(cols: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarr
 def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | None) -> dict[str, dict]:
     """terrain -> {"v", "w", "v_ref", "w_ref", "seg", "x", "y", "yaw"} series on a dt grid from a recorded log.
 
-    Ticks are the state stamps resampled every dt; the command over [t_k, t_k + dt) is the last one
-    stamped at or before t_k (+dt/4 for clock jitter) and at most 2 dt old; a terrain label the same.
-    A segment ends where a tick is missing, the command is stale, or the label changes.
+    Ticks are the state stamps resampled every dt (the grid restarts at the next state where a tick has none);
+    the command over [t_k, t_k + dt) is the last one stamped at or before t_k (+dt/4 for clock jitter) and at most
+    2 dt old; a terrain label the same. A segment ends where a tick is missing, the command is stale, or the label
+    changes.
     """
     from services.recording.mcap_io import read_messages
 
@@ -149,7 +152,9 @@ def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | Non
             raise DataError(f"{path}: expected state and cmd of one robot, found robots {robots}; pass --robot")
         robot = robots[0]
     if robot not in robots:
-        raise DataError(f"{path}: no state + cmd messages for robot {robot!r} (robots with both: {robots})")
+        found = [f"gpmppi/{r}/state" for r in sorted(states)]
+        raise DataError(f"{path}: no state + cmd messages for robot {robot!r} (gpmppi/{robot}/state); the log holds "
+                        f"{found or 'no gpmppi/<robot>/state keys'}; pass --robot NAME")
     st = np.array(sorted(states[robot]))
     cm = np.array(sorted(cmds[robot]))
     lab = sorted(labels.get(robot, []))
@@ -163,14 +168,25 @@ def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | Non
     out: dict[str, dict[str, list]] = {}
     seg_id = 0
     prev: tuple[int, str] | None = None  # (tick index, terrain) of the previous usable tick
-    tick = 0
-    t0 = int(t_state[0])
-    n_ticks = int((t_state[-1] - t0) // dt_ns) + 1
-    for tick in range(n_ticks):
-        t = t0 + tick * dt_ns
+    tick = -1
+    t = int(t_state[0]) - dt_ns
+    while True:
+        tick += 1
+        t += dt_ns
         i = int(np.searchsorted(t_state, t))
+        if i >= len(t_state) and t - int(t_state[-1]) > tol:
+            break
         cand = [j for j in (i - 1, i) if 0 <= j < len(t_state)]
         j = min(cand, key=lambda j: abs(int(t_state[j]) - t))
+        if abs(int(t_state[j]) - t) > tol:
+            # no state on this tick (a pause, a late start): the grid restarts at the next state, so the states
+            # after a gap that is not a whole number of ticks are still on it
+            nxt = int(np.searchsorted(t_state, t + tol, side="right"))
+            if nxt >= len(t_state):
+                break
+            prev = None
+            t = int(t_state[nxt]) - dt_ns
+            continue
         c = int(np.searchsorted(t_cmd, t + tol, side="right")) - 1
         name = terrain
         if lab:
@@ -242,16 +258,40 @@ def _select(available: list[str], wanted: list[str] | None, where: str) -> list[
     return [by_lower[t.lower()] for t in wanted]
 
 
+def read_logs_series(paths: list[Path], dt: float, terrain: str | None, robot: str | None) -> dict[str, dict]:
+    """`read_log_series` of every log, each ground's series concatenated in the order given (a calibration drive is
+    one log per ground and run: stopped and resumed, or one ground at a time). Segment ids are kept apart across
+    logs, so no one-step pair spans two logs."""
+    merged: dict[str, dict[str, list[np.ndarray]]] = {}
+    next_seg = 0
+    for path in paths:
+        series = read_log_series(path, dt, terrain, robot)
+        top = next_seg
+        for name, s in series.items():
+            into = merged.setdefault(name, {k: [] for k in s})
+            for k, a in s.items():
+                into[k].append(a + next_seg if k == "seg" else a)
+            top = max(top, next_seg + int(np.max(s["seg"])) + 1)
+        next_seg = top
+    return {name: {k: np.concatenate(parts) for k, parts in s.items()} for name, s in merged.items()}
+
+
 def build_training_sets(
-    data: Path, terrain: list[str] | None, theta_path: Path | None, edd5_path: Path | None,
+    data: Path | list[Path], terrain: list[str] | None, theta_path: Path | None, edd5_path: Path | None,
     dt: float, robot: str | None, seed: int,
-) -> tuple[dict, np.ndarray, dict[str, np.ndarray], dict[str, int | None]]:
-    """(terrain -> Transitions, theta, EDD5 per terrain, held commands per terrain) from a CSV or an MCAP log (a CSV
-    has no time series: its held commands are None)."""
+) -> tuple[dict, np.ndarray, dict[str, np.ndarray], dict[str, int | None], dict[str, list] | None]:
+    """(terrain -> Transitions, theta, EDD5 per terrain, held commands per terrain, terrain -> logged runs) from a
+    CSV or from one or more MCAP logs (a CSV has no time series: its held commands and runs are None)."""
+    paths = [data] if isinstance(data, Path) else list(data)
+    if len(paths) > 1 and any(p.suffix.lower() == ".csv" for p in paths):
+        raise DataError(f"give one residual CSV, or one or more MCAP logs, not both or several CSVs: "
+                        f"{[str(p) for p in paths]}")
+    data = paths[0]
     from gpmppi.gp.coverage import held_commands
     from gpmppi.gp.train import Transitions, prepare_from_series
     from gpmppi.models.dynamic_unicycle import velocity_step_exact
     from gpmppi.models.identify import identify_edd5
+    from tools.profile_fit import runs_from_series
 
     theta_json, edd5_json = _load_json(theta_path, "theta"), _load_json(edd5_path, "EDD5")
     if data.suffix.lower() == ".csv":
@@ -272,17 +312,19 @@ def build_training_sets(
         else:  # EDD5 maps a command to the velocity it settles at: fit to the measured next velocities
             edd5 = {t: identify_edd5(x[:, 0], x[:, 1], s.next_vw[:, 0], s.next_vw[:, 1], seed=seed)
                     for t, s in sets.items()}
-        return sets, theta, edd5, dict.fromkeys(terrains)
-    if data.suffix.lower() != ".csv" and not is_mcap(data):
-        raise DataError(f"{data}: not an MCAP file (nor a .csv); give a log recorded by `gpmppi launch --record` "
-                        "or `gpmppi dataset`, or a residual CSV")
-    series = read_log_series(data, dt, terrain[0] if terrain and len(terrain) == 1 else None, robot)
-    terrains = _select(sorted(series), terrain, str(data))
+        return sets, theta, edd5, dict.fromkeys(terrains), None
+    for path in paths:
+        if not is_mcap(path):
+            raise DataError(f"{path}: not an MCAP file (nor a .csv); give logs recorded by `gpmppi calibrate drive`, "
+                            "`gpmppi launch --record` or `gpmppi dataset`, or a residual CSV")
+    series = read_logs_series(paths, dt, terrain[0] if terrain and len(terrain) == 1 else None, robot)
+    terrains = _select(sorted(series), terrain, ", ".join(str(p) for p in paths))
     th = _theta_from_json(theta_json, theta_path) if theta_json is not None else None
     ed = _edd5_from_json(edd5_json, terrains, edd5_path) if edd5_json is not None else None
     held = {t: held_commands(np.asarray(series[t]["v_ref"]), np.asarray(series[t]["w_ref"]),
                              np.asarray(series[t]["seg"]), dt) for t in terrains}
-    return (*prepare_from_series({t: series[t] for t in terrains}, dt, theta=th, edd5=ed, seed=seed), held)
+    chosen = {t: series[t] for t in terrains}
+    return (*prepare_from_series(chosen, dt, theta=th, edd5=ed, seed=seed), held, runs_from_series(chosen, dt))
 
 
 def print_coverage(coverage: list[GroundCoverage], console: Console) -> None:
@@ -303,10 +345,6 @@ def print_coverage(coverage: list[GroundCoverage], console: Console) -> None:
                 f"[yellow]warning:[/yellow] ground {c.terrain!r}: thin coverage in {len(thin)} of "
                 f"{c.command_cells.size} command cells, the GP extrapolates there; drive: {'; '.join(thin[:4])}"
                 + (" ..." if len(thin) > 4 else ""), highlight=False)
-        if c.held == 0:
-            Console(stderr=True, soft_wrap=True).print(
-                f"[yellow]warning:[/yellow] ground {c.terrain!r}: no held command (one kept {HOLD_S:g} s or more); "
-                "the terrain estimator's steady responses need some", highlight=False)
 
 
 def print_report(report, console: Console) -> None:
@@ -333,8 +371,11 @@ def register(app: typer.Typer) -> None:
 
     @app.command("train")
     def train_cmd(
-        data: Annotated[Path, typer.Argument(help="MCAP log (state, cmd, terrain labels) or residual CSV")],
-        output: Annotated[Path, typer.Option("--output", "-o", metavar=OUT_FILE, help="model file to write (.npz)")],
+        data: Annotated[list[Path], typer.Argument(
+            help="MCAP logs (state, cmd, terrain labels; one or more, e.g. one per ground and run) or one residual "
+                 "CSV")],
+        output: Annotated[Path, typer.Option("--output", "-o", metavar=OUT_FILE,
+                                             help="robot profile to write (.npz)")],
         terrain: Annotated[list[str] | None, typer.Option(
             "--terrain", "-t", help="terrain name of an unlabeled log; or, repeated, the terrains to keep")] = None,
         hyperparameters: Annotated[Path | None, typer.Option(
@@ -350,7 +391,8 @@ def register(app: typer.Typer) -> None:
         iters: Annotated[int, typer.Option(min=0, help="Adam iterations of the hyperparameter fit")] = 200,
         seed: Annotated[int, typer.Option(min=0, help="seed of k-means, the holdout split and the fit")] = 0,
         dt: Annotated[float, typer.Option(min=0.001, max=10.0, help="sampling step of the data [s]")] = 0.1,
-        robot: Annotated[str | None, typer.Option(help="robot name in the log keys (auto when only one)")] = None,
+        robot: Annotated[str, typer.Option(
+            help="the robot: its name in the log keys gpmppi/{robot}/..., stored in the profile")] = DEFAULT_ROBOT,
         grid_nodes: Annotated[int | None, typer.Option(
             min=0, max=200,
             help="grid predictor nodes on every axis of the stored table (0: store none, build on first use; "
@@ -366,15 +408,16 @@ def register(app: typer.Typer) -> None:
                                    f"(cells with {MIN_PER_CELL} samples or more)")] = MIN_COVERED,
         force: Annotated[bool, typer.Option("--force", help="replace an existing --output file")] = False,
     ) -> None:
-        """Train the per-terrain residual GPs and write the model file."""
+        """Fit a robot profile from a log: the per-terrain residual GPs and the terrain calibration."""
         from gpmppi.gp.grid_table import build_grid
         from gpmppi.gp.train import Transitions, train_model
+        from tools.profile_fit import _calibrate_placeholder, train_command
 
         console = Console()
         try:
             if not 0.0 <= (holdout or 0.0) < 1.0:
                 raise DataError(f"--holdout must be in [0, 1), got {holdout}")
-            sets, th, ed, held = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
+            sets, th, ed, held, runs = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
             test_sets = None
             if test_data is not None:
                 cols = read_csv_columns(test_data)
@@ -406,6 +449,14 @@ def register(app: typer.Typer) -> None:
                 raise DataError(f"--grid-spacing must be positive, got {grid_spacing}")
             if grid_nodes != 0:
                 model.set_grid(build_grid(model, grid_nodes, spacing=grid_spacing))
+            model.robot = robot
+            model.fit_report = {**(model.fit_report or {}), "coverage": [  # what the drive reached, per ground
+                {"terrain": c.terrain, "samples": c.samples, "commands_covered": c.command_covered,
+                 "states_covered": c.state_covered, "held_commands": c.held} for c in coverage]}
+            model.made_by = train_command([str(p) for p in data], str(output), robot, terrain, points, iters, seed,
+                                          holdout)
+            if runs is not None:  # the lead swaps this call for gpmppi.terrain.log_calibration.calibrate_from_runs
+                model.calibration = _calibrate_placeholder(model, runs)
         except ValueError as e:
             fail(str(e))
         model.save(output)
@@ -419,3 +470,12 @@ def register(app: typer.Typer) -> None:
         )
         lateral = ", ".join(f"{t} ({p[0]:+.4f}, {p[1]:+.4f})" for t, p in model.lateral_slip.items())
         console.print(f"lateral slip (a, b) of v_y = (a + b |omega|) v omega: {lateral}")
+        if model.calibration is None:
+            Console(stderr=True, soft_wrap=True).print(
+                "[yellow]warning:[/yellow] no terrain calibration: the data has no time series (a residual CSV); the "
+                "terrain estimator needs command_change: online and response: none with this file", highlight=False)
+        else:
+            gains = ", ".join(f"{t} ({g[0]:+.3f}, {g[1]:+.3f})"
+                              for t, g in zip(model.terrains, model.calibration.command_gain, strict=True))
+            console.print(f"robot profile of {model.robot!r}: terrain calibration of {list(model.terrains)}; "
+                          f"command-change gains (v, omega): {gains}")

@@ -40,7 +40,7 @@ def _warm_planners(log: Callable[[str], None]) -> None:
     from gpmppi.mppi import kernel_cache
     from gpmppi.mppi.config import PlannerConfig
     from gpmppi.mppi.planner import Planner
-    from services.planner import Settings, load_model, load_scenario
+    from services.planner import Settings, load_model, warm_up_scenario
 
     # (planner settings, model file, scenario) -> where it comes from; each distinct one planned once
     runs: dict[tuple[str, str | None, str], str] = {}
@@ -58,7 +58,7 @@ def _warm_planners(log: Callable[[str], None]) -> None:
         t = time.perf_counter()
         if model_file not in models:
             models[model_file] = load_model(model_file)
-        scenario = load_scenario(scenario_name)
+        scenario = warm_up_scenario(scenario_name)
         planner = Planner(PlannerConfig.model_validate_json(planner_json), models[model_file])
         c = planner.config
         # as the planner service warms up before going live (one plan, with a delay so its predictor is compiled),

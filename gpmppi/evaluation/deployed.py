@@ -1,6 +1,7 @@
 """The deployed command path's settings, read from a launch file (`deploy/sim.yaml`, `deploy/robot.yaml`, the
 default launch): egress's safety (`SafetyConfig`), the terrain service's cycle (`TerrainCycleConfig`, its
-`command_source` among them) and its estimator, so the evaluation runs what that launch runs.
+`command_source` among them), its estimator and the robot profile it names, so the evaluation runs what that launch
+runs.
 
 Checked at start: a value out of range, or a command source that does not exist, raises `DeployFileError` naming
 the file, the service entry and the field, and what to do.
@@ -31,6 +32,7 @@ class DeployedPath:
     terrain: TerrainCycleConfig = field(default_factory=TerrainCycleConfig)
     estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
     source: str = "defaults"  # where they came from
+    profile: str | None = None  # the launch file's robot profile (top-level `profile`, resolved), None: not named
 
 
 def _entry(services: list[Any], kind: str, path: Path) -> tuple[int, dict[str, Any]] | None:
@@ -82,4 +84,9 @@ def deployed_path(path: str | Path) -> DeployedPath:
         terrain = _validate(TerrainCycleConfig, fields, f"{path}: services[{i}] (terrain).config")
         estimator = _validate(EstimatorConfig, config.get("estimator") or {},
                               f"{path}: services[{i}] (terrain).config.estimator")
-    return DeployedPath(safety, terrain, estimator, str(path))
+    profile = data.get("profile")
+    if profile is not None and not isinstance(profile, str):
+        raise DeployFileError(f"{path}: `profile` must be the path of a robot profile (.npz), got {profile!r}")
+    # relative to the launch file, as the launcher resolves it
+    profile = None if profile is None else str((path.parent / Path(profile).expanduser()).resolve())
+    return DeployedPath(safety, terrain, estimator, str(path), profile)

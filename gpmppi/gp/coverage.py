@@ -4,7 +4,8 @@ The planner commands v_ref in [0, 2] m/s and omega_ref in [-pi, pi] rad/s (DESIG
 where it was driven. For each ground the fit reports, on a grid over that range, how many one-step samples each cell
 holds (commands, and the measured state), how many held commands the log has (a command kept for a second or more:
 the steady responses the terrain estimator needs), names the thin cells so the user knows what to drive, and refuses
-a ground with too little data."""
+a ground with too little data, or a logged ground with no held command at all (too little excitation for the terrain
+calibration, before the GP is fitted; the calibration fit itself then refuses too few, `CalibrationDataError`)."""
 
 from __future__ import annotations
 
@@ -55,6 +56,10 @@ class GroundCoverage:
             return (f"ground {self.terrain!r}: its commands cover {self.command_covered:.0%} of the planner's range "
                     f"(v_ref 0-2 m/s, |omega_ref| up to pi rad/s), at least {min_covered:.0%} is needed; drive "
                     f"{'; '.join(self.thin()[:3])}")
+        if self.held == 0:
+            return (f"ground {self.terrain!r}: no command held {HOLD_S:g} s or longer, too little excitation for the "
+                    "terrain calibration's steady response; drive it more: hold commands for >= 3 s at speeds 0-2 m/s "
+                    "and turn rates -3..3 rad/s, both ways")
         return None
 
 

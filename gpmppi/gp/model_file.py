@@ -1,12 +1,17 @@
-"""The trained GP model and its file format.
+"""The robot profile: the trained GP model, what else was learned about the robot, and its file format.
 
 A model is a batch of 2M independent exact GPs (M terrains x {v, omega}) over the 4-D input
 `[v_ref, omega_ref, v, omega]`, each ScaleKernel(RBF-ARD) with zero mean, plus the nominal
 dynamic-unicycle parameters, the per-terrain EDD5 baselines it was trained with and the per-terrain
-lateral slip coefficients (`lateral_slip`, (M, 2); optional, zeros when the file has none).
+lateral slip coefficients (`lateral_slip`, (M, 2); optional, zeros when the file has none). A robot profile
+(format version 2) also names its robot (`robot`) and holds the terrain estimator's calibration of its grounds
+(`calibration`, gpmppi.terrain.terrain_calibration; arrays in gpmppi.gp.profile_arrays), all fitted from the
+robot's logs by `gpmppi train`. A version 1 file (a GP model only: the paper's converted models, older files) still
+loads, with no calibration; whatever needs one then refuses it with the command that refits it
+(`GPModel.require_calibration`).
 
 File format: one `.npz` archive (no pickles) holding the arrays below and a `metadata` entry,
-a JSON string with the format name and version, terrain and task names, input names and dt.
+a JSON string with the format name and version, the robot, terrain and task names, input names and dt.
 The grid predictor's table is stored as well when the writer built it; otherwise
 `GPModel.grid()` builds it on first use (`grid_table.build_grid`, sized from the lengthscales). To
 keep the file small the table is stored quantized to 16 bits per channel (offset + scale, error
@@ -26,10 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from gpmppi.gp.grid_table import GridTable, build_grid
+from gpmppi.gp.profile_arrays import CALIBRATION_ARRAYS, calibration_arrays, calibration_from_arrays
 from gpmppi.models.lateral_slip import N_LATERAL
+from gpmppi.terrain.terrain_calibration import TerrainCalibration
 
 FORMAT_NAME = "gpmppi-gp-model"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: a robot profile (robot name, terrain calibration); 1: the GP model alone
+READABLE_VERSIONS = (1, 2)
+DEFAULT_ROBOT = "jackal"  # the robot of files that do not name one (version 1)
+REFIT_COMMAND = "gpmppi train LOGS -o {file}"
 INPUT_NAMES = ("v_ref", "omega_ref", "v", "omega")
 N_INPUT = 4
 DEFAULT_MODEL_PATH = Path(__file__).resolve().parents[1] / "data" / "default_gp_model.npz"
@@ -65,6 +75,13 @@ class GPModel:
     lateral_slip: dict[str, np.ndarray] | None = None
     # the training fit report (`gpmppi.gp.train.FitReport.to_metadata`), when the trainer recorded one
     fit_report: dict | None = field(default=None, compare=False)
+    robot: str = DEFAULT_ROBOT  # the robot the profile was fitted for: its name in the log keys gpmppi/{robot}/...
+    # the terrain estimator's per-ground calibration, in this model's ground order (None: a GP model alone)
+    calibration: TerrainCalibration | None = field(default=None, compare=False)
+    # how the profile was made (e.g. the command line of `gpmppi train`), when the writer recorded it
+    made_by: str | None = field(default=None, compare=False)
+    source: str | None = field(default=None, compare=False)  # the file it was loaded from (None: built in memory)
+    file_version: int = field(default=FORMAT_VERSION, compare=False)  # the format version it was loaded from
     _grid: GridTable | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -109,10 +126,26 @@ class GPModel:
         """True when a grid table is attached (read from the file, set, or already built), so `save` writes it."""
         return self._grid is not None
 
+    def require_calibration(self) -> TerrainCalibration:
+        """The terrain calibration; ModelFileError (one line naming the file and the command that refits it) when the
+        profile has none."""
+        if self.calibration is not None:
+            return self.calibration
+        where = self.source or "this GP model"
+        refit = REFIT_COMMAND.format(file=self.source or "FILE")
+        if self.file_version == 1:
+            raise ModelFileError(f"{where} is a v1 GP model without a terrain calibration (an older format); refit it "
+                                 f"as a robot profile with `{refit}`")
+        raise ModelFileError(f"{where} holds no terrain calibration (it was fitted from data without time series, "
+                             f"e.g. a residual CSV); refit it from an MCAP log with `{refit}`, or set the terrain "
+                             "estimator's command_change: online and response: none")
+
     def metadata(self) -> dict:
         return {
             "format": FORMAT_NAME,
             "version": FORMAT_VERSION,
+            "robot": self.robot,
+            **({} if self.made_by is None else {"made_by": self.made_by}),
             "terrains": list(self.terrains),
             "tasks": list(self.tasks),
             "inputs": list(INPUT_NAMES),
@@ -146,6 +179,8 @@ class GPModel:
             "alpha": self.alpha,
             "lateral_slip": self.lateral_matrix(),
         }
+        if self.calibration is not None:
+            arrays.update(calibration_arrays(self.calibration, self.terrains))
         if self._grid is not None:
             arrays.update(encode_grid_table(self._grid.table))
             arrays["grid_lo"] = self._grid.lo
@@ -191,6 +226,7 @@ class GPModel:
                 grid_arr = {n: z[n] for n in grid_present}
                 # optional: files written before the lateral slip model load with none
                 lateral = np.asarray(z["lateral_slip"], dtype=np.float64) if "lateral_slip" in names else None
+                cal_arr = {n: z[n] for n in CALIBRATION_ARRAYS if n in names}
         except ModelFileError:
             raise
         except (zipfile.BadZipFile, OSError, EOFError, ValueError, KeyError) as e:
@@ -211,7 +247,12 @@ class GPModel:
                 lengthscale=arr["lengthscale"], outputscale=arr["outputscale"], noise=arr["noise"],
                 chol=arr["chol"], alpha=arr["alpha"], dt=meta["dt"], fit_report=meta.get("fit"),
                 lateral_slip=None if lateral is None else {t: lateral[i].copy() for i, t in enumerate(terrains)},
+                robot=meta.get("robot", DEFAULT_ROBOT), made_by=meta.get("made_by"), source=where,
+                file_version=meta["version"],
             )
+            if cal_arr and meta["version"] < 2:
+                raise ValueError("a v1 model file cannot hold a terrain calibration; refit the profile")
+            model.calibration = calibration_from_arrays(cal_arr, terrains)
             if grid_arr:
                 table = decode_grid_table(grid_arr["grid_q"], grid_arr["grid_offset"], grid_arr["grid_scale"])
                 lo = np.asarray(grid_arr["grid_lo"], dtype=np.float64)
@@ -223,13 +264,13 @@ class GPModel:
 
 
 def load_default_model() -> GPModel:
-    """The trained model shipped with the package (`gpmppi/data/default_gp_model.npz`).
+    """The simulated Jackal's robot profile shipped with the package (`gpmppi/data/default_gp_model.npz`).
 
-    It is regenerated from the physics plant with the default settings (tile, asphalt, grass;
-    2000 m each; seed 0) by
+    It is regenerated from logs of the physics plant with the default settings (tile, asphalt, grass;
+    2000 m each; seed 0) by (docs/training.md, "The shipped model")
 
         gpmppi dataset -o /tmp/default.mcap
-        gpmppi train /tmp/default.mcap -o gpmppi/data/default_gp_model.npz
+        gpmppi train /tmp/default.mcap -o gpmppi/data/default_gp_model.npz --robot jackal
     """
     return GPModel.load(DEFAULT_MODEL_PATH)
 
@@ -272,12 +313,15 @@ def _parse_metadata(raw: np.ndarray, where: str) -> dict:
         raise ModelFileError(f"{where}: corrupt metadata entry (not JSON: {e})") from e
     if not isinstance(meta, dict) or meta.get("format") != FORMAT_NAME:
         raise ModelFileError(f"{where}: not a gpmppi GP model file (format is not {FORMAT_NAME!r})")
-    if meta.get("version") != FORMAT_VERSION:
+    if meta.get("version") not in READABLE_VERSIONS:
         raise ModelFileError(
-            f"{where}: model file format version {meta.get('version')!r}, this gpmppi reads version "
-            f"{FORMAT_VERSION}; retrain the model with this version"
+            f"{where}: model file format version {meta.get('version')!r}, this gpmppi reads versions "
+            f"{list(READABLE_VERSIONS)}; refit it with this version (`{REFIT_COMMAND.format(file=where)}`) or "
+            "update gpmppi"
         )
-    for key, kind in (("terrains", list), ("tasks", list), ("dt", (int, float))):
+    for key, kind in (("terrains", list), ("tasks", list), ("dt", (int, float)), ("robot", str), ("made_by", str)):
+        if key in ("robot", "made_by") and key not in meta:
+            continue
         if not isinstance(meta.get(key), kind):
             raise ModelFileError(f"{where}: metadata field {key!r} is missing or has the wrong type")
     if "fit" in meta and not _fit_report_ok(meta["fit"]):
@@ -340,6 +384,10 @@ def _validate(m: GPModel, where: str) -> None:
             f"{where}: lateral slip terrains {sorted(m.lateral_slip)} differ from model terrains {m.terrains}"
         )
     m.lateral_slip = {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in m.lateral_slip.items()}
+    if not (isinstance(m.robot, str) and m.robot.strip()):
+        raise ValueError(f"{where}: robot must be a non-empty name, got {m.robot!r}")
+    if m.calibration is not None:  # held in the model's ground order; an error names a ground it lacks
+        m.calibration = m.calibration.select(list(m.terrains), source=f"{where} terrain calibration")
     for t, p in m.lateral_slip.items():
         _shape(f"lateral_slip[{t}]", p, (N_LATERAL,), where)
         if not np.all(np.isfinite(p)):

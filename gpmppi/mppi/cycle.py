@@ -3,7 +3,8 @@
 The planner service drives a `PlannerCycle` from its Zenoh loop and the closed-loop evaluation drives one from its
 simulation, so both run the same checks and the same delay compensation:
 
-- task updates (a new task forgets the warm start);
+- task updates (a task of another kind forgets the warm start; a new lane or goal of the kind being planned for, a
+  navigation stack's replanned path, keeps it, so the robot drives on through the swap);
 - terrain-weight updates: the table collapse for new weights is done when they arrive (`Planner.prepare`), off
   the state -> command path; weights not refreshed for `weights_stale_after_s` are kept but flagged stale, and
   after `weights_fallback_after_s` replaced by the prior (uniform). Weights equal to the prior are never stale:
@@ -204,10 +205,15 @@ class PlannerCycle:
                         "s old) does not fit: starting from the configured initial sequence")
 
     def set_task(self, task: Task) -> None:
-        """Plan for `task` from now on; the warm start was for the old one, so it is forgotten. A goal task without a
-        grid of its own plans among the grid of `set_costmap`, if one was given."""
+        """Plan for `task` from now on. A task of the kind being planned for (a replanned path, a moved goal) keeps
+        the warm start: the robot is driving the sequence it holds, and the configured initial one (zero) would brake
+        it at every new path of a navigation stack, which replans about once a second. A task of another kind, or
+        the first one, starts from the initial sequence. A goal task without a grid of its own plans among the grid
+        of `set_costmap`, if one was given."""
+        same_kind = self.task is not None and type(task) is type(self.task)
         self.task = self._with_costmap(task)
-        self.planner.reset()
+        if not same_kind:
+            self.planner.reset()
 
     def set_costmap(self, costmap: Costmap | None) -> None:
         """Plan goal tasks among this grid's obstacles from now on (None: none but the task's circles). The warm

@@ -74,6 +74,57 @@ def segment_distance2(seg: np.ndarray, j: int, x: float, y: float) -> float:
     return ex * ex + ey * ey
 
 
+# the cells' candidates are searched among those of their block of cells about this big [m]: a block lists every
+# segment that can be nearest to, or a candidate of, any of its cells (`_block_candidates`)
+BLOCK_SIZE = 1.0
+
+
+@njit(cache=True, parallel=True)
+def _block_candidates(
+    seg: np.ndarray, origin: np.ndarray, cell: float, h: int, w: int, k: int, slack: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """CSR lists of the segments that blocks of k x k cells must search (block b = r * ceil(w / k) + c).
+
+    A block's cell centres c lie within r = k cell / sqrt 2 of its centre C. A cell's nearest segment j* obeys
+    d(C, j*) <= d(c, j*) + r = d_min(c) + r <= d_min(C) + 2 r, and a cell's candidate j (d(c, j) <= d_min(c) + slack)
+    obeys d(C, j) <= d_min(C) + 2 r + slack: keeping every segment within that of C loses none of either.
+    """
+    n_seg = seg.shape[0]
+    bh = (h + k - 1) // k
+    bw = (w + k - 1) // k
+    n_blocks = bh * bw
+    reach = 2.0 * k * cell / np.sqrt(2.0) * 1.0001 + slack
+    counts = np.zeros(n_blocks + 1, dtype=np.int64)
+    limits = np.empty(n_blocks)
+    for b in prange(n_blocks):
+        r0 = (b // bw) * k
+        c0 = (b % bw) * k
+        y = origin[1] + 0.5 * (r0 + min(h, r0 + k)) * cell
+        x = origin[0] + 0.5 * (c0 + min(w, c0 + k)) * cell
+        best = np.inf
+        for j in range(n_seg):
+            best = min(best, segment_distance2(seg, j, x, y))
+        limits[b] = (np.sqrt(best) + reach) ** 2
+        c = 0
+        for j in range(n_seg):
+            if segment_distance2(seg, j, x, y) <= limits[b]:
+                c += 1
+        counts[b + 1] = c
+    start = np.cumsum(counts)
+    cand = np.empty(start[-1], dtype=np.int32)
+    for b in prange(n_blocks):
+        r0 = (b // bw) * k
+        c0 = (b % bw) * k
+        y = origin[1] + 0.5 * (r0 + min(h, r0 + k)) * cell
+        x = origin[0] + 0.5 * (c0 + min(w, c0 + k)) * cell
+        pos = start[b]
+        for j in range(n_seg):
+            if segment_distance2(seg, j, x, y) <= limits[b]:
+                cand[pos] = j
+                pos += 1
+    return start, cand
+
+
 @njit(cache=True, parallel=True)
 def _cell_candidates(
     seg: np.ndarray, origin: np.ndarray, cell: float, h: int, w: int
@@ -84,19 +135,29 @@ def _cell_candidates(
     For a point p in a cell with centre c (|p - c| <= cell / sqrt 2) the nearest segment j* obeys
     d(c, j*) <= d(p, j*) + |p - c| <= d(p, j_c) + |p - c| <= d_min(c) + sqrt(2) cell, so every
     segment within d_min(c) + sqrt(2) cell of the centre is kept: the lookup is exact inside the grid.
+
+    Each cell searches only its block's list (`_block_candidates`), in segment order as all of them would be: the
+    same nearest segment (the first of equals) and the same candidates, at a cost that grows with the segments near
+    a block rather than with all of them (a 50 m path of 200 segments: 0.5 s -> 0.06 s).
     """
-    n_seg = seg.shape[0]
     n_cells = h * w
     slack = np.sqrt(2.0) * cell * 1.0001
+    k = max(1, int(round(BLOCK_SIZE / cell)))
+    bw = (w + k - 1) // k
+    block_start, block_cand = _block_candidates(seg, origin, cell, h, w, k, slack)
     counts = np.zeros(n_cells + 1, dtype=np.int64)
     dmin = np.empty(n_cells)
     field = np.empty((n_cells, 3))
     for i in prange(n_cells):
-        y = origin[1] + (i // w + 0.5) * cell
-        x = origin[0] + (i % w + 0.5) * cell
+        row = i // w
+        col = i % w
+        b = (row // k) * bw + col // k
+        y = origin[1] + (row + 0.5) * cell
+        x = origin[0] + (col + 0.5) * cell
         best = np.inf
         nearest = 0
-        for j in range(n_seg):
+        for q in range(block_start[b], block_start[b + 1]):
+            j = block_cand[q]
             d2 = segment_distance2(seg, j, x, y)
             if d2 < best:
                 best = d2
@@ -109,18 +170,22 @@ def _cell_candidates(
         field[i, 2] = 0.0
         limit = (dmin[i] + slack) ** 2
         c = 0
-        for j in range(n_seg):
-            if segment_distance2(seg, j, x, y) <= limit:
+        for q in range(block_start[b], block_start[b + 1]):
+            if segment_distance2(seg, block_cand[q], x, y) <= limit:
                 c += 1
         counts[i + 1] = c
     start = np.cumsum(counts)
     cand = np.empty(start[-1], dtype=np.int32)
     for i in prange(n_cells):
-        y = origin[1] + (i // w + 0.5) * cell
-        x = origin[0] + (i % w + 0.5) * cell
+        row = i // w
+        col = i % w
+        b = (row // k) * bw + col // k
+        y = origin[1] + (row + 0.5) * cell
+        x = origin[0] + (col + 0.5) * cell
         limit = (dmin[i] + slack) ** 2
         pos = start[i]
-        for j in range(n_seg):
+        for q in range(block_start[b], block_start[b + 1]):
+            j = block_cand[q]
             if segment_distance2(seg, j, x, y) <= limit:
                 cand[pos] = j
                 pos += 1

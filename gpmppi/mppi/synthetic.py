@@ -12,8 +12,10 @@ import numpy as np
 
 from gpmppi.gp.grid import build_grid
 from gpmppi.gp.model_file import GPModel, task_names
+from gpmppi.terrain.settings import shipped_calibration
 
 SYNTHETIC_THETA = np.array([0.2, 0.3, 0.05, 1.0, 0.15, 1.0])
+SHIPPED_GROUNDS = ("tile", "asphalt", "grass")  # the grounds of the shipped calibration (gpmppi/data)
 DOMAIN_LO = np.array([0.0, -np.pi, -0.5, -np.pi])
 DOMAIN_HI = np.array([2.0, np.pi, 2.5, np.pi])
 
@@ -62,4 +64,6 @@ def synthetic_model(
         outputscale=outputscale, noise=noise, chol=chol, alpha=alpha, dt=0.1,
     )
     model.set_grid(build_grid(model, nodes))
+    if set(terrains) <= set(SHIPPED_GROUNDS):  # the Jackal's grounds: the shipped, plant-fitted calibration
+        model.calibration = shipped_calibration(list(terrains))
     return model

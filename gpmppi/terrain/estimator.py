@@ -31,8 +31,7 @@ from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.terrain.estimate import EstimatorLike, TerrainEstimate
-from gpmppi.terrain.response import SHIPPED_RESPONSE, load_response
-from gpmppi.terrain.settings import EstimatorConfig, terrain_command_gains
+from gpmppi.terrain.settings import EstimatorConfig, profile_calibration
 
 # command changes the roughness has seen before the response is scored: a few, so that commands jittery from the
 # start are not scored on a chance small first change, and no more, so that the evidence starts early
@@ -159,8 +158,8 @@ class BayesTerrainEstimator:
       on it, and MPPI's commands change every tick: on closed-loop steps this part is most of the residual (its
       correlation with `du` is -0.8 to -0.9 on tile and grass), and it differs by terrain (wheels spin up on tile).
       `command_change: per_terrain` takes `g_i` from per-terrain gains fitted offline on each training terrain's
-      excitation drives (`command_gains`; shipped: gpmppi/data/terrain_command_gains.yaml, written by `gpmppi
-      evaluate terrain-gains`); `online` fits one gain shared by all terrains as it goes; `none` drops the term;
+      excitation drives (the robot profile's calibration, fitted from its logs by `gpmppi train`, or explicit
+      `command_gains`); `online` fits one gain shared by all terrains as it goes; `none` drops the term;
     - `s_i^2` = the GP's latent variance + its likelihood noise + an extra spread shared by all terrains: the GP's
       noise was fitted on training drives and is 2-4x too small for closed-loop steps (measurement noise on both ends
       of a step), and a likelihood that overconfident throws the posterior about on every step. The extra spread is
@@ -206,15 +205,11 @@ class BayesTerrainEstimator:
         self._predictor = ExactPredictor(model)
         self._noise = np.asarray(model.noise, dtype=np.float64).reshape(self._m, 2)
         self._rows: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=config.history)  # (y (2,), predictions (M, 2))
-        self._terrain_gains = terrain_command_gains(config, list(model.terrains)) if (
-            config.command_change == "per_terrain") else np.zeros((self._m, 2))
-        self._response = None
+        # the robot profile's calibration, unless the settings name explicit gains or a response file
+        self._terrain_gains, self._response = profile_calibration(config, model)
         self._response_spread = np.asarray(config.response_spread, dtype=np.float64)
         self._max_roughness = np.asarray(config.response_max_roughness, dtype=np.float64)
         self._max_transient = np.asarray(config.response_max_transient, dtype=np.float64)
-        if config.response == "steady_map":
-            path = config.response_file or SHIPPED_RESPONSE
-            self._response = load_response(path).select(list(model.terrains), source=f"response_file {path}")
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:

@@ -32,7 +32,7 @@ from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.terrain.estimate import EstimatorLike
-from gpmppi.terrain.settings import EstimatorConfig, terrain_command_gains
+from gpmppi.terrain.settings import EstimatorConfig, profile_calibration
 
 
 @dataclass
@@ -270,11 +270,11 @@ def pooled_separability(
 
     Three views, each {scope: separability} with the scopes "all" and each scenario in sorted order:
     `separability` (the GP's variance as trained), `separability_calibrated` (one command-change gain for all
-    terrains removed, spread fitted: `calibrated`) and `separability_terrain_gains` (each terrain's shipped gain in
+    terrains removed, spread fitted: `calibrated`) and `separability_terrain_gains` (each terrain's profile gain in
     its prediction, spread fitted). Empty when no run is on a known terrain.
     """
     names = list(model.terrains)
-    gains = terrain_command_gains(EstimatorConfig(), names)
+    gains = profile_calibration(EstimatorConfig(response="none"), model)[0]  # the robot profile's gains
     parts = []
     for key, (states, commands, terr) in runs.items():
         tr = transitions(model, states, commands, terr)

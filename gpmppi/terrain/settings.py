@@ -52,15 +52,16 @@ class EstimatorConfig(BaseModel):
         "online for all terrains, or not at all")
     command_gains: dict[str, tuple[float, float]] | None = Field(
         None, description="bayes, command_change per_terrain: per terrain the residual per unit change of command "
-        "(v [m/s per m/s], omega [rad/s per rad/s]); None: the shipped gains (gpmppi/data/terrain_command_gains.yaml)")
+        "(v [m/s per m/s], omega [rad/s per rad/s]); None: the robot profile's calibration (fitted from its logs by "
+        "`gpmppi train`)")
     calibration_steps: float = Field(100.0, ge=2, description="bayes: steps over which the online fits forget")
     response: Literal["steady_map", "none"] = Field(
         "steady_map", description="bayes: also score each terrain by its velocity response to the commands "
         "(gpmppi.terrain.response: steady-state map and rate, run free from the measured velocity), which is "
         "unbiased at steady driving where the GP's one-step residuals are not; 'none': the GP evidence only")
     response_file: str | None = Field(
-        None, description="bayes, response steady_map: the terrain response YAML; None: the shipped one "
-        "(gpmppi/data/terrain_response.yaml, written by `gpmppi evaluate terrain-response`)")
+        None, description="bayes, response steady_map: a terrain response YAML (written by `gpmppi evaluate "
+        "terrain-response`) instead of the robot profile's; None: the profile's calibration (`gpmppi train`)")
     response_smoothing_steps: float = Field(
         35.0, ge=1, description="bayes, response steady_map: steps over which the response residual is averaged "
         "(exponentially) before it is scored: the fast transients a first-order response gets wrong average out, "
@@ -111,10 +112,43 @@ def load_command_gains(path: Path | str = SHIPPED_COMMAND_GAINS) -> dict[str, tu
 
 
 def terrain_command_gains(config: EstimatorConfig, terrains: list[str]) -> np.ndarray:
-    """(M, 2) the gains of `terrains` (the model's, in order) from `config.command_gains` or the shipped file."""
+    """(M, 2) the gains of `terrains` (the model's, in order) from `config.command_gains` or the shipped file (the
+    estimator takes the robot profile's instead of the shipped file: `profile_calibration`)."""
     gains = config.command_gains if config.command_gains is not None else load_command_gains()
     missing = [t for t in terrains if t not in gains]
     if missing:
         raise ValueError(f"command_gains: no gain for terrain(s) {missing} (have {sorted(gains)}); fit them with "
                          "`gpmppi evaluate terrain-gains`, or set command_change: online")
     return np.array([gains[t] for t in terrains], dtype=np.float64)
+
+
+def profile_calibration(config: EstimatorConfig, model):  # noqa: ANN001, ANN201 - GPModel, (gains, response | None)
+    """(the (M, 2) command-change gains, the `TerrainResponse` or None) the Bayesian filter runs with, in the order
+    of `model.terrains`: the explicit `command_gains` / `response_file` where set, else the robot profile's
+    calibration (`model.require_calibration()`: a model without one is refused in one line naming its file)."""
+    from gpmppi.terrain.response import load_response
+
+    names = list(model.terrains)
+    gains, response = np.zeros((len(names), 2)), None
+    if config.command_change == "per_terrain":
+        gains = (terrain_command_gains(config, names) if config.command_gains is not None
+                 else np.array(model.require_calibration().command_gain, dtype=np.float64))
+    if config.response == "steady_map":
+        if config.response_file is not None:
+            path = config.response_file
+            response = load_response(path).select(names, source=f"response_file {path}")
+        else:
+            response = model.require_calibration().response
+    return gains, response
+
+
+def shipped_calibration(terrains: list[str]):  # noqa: ANN201 - TerrainCalibration (imported here: no cycle)
+    """The plant-fitted calibration of the simulated Jackal's grounds `terrains` (in that order) from the shipped
+    YAMLs (gpmppi/data/terrain_command_gains.yaml, terrain_response.yaml, written by `gpmppi evaluate terrain-gains`
+    and `terrain-response`): what synthetic test models carry. A robot's own comes from its logs (`gpmppi train`)."""
+    from gpmppi.terrain.response import load_response
+    from gpmppi.terrain.terrain_calibration import TerrainCalibration
+
+    names = list(terrains)
+    gains = terrain_command_gains(EstimatorConfig(), names)
+    return TerrainCalibration(tuple(names), gains, load_response().select(names, source="shipped terrain response"))

@@ -16,6 +16,11 @@ import numpy as np
 from gpmppi.terrain.response import TerrainResponse
 
 
+class CalibrationDataError(ValueError):
+    """A log cannot calibrate a ground: the message names the ground, what was found, what is needed and what to
+    drive."""
+
+
 @dataclass(frozen=True)
 class TerrainCalibration:
     """Per ground of one robot: the command-change gain and the velocity response, in the profile's ground order."""

@@ -198,6 +198,82 @@ def odometry_cdr(
     return bytes(ts.serialize_cdr(msg, "nav_msgs/msg/Odometry"))
 
 
+# ---- navigation: nav_msgs/Path and geometry_msgs/PoseStamped in, the plan out as nav_msgs/Path -------------------
+# (kept together at the end of the file: other message kinds go in their own sections)
+@dataclass
+class PathReading:
+    """A decoded nav_msgs/msg/Path: its header and the (x, y) of each pose, in order."""
+
+    stamp_ns: int
+    frame_id: str
+    points: np.ndarray  # (P, 2) [m], possibly empty or non-finite: the caller checks
+
+
+@dataclass
+class PoseReading:
+    """A decoded geometry_msgs/msg/PoseStamped: its header, position and yaw."""
+
+    stamp_ns: int
+    frame_id: str
+    position: np.ndarray  # (2,) [m], possibly non-finite: the caller checks
+    yaw: float  # [rad]
+
+
+def _stamp_ns(header: Any, ros_type: str) -> int:
+    sec, nanosec = int(header.stamp.sec), int(header.stamp.nanosec)
+    if sec < 0 or not 0 <= nanosec < 1_000_000_000:
+        raise ValueError(f"{ros_type} stamp {sec} s {nanosec} ns is not a time since the epoch")
+    return sec * 1_000_000_000 + nanosec
+
+
+def _deserialize(data: bytes, ros_type: str, distro: Distro) -> Any:
+    try:
+        return typestore(distro).deserialize_cdr(data, ros_type)
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several types on malformed CDR
+        raise ValueError(f"not a {ros_type} CDR payload ({type(exc).__name__}: {exc})") from exc
+
+
+def path_from_cdr(data: bytes, distro: Distro = "jazzy") -> PathReading:
+    """Decode nav_msgs/msg/Path CDR bytes; raises ValueError naming what was wrong (the points are not checked)."""
+    msg = _deserialize(data, "nav_msgs/msg/Path", distro)
+    points = np.array([[p.pose.position.x, p.pose.position.y] for p in msg.poses], dtype=np.float64).reshape(-1, 2)
+    return PathReading(_stamp_ns(msg.header, "nav_msgs/msg/Path"), msg.header.frame_id, points)
+
+
+def pose_stamped_from_cdr(data: bytes, distro: Distro = "jazzy") -> PoseReading:
+    """Decode geometry_msgs/msg/PoseStamped CDR bytes; raises ValueError naming what was wrong."""
+    msg = _deserialize(data, "geometry_msgs/msg/PoseStamped", distro)
+    p, q = msg.pose.position, msg.pose.orientation
+    yaw = yaw_from_quaternion(q.x, q.y, q.z, q.w)
+    return PoseReading(_stamp_ns(msg.header, "geometry_msgs/msg/PoseStamped"), msg.header.frame_id,
+                       np.array([p.x, p.y], dtype=np.float64), yaw)
+
+
+def path_cdr(poses: np.ndarray, stamps_ns: np.ndarray, frame_id: str, stamp_ns: int,
+             distro: Distro = "jazzy") -> bytes:
+    """CDR bytes of a nav_msgs/msg/Path through `poses` (K, 3) = [x, y, yaw] [m, rad], pose k stamped
+    `stamps_ns[k]`, the path's header `stamp_ns`, everything in `frame_id`."""
+    ts = typestore(distro)
+    t = ts.types
+    time_type, header_type = t["builtin_interfaces/msg/Time"], t["std_msgs/msg/Header"]
+    point, quaternion = t["geometry_msgs/msg/Point"], t["geometry_msgs/msg/Quaternion"]
+    pose, stamped = t["geometry_msgs/msg/Pose"], t["geometry_msgs/msg/PoseStamped"]
+
+    def header(ns: int) -> Any:
+        return header_type(stamp=time_type(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000), frame_id=frame_id)
+
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    half = 0.5 * p[:, 2]
+    qz, qw = np.sin(half), np.cos(half)
+    items = [
+        stamped(header=header(int(s)), pose=pose(position=point(float(x), float(y), 0.0),
+                                                 orientation=quaternion(0.0, 0.0, float(z), float(w))))
+        for (x, y, _), s, z, w in zip(p, np.asarray(stamps_ns, dtype=np.int64), qz, qw, strict=True)
+    ]
+    msg = t["nav_msgs/msg/Path"](header=header(int(stamp_ns)), poses=items)
+    return bytes(ts.serialize_cdr(msg, "nav_msgs/msg/Path"))
+
+
 # ---- nav_msgs/OccupancyGrid -----------------------------------------------------------------
 def occupancy_grid_from_cdr(data: bytes, distro: Distro = "jazzy", lethal: int = 100) -> Any:  # noqa: ANN401
     """Our OccupancyGrid from nav_msgs/msg/OccupancyGrid CDR bytes (values as nav_msgs' int8: -1 unknown; `lethal`

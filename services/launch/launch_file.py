@@ -39,6 +39,11 @@ class ServiceEntry(BaseModel):
 class LaunchFile(BaseModel):
     model_config = ConfigDict(extra="forbid")
     robot: str = Field("jackal", description="robot name in every key")
+    profile: str | None = Field(
+        None, description="the robot profile (.npz from `gpmppi train`: GP, nominal model, terrain calibration) every "
+        "service that loads the model runs with (planner, terrain; the recorder attaches it); a relative path is "
+        "relative to the launch file. None: the shipped Jackal profile, or each service's own model_file"
+    )
     router: RouterEntry = Field(default_factory=RouterEntry)
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how services join")
     services: list[ServiceEntry] = Field(default_factory=list)
@@ -92,6 +97,57 @@ def load_launch(path: str | Path) -> tuple[LaunchFile, Marks]:
         raise LaunchFileError(f"{path}:1:1: a launch file is a mapping (robot, router, services, ...), not a "
                               f"{type(data).__name__}")
     try:
-        return LaunchFile.model_validate(data or {}), marks
+        launch = LaunchFile.model_validate(data or {})
     except ValidationError as exc:
         raise LaunchFileError(one_line(validation_problems(exc, path, marks))) from None
+    if launch.profile is not None:  # relative to the launch file, so a launch file and its profile move together
+        launch.profile = str((path.parent / Path(launch.profile).expanduser()).resolve())
+    return launch, marks
+
+
+# the services that load the robot profile (their `model_file`, which a launch file's `profile` fills)
+PROFILE_SERVICES = ("planner", "terrain")
+
+
+def profile_configs(launch: LaunchFile, entries: list[ServiceEntry]) -> list[ServiceEntry]:
+    """`entries` with the launch file's `profile` as the `model_file` of each service that loads the model and does
+    not name its own."""
+    if launch.profile is None:
+        return entries
+    return [e.model_copy(update={"config": {"model_file": launch.profile, **e.config}})
+            if (e.kind or e.name) in PROFILE_SERVICES else e for e in entries]
+
+
+def check_profile_grounds(launch: LaunchFile, path: str | Path) -> None:
+    """LaunchFileError (one line) when the launch file's `profile` is not a readable profile, lacks the terrain
+    calibration a terrain service's estimator needs, or a service names a ground it lacks: the sim's `terrain`, a
+    terrain service's `estimator.command_gains`."""
+    from gpmppi.gp.model_file import GPModel, ModelFileError
+    from gpmppi.terrain.settings import EstimatorConfig, profile_calibration
+
+    if launch.profile is None:
+        return
+    try:
+        model = GPModel.load(launch.profile)
+        for e in launch.services:
+            if e.enabled and (e.kind or e.name) == "terrain" and (e.config.get("estimator") or {}).get(
+                    "method", "bayes") == "bayes":
+                profile_calibration(EstimatorConfig.model_validate(e.config.get("estimator") or {}), model)
+    except (ModelFileError, ValueError) as exc:
+        raise LaunchFileError(f"{path}: profile: {exc}") from None
+    grounds = list(model.terrains)
+    for e in launch.services:
+        kind = e.kind or e.name
+        named: list[str] = []
+        if kind == "sim":
+            from services.run import settings_class
+
+            named = [str(e.config.get("terrain", settings_class("sim").model_fields["terrain"].default))]
+        elif kind == "terrain":
+            named = [str(t) for t in ((e.config.get("estimator") or {}).get("command_gains") or {})]
+        for ground in named:
+            if e.enabled and ground not in grounds:
+                raise LaunchFileError(
+                    f"{path}: service {e.name!r} names ground {ground!r}, which the profile {launch.profile} lacks "
+                    f"(its grounds: {grounds}); drive a ground the profile has, or fit one that has {ground!r} with "
+                    "`gpmppi train`")

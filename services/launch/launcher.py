@@ -22,7 +22,15 @@ from typing import IO, Any
 
 import zenoh
 
-from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile, LaunchFileError, ServiceEntry, load_launch
+from services.launch.launch_file import (
+    DEFAULT_LAUNCH,
+    LaunchFile,
+    LaunchFileError,
+    ServiceEntry,
+    check_profile_grounds,
+    load_launch,
+    profile_configs,
+)
 from services.launch.monitor import Monitor, Summary, summarize
 from services.launch.supervisor import Launcher
 from services.recording.output_files import resolve_output
@@ -83,7 +91,7 @@ def build(
         # the Foxglove server: a viewer like rerun's, at the same lower priority, never required
         config = {"host": foxglove[0], "port": foxglove[1], "nice": 10}
         entries.insert(0, ServiceEntry(name="foxglove", required=False, config=config))
-    entries = _describe_run_to_recorders(launcher, entries, launch_path)
+    entries = _describe_run_to_recorders(launcher, profile_configs(launch, entries), launch_path)
     for e in entries:
         config = {**common, **e.config, "service": e.name}
         if secured is not None:
@@ -131,7 +139,8 @@ def check_launch(
             settings_class("router").model_validate({"listen": launch.router.listen, **launch.router.config})
         except ValidationError as exc:
             problems += validation_problems(exc, path, marks, ("router", "config"), "router.config")
-    entries = [(i, e) for i, e in enumerate(launch.services)] + [(None, e) for e in extra or []]
+    entries = [(i, e) for i, e in enumerate(profile_configs(launch, launch.services))] + [
+        (None, e) for e in extra or []]
     for i, entry in entries:
         kind = entry.kind or entry.name
         label = f"services[{i}] ({entry.name})" if i is not None else f"{entry.name} (from the command line)"
@@ -199,17 +208,25 @@ def run_launch(
     then: Callable[[Launcher, Monitor], None] | None = None,
     secrets: str | None = None,
     foxglove: tuple[str, int] | None = None,
+    edit: Callable[[LaunchFile], LaunchFile] | None = None,
 ) -> tuple[int, Summary]:
     """Run a launch file (default: the simulated Jackal) for `duration` seconds after every service is up
     (first heartbeat; a cold numba cache can take minutes), or until Ctrl-C; (exit code, summary).
 
     `then`, if given, runs in a thread once every service is up, instead of the `duration`; the run ends when
-    it returns (it should return soon after `launcher.stop_event` is set). Its exception is raised here."""
+    it returns (it should return soon after `launcher.stop_event` is set; the services are stopped after it
+    returns, so it may still talk to them then). Its exception is raised here.
+
+    `edit`, if given, changes the loaded launch file before it is checked (a command that runs a launch file with a
+    service of its own in place of one of the file's, as `gpmppi calibrate drive` does)."""
     # everything that can be checked is checked before any process starts (or any file is written)
     check_run(duration, port)
     path = launch_path or DEFAULT_LAUNCH
     launch, marks = load_launch(path)
+    if edit is not None:
+        launch = edit(launch)
     check_launch(launch, path, marks)
+    check_profile_grounds(launch, path)
     record, rerun, notes = resolve_outputs(record, rerun)
     launcher, service_names = build(launch, record, rerun, port, secrets, path, foxglove)
     launcher.out = out or sys.stdout

@@ -155,7 +155,7 @@ def resolve_settings(configs: dict[str, dict[str, str]]) -> dict[str, Any]:
         try:
             resolved = settings_class(kind).load(service["config"])
             entry["settings"] = json.dumps(mask_secrets(resolved.model_dump(mode="json")), sort_keys=True)
-            if kind == "planner":
+            if kind in ("planner", "terrain"):  # the robot profile they run with (attached once per file)
                 models.append(str(_model_path(getattr(resolved, "model_file", None))))
         except Exception as exc:  # noqa: BLE001 - one bad entry must not cost the others
             entry["error"] = f"{type(exc).__name__}: {exc}"[:2000]

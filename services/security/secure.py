@@ -56,6 +56,8 @@ ROLES: dict[str, Role] = {
     "planner": Role("GP-MPPI planner", puts=("cmd", "plan", "task", "costmap"),
                     reads=("state", "terrain/weights", "task", "plan", "costmap")),
     "egress": Role("motor-command egress (owns safety)", puts=("base/cmd",), reads=("cmd", "estop")),
+    # reads the task too: a goal keeps the scene (obstacles) of the task the planner plans for
+    "nav": Role("ROS 2 paths and goals into tasks", puts=("task",), reads=("task",)),
     "recorder": Role("MCAP recorder (reads everything)", reads=("**",)),
     "viewer": Role("rerun viewer (reads everything)", reads=("**",)),
     "launcher": Role(
@@ -100,6 +102,10 @@ def role_keys(identity: str, robot: str, ros2: dict[str, str] | None = None) -> 
         puts.append(ros2["cmd"])
     if identity == "ingress" and ros2.get("odom"):
         reads.append(ros2["odom"])
+    if identity == "nav":  # Nav2's path and goal
+        reads += [ros2[k] for k in ("path", "goal") if ros2.get(k)]
+    if identity == "planner" and ros2.get("plan"):  # the plan as nav_msgs/Path
+        puts.append(ros2["plan"])
     if "**" in role.reads:
         # readers of everything subscribe with `gpmppi/**` (the recorder's and viewer's default); what reaches
         # them is still only this robot's keys (the egress put rule)
