@@ -15,10 +15,10 @@ from typer.testing import CliRunner
 
 from gpmppi.gp.model_file import DEFAULT_MODEL_PATH, GPModel, ModelFileError, load_default_model
 from gpmppi.mppi.synthetic import synthetic_model
+from gpmppi.profile.response import SHIPPED_RESPONSE
+from gpmppi.profile.terrain_calibration import TerrainCalibration
 from gpmppi.terrain.estimator import make_estimator
-from gpmppi.terrain.response import SHIPPED_RESPONSE
 from gpmppi.terrain.settings import EstimatorConfig
-from gpmppi.terrain.terrain_calibration import TerrainCalibration
 from services.launch.launch_file import LaunchFileError, check_profile_grounds, load_launch, profile_configs
 from tools.cli import app
 from tools.dataset import read_dataset, write_dataset

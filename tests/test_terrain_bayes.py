@@ -21,7 +21,7 @@ from gpmppi.terrain.separability import replay
 from gpmppi.terrain.settings import EstimatorConfig
 
 # the synthetic steps have no command-change part (the physics plant's motor lag): no gains for it; and each starts
-# from a random state, so there is no response to follow (the physics plant's, gpmppi/terrain/response.py) and no
+# from a random state, so there is no response to follow (the physics plant's, gpmppi/profile/response.py) and no
 # start from rest (their commands are drawn apart from their speeds: no start gate either)
 BAYES = EstimatorConfig(method="bayes", command_change="none", response="none", gp_max_speed_gap=float("inf"))
 
@@ -242,7 +242,7 @@ def _closed_loop_steps(terrain: str, update: str) -> tuple[np.ndarray, np.ndarra
 
 
 # Smooth commands (the default update) drive close to steady state, where the GP's one-step evidence alone reads
-# asphalt as tile (0.14 here): the response evidence (gpmppi/terrain/response.py) identifies it (0.93). The paper's
+# asphalt as tile (0.14 here): the response evidence (gpmppi/profile/response.py) identifies it (0.93). The paper's
 # jittery update carries the information in the command changes, and the response is not scored under it; its
 # commands run ahead of the speed by more than the start gate's gap on many steps at speed, so it is replayed with
 # that gate off (`gp_max_speed_gap: .inf`, as docs/terrain_identification.md advises for it: with the gate, asphalt

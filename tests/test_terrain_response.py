@@ -1,4 +1,4 @@
-"""Each terrain's velocity response (gpmppi/terrain/response.py) and the terrain filter's use of it: the map
+"""Each terrain's velocity response (gpmppi/profile/response.py) and the terrain filter's use of it: the map
 interpolates like scipy's, the rate fit recovers a known rate, the shipped file is what `gpmppi evaluate
 terrain-response` writes, held commands on the physics plant are identified with it (and were not without it),
 a skipped transition re-anchors the response, and bad files or settings fail naming what is wrong."""
@@ -15,9 +15,9 @@ from typer.testing import CliRunner
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.plant.physics import PhysicsPlant
 from gpmppi.plant.terrains import load_terrains
+from gpmppi.profile.response import SHIPPED_RESPONSE, TerrainResponse, load_response
 from gpmppi.terrain.calibration import fit_rate
 from gpmppi.terrain.estimator import BayesTerrainEstimator, make_estimator
-from gpmppi.terrain.response import SHIPPED_RESPONSE, TerrainResponse, load_response
 from gpmppi.terrain.settings import EstimatorConfig
 
 

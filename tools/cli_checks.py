@@ -48,7 +48,7 @@ USER_ERRORS = frozenset({
     "gpmppi.plant.residual_net.NetworkFileError",
     "gpmppi.plant.terrains.TerrainFileError",
     "gpmppi.terrain.real_data.RealDataError",
-    "gpmppi.terrain.terrain_calibration.CalibrationDataError",
+    "gpmppi.profile.terrain_calibration.CalibrationDataError",
     "services.launch.launcher.RouterUnreachable",
     "services.recording.output_files.OutputPathError",
     "services.runtime.config_file.ConfigFileError",

@@ -155,7 +155,7 @@ def response_cmd(
     out: Annotated[Path | None, typer.Option("--output", "-o", metavar=OUT_FILE, help="Write the YAML here.")
                    ] = None,
 ) -> None:
-    """Fit each terrain's velocity response (gpmppi.terrain.response) on drives of the plant.
+    """Fit each terrain's velocity response (gpmppi.profile.response) on drives of the plant.
 
     Per terrain of the GP model (--profile; default the shipped one) on --plant: holds every command of a
     (v_ref, omega_ref) grid from rest for --settle s and
@@ -176,6 +176,46 @@ def response_cmd(
     if out is not None:
         write_text_atomic(out, text)
     print(text if out is None else f"wrote {out}: terrains {names}, rates {np.round(response.rate, 3).tolist()}")
+
+
+def log_calibration_cmd(
+    data: Annotated[Path, typer.Argument(help="MCAP log with state, cmd and terrain labels (`gpmppi dataset` or a "
+                                         "robot's log).")],
+    gp_model: Annotated[Path | None, typer.Option("--gp-model", help="GP model trained on that log (default: the "
+                                                  "shipped one).")] = None,
+    gains_out: Annotated[Path | None, typer.Option("--gains-output", metavar=OUT_FILE, help="Write the gains YAML "
+                                                   "here.")] = None,
+    response_out: Annotated[Path | None, typer.Option("--response-output", metavar=OUT_FILE, help="Write the "
+                                                      "response YAML here.")] = None,
+    robot: Annotated[str, typer.Option("--robot", help="Robot name in the log's keys.")] = "jackal",
+) -> None:
+    """Fit the terrain estimator's calibration (command-change gains, steady response) from a log alone.
+
+    The log's held commands give each ground's steady map, every step its rate and gains
+    (`gpmppi.terrain.log_calibration`). Prints the `--estimator` settings that use them.
+    """
+    from gpmppi.evaluation.runner import cached_gp_model
+    from gpmppi.terrain.calibration import command_gains_yaml, response_yaml
+    from gpmppi.terrain.log_calibration import calibrate_from_runs
+    from tools.cli_checks import fail
+    from tools.dataset import read_dataset
+
+    try:
+        runs = read_dataset(data, robot=robot)
+    except (ValueError, FileNotFoundError) as e:
+        fail(str(e))
+    cal = calibrate_from_runs(cached_gp_model(None if gp_model is None else str(gp_model)), runs)
+    gains = {t: cal.command_gain[i] for i, t in enumerate(cal.terrains)}
+    if gains_out is not None:
+        write_text_atomic(gains_out, command_gains_yaml(gains, _written_by()))
+    if response_out is not None:
+        write_text_atomic(response_out, response_yaml(cal.response, _written_by()))
+    inline = ", ".join(f"{t}: [{g[0]:.4f}, {g[1]:.4f}]" for t, g in gains.items())
+    print(f"--estimator 'command_gains={{{inline}}}'"
+          + (f" --estimator response_file={response_out}" if response_out is not None else ""))
+    for i, t in enumerate(cal.terrains):
+        rate, gain = np.round(cal.response.rate[i], 3).tolist(), np.round(cal.command_gain[i], 4).tolist()
+        print(f"{t}: rate {rate}, gain {gain}")
 
 
 def separability_cmd(
@@ -270,9 +310,11 @@ def _print_summary(result: dict) -> None:
 
 
 def register(ev: typer.Typer) -> None:
-    """Add `gpmppi evaluate terrain-gains`, `terrain-response` and `terrain-separability` to the evaluate group."""
+    """Add `gpmppi evaluate terrain-gains`, `terrain-response`, `terrain-log-calibration` and
+    `terrain-separability` to the evaluate group."""
     ev.command("terrain-gains")(gains_cmd)
     ev.command("terrain-response")(response_cmd)
+    ev.command("terrain-log-calibration")(log_calibration_cmd)
     ev.command("terrain-separability")(separability_cmd)
 
 

@@ -411,7 +411,8 @@ def register(app: typer.Typer) -> None:
         """Fit a robot profile from a log: the per-terrain residual GPs and the terrain calibration."""
         from gpmppi.gp.grid_table import build_grid
         from gpmppi.gp.train import Transitions, train_model
-        from tools.profile_fit import _calibrate_placeholder, train_command
+        from gpmppi.terrain.log_calibration import calibrate_from_runs
+        from tools.profile_fit import train_command
 
         console = Console()
         try:
@@ -455,8 +456,8 @@ def register(app: typer.Typer) -> None:
                  "states_covered": c.state_covered, "held_commands": c.held} for c in coverage]}
             model.made_by = train_command([str(p) for p in data], str(output), robot, terrain, points, iters, seed,
                                           holdout)
-            if runs is not None:  # the lead swaps this call for gpmppi.terrain.log_calibration.calibrate_from_runs
-                model.calibration = _calibrate_placeholder(model, runs)
+            if runs is not None:
+                model.calibration = calibrate_from_runs(model, runs)
         except ValueError as e:
             fail(str(e))
         model.save(output)

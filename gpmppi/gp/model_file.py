@@ -5,7 +5,7 @@ A model is a batch of 2M independent exact GPs (M terrains x {v, omega}) over th
 dynamic-unicycle parameters, the per-terrain EDD5 baselines it was trained with and the per-terrain
 lateral slip coefficients (`lateral_slip`, (M, 2); optional, zeros when the file has none). A robot profile
 (format version 2) also names its robot (`robot`) and holds the terrain estimator's calibration of its grounds
-(`calibration`, gpmppi.terrain.terrain_calibration; arrays in gpmppi.gp.profile_arrays), all fitted from the
+(`calibration`, gpmppi.profile.terrain_calibration; arrays in gpmppi.gp.profile_arrays), all fitted from the
 robot's logs by `gpmppi train`. A version 1 file (a GP model only: the paper's converted models, older files) still
 loads, with no calibration; whatever needs one then refuses it with the command that refits it
 (`GPModel.require_calibration`).
@@ -33,7 +33,7 @@ import numpy as np
 from gpmppi.gp.grid_table import GridTable, build_grid
 from gpmppi.gp.profile_arrays import CALIBRATION_ARRAYS, calibration_arrays, calibration_from_arrays
 from gpmppi.models.lateral_slip import N_LATERAL
-from gpmppi.terrain.terrain_calibration import TerrainCalibration
+from gpmppi.profile.terrain_calibration import TerrainCalibration
 
 FORMAT_NAME = "gpmppi-gp-model"
 FORMAT_VERSION = 2  # 2: a robot profile (robot name, terrain calibration); 1: the GP model alone

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from gpmppi.terrain.response import TerrainResponse
-from gpmppi.terrain.terrain_calibration import TerrainCalibration
+from gpmppi.profile.response import TerrainResponse
+from gpmppi.profile.terrain_calibration import TerrainCalibration
 
 CALIBRATION_ARRAYS = ("cal_command_gain", "cal_v_ref", "cal_omega_ref", "cal_steady", "cal_rate")
 

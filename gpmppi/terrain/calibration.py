@@ -1,6 +1,6 @@
 """Fitting what the terrain estimator takes from offline drives: the per-terrain command-change gains
 (`command_change: per_terrain`, gpmppi/data/terrain_command_gains.yaml) and each terrain's velocity response
-(`response: steady_map`, gpmppi/data/terrain_response.yaml; gpmppi.terrain.response).
+(`response: steady_map`, gpmppi/data/terrain_response.yaml; gpmppi.profile.response).
 
 Pure but for the plant: every function gets a `plant_for(terrain)` that builds a fresh plant on that terrain (the
 physics plant, or the paper's residual net), so the caller decides which plant and seed; `gpmppi evaluate
@@ -19,7 +19,7 @@ import yaml
 from gpmppi.gp.model_file import GPModel
 from gpmppi.plant.excitation import drive
 from gpmppi.plant.physics import PhysicsPlant
-from gpmppi.terrain.response import TerrainResponse
+from gpmppi.profile.response import TerrainResponse
 from gpmppi.terrain.separability import transitions
 
 # the grid of held commands of the shipped response: v_ref [m/s], omega_ref [rad/s] (no -0.0; covers the planner's +-pi)
@@ -118,8 +118,8 @@ def fit_response(
 
 
 def response_yaml(response: TerrainResponse, written_by: str) -> str:
-    """The response file (`gpmppi.terrain.response.load_response` reads it back)."""
+    """The response file (`gpmppi.profile.response.load_response` reads it back)."""
     return response.to_yaml(
-        "# Each terrain's velocity response to a held command (gpmppi/terrain/response.py): the steady (v, omega)\n"
+        "# Each terrain's velocity response to a held command (gpmppi/profile/response.py): the steady (v, omega)\n"
         "# on a (v_ref, omega_ref) grid and the one-step rate of approach to it. Used by the terrain estimator.\n"
         f"# Written by: {written_by}\n")

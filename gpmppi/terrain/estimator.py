@@ -169,7 +169,7 @@ class BayesTerrainEstimator:
       what they predict, not by their training noise.
 
     To `l_i` is added the log-likelihood of the terrain's response (`response: steady_map`,
-    gpmppi/terrain/response.py): each terrain's measured steady-state velocity under the commands, run free through
+    gpmppi/profile/response.py): each terrain's measured steady-state velocity under the commands, run free through
     a first-order rate from the measured velocity, its residual averaged over `response_smoothing_steps` and scored
     against `response_spread`. The GP's inputs lack the plant's hidden states, so at a held command its one-step
     mean is off by as much as the terrains differ, and smooth commands drive close to steady state; the steady map

@@ -57,7 +57,7 @@ class EstimatorConfig(BaseModel):
     calibration_steps: float = Field(100.0, ge=2, description="bayes: steps over which the online fits forget")
     response: Literal["steady_map", "none"] = Field(
         "steady_map", description="bayes: also score each terrain by its velocity response to the commands "
-        "(gpmppi.terrain.response: steady-state map and rate, run free from the measured velocity), which is "
+        "(gpmppi.profile.response: steady-state map and rate, run free from the measured velocity), which is "
         "unbiased at steady driving where the GP's one-step residuals are not; 'none': the GP evidence only")
     response_file: str | None = Field(
         None, description="bayes, response steady_map: a terrain response YAML (written by `gpmppi evaluate "
@@ -126,7 +126,7 @@ def profile_calibration(config: EstimatorConfig, model):  # noqa: ANN001, ANN201
     """(the (M, 2) command-change gains, the `TerrainResponse` or None) the Bayesian filter runs with, in the order
     of `model.terrains`: the explicit `command_gains` / `response_file` where set, else the robot profile's
     calibration (`model.require_calibration()`: a model without one is refused in one line naming its file)."""
-    from gpmppi.terrain.response import load_response
+    from gpmppi.profile.response import load_response
 
     names = list(model.terrains)
     gains, response = np.zeros((len(names), 2)), None
@@ -146,8 +146,8 @@ def shipped_calibration(terrains: list[str]):  # noqa: ANN201 - TerrainCalibrati
     """The plant-fitted calibration of the simulated Jackal's grounds `terrains` (in that order) from the shipped
     YAMLs (gpmppi/data/terrain_command_gains.yaml, terrain_response.yaml, written by `gpmppi evaluate terrain-gains`
     and `terrain-response`): what synthetic test models carry. A robot's own comes from its logs (`gpmppi train`)."""
-    from gpmppi.terrain.response import load_response
-    from gpmppi.terrain.terrain_calibration import TerrainCalibration
+    from gpmppi.profile.response import load_response
+    from gpmppi.profile.terrain_calibration import TerrainCalibration
 
     names = list(terrains)
     gains = terrain_command_gains(EstimatorConfig(), names)

@@ -3,7 +3,7 @@
 A `TerrainCalibration` is the part of a robot profile that the Bayesian terrain filter
 (gpmppi.terrain.estimator) takes besides the GP: per ground the command-change gain (the GP residual per unit
 change of command since the previous step, `command_change: per_terrain`) and the velocity response to a held
-command (`response: steady_map`, gpmppi.terrain.response). It is fitted from the robot's own logs, never from a
+command (`response: steady_map`, gpmppi.profile.response). It is fitted from the robot's own logs, never from a
 simulator, and is stored with the GP in the robot profile file (gpmppi.gp.model_file).
 """
 
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from gpmppi.terrain.response import TerrainResponse
+from gpmppi.profile.response import TerrainResponse
 
 
 class CalibrationDataError(ValueError):
