@@ -9,6 +9,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from gpmppi.costmap import CostmapError, load_map_yaml
 from gpmppi.tasks import GoalTask, LaneTask, Task, distance_to_polyline
 from gpmppi.yaml_file import yaml_error
 
@@ -100,6 +101,12 @@ def infeasibility(scenario: Scenario, robot_radius: float = 0.0) -> list[str]:
                 problems.append(f"start ({scenario.start[0]:g}, {scenario.start[1]:g}) is inside obstacle {i}")
             if np.hypot(task.goal[0] - x, task.goal[1] - y) + task.tolerance <= r + robot_radius:
                 problems.append(f"goal ({task.goal[0]:g}, {task.goal[1]:g}) lies wholly inside obstacle {i}")
+        if task.costmap is not None:
+            clear = task.costmap.clearance(np.stack([scenario.start[:2], task.goal]), robot_radius)
+            if clear[0] < 0.0:
+                problems.append(f"start ({scenario.start[0]:g}, {scenario.start[1]:g}) is in the map's obstacles")
+            if clear[1] + task.tolerance < 0.0:
+                problems.append(f"goal ({task.goal[0]:g}, {task.goal[1]:g}) lies wholly in the map's obstacles")
     else:
         d = float(distance_to_polyline(scenario.start[None, :2], task.centerline, task.closed)[0])
         if d > task.half_width:
@@ -139,6 +146,9 @@ class SceneFile(BaseModel):
     goal: tuple[float, float] = Field(description="goal position [x, y] in m")
     tolerance: float = Field(0.5, gt=0, allow_inf_nan=False, description="goal radius [m]")
     obstacles: list[_ObstacleModel] = Field(default_factory=list, description="circles {x, y, r}")
+    map: str | None = Field(None, description="obstacles as an occupancy grid: a map_server map YAML (image, "
+                            "resolution, origin, occupied_thresh, free_thresh, negate; a PGM image), relative to this "
+                            "file")
 
 
 class LaneFile(BaseModel):
@@ -179,8 +189,14 @@ def load_scene(path: str | Path) -> Scenario:
     f = _validated(SceneFile, _read_yaml(p, "scene"), p, "scene")
     assert isinstance(f, SceneFile)
     obstacles = np.array([[o.x, o.y, o.r] for o in f.obstacles], dtype=np.float64).reshape(-1, 3)
+    costmap = None
+    if f.map is not None:
+        try:
+            costmap = load_map_yaml(p.parent / f.map)
+        except CostmapError as e:
+            raise ScenarioFileError(f"scene file {p}: field 'map': {e}") from e
     try:
-        task = GoalTask(goal=np.array(f.goal), tolerance=f.tolerance, obstacles=obstacles)
+        task = GoalTask(goal=np.array(f.goal), tolerance=f.tolerance, obstacles=obstacles, costmap=costmap)
     except ValueError as e:
         raise ScenarioFileError(f"scene file {p}: {e}") from e
     return Scenario(f.name, task, np.array([f.start.x, f.start.y, f.start.yaw, 0.0, 0.0]))

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from gpmppi.costmap import Costmap
+
 
 @dataclass(frozen=True)
 class LaneTask:
@@ -31,11 +33,13 @@ class LaneTask:
 
 @dataclass(frozen=True)
 class GoalTask:
-    """Reach `goal` (2,) within `tolerance` [m] avoiding circles `obstacles` (K, 3) = [x, y, r]."""
+    """Reach `goal` (2,) within `tolerance` [m] avoiding circles `obstacles` (K, 3) = [x, y, r] and the lethal cells
+    of `costmap` (an occupancy grid, or None)."""
 
     goal: np.ndarray
     tolerance: float = 0.5
     obstacles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    costmap: Costmap | None = None
 
     def __post_init__(self) -> None:
         g = np.asarray(self.goal, dtype=np.float64).reshape(-1)
@@ -46,6 +50,8 @@ class GoalTask:
             raise ValueError("obstacles must be finite [x, y, r] rows with r > 0")
         if not (np.isfinite(self.tolerance) and self.tolerance > 0):
             raise ValueError(f"goal tolerance must be > 0, got {self.tolerance}")
+        if self.costmap is not None and not isinstance(self.costmap, Costmap):
+            raise ValueError(f"costmap must be a gpmppi.costmap.Costmap or None, got {type(self.costmap).__name__}")
         object.__setattr__(self, "goal", g)
         object.__setattr__(self, "obstacles", np.ascontiguousarray(o))
 

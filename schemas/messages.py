@@ -142,6 +142,31 @@ class Task(Message):
         return self
 
 
+class OccupancyGrid(Message):
+    """Obstacles as a grid, as nav_msgs/OccupancyGrid holds them: `data` row-major from the origin cell (row 0 is the
+    row at the origin, column 0 the column at it), in `header.frame_id` (the planner takes only grids in its
+    odometry's frame)."""
+
+    resolution: float = Field(gt=0, description="cell edge [m/cell]")
+    width: int = Field(ge=1, le=1 << 14, description="cells per row (along the grid's x axis)")
+    height: int = Field(ge=1, le=1 << 14, description="rows (along the grid's y axis)")
+    origin_x: float = Field(0.0, description="x of cell (0, 0)'s outer corner in header.frame_id [m]")
+    origin_y: float = Field(0.0, description="y of cell (0, 0)'s outer corner [m]")
+    origin_yaw: float = Field(0.0, description="yaw of the grid's x axis in header.frame_id [rad]")
+    lethal: int = Field(100, ge=1, le=255, description="values >= this are obstacles: 100 for nav_msgs occupancy, "
+                        "253 for a costmap_2d's inscribed and lethal costs")
+    data: list[Annotated[int, Field(ge=-128, le=255)]] = Field(
+        description="width x height cell values, row-major: 0 free .. lethal and above an obstacle, negative "
+        "unknown (nav_msgs' int8 -1)")
+
+    @model_validator(mode="after")
+    def _sized(self) -> OccupancyGrid:
+        if len(self.data) != self.width * self.height:
+            raise ValueError(f"data has {len(self.data)} values for a grid of width {self.width} x height "
+                             f"{self.height} = {self.width * self.height}; send width x height values, row-major")
+        return self
+
+
 class Plan(Message):
     """The planner's output for one cycle, for logging and visualization."""
 
@@ -163,7 +188,7 @@ class Plan(Message):
     critic_costs: dict[str, float] = Field(
         default_factory=dict,
         description="each critic's cost of the nominal sequence, by critic name (variance, deviation, slip, "
-        "lane_exit, speed, collision, goal, terminal); they sum to the nominal sequence's cost [cost]",
+        "lane_exit, speed, collision, costmap, goal, terminal); they sum to the nominal sequence's cost [cost]",
     )
     effective_samples: float | None = Field(
         None,
@@ -197,5 +222,5 @@ class EStop(Message):
 # Every top-level message model by class name (schema registry for files and tools).
 MODELS: dict[str, type[Message]] = {
     m.__name__: m
-    for m in (State, Command, BaseCommand, TerrainLabel, TerrainWeights, Task, Plan, Heartbeat, EStop)
+    for m in (State, Command, BaseCommand, TerrainLabel, TerrainWeights, Task, OccupancyGrid, Plan, Heartbeat, EStop)
 }

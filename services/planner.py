@@ -27,8 +27,14 @@ from pydantic import Field, ValidationError
 
 from gpmppi.mppi.config import PlannerConfig  # not the planner module: run() imports it alongside the model load
 from gpmppi.mppi.cycle import CycleConfig, Event, Planned, PlannerCycle
-from schemas import Command, DecodeError, Plan, State, decode
-from services.codec.convert import state_to_array, task_from_message, task_to_message
+from schemas import Command, DecodeError, OccupancyGrid, Plan, State, decode
+from services.codec.convert import (
+    costmap_from_message,
+    costmap_to_message,
+    state_to_array,
+    task_from_message,
+    task_to_message,
+)
 from services.codec.ros2_topic import Ros2Topic
 from services.runtime.node import Node, TypedSubscription
 from services.runtime.node_settings import NodeSettings
@@ -152,6 +158,8 @@ def plan_message(
     if isinstance(task, GoalTask) and tightened.ndim == 2:
         # per step: the largest inflation of any obstacle radius
         radii = task.obstacles[:, 2] if task.obstacles.shape[0] else np.zeros(0)
+        # a costmap's column (after the circles') is its whole radius: the robot's plus the inflation
+        radii = np.concatenate([radii, np.zeros(tightened.shape[1] - radii.size)])
         tightened = (tightened - radii[None, :]).max(axis=1) if radii.size else np.zeros(tightened.shape[0])
     # rollouts are for the viewer: 1 mm is plenty, and short numbers make the bulk of the message (3/4 of its
     # bytes at full precision) cheaper to encode, send, record and decode
@@ -206,6 +214,8 @@ def run(settings: Settings) -> int:
         state_sub = StateSubscription(node, node.key("state"), State, newest_only=True, capacity=1024)
         weights_sub = node.subscribe("terrain_weights")
         task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
+        costmap_sub = node.subscribe("costmap", remote_only=True)
+        pending_grid: OccupancyGrid | None = None  # a grid that came before the first state (its frame unchecked)
         outputs = Outputs(node, settings, startup)
         outputs.started = time.monotonic()
         initial_task = None if settings.scenario == NO_TASK else scenario.task
@@ -229,6 +239,11 @@ def run(settings: Settings) -> int:
                     node.log.info("new task: %s", new_task.kind)
                 except ValueError as exc:
                     node.reject(f"task: {exc}")
+            if (grid := costmap_sub.take()) is not None:
+                pending_grid = grid
+            if pending_grid is not None and latest is not None:  # its frame is checked against the states'
+                take_costmap(node, cycle, pending_grid, latest.header.frame_id)
+                pending_grid = None
             if (w := weights_sub.take()) is not None:
                 cycle.on_weights(w.weights, now, names=w.names)
             cycle.tick(now)
@@ -242,6 +257,8 @@ def run(settings: Settings) -> int:
                     # polyline takes milliseconds; a cycle with it on the path measured 22.9 ms, the median 5)
                     next_task = now + settings.task_period_s
                     outputs.task.put(task_to_message(cycle.task, time.time_ns()))
+                    if (grid_msg := outputs.grid_message(cycle.task, latest)) is not None:
+                        outputs.costmap.put(grid_msg)
                 # trigger 'state': input wakes the wait; 'rate': do not sleep past the next tick
                 node.spin_once(None if settings.trigger == "state" else min(settings.poll_s, next_rate_tick - now))
                 continue
@@ -258,6 +275,22 @@ def run(settings: Settings) -> int:
     return 0
 
 
+def take_costmap(node: Node, cycle: PlannerCycle, msg: OccupancyGrid, state_frame: str) -> bool:
+    """Plan goal tasks among the grid of `msg` from now on; refused (counted in the heartbeat's rejects, with the
+    reason) when it is not in the states' frame."""
+    if msg.header.frame_id != state_frame:
+        node.reject(f"costmap: grid in frame {msg.header.frame_id!r}, but the states are in {state_frame!r}; publish "
+                    f"the grid in {state_frame!r} (the planner does not transform it)")
+        return False
+    try:
+        cycle.set_costmap(costmap_from_message(msg))
+    except ValueError as exc:
+        node.reject(f"costmap: {exc}")
+        return False
+    node.log.info("new costmap: %d x %d cells of %.3f m in %s", msg.width, msg.height, msg.resolution, state_frame)
+    return True
+
+
 class Outputs:
     """The planner's publishers: each plan's command (stamped with its state's stamp) and Plan, and the task."""
 
@@ -266,10 +299,24 @@ class Outputs:
         self.cmd = node.publisher("cmd")
         self.plan = node.publisher("plan")
         self.task = node.publisher("task")
+        self.costmap = node.publisher("costmap")
+        self._grid: tuple[object, OccupancyGrid] | None = None  # the last grid published and its message
         self.ros_plan = Ros2PlanPublisher(node, settings.ros2_plan, settings.planner.dt) \
             if settings.ros2_plan.enabled else None
         self.published = 0
         self.started = time.monotonic()  # when the loop started, for the time to the first command [monotonic s]
+
+    def grid_message(self, task: LaneTask | GoalTask, latest: State | None) -> OccupancyGrid | None:
+        """The message of the grid the goal task plans among (recorded and drawn with the task), encoded once per
+        grid; None without one, or before the first state (whose frame it is in)."""
+        grid = getattr(task, "costmap", None)
+        if grid is None or latest is None:
+            return None
+        if self._grid is None or self._grid[0] is not grid:
+            self._grid = (grid, costmap_to_message(grid, latest.header.frame_id))
+        msg = self._grid[1]
+        msg.header.stamp_ns = time.time_ns()
+        return msg
 
     def publish(self, out: Planned, task: LaneTask | GoalTask, frame_id: str) -> None:
         result = out.result

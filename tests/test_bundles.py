@@ -27,6 +27,7 @@ PINNED = {
         ("kind", "int64"), ("seg", A2), ("cell_start", "array(int64, 1d, C)"), ("candidates", "array(int32, 1d, C)"),
         ("field", A3), ("origin", A1), ("inv_cell", "float64"), ("half_width", "float64"), ("tightened_hw", A1),
         ("speed_target", "float64"), ("goal", A1), ("obstacles", A2), ("radii", A2),
+        ("grid", "array(float32, 3d, C)"), ("grid_frame", A1),
     ]),
     SamplingBundle: (bundles.SamplingArgs, [
         ("x0", A1), ("nominal", A2), ("noise_std", A1), ("u_lo", A1), ("u_hi", A1), ("dt", "float64"),
@@ -101,12 +102,13 @@ def test_cost_bundle_takes_weights_by_critic_name() -> None:
     cost = CostBundle.from_weights(weights, {"lane_exit": {"discount": 0.8}, "speed": {"along_lane": False}}, True)
     assert cost.weights == weights and cost.params["lane_exit"] == {"discount": 0.8}
     # the cost vector: the goal switch, the weights in CRITICS order, the critics' parameters
-    assert cost.args() == (1.0, *weights.values(), 0.8, 0.0)
+    assert cost.args() == (1.0, *weights.values(), 0.8, 0.0, 0.01)
     assert typeof(cost.args()) == typeof((1.0,) * bundles.N_COST_TERMS)
     assert cost.args()[layout().param_index("lane_exit", "discount")] == 0.8
     assert cost.args()[bundles.K_GOAL_GEODESIC] == 1.0
     assert CostBundle.from_weights(weights).params == {**{n: {} for n in CRITICS}, "lane_exit": {"discount": 0.9},
-                                                       "speed": {"along_lane": True}}
+                                                       "speed": {"along_lane": True},
+                                                       "costmap": {"value_scale": 0.01}}
     with pytest.raises(ValueError, match=r"unknown \['slippage'\], missing \['slip'\]"):
         CostBundle.from_weights({**{k: v for k, v in weights.items() if k != "slip"}, "slippage": 1.0})
     with pytest.raises(ValueError, match=r"parameters of unknown critics \['slippage'\]"):

@@ -22,7 +22,7 @@ VARIANTS = {
     "gp-exact": {"dynamics": "gp", "gp_mode": "exact"},
 }
 LANE_ONLY = {"deviation", "slip", "lane_exit", "speed"}
-GOAL_ONLY = {"collision", "goal", "terminal"}
+GOAL_ONLY = {"collision", "costmap", "goal", "terminal"}
 
 
 @pytest.fixture(scope="module")

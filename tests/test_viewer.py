@@ -262,3 +262,50 @@ def test_goal_task_shows_obstacles_inflation_and_goal(tmp_path: Path) -> None:
     assert {"/map/obstacles", "/map/goal"} <= static
     assert rows["/map/obstacles_inflated"] == 10 and rows["/plots/tightening/last"] == 10
     assert "/map/lane/tightened" not in rows and any("task: goal" in e for e in events)
+
+
+def test_a_costmap_is_drawn_once_per_grid_at_its_lethal_cells(tmp_path: Path) -> None:
+    from schemas import Header, OccupancyGrid
+
+    values = np.zeros((4, 5), dtype=int)
+    values[1, 3] = 100
+    values[2, 0] = 60
+    grid = OccupancyGrid(header=Header(frame_id="odom"), resolution=0.5, width=5, height=4, origin_x=1.0, origin_y=2.0,
+                         origin_yaw=np.pi / 2, data=values.reshape(-1).tolist())
+    centres, radius = geo.lethal_cells(grid)
+    # cell (row 1, column 3): (1.75, 0.75) m along the grid's axes, the grid's x along the world's y
+    assert centres == pytest.approx(np.array([[1.0 - 0.75, 2.0 + 1.75]])) and radius == 0.25
+    log = tmp_path / "grid.mcap"
+    t0 = 1_700_000_000_000_000_000
+    with McapWriter(log) as w:
+        for i in range(3):  # re-published with new stamps: drawn once
+            grid.header.stamp_ns = t0 + i * 100_000_000
+            w.write("gpmppi/r1/costmap", grid, log_time_ns=grid.header.stamp_ns)
+    out = tmp_path / "grid.rrd"
+    convert(log, "save", str(out))
+    _rows, static, events = read_rrd(out)
+    assert "/map/costmap" in static
+    assert [e for e in events if "costmap" in e] == ["costmap: 5 x 4 cells of 0.5 m, 1 lethal"]
+
+
+def test_the_foxglove_scene_draws_a_costmaps_lethal_cells() -> None:
+    pytest.importorskip("foxglove")
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+
+    from schemas import Header, OccupancyGrid
+    from services.view.foxglove_scene import FoxgloveSceneMapper, schema_of
+
+    values = np.zeros((4, 5), dtype=int)
+    values[1, 3] = values[2, 4] = 100
+    grid = OccupancyGrid(header=Header(stamp_ns=5, frame_id="odom"), resolution=0.5, width=5, height=4,
+                         data=values.reshape(-1).tolist())
+    (out,) = FoxgloveSceneMapper().map("gpmppi/r1/costmap", grid, 1)
+    assert out.topic == "scene/r1/task"
+    schema = schema_of(out.topic)  # Foxglove's protobuf schema: decode what it would
+    pool = descriptor_pool.DescriptorPool()
+    for f in descriptor_pb2.FileDescriptorSet.FromString(schema.data).file:
+        pool.Add(f)
+    update = message_factory.GetMessageClass(pool.FindMessageTypeByName(schema.name)).FromString(out.data)
+    (entity,) = update.entities
+    assert entity.id == "costmap" and len(entity.cubes) == 2
+    assert (entity.cubes[0].pose.position.x, entity.cubes[0].pose.position.y) == (1.75, 0.75)

@@ -106,6 +106,67 @@ class _Ours:
         return out
 
 
+class _Goal:
+    """One of our planners in closed loop (kinematic plant) on the paper's obstacle scene, its obstacles the circles or
+    the circles rasterised to a 200 x 200 grid at 5 cm (the costmap critic); back to the start at the goal."""
+
+    def __init__(self, config, model, weights: np.ndarray, grid: bool) -> None:
+        from gpmppi.costmap import rasterise_circles
+        from gpmppi.mppi.planner import Planner
+        from gpmppi.scenarios import PAPER_OBSTACLES, paper_obstacle_scene
+        from gpmppi.tasks import GoalTask
+
+        self.scenario = paper_obstacle_scene()
+        self.task = self.scenario.task
+        if grid:
+            self.costmap = rasterise_circles(PAPER_OBSTACLES, 0.05, np.array([-1.5, -2.5]), np.array([8.5, 7.5]))
+            assert self.costmap.shape == (200, 200)
+            self.task = GoalTask(goal=self.task.goal, tolerance=self.task.tolerance, costmap=self.costmap)
+        self.planner = Planner(config, model)
+        self.weights = weights
+        self.x = self.scenario.start.copy()
+
+    def step(self) -> float:
+        t0 = time.perf_counter()
+        r = self.planner.plan(self.x, self.task, self.weights)
+        dt_ms = (time.perf_counter() - t0) * 1e3
+        self.x = kinematic_step(self.x, r.control, 0.1)
+        if np.hypot(*(self.x[:2] - self.task.goal)) < self.task.tolerance:
+            self.x = self.scenario.start.copy()
+        return dt_ms
+
+
+def grid_setup_ms(backend: str, repeats: int = 5) -> dict[str, float]:
+    """What a new 200 x 200 grid costs before a plan reads it (p50 ms of `repeats`): its kernel arrays (the distance
+    transform, `Costmap.kernel_arrays`), its goal field (`goal_field.build_goal_field`, once per grid and goal), and
+    on CUDA its upload to the device (`cuda_backend.DeviceInputs`)."""
+    from gpmppi.costmap import Costmap, rasterise_circles
+    from gpmppi.mppi.goal_field import build_goal_field
+    from gpmppi.scenarios import PAPER_OBSTACLES
+
+    base = rasterise_circles(PAPER_OBSTACLES, 0.05, np.array([-1.5, -2.5]), np.array([8.5, 7.5]))
+    times: dict[str, list[float]] = {"grid_arrays_ms": [], "goal_field_ms": [], "grid_upload_ms": []}
+    for _ in range(repeats):
+        grid = Costmap(base.values.copy(), base.resolution, base.origin)  # a new grid: nothing cached
+        t0 = time.perf_counter()
+        arrays, frame = grid.kernel_arrays()
+        times["grid_arrays_ms"].append((time.perf_counter() - t0) * 1e3)
+        t0 = time.perf_counter()
+        build_goal_field(np.array([7.0, 5.0]), np.zeros((0, 3)), np.zeros((1, 2)), margin=8.0, costmap=grid)
+        times["goal_field_ms"].append((time.perf_counter() - t0) * 1e3)
+        if backend == "cuda":
+            from numba import cuda
+
+            from gpmppi.mppi.cuda_backend import DeviceInputs
+
+            device = DeviceInputs()
+            t0 = time.perf_counter()
+            device._array("task", "grid", arrays)
+            cuda.synchronize()
+            times["grid_upload_ms"].append((time.perf_counter() - t0) * 1e3)
+    return {k: float(np.percentile(v, 50)) for k, v in times.items() if v}
+
+
 class _Peer:
     """pytorch_mppi on the kinematic unicycle with a quadratic lane-tracking cost."""
 
@@ -155,7 +216,7 @@ def _stats(ts: list[float]) -> dict[str, float]:
 
 def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: str, vs: str | None, iters: int,
               warmup: int = 5, online_weights: bool = False, prepare: bool = True,
-              table_collapse: str = "lazy") -> dict:
+              table_collapse: str = "lazy", costmap: bool = False) -> dict:
     from gpmppi.mppi.planner import PlannerConfig
 
     model, source = _load_model()
@@ -170,6 +231,9 @@ def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: s
     if online_weights:
         runners["fixed"] = _Ours(PlannerConfig(dynamics=model_choice, **common), model, weights)
     cfg = runners["main"].planner.config  # type: ignore[attr-defined]
+    if costmap:
+        runners["circles"] = _Goal(PlannerConfig(dynamics=model_choice, **common), model, weights, grid=False)
+        runners["grid"] = _Goal(PlannerConfig(dynamics=model_choice, **common), model, weights, grid=True)
     if vs is not None:
         runners["plain"] = _Ours(PlannerConfig(dynamics="unicycle", **common), model, weights)
         runners["peer"] = _Peer(samples, horizon, cfg.dt, cfg.noise_std, cfg.temperature)
@@ -197,6 +261,14 @@ def run_bench(samples: int, horizon: int, model_choice: str, gp: str, backend: s
             "fixed_p99_ms": fixed["p99_ms"], "ratio_moving_vs_fixed": out["p50_ms"] / fixed["p50_ms"],
             "prepare_p50_ms": prep["p50_ms"], "prepare_p99_ms": prep["p99_ms"],
             "ratio_cycle_vs_fixed": (out["p50_ms"] + prep["p50_ms"]) / fixed["p50_ms"],
+        })
+    if costmap:
+        circles, grid = _stats(times["circles"]), _stats(times["grid"])
+        out.update({
+            "costmap": True, "circles_p50_ms": circles["p50_ms"], "circles_p99_ms": circles["p99_ms"],
+            "grid_p50_ms": grid["p50_ms"], "grid_p99_ms": grid["p99_ms"],
+            "ratio_grid_vs_circles": grid["p50_ms"] / circles["p50_ms"],
+            **grid_setup_ms(out["backend"]),
         })
     if vs is not None:
         plain, peer = _stats(times["plain"]), _stats(times["peer"])
@@ -235,6 +307,11 @@ def register(app: typer.Typer) -> None:
             bool, typer.Option("--collapse-in-plan",
                                help="With --online-weights: no Planner.prepare, the plan collapses what it reads")
         ] = False,
+        costmap: Annotated[
+            bool, typer.Option("--costmap", help="Also time the paper's obstacle scene with its circles and with them "
+                               "rasterised to a 200 x 200 grid (the costmap critic), interleaved, and a new grid's "
+                               "setup (distance transform, goal field, upload)")
+        ] = False,
     ) -> None:
         """Time planner iterations: p50/p99 ms and Hz (the machine's load adds noise: re-run when quiet)."""
         only_with(online_weights, "--online-weights", {"--collapse-in-plan": collapse_in_plan})
@@ -243,7 +320,7 @@ def register(app: typer.Typer) -> None:
         try:
             res = run_bench(samples, horizon, model.value, gp.value, backend.value, vs.value if vs else None, iters,
                             online_weights=online_weights, prepare=not collapse_in_plan,
-                            table_collapse=table_collapse.value)
+                            table_collapse=table_collapse.value, costmap=costmap)
         except ValueError as e:  # e.g. --backend cuda on a machine without a GPU
             fail(str(e))
         if as_json:
@@ -262,6 +339,13 @@ def register(app: typer.Typer) -> None:
                 f"  {where}: p50 {res['prepare_p50_ms']:.2f} ms  p99 {res['prepare_p99_ms']:.2f} ms; moving / fixed: "
                 f"plan {res['ratio_moving_vs_fixed']:.3f}x, prepare + plan {res['ratio_cycle_vs_fixed']:.3f}x"
             )
+        if costmap:
+            typer.echo(f"  paper scene, circles: p50 {res['circles_p50_ms']:.2f} ms  "
+                       f"p99 {res['circles_p99_ms']:.2f} ms; "
+                       f"200 x 200 grid: p50 {res['grid_p50_ms']:.2f} ms  p99 {res['grid_p99_ms']:.2f} ms; "
+                       f"grid / circles {res['ratio_grid_vs_circles']:.3f}x")
+            typer.echo("  a new grid (p50 ms): " + ", ".join(
+                f"{k[:-3]} {res[k]:.2f}" for k in ("grid_arrays_ms", "goal_field_ms", "grid_upload_ms") if k in res))
         if vs is not None:
             typer.echo(f"  plain: p50 {res['plain_p50_ms']:.2f} ms  p99 {res['plain_p99_ms']:.2f} ms")
             typer.echo(f"  {res['peer']}: p50 {res['peer_p50_ms']:.2f} ms  p99 {res['peer_p99_ms']:.2f} ms")

@@ -18,7 +18,7 @@ from services.recording.player_log import RunInfo
 
 # what each kind of service publishes (relative to gpmppi/{robot}/), besides its heartbeat health/<name>
 OUTPUTS: dict[str, tuple[str, ...]] = {
-    "planner": ("cmd", "plan", "task"),
+    "planner": ("cmd", "plan", "task", "costmap"),
     "egress": ("base/cmd",),
     "ingress": ("state",),
     "terrain": ("terrain/weights",),

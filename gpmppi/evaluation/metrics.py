@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gpmppi.costmap import Costmap
 from gpmppi.tasks import distance_to_polyline, polyline_length, progress_along_polyline
 
 # [s] terrain weights are scored after this much of a run: the estimator starts from uniform weights and needs a
@@ -50,19 +51,26 @@ def lane_end_reached(
     return inside & (along >= polyline_length(centerline, closed=False) - tolerance_m)
 
 
-def obstacle_clearance(points: np.ndarray, obstacles: np.ndarray, robot_radius: float = 0.0) -> np.ndarray:
-    """Clearance (T,) [m] from the robot's disc to the nearest obstacle circle (negative = overlap); inf if none."""
+def obstacle_clearance(
+    points: np.ndarray, obstacles: np.ndarray, robot_radius: float = 0.0, costmap: Costmap | None = None,
+) -> np.ndarray:
+    """Clearance (T,) [m] from the robot's disc to the nearest obstacle circle or lethal cell of `costmap` (negative =
+    overlap; `Costmap.clearance`); inf if none."""
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     o = np.asarray(obstacles, dtype=np.float64).reshape(-1, 3)
-    if o.shape[0] == 0:
-        return np.full(p.shape[0], np.inf)
-    d = np.linalg.norm(p[:, None, :] - o[None, :, :2], axis=2) - o[None, :, 2] - robot_radius
-    return d.min(axis=1)
+    out = np.full(p.shape[0], np.inf)
+    if o.shape[0]:
+        out = (np.linalg.norm(p[:, None, :] - o[None, :, :2], axis=2) - o[None, :, 2] - robot_radius).min(axis=1)
+    if costmap is not None and p.shape[0]:
+        out = np.minimum(out, costmap.clearance(p, robot_radius))
+    return out
 
 
-def first_collision_index(points: np.ndarray, obstacles: np.ndarray, robot_radius: float = 0.0) -> int | None:
+def first_collision_index(
+    points: np.ndarray, obstacles: np.ndarray, robot_radius: float = 0.0, costmap: Costmap | None = None,
+) -> int | None:
     """Index of the first sample where the robot overlaps an obstacle, or None."""
-    hit = np.flatnonzero(obstacle_clearance(points, obstacles, robot_radius) < 0.0)
+    hit = np.flatnonzero(obstacle_clearance(points, obstacles, robot_radius, costmap) < 0.0)
     return int(hit[0]) if hit.size else None
 
 
@@ -97,6 +105,7 @@ def goal_outcome(
     obstacles: np.ndarray,
     time_limit: float,
     robot_radius: float = 0.0,
+    costmap: Costmap | None = None,
 ) -> GoalOutcome:
     """Score a goal-reaching run: success needs the goal within `time_limit` and no collision before it."""
     t = np.asarray(times, dtype=np.float64) - float(times[0])
@@ -105,7 +114,7 @@ def goal_outcome(
     if g is not None and t[g] > time_limit:
         g = None
     end = p.shape[0] if g is None else g + 1
-    clear = obstacle_clearance(p[:end], obstacles, robot_radius)
+    clear = obstacle_clearance(p[:end], obstacles, robot_radius, costmap)
     collided = bool(np.any(clear < 0.0))
     success = g is not None and not collided
     return GoalOutcome(

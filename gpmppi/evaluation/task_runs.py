@@ -115,7 +115,7 @@ class GoalRun(TaskRun):
 
     def stop(self, true_state: np.ndarray, driven_m: float, cfg: Any) -> str | None:  # noqa: ANN401
         t = self.task
-        hit = first_collision_index(true_state[None, :2], t.obstacles, cfg.robot_radius)
+        hit = first_collision_index(true_state[None, :2], t.obstacles, cfg.robot_radius, t.costmap)
         if cfg.stop_on_collision and hit is not None:
             return "collision"
         if cfg.stop_at_goal and np.linalg.norm(true_state[:2] - t.goal) <= t.tolerance:
@@ -124,5 +124,6 @@ class GoalRun(TaskRun):
 
     def score(self, positions: np.ndarray, times: np.ndarray, status: str, cfg: Any) -> dict[str, Any]:  # noqa: ANN401
         t = self.task
-        out = goal_outcome(times, positions, t.goal, t.tolerance, t.obstacles, cfg.time_limit_s, cfg.robot_radius)
+        out = goal_outcome(times, positions, t.goal, t.tolerance, t.obstacles, cfg.time_limit_s, cfg.robot_radius,
+                           t.costmap)
         return {"success": out.success, "time_to_goal_s": out.time_to_goal_s, "min_clearance_m": out.min_clearance_m}

@@ -22,6 +22,7 @@ from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
+from gpmppi.costmap import NO_GRID, Costmap
 from gpmppi.mppi.critics import registry
 from gpmppi.mppi.critics.base import TASK_GOAL, TASK_KINDS, TASK_LANE, W_GOAL_GEODESIC
 from gpmppi.mppi.goal_field import GoalField
@@ -177,7 +178,9 @@ class TaskBundle(_Bundle):
     speed_target: float  # lane speed target [m/s]
     goal: np.ndarray  # (2,) goal position [m]
     obstacles: np.ndarray  # (K, 3) circles [x, y, r] [m]
-    radii: np.ndarray  # (N+1, K) inflated obstacle radii per step [m]
+    radii: np.ndarray  # (N+1, K) inflated obstacle radii per step [m]; (N+1, K+1) with a grid: its radius last
+    grid: np.ndarray  # (H, W, 2) float32 occupancy grid: value / lethal, distance to the nearest lethal cell [m]
+    grid_frame: np.ndarray  # (6,) the grid's frame: 1 (0: no grid), origin x, y [m], cos, sin yaw, 1 / res [1/m]
 
     SPECS: ClassVar[dict[str, FieldSpec]] = {
         "kind": FieldSpec("int64", 0), "seg": FieldSpec("float64", 2), "cell_start": FieldSpec("int64", 1),
@@ -185,6 +188,7 @@ class TaskBundle(_Bundle):
         "inv_cell": FieldSpec("float64", 0), "half_width": FieldSpec("float64", 0),
         "tightened_hw": FieldSpec("float64", 1), "speed_target": FieldSpec("float64", 0),
         "goal": FieldSpec("float64", 1), "obstacles": FieldSpec("float64", 2), "radii": FieldSpec("float64", 2),
+        "grid": FieldSpec("float32", 3), "grid_frame": FieldSpec("float64", 1),
     }
 
     def args(self) -> tuple:
@@ -201,25 +205,32 @@ class TaskBundle(_Bundle):
         return cls(kind=TASK_LANE, seg=lane.segments, cell_start=lane.cell_start, candidates=lane.candidates,
                    field=lane.field, origin=lane.origin, inv_cell=float(lane.inv_cell), half_width=float(half_width),
                    tightened_hw=np.ascontiguousarray(tightened, dtype=np.float64), speed_target=float(speed),
-                   goal=np.zeros(2), obstacles=np.zeros((0, 3)), radii=np.zeros((tightened.shape[0], 0)))
+                   goal=np.zeros(2), obstacles=np.zeros((0, 3)), radii=np.zeros((tightened.shape[0], 0)),
+                   grid=NO_GRID[0], grid_frame=NO_GRID[1])
 
     @classmethod
     def for_goal(
-        cls, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray, goal_field: GoalField | None
+        cls, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray, goal_field: GoalField | None,
+        costmap: Costmap | None = None,
     ) -> TaskBundle:
-        """A goal task; `goal_field` None: no geodesic field (the cost bundle must then select the straight line)."""
+        """A goal task; `goal_field` None: no geodesic field (the cost bundle must then select the straight line);
+        `costmap` an occupancy grid (its radius per step the last column of `radii`)."""
         no_seg = np.zeros((1, 5))
         no_seg[0, 4] = 1.0
         field, origin, inv_cell = (
             (np.zeros((1, 1, 3)), np.zeros(2), 1.0) if goal_field is None
             else (goal_field.field, goal_field.origin, goal_field.inv_cell)
         )
+        grid, grid_frame = NO_GRID if costmap is None else costmap.kernel_arrays()
+        if radii.shape[1] != obstacles.shape[0] + (costmap is not None):
+            raise ValueError(f"TaskBundle radii: {radii.shape[1]} columns for {obstacles.shape[0]} circles "
+                             f"{'and a grid' if costmap is not None else 'and no grid'}")
         return cls(kind=TASK_GOAL, seg=no_seg, cell_start=np.zeros(2, dtype=np.int64),
                    candidates=np.zeros(0, dtype=np.int32), field=field, origin=origin, inv_cell=float(inv_cell),
                    half_width=1.0, tightened_hw=np.ones(radii.shape[0]), speed_target=0.0,
                    goal=np.ascontiguousarray(goal, dtype=np.float64),
                    obstacles=np.ascontiguousarray(obstacles, dtype=np.float64),
-                   radii=np.ascontiguousarray(radii, dtype=np.float64))
+                   radii=np.ascontiguousarray(radii, dtype=np.float64), grid=grid, grid_frame=grid_frame)
 
 
 # --------------------------------------------------------------------------------------------- sampling

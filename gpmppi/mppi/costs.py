@@ -20,6 +20,8 @@ Tightening (chance constraints at probability p_x, from the propagated covarianc
 * lane half-width  r_bar = r - sqrt(chi2_2(p_x) * lambda_max(Sigma_XY)), clamped to >= min_fraction * r
 * obstacle radius  r_j + Phi^-1(p_x) * sqrt(n^T Sigma_XY n) with n the unit vector from the obstacle
   centre to the nominal position, the inflation capped at `max_inflation`.
+* grid radius      r + Phi^-1(p_x) * sqrt(lambda_max(Sigma_XY)), capped alike (`inflate_grid`): the same quantile in
+  the worst direction, since a grid's lethal cells may lie on every side of the nominal position.
 
 Quantiles come from scipy once per configuration (`ChanceQuantiles`), never per step: the inverse
 functions scipy.stats's `chi2.ppf` and `norm.ppf` evaluate, called directly (importing scipy.stats
@@ -41,7 +43,8 @@ from gpmppi.mppi.critics.registry import build_states, build_sums, layout
 from gpmppi.mppi.lane import lane_query
 
 __all__ = [
-    "CRITICS", "STATES", "SUMS", "ChanceQuantiles", "advance_state", "fill_weight_vector", "inflate_obstacles",
+    "CRITICS", "STATES", "SUMS", "ChanceQuantiles", "advance_state", "fill_weight_vector", "inflate_grid",
+    "inflate_obstacles",
     "stage_cost", "stage_critics", "start_state",
     "terminal_cost", "terminal_critics", "tighten_lane", "weight_vector", "xy_lambda_max",
 ]
@@ -237,3 +240,15 @@ def inflate_obstacles(
                 capped += 1
             out[k, j] = obstacles[j, 2] + extra + max(infl, 0.0)
     return out, capped
+
+
+def inflate_grid(covs: np.ndarray, normal_q: float, radius: float, max_inflation: float) -> tuple[np.ndarray, int]:
+    """(N+1,) radii around a grid's lethal cells, radius + min(Phi^-1(p) sqrt(lambda_max(Sigma_XY)), cap), from (N+1,
+    5, 5) covariances, and the number capped."""
+    a = covs[:, 0, 0]
+    b = 0.5 * (covs[:, 0, 1] + covs[:, 1, 0])
+    c = covs[:, 1, 1]
+    lam = np.maximum(0.5 * (a + c) + np.sqrt(np.maximum(0.25 * (a - c) ** 2 + b * b, 0.0)), 0.0)
+    infl = normal_q * np.sqrt(lam)
+    capped = int(np.count_nonzero(infl > max_inflation))
+    return radius + np.clip(infl, 0.0, max_inflation), capped

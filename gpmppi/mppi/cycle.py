@@ -25,6 +25,7 @@ with [ns], as in egress's `Safety`. What happened goes into `events` (each named
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
 if TYPE_CHECKING:
+    from gpmppi.costmap import Costmap
     from gpmppi.mppi.planner import PlanResult
     from gpmppi.tasks import Task
 
@@ -168,6 +170,7 @@ class PlannerCycle:
         self.events: list[Event] = []
         self.counts: dict[str, int] = {}
         self._resume: tuple[np.ndarray, int, float] | None = None  # a predecessor's plan for the first state
+        self.costmap: Costmap | None = None  # the grid of goal tasks that come without one (`set_costmap`)
 
     # ---- reporting
     def _event(self, name: str, level: Level, message: str) -> Event:
@@ -205,11 +208,33 @@ class PlannerCycle:
         """Plan for `task` from now on. A task of the kind being planned for (a replanned path, a moved goal) keeps
         the warm start: the robot is driving the sequence it holds, and the configured initial one (zero) would brake
         it at every new path of a navigation stack, which replans about once a second. A task of another kind, or
-        the first one, starts from the initial sequence."""
+        the first one, starts from the initial sequence. A goal task without a grid of its own plans among the grid
+        of `set_costmap`, if one was given."""
         same_kind = self.task is not None and type(task) is type(self.task)
-        self.task = task
+        self.task = self._with_costmap(task)
         if not same_kind:
             self.planner.reset()
+
+    def set_costmap(self, costmap: Costmap | None) -> None:
+        """Plan goal tasks among this grid's obstacles from now on (None: none but the task's circles). The warm
+        start stays: a new grid is the same task in an updated world. What the plans read of the grid (its distance
+        transform, the goal field around it) is built now, between states (`Planner.prepare_task`, when the planner
+        has it), not on the next state's path to its command."""
+        self.costmap = costmap
+        if self.task is not None:
+            self.task = self._with_costmap(self.task, replace_own=True)
+            prepare = getattr(self.planner, "prepare_task", None)
+            if prepare is not None and self.previous is not None:
+                prepare(self.task, self.previous[1])
+
+    def _with_costmap(self, task: Task, replace_own: bool = False) -> Task:
+        from gpmppi.tasks import GoalTask
+
+        if not isinstance(task, GoalTask) or (task.costmap is not None and not replace_own):
+            return task
+        if self.costmap is None and not replace_own:
+            return task
+        return dataclasses.replace(task, costmap=self.costmap)
 
     def on_weights(self, weights: Sequence[float], now: float, names: Sequence[str] | None = None) -> bool:
         """Take new terrain weights (in the model's order, or by `names`); False when refused (the previous stay).

@@ -125,6 +125,12 @@ class Planner:
             kind = self._kinds[type(task)] = kind_class_for(task)(self.config, self._quant)
         return kind
 
+    def prepare_task(self, task: Task, state: np.ndarray) -> None:
+        """Build what `task`'s plans read once per task (its kind's `prepare`: a grid's distance transform, the goal
+        field around its obstacles) now, from `state`, rather than in the next `plan`. Like `prepare`: between
+        plans, from the thread that plans."""
+        self.kind(task).prepare(task, np.asarray(state, dtype=np.float64).reshape(-1)[:5])
+
     # ---------------------------------------------------------------- inputs
     def _check_inputs(self, state: np.ndarray, task: Task, weights: np.ndarray | None) -> tuple:
         x = np.asarray(state, dtype=np.float64).reshape(-1)

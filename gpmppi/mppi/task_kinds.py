@@ -22,9 +22,10 @@ from typing import ClassVar
 
 import numpy as np
 
+from gpmppi.costmap import lethal_radius
 from gpmppi.mppi.bundles import CostBundle, TaskBundle
 from gpmppi.mppi.config import PlannerConfig
-from gpmppi.mppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
+from gpmppi.mppi.costs import ChanceQuantiles, inflate_grid, inflate_obstacles, tighten_lane
 from gpmppi.mppi.critics.base import TASK_KINDS
 from gpmppi.mppi.goal_field import GoalField, cached_goal_field
 from gpmppi.mppi.lane import LaneLookup, cached_lane_lookup
@@ -52,6 +53,9 @@ class TaskKind(ABC):
 
     def reset(self) -> None:  # noqa: B027 - a hook: a kind with nothing to forget keeps it
         """Forget what depends on where the planner started planning (plans repeat from here)."""
+
+    def prepare(self, task: object, x: np.ndarray) -> None:  # noqa: B027 - a hook: nothing to build ahead
+        """Build now what this kind caches per task for plans from state `x` (`Planner.prepare_task`)."""
 
     def check(self, task: object) -> None:  # noqa: B027 - a hook: a kind with no checks of its own keeps it
         """Raise a ValueError if the planner cannot plan for `task` (the task's own checks are its type's)."""
@@ -134,7 +138,8 @@ class LaneKind(TaskKind):
 
 @register
 class GoalKind(TaskKind):
-    """Reach a goal among circles: the circles inflated by the covariance, the goal critics."""
+    """Reach a goal among circles and an occupancy grid's lethal cells: the circles, and the grid's radius, inflated by
+    the covariance; the goal critics."""
 
     task_type = GoalTask
     critics = "goal"
@@ -144,6 +149,7 @@ class GoalKind(TaskKind):
         # the scene whose goal field this planner uses, and the position it first planned that scene from
         self._goal_scene: bytes | None = None
         self._goal_extent = np.zeros((1, 2))
+        self._goal_checked: tuple | None = None  # the (grid, goal) whose goal was found clear of the grid
 
     def __init__(self, config: PlannerConfig, quantiles: ChanceQuantiles) -> None:
         super().__init__(config, quantiles)
@@ -159,19 +165,39 @@ class GoalKind(TaskKind):
                     f"task.goal {task.goal.tolist()} lies inside obstacle {int(inside[0])} "
                     f"{o[inside[0]].tolist()}; move the goal out of the obstacles"
                 )
+        grid = task.costmap
+        key = None if grid is None else (grid.digest(), task.goal.tobytes())
+        if grid is not None and key != self._goal_checked:  # once per goal and grid: off the plans' path
+            clear = float(grid.clearance(task.goal[None, :], self.config.robot_radius)[0])
+            if clear < 0.0:
+                raise ValueError(f"task.goal {task.goal.tolist()} lies within {-clear:.2f} m of the costmap's lethal "
+                                 "cells (robot radius included); move the goal into free space")
+            self._goal_checked = key
 
     def bounds(self, task: GoalTask, states: np.ndarray, covs: np.ndarray) -> tuple[np.ndarray, int]:
-        """Effective obstacle radii (N+1, K)."""
+        """Effective obstacle radii (N+1, K), and with a costmap a last column: the distance from a lethal cell's
+        centre the rollouts must keep (`costmap.lethal_radius` inflated by the covariance, `costs.inflate_grid`)."""
         c = self.config
         radii, capped = inflate_obstacles(states, covs, task.obstacles, self.quantiles.normal, c.robot_radius,
                                           c.max_inflation)
+        if task.costmap is not None:
+            grid_r, grid_capped = inflate_grid(covs, self.quantiles.normal,
+                                               lethal_radius(c.robot_radius, task.costmap.resolution), c.max_inflation)
+            radii = np.concatenate([radii, grid_r[:, None]], axis=1)
+            capped += grid_capped
         if c.step_clearance:
             half_step = 0.5 * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
             radii = np.sqrt(radii * radii + half_step * half_step)
         return radii, capped
 
+    def prepare(self, task: GoalTask, x: np.ndarray) -> None:
+        """A grid's kernel arrays (its distance transform) and the goal field of the task's scene."""
+        if task.costmap is not None:
+            task.costmap.kernel_arrays()
+        self.goal_field(task, x)
+
     def task_bundle(self, task: GoalTask, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
-        return TaskBundle.for_goal(task.goal, task.obstacles, bounds, self.goal_field(task, x))
+        return TaskBundle.for_goal(task.goal, task.obstacles, bounds, self.goal_field(task, x), task.costmap)
 
     def goal_field(self, task: GoalTask, x: np.ndarray) -> GoalField | None:
         """The geodesic goal field of the task's scene (built once per scene; None for straight-line distance).
@@ -186,8 +212,8 @@ class GoalKind(TaskKind):
             return None
         circles = task.obstacles.copy()
         circles[:, 2] += c.robot_radius
-        scene = task.goal.tobytes() + circles.tobytes()
+        scene = task.goal.tobytes() + circles.tobytes() + (b"" if task.costmap is None else task.costmap.digest())
         if scene != self._goal_scene:
             self._goal_scene, self._goal_extent = scene, x[None, :2].copy()
         return cached_goal_field(task.goal, circles, self._goal_extent, margin=min(self.reach(), 10.0),
-                                 cell=c.goal_cell)
+                                 cell=c.goal_cell, costmap=task.costmap, clearance=c.robot_radius)

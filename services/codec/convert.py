@@ -7,8 +7,9 @@ import time
 
 import numpy as np
 
+from gpmppi.costmap import Costmap
 from gpmppi.tasks import GoalTask, LaneTask
-from schemas import Circle, Header, State, Task
+from schemas import Circle, Header, OccupancyGrid, State, Task
 
 
 def now_ns() -> int:
@@ -78,3 +79,18 @@ def task_from_message(msg: Task) -> LaneTask | GoalTask:
 def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:
     """Yaw (rotation about z) of a unit quaternion, REP-103."""
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def costmap_from_message(msg: OccupancyGrid) -> Costmap:
+    """The core's grid from an OccupancyGrid message (its size already checked by the message)."""
+    values = np.asarray(msg.data, dtype=np.int16).reshape(msg.height, msg.width)
+    return Costmap(values, msg.resolution, (msg.origin_x, msg.origin_y, msg.origin_yaw), float(msg.lethal))
+
+
+def costmap_to_message(grid: Costmap, frame_id: str, stamp_ns: int = 0) -> OccupancyGrid:
+    """An OccupancyGrid message of a grid of integer values (a map file's or a decoded one's)."""
+    h, w = grid.shape
+    ox, oy, yaw = grid.origin
+    return OccupancyGrid(header=Header(stamp_ns=stamp_ns, frame_id=frame_id), resolution=grid.resolution, width=w,
+                         height=h, origin_x=ox, origin_y=oy, origin_yaw=yaw, lethal=int(grid.lethal),
+                         data=np.asarray(grid.values, dtype=np.int64).reshape(-1).tolist())

@@ -272,3 +272,59 @@ def path_cdr(poses: np.ndarray, stamps_ns: np.ndarray, frame_id: str, stamp_ns: 
     ]
     msg = t["nav_msgs/msg/Path"](header=header(int(stamp_ns)), poses=items)
     return bytes(ts.serialize_cdr(msg, "nav_msgs/msg/Path"))
+
+
+# ---- nav_msgs/OccupancyGrid -----------------------------------------------------------------
+def occupancy_grid_from_cdr(data: bytes, distro: Distro = "jazzy", lethal: int = 100) -> Any:  # noqa: ANN401
+    """Our OccupancyGrid from nav_msgs/msg/OccupancyGrid CDR bytes (values as nav_msgs' int8: -1 unknown; `lethal`
+    the threshold of obstacles); a ValueError naming what was wrong (not that type, a size that does not match the
+    data, a non-finite pose, a bad stamp)."""
+    from schemas import Header, OccupancyGrid
+
+    try:
+        msg = typestore(distro).deserialize_cdr(data, "nav_msgs/msg/OccupancyGrid")
+    except Exception as exc:  # noqa: BLE001 - rosbags raises several types on malformed CDR
+        raise ValueError(f"not a nav_msgs/msg/OccupancyGrid CDR payload ({type(exc).__name__}: {exc})") from exc
+    info = msg.info
+    w, h, n = int(info.width), int(info.height), len(msg.data)
+    if w * h != n or n == 0:
+        raise ValueError(f"nav_msgs/msg/OccupancyGrid of width {w} x height {h} carries {n} values; the grid's "
+                         "size must match its data")
+    p, q = info.origin.position, info.origin.orientation
+    pose = (float(p.x), float(p.y), yaw_from_quaternion(q.x, q.y, q.z, q.w), float(info.resolution))
+    if not all(np.isfinite(pose)) or pose[3] <= 0:
+        raise ValueError(f"nav_msgs/msg/OccupancyGrid origin {pose[:3]} / resolution {pose[3]} must be finite, the "
+                         "resolution > 0")
+    sec, nanosec = int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)
+    if sec < 0 or not 0 <= nanosec < 1_000_000_000:
+        raise ValueError(f"nav_msgs/msg/OccupancyGrid stamp {sec} s {nanosec} ns is not a time since the epoch")
+    header = Header(stamp_ns=sec * 1_000_000_000 + nanosec, frame_id=msg.header.frame_id or "map")
+    values = np.asarray(msg.data, dtype=np.int8).astype(np.int64)
+    # built without validating each of the cells again (rosbags gives int8: in range by type)
+    return OccupancyGrid.model_construct(
+        header=header, resolution=pose[3], width=w, height=h, origin_x=pose[0], origin_y=pose[1],
+        origin_yaw=pose[2], lethal=int(lethal), data=values.tolist())
+
+
+def occupancy_grid_cdr(
+    values: np.ndarray, resolution: float, origin: tuple[float, float, float], stamp_ns: int,
+    frame_id: str = "odom", distro: Distro = "jazzy", width: int | None = None, height: int | None = None,
+) -> bytes:
+    """CDR bytes of a nav_msgs/msg/OccupancyGrid of (height, width) int8 `values` (for tests and tools; `width` and
+    `height` override the info's, to make a malformed one)."""
+    ts = typestore(distro)
+    t = ts.types
+    v = np.asarray(values, dtype=np.int8)
+    stamp = t["builtin_interfaces/msg/Time"](sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+    x, y, yaw = (float(a) for a in origin)
+    info = t["nav_msgs/msg/MapMetaData"](
+        map_load_time=stamp, resolution=float(resolution), width=int(v.shape[1] if width is None else width),
+        height=int(v.shape[0] if height is None else height),
+        origin=t["geometry_msgs/msg/Pose"](
+            position=t["geometry_msgs/msg/Point"](x, y, 0.0),
+            orientation=t["geometry_msgs/msg/Quaternion"](0.0, 0.0, float(np.sin(yaw / 2)), float(np.cos(yaw / 2))),
+        ),
+    )
+    msg = t["nav_msgs/msg/OccupancyGrid"](header=t["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id), info=info,
+                                          data=v.reshape(-1))
+    return bytes(ts.serialize_cdr(msg, "nav_msgs/msg/OccupancyGrid"))

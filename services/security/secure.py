@@ -53,8 +53,8 @@ ROLES: dict[str, Role] = {
     # terrain and planner also read their own last output: a standby resumes from it (services/runtime/role.py)
     "terrain": Role("terrain-weight estimator", puts=("terrain/weights",),
                     reads=("state", "base/cmd", "cmd", "terrain/weights")),
-    "planner": Role("GP-MPPI planner", puts=("cmd", "plan", "task"),
-                    reads=("state", "terrain/weights", "task", "plan")),
+    "planner": Role("GP-MPPI planner", puts=("cmd", "plan", "task", "costmap"),
+                    reads=("state", "terrain/weights", "task", "plan", "costmap")),
     "egress": Role("motor-command egress (owns safety)", puts=("base/cmd",), reads=("cmd", "estop")),
     # reads the task too: a goal keeps the scene (obstacles) of the task the planner plans for
     "nav": Role("ROS 2 paths and goals into tasks", puts=("task",), reads=("task",)),
@@ -65,7 +65,7 @@ ROLES: dict[str, Role] = {
     ),
     "operator": Role(
         "an operator's tool: sets the task, engages and releases the e-stop",
-        puts=("task", "estop"),
+        puts=("task", "costmap", "estop"),
         reads=("health/**",),
         node=False,
         watches_liveliness=True,

@@ -10,6 +10,7 @@ nothing converted. Per robot, on topics outside `gpmppi/**` (they are views, nev
 - `scene/<robot>/robot` (foxglove.SceneUpdate): the robot's footprint, the driven path (in strips: only the growing
   one is sent);
 - `scene/<robot>/task` (foxglove.SceneUpdate): lane edges and centre, or obstacles and goal, with each task message;
+  a costmap's lethal cells (cubes), with each grid message;
 - `scene/<robot>/plan` (foxglove.SceneUpdate): the nominal plan, its covariance ellipses, the tightened lane bounds
   or the inflated obstacles, and the rollouts coloured by cost rank;
 - `scene/<robot>/events` (foxglove.Log): e-stop, safety overrides, task changes, service status.
@@ -25,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from schemas import BaseCommand, EStop, Heartbeat, Message, Plan, State, Task
+from schemas import BaseCommand, EStop, Heartbeat, Message, OccupancyGrid, Plan, State, Task
 from services.view import geometry as geo
 
 if TYPE_CHECKING:
@@ -153,6 +154,8 @@ class FoxgloveSceneMapper:
             return self._plan(robot, msg, t)
         if isinstance(msg, Task):
             return self._task(robot, msg, t)
+        if isinstance(msg, OccupancyGrid):
+            return self._costmap(robot, msg, t)
         if isinstance(msg, EStop):
             if msg.engaged != self._estop.get(robot):
                 self._estop[robot] = msg.engaged
@@ -204,6 +207,18 @@ class FoxgloveSceneMapper:
             SceneMessage(scene_topic(robot, "pose"), "foxglove.PoseInFrame", pose.encode(), t),
             self._update(scene_topic(robot, "robot"), t, entities),
         ]
+
+    def _costmap(self, robot: str, msg: OccupancyGrid, t: int) -> list[SceneMessage]:
+        """A grid's lethal cells as flat cubes on the task's topic (sent with every grid message, as the task is)."""
+        centres, half = geo.lethal_cells(msg)
+        style = geo.LAYERS["costmap"]
+        q = self.fm.Quaternion(x=0.0, y=0.0, z=float(np.sin(msg.origin_yaw / 2)), w=float(np.cos(msg.origin_yaw / 2)))
+        cubes = [self.fm.CubePrimitive(pose=self.fm.Pose(position=self.fm.Vector3(x=float(x), y=float(y), z=0.05),
+                                                         orientation=q),
+                                       size=self.fm.Vector3(x=2 * half, y=2 * half, z=0.1),
+                                       color=self._color(style.color or (200, 40, 40)))
+                 for x, y in centres]
+        return [self._update(scene_topic(robot, "task"), t, [self._entity("costmap", t, cubes=cubes)])]
 
     def _task(self, robot: str, msg: Task, t: int) -> list[SceneMessage]:
         previous = self.task.get(robot)

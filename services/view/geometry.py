@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import Plan, Task
+from schemas import OccupancyGrid, Plan, Task
 
 # the robot drawn as a footprint with a pointed nose (so its heading reads at a glance), body frame [m]:
 # about a Jackal's 0.51 m x 0.43 m
@@ -151,6 +151,7 @@ LAYERS: dict[str, Layer] = {
     "tightened": Layer((240, 180, 0), 0.05, 12.0),
     "inflated": Layer((255, 120, 120), 0.03, 13.0),
     "obstacles": Layer((200, 40, 40, 220), None, 14.0),
+    "costmap": Layer((200, 40, 40, 160), None, 9.0),  # a grid's lethal cells, under the lane and the plans
     "goal": Layer((30, 170, 30), 0.05, 15.0),
     "samples": Layer(None, 0.02, 20.0),
     "covariance": Layer((150, 60, 220), 0.02, 25.0),
@@ -177,6 +178,16 @@ def lane_lines(task: Task) -> tuple[list[np.ndarray], np.ndarray]:
     c = np.asarray(task.centerline, dtype=np.float64)
     edges = [offset(c, task.half_width, task.closed), offset(c, -task.half_width, task.closed)]
     return edges, closed_polyline(c, task.closed)
+
+
+def lethal_cells(grid: OccupancyGrid) -> tuple[np.ndarray, float]:
+    """The world positions (n, 2) [m] of a grid's lethal cells' centres (in its header's frame) and the radius [m] to
+    draw each with (half a cell)."""
+    values = np.asarray(grid.data, dtype=np.int64).reshape(grid.height, grid.width)
+    rows, cols = np.nonzero(values >= grid.lethal)
+    gx, gy = (cols + 0.5) * grid.resolution, (rows + 0.5) * grid.resolution
+    c, s = np.cos(grid.origin_yaw), np.sin(grid.origin_yaw)
+    return np.stack([grid.origin_x + c * gx - s * gy, grid.origin_y + s * gx + c * gy], axis=1), 0.5 * grid.resolution
 
 
 def goal_circle(task: Task) -> np.ndarray | None:

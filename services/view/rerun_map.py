@@ -17,7 +17,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from schemas import BaseCommand, Command, EStop, Heartbeat, Message, Plan, State, Task, TerrainWeights
+from schemas import (
+    BaseCommand,
+    Command,
+    EStop,
+    Heartbeat,
+    Message,
+    OccupancyGrid,
+    Plan,
+    State,
+    Task,
+    TerrainWeights,
+)
 from services.view import geometry as geo
 
 if TYPE_CHECKING:
@@ -83,6 +94,7 @@ class RerunMapper:
         self.rec = rec
         self.opt = options or ViewOptions()
         self.task: Task | None = None
+        self._grid_key: str | None = None  # the grid drawn (its message without the stamp)
         self._series: dict[str, tuple[list[int], list[float]]] = {}
         self._styled: set[str] = set()
         self._path = geo.PathStrips(self.opt.path_chunk)
@@ -160,6 +172,8 @@ class RerunMapper:
             self._weights(msg, t)
         elif isinstance(msg, Task):
             self._task(msg, t)
+        elif isinstance(msg, OccupancyGrid):
+            self._costmap(msg, t)
         elif isinstance(msg, Heartbeat):
             self._heartbeat(msg, t)
         elif isinstance(msg, EStop):
@@ -255,6 +269,22 @@ class RerunMapper:
                 )
             text = f"task: goal {msg.goal}, {len(obs)} obstacles"
         self.event(t, text if first else "task changed: " + text)
+
+    def _costmap(self, msg: OccupancyGrid, t: int) -> None:
+        """A grid's lethal cells, as the map (static, like the task's obstacles); drawn again only when it changes."""
+        import rerun as rr
+
+        key = msg.model_dump_json(exclude={"header": {"stamp_ns", "seq"}})
+        if key == self._grid_key:
+            return
+        first = self._grid_key is None
+        self._grid_key = key
+        centres, radius = geo.lethal_cells(msg)
+        style = geo.LAYERS["costmap"]
+        self.rec.log("map/costmap", rr.Points2D(centres, radii=radius, colors=[style.color], draw_order=style.order),
+                     static=True)
+        text = f"costmap: {msg.width} x {msg.height} cells of {msg.resolution:g} m, {len(centres)} lethal"
+        self.event(t, text if first else "costmap changed: " + text)
 
     def _plan(self, msg: Plan, t: int) -> None:
         import rerun as rr

@@ -8,7 +8,7 @@ kernels' summed cost and the per-critic split, the state the drivers carry, on C
 
 from __future__ import annotations
 
-from gpmppi.mppi.critics import collision, deviation, goal, lane_exit, slip, speed, terminal, variance
+from gpmppi.mppi.critics import collision, costmap, deviation, goal, lane_exit, slip, speed, terminal, variance
 from gpmppi.mppi.critics.registry import register
 
 register(variance.CRITIC)
@@ -17,5 +17,6 @@ register(slip.CRITIC)
 register(lane_exit.CRITIC)
 register(speed.CRITIC)
 register(collision.CRITIC)
+register(costmap.CRITIC)
 register(goal.CRITIC)
 register(terminal.CRITIC)
