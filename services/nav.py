@@ -3,7 +3,10 @@
 A `nav_msgs/msg/Path` (Nav2's planner, `plan`) becomes a lane task and a `geometry_msgs/msg/PoseStamped` (RViz's
 and Nav2's goal, `goal_pose`) a goal task, both as CDR over Zenoh on the rmw_zenoh key (any type hash, so jazzy's
 and humble's publishers both match) or the zenoh-bridge-ros2dds key. The planner, recorder and viewer see the
-`Task` like any other. A new path replaces the last at the planner without stopping the robot.
+`Task` like any other. A new path replaces the last at the planner without stopping the robot. A
+`nav_msgs/msg/OccupancyGrid` (Nav2's local costmap, `local_costmap/costmap`) goes to the planner as our
+`OccupancyGrid` on `costmap`: goal tasks plan among it (the planner drops a grid that stops coming:
+`max_costmap_age_s`).
 
 Bad input (malformed CDR, an empty path, a non-finite position, a frame other than the odometry's) is refused,
 counted by name in the heartbeat (`services.codec.nav_tasks.REFUSALS`) and logged; the planner drives on the last
@@ -18,7 +21,7 @@ from functools import partial
 
 from pydantic import Field
 
-from schemas import Task
+from schemas import OccupancyGrid, Task
 from services.codec.nav_tasks import LaneFromPath, NavInputError, NavTasks
 from services.codec.ros2_topic import Ros2Topic
 from services.runtime.node import Node
@@ -26,6 +29,7 @@ from services.runtime.node_settings import NodeSettings
 
 PATH_TYPE = "nav_msgs/msg/Path"
 GOAL_TYPE = "geometry_msgs/msg/PoseStamped"
+GRID_TYPE = "nav_msgs/msg/OccupancyGrid"
 
 
 class Settings(NodeSettings):
@@ -38,6 +42,13 @@ class Settings(NodeSettings):
                             description="the nav_msgs/Path topic (Nav2's planner publishes `plan`)")
     goal: Ros2Topic = Field(default_factory=lambda: Ros2Topic(topic="goal_pose"),
                             description="the geometry_msgs/PoseStamped goal topic (RViz's `2D Goal Pose`: `goal_pose`)")
+    costmap: Ros2Topic = Field(
+        default_factory=lambda: Ros2Topic(topic="local_costmap/costmap"),
+        description="the nav_msgs/OccupancyGrid topic (Nav2's local costmap: `local_costmap/costmap`), published to "
+        "the planner as our OccupancyGrid on `costmap`; it must be in the odometry's frame (a rolling local costmap "
+        "in `odom`)")
+    costmap_lethal: int = Field(100, ge=1, le=127, description="grid values >= this are obstacles (Nav2's costmap "
+                                "topic: 100 lethal, 99 inscribed)")
     half_width: float = Field(1.0, gt=0, description="half-width of the lane a path becomes [m]")
     speed_target: float = Field(1.0, ge=0, description="speed along a path [m/s]")
     path_spacing: float = Field(
@@ -58,14 +69,18 @@ def serve(node: Node, settings: Settings) -> int:
     lane = LaneFromPath(settings.half_width, settings.speed_target, settings.path_spacing, settings.max_path_points)
     nav = NavTasks(settings.frame_id, lane, settings.goal_tolerance)
     out = node.publisher("task")
+    grids = node.publisher("costmap")
     scene = node.subscribe("task", remote_only=True)  # what the planner plans for (it re-publishes it)
     path_key, goal_key = settings.path.key_expr(PATH_TYPE, subscribe=True), settings.goal.key_expr(GOAL_TYPE, True)
     inputs = [  # newest only: a path replaces the one before it
         (node.inbox(path_key), partial(nav.from_path, distro=settings.path.distro)),
         (node.inbox(goal_key), partial(nav.from_goal, distro=settings.goal.distro)),
+        (node.inbox(settings.costmap.key_expr(GRID_TYPE, subscribe=True)),
+         partial(nav.from_costmap, distro=settings.costmap.distro, lethal=settings.costmap_lethal)),
     ]
-    node.log.info("paths from %s, goals from %s, frame %s", settings.path.key_expr(PATH_TYPE, subscribe=True),
-                  settings.goal.key_expr(GOAL_TYPE, subscribe=True), settings.frame_id)
+    node.log.info("paths from %s, goals from %s, costmaps from %s, frame %s",
+                  settings.path.key_expr(PATH_TYPE, subscribe=True), settings.goal.key_expr(GOAL_TYPE, subscribe=True),
+                  settings.costmap.key_expr(GRID_TYPE, subscribe=True), settings.frame_id)
     while node.ok():
         if (current := scene.take()) is not None:
             nav.on_task(current)
@@ -74,13 +89,16 @@ def serve(node: Node, settings: Settings) -> int:
                 continue
             node.counters.received += 1
             try:
-                task: Task = convert(sample.payload.to_bytes(), time.time_ns())
+                msg: Task | OccupancyGrid = convert(sample.payload.to_bytes(), time.time_ns())
             except NavInputError as exc:
                 node.counters.count(exc.name)
                 node.reject(f"{sample.key_expr}: {exc}")
                 continue
-            out.put(task)
-            node.log.info("new %s task from %s", task.kind, sample.key_expr)
+            if isinstance(msg, OccupancyGrid):
+                grids.put(msg)
+            else:
+                out.put(msg)
+                node.log.info("new %s task from %s", msg.kind, sample.key_expr)
             node.cycle()
         node.spin_once()
     return 0

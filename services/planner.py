@@ -242,7 +242,7 @@ def run(settings: Settings) -> int:
             if (grid := costmap_sub.take()) is not None:
                 pending_grid = grid
             if pending_grid is not None and latest is not None:  # its frame is checked against the states'
-                take_costmap(node, cycle, pending_grid, latest.header.frame_id)
+                take_costmap(node, cycle, pending_grid, latest.header.frame_id, now)
                 pending_grid = None
             if (w := weights_sub.take()) is not None:
                 cycle.on_weights(w.weights, now, names=w.names)
@@ -275,7 +275,8 @@ def run(settings: Settings) -> int:
     return 0
 
 
-def take_costmap(node: Node, cycle: PlannerCycle, msg: OccupancyGrid, state_frame: str) -> bool:
+def take_costmap(node: Node, cycle: PlannerCycle, msg: OccupancyGrid, state_frame: str,
+                 now: float | None = None) -> bool:
     """Plan goal tasks among the grid of `msg` from now on; refused (counted in the heartbeat's rejects, with the
     reason) when it is not in the states' frame."""
     if msg.header.frame_id != state_frame:
@@ -283,7 +284,7 @@ def take_costmap(node: Node, cycle: PlannerCycle, msg: OccupancyGrid, state_fram
                     f"the grid in {state_frame!r} (the planner does not transform it)")
         return False
     try:
-        cycle.set_costmap(costmap_from_message(msg))
+        cycle.set_costmap(costmap_from_message(msg), now)
     except ValueError as exc:
         node.reject(f"costmap: {exc}")
         return False

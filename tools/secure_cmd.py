@@ -11,7 +11,8 @@ from tools.cli_checks import DIR, OUT_DIR, only_with
 ROS2_CMD_KEY = "0/cmd_vel/*/*"  # rmw_zenoh: <domain>/<topic>/<type>/<hash>, Twist or TwistStamped
 ROS2_ODOM_KEY = "0/odometry/filtered/*/*"
 # deploy/ros2_nav2.yaml's: Nav2's path and goal (the nav service reads them), the planner's plan out
-ROS2_NAV_KEYS = {"path": "0/plan/*/*", "goal": "0/goal_pose/*/*", "plan": "0/local_plan/*/*"}
+ROS2_NAV_KEYS = {"path": "0/plan/*/*", "goal": "0/goal_pose/*/*", "costmap": "0/local_costmap/costmap/*/*",
+                 "plan": "0/local_plan/*/*"}
 
 
 def register(app: typer.Typer) -> None:

@@ -41,7 +41,8 @@ if TYPE_CHECKING:
 
 Level = Literal["reject", "error", "warning", "info"]
 # why a state gave no command
-Refusal = Literal["no_task", "state_nonfinite", "state_stale", "state_future", "plan_failed", "plan_nonfinite"]
+Refusal = Literal["no_task", "state_nonfinite", "state_stale", "state_future", "plan_failed", "plan_nonfinite",
+                  "costmap_stale"]
 
 
 class CycleConfig(BaseModel):
@@ -75,6 +76,12 @@ class CycleConfig(BaseModel):
     actuation_delay_s: float = Field(
         0.005, ge=0, description="from the command leaving the cycle to the base applying it (egress hop, base "
         "tick; in a simulation: the whole command latency) [s]"
+    )
+    max_costmap_age_s: float | None = Field(
+        None, gt=0, description="a grid that came from a sensor (`set_costmap`, e.g. Nav2's local costmap) and was not "
+        "refreshed for this long is too old to plan among: goal tasks among it are not planned (no command, so "
+        "egress's watchdog stops the robot rather than let it drive blind) until a new grid arrives [s]; None: grids "
+        "never age (a static map)"
     )
 
     @model_validator(mode="after")
@@ -171,6 +178,8 @@ class PlannerCycle:
         self.counts: dict[str, int] = {}
         self._resume: tuple[np.ndarray, int, float] | None = None  # a predecessor's plan for the first state
         self.costmap: Costmap | None = None  # the grid of goal tasks that come without one (`set_costmap`)
+        self.costmap_time: float | None = None  # its arrival [monotonic s] (None: it does not age)
+        self._costmap_stale = False
 
     # ---- reporting
     def _event(self, name: str, level: Level, message: str) -> Event:
@@ -211,16 +220,25 @@ class PlannerCycle:
         the first one, starts from the initial sequence. A goal task without a grid of its own plans among the grid
         of `set_costmap`, if one was given."""
         same_kind = self.task is not None and type(task) is type(self.task)
-        self.task = self._with_costmap(task)
+        task = self._with_costmap(task)
+        if (grid := getattr(task, "costmap", None)) is not None and grid.clearance(task.goal)[0] < 0:
+            x, y = (float(a) for a in task.goal)
+            self._event("goal_lethal", "reject", f"goal ({x:.2f}, {y:.2f}) lies in a lethal cell of the costmap: "
+                        "refused, planning on for the last task; send a goal in free space")
+            return
+        self.task = task
         if not same_kind:
             self.planner.reset()
 
-    def set_costmap(self, costmap: Costmap | None) -> None:
+    def set_costmap(self, costmap: Costmap | None, now: float | None = None) -> None:
         """Plan goal tasks among this grid's obstacles from now on (None: none but the task's circles). The warm
         start stays: a new grid is the same task in an updated world. What the plans read of the grid (its distance
         transform, the goal field around it) is built now, between states (`Planner.prepare_task`, when the planner
-        has it), not on the next state's path to its command."""
+        has it), not on the next state's path to its command. `now` [monotonic s]: its arrival, from which it ages
+        (`max_costmap_age_s`); None: it does not age."""
         self.costmap = costmap
+        self.costmap_time = None if costmap is None else now
+        self._costmap_stale = False
         if self.task is not None:
             self.task = self._with_costmap(self.task, replace_own=True)
             prepare = getattr(self.planner, "prepare_task", None)
@@ -275,6 +293,14 @@ class PlannerCycle:
             self._event("weights_fallback", "error",
                         f"no terrain weights for {silent:.1f} s: planning on the prior (uniform weights)")
 
+    def _costmap_age(self, now: float) -> float | None:
+        """The age [s] of the grid the task plans among when it is too old (`max_costmap_age_s`), else None."""
+        limit, grid = self.config.max_costmap_age_s, getattr(self.task, "costmap", None)
+        if limit is None or self.costmap_time is None or grid is None or grid is not self.costmap:
+            return None
+        age = now - self.costmap_time
+        return age if age > limit else None
+
     # ---- a state
     def _refuse(self, reason: Refusal, level: Level, message: str) -> Event:
         return self._event(reason, level, message)
@@ -303,6 +329,9 @@ class PlannerCycle:
         self.tick(now)
         if self.task is None:
             return self._refuse("no_task", "reject", "no task yet: not planning")
+        if (age := self._costmap_age(now)) is not None:
+            return self._refuse("costmap_stale", "error", f"the costmap is {age:.2f} s old (limit "
+                                f"{self.config.max_costmap_age_s} s): not planning among it; waiting for a new grid")
         x = np.asarray(state, dtype=np.float64).reshape(-1)
         if x.shape != (5,) or not np.all(np.isfinite(x)):
             return self._refuse("state_nonfinite", "reject",

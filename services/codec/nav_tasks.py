@@ -21,13 +21,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import Circle, Header, Task
+from schemas import Circle, Header, OccupancyGrid, Task
 from services.codec import ros2
 
 # the heartbeat counters of refused input, by name (each refusal is one of these)
 REFUSALS = (
     "path_invalid", "path_frame", "path_empty", "path_short", "path_long", "path_nonfinite",
-    "goal_invalid", "goal_frame", "goal_nonfinite",
+    "goal_invalid", "goal_frame", "goal_nonfinite", "costmap_invalid", "costmap_frame",
 )
 
 
@@ -151,3 +151,15 @@ class NavTasks:
         task = goal_task_from_pose(reading, self.odom_frame, self.goal_tolerance, self.obstacles, stamp_ns)
         self.on_task(task)
         return task
+
+    def from_costmap(self, data: bytes, stamp_ns: int, distro: ros2.Distro = "jazzy",
+                     lethal: int = 100) -> OccupancyGrid:
+        """Our grid of nav_msgs/OccupancyGrid CDR bytes (Nav2's costmap: 100 lethal); raises NavInputError for a
+        grid that is malformed (its size not its data's, a bad origin) or in a frame other than the odometry's.
+        `stamp_ns` is unused: a grid keeps its own stamp (its age is the sensor's)."""
+        try:
+            grid = ros2.occupancy_grid_from_cdr(data, distro, lethal)
+        except ValueError as exc:
+            raise NavInputError("costmap_invalid", f"{exc} (kept the last grid)") from exc
+        _check_frame("costmap", grid.header.frame_id, self.odom_frame)
+        return grid

@@ -57,7 +57,7 @@ ROLES: dict[str, Role] = {
                     reads=("state", "terrain/weights", "task", "plan", "costmap")),
     "egress": Role("motor-command egress (owns safety)", puts=("base/cmd",), reads=("cmd", "estop")),
     # reads the task too: a goal keeps the scene (obstacles) of the task the planner plans for
-    "nav": Role("ROS 2 paths and goals into tasks", puts=("task",), reads=("task",)),
+    "nav": Role("ROS 2 paths, goals and costmaps into tasks and grids", puts=("task", "costmap"), reads=("task",)),
     "recorder": Role("MCAP recorder (reads everything)", reads=("**",)),
     "viewer": Role("rerun viewer (reads everything)", reads=("**",)),
     "launcher": Role(
@@ -102,8 +102,8 @@ def role_keys(identity: str, robot: str, ros2: dict[str, str] | None = None) -> 
         puts.append(ros2["cmd"])
     if identity == "ingress" and ros2.get("odom"):
         reads.append(ros2["odom"])
-    if identity == "nav":  # Nav2's path and goal
-        reads += [ros2[k] for k in ("path", "goal") if ros2.get(k)]
+    if identity == "nav":  # Nav2's path, goal and local costmap
+        reads += [ros2[k] for k in ("path", "goal", "costmap") if ros2.get(k)]
     if identity == "planner" and ros2.get("plan"):  # the plan as nav_msgs/Path
         puts.append(ros2["plan"])
     if "**" in role.reads:
