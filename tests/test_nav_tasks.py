@@ -151,3 +151,25 @@ def test_the_plan_goes_out_as_a_path_rosbags_decodes() -> None:
         "0/jackal/local_plan/nav_msgs::msg::dds_::Path_/" + STORES["jazzy"].hash_rihs01("nav_msgs/msg/Path"))
     bridge = Ros2PlanOutput(enabled=True, topic="gp_plan", key_style="bridge")
     assert bridge.key_expr("nav_msgs/msg/Path") == "gp_plan"
+
+
+@pytest.mark.parametrize("distro", ["jazzy", "humble"])
+def test_a_nav2_costmap_becomes_our_grid_and_bad_ones_are_refused_by_name(distro: str) -> None:
+    from schemas import OccupancyGrid
+
+    nav = NavTasks("odom", LaneFromPath(1.0, 1.0, 0.25, 2000), 0.5)
+    values = np.zeros((20, 30), dtype=np.int8)
+    values[5:8, 10:12] = 100
+    good = ros2.occupancy_grid_cdr(values, 0.1, (1.0, -2.0, 0.0), 7 * 10**9, frame_id="odom", distro=distro)
+    grid = nav.from_costmap(good, 0, distro=distro, lethal=99)
+    assert isinstance(grid, OccupancyGrid) and (grid.width, grid.height, grid.lethal) == (30, 20, 99)
+    assert grid.header.stamp_ns == 7 * 10**9 and sum(v >= 99 for v in grid.data) == 6
+    wrong_frame = ros2.occupancy_grid_cdr(values, 0.1, (0.0, 0.0, 0.0), 1, frame_id="map", distro=distro)
+    with pytest.raises(NavInputError) as exc:
+        nav.from_costmap(wrong_frame, 0, distro=distro)
+    assert exc.value.name == "costmap_frame" and "'map'" in str(exc.value) and "'odom'" in str(exc.value)
+    mismatched = ros2.occupancy_grid_cdr(values, 0.1, (0.0, 0.0, 0.0), 1, frame_id="odom", distro=distro, width=31)
+    with pytest.raises(NavInputError) as exc:
+        nav.from_costmap(mismatched, 0, distro=distro)
+    assert exc.value.name == "costmap_invalid" and "size must match" in str(exc.value)
+    assert {"costmap_frame", "costmap_invalid"} <= set(REFUSALS)

@@ -257,3 +257,40 @@ def test_a_plan_older_than_its_horizon_is_not_resumed_from() -> None:
     now_ns = 100 * NS + NS  # 10 steps later: the 5-step sequence has run out
     assert isinstance(cycle.on_state(X0, now_ns, 0.0, now_ns), Planned)
     assert not planner.resumed and [e.name for e in cycle.drain_events()] == ["resume_skipped"]
+
+
+def _wall() -> object:
+    from gpmppi.costmap import Costmap
+
+    values = np.zeros((80, 80), dtype=np.int16)
+    values[:, 40:44] = 100  # a wall across the grid at x 2.0-2.2 m (5 cm cells)
+    return Costmap(values, 0.05, (0.0, 0.0, 0.0))
+
+
+def test_a_goal_in_a_lethal_cell_is_refused_by_name_and_the_last_task_kept() -> None:
+    goal_task = GoalTask(goal=np.array([3.5, 1.0]))
+    cycle, planner = make(task=goal_task)
+    cycle.set_costmap(_wall(), now=0.0)
+    before = cycle.task
+    cycle.set_task(GoalTask(goal=np.array([2.1, 1.0])))  # inside the wall
+    assert [e.name for e in cycle.drain_events()] == ["goal_lethal"]
+    assert cycle.task is before and cycle.counts["goal_lethal"] == 1
+    cycle.set_task(GoalTask(goal=np.array([1.0, 3.0])))  # free space: taken
+    assert not cycle.drain_events() and np.allclose(cycle.task.goal, [1.0, 3.0])
+
+
+def test_a_sensor_grid_too_old_stops_planning_until_a_new_one_arrives() -> None:
+    now = [0.0]
+    cycle, planner = make(CycleConfig(max_costmap_age_s=1.0, compensate_delay=False),
+                          task=GoalTask(goal=np.array([1.0, 3.0])), clock=lambda: now[0])
+    cycle.set_costmap(_wall(), now=10.0)
+    stamp = 5 * NS
+    assert isinstance(cycle.on_state(X0, stamp, 10.5, stamp), Planned)
+    assert refusal(cycle.on_state(X0, stamp + NS // 10, 11.2, stamp + NS // 10)) == "costmap_stale"
+    assert len(planner.calls) == 1  # no plan among the stale grid: no command, egress's watchdog stops the robot
+    cycle.set_costmap(_wall(), now=11.3)  # a fresh grid: planning again
+    assert isinstance(cycle.on_state(X0, stamp + NS // 5, 11.4, stamp + NS // 5), Planned)
+    # a grid that came with the task (a scene file's map) never ages
+    cycle.set_costmap(None, now=11.4)
+    cycle.set_task(GoalTask(goal=np.array([1.0, 3.0]), costmap=_wall()))
+    assert isinstance(cycle.on_state(X0, stamp + 3 * NS, 100.0, stamp + 3 * NS), Planned)
