@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gpmppi.costmap import NO_GRID
 from gpmppi.mppi.bundles import N_COST_TERMS, TaskArgs
 from gpmppi.mppi.critics import collision, deviation, goal, lane_exit, slip, speed, terminal, variance
 from gpmppi.mppi.critics.base import Step
@@ -80,7 +81,8 @@ def _geo(half_width: float = 1.0, speed_target: float = 0.0, obstacles: np.ndarr
     return TaskArgs(kind=0, seg=np.zeros((1, 5)), cell_start=np.zeros(2, dtype=np.int64),
                     candidates=np.zeros(0, dtype=np.int32), field=np.zeros((1, 1, 3)), origin=np.zeros(2), inv_cell=1.0,
                     half_width=half_width, tightened_hw=np.ones(1), speed_target=speed_target, goal=np.zeros(2),
-                    obstacles=np.zeros((0, 3)) if obstacles is None else obstacles, radii=np.zeros((1, 0)))
+                    obstacles=np.zeros((0, 3)) if obstacles is None else obstacles, radii=np.zeros((1, 0)),
+                    grid=NO_GRID[0], grid_frame=NO_GRID[1])
 
 
 def test_cost_terms() -> None:
