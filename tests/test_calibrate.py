@@ -3,7 +3,6 @@ real MCAP files read back), Ctrl-C with a real signal, the training on its recor
 
 from __future__ import annotations
 
-import re
 import signal
 import subprocess
 import sys
@@ -106,13 +105,18 @@ def test_a_short_drive_through_the_stack_is_recorded_and_trains(tmp_path: Path) 
     assert {m.reason for k, m in sent if k == "base"} <= {"planner", "limit", "watchdog"}
     assert any(isinstance(m, Command) and m.v_ref > 0.2 for _, m in sent)
     assert f"grass in {tmp_path / 'rec'}: 1" in " ".join(result.output.split())  # the total driven, said at the end
+    # train reads the stack recording: its grass samples are there (>100 on 0.1 s ticks)
+    from tools.train import read_logs_series
+
+    series = read_logs_series([files[0]], 0.1, None, None)
+    assert list(series) == ["grass"] and len(series["grass"]["v"]) > 100
+    # 12 m hold too few commands for the terrain calibration: train refuses in one line, naming the ground and what
+    # to drive, and writes nothing (a real calibration drive is minutes a ground; docs/training.md)
     model = tmp_path / "m.npz"
     trained = runner.invoke(app, ["train", str(files[0]), "-o", str(model), "--points", "30", "--iters", "5",
                                   "--grid-nodes", "0", "--min-samples", "50", "--min-coverage", "0.05"])
-    assert trained.exit_code == 0, trained.output[-3000:]
-    assert "coverage of the planner's range" in trained.output
-    row = next(line for line in trained.output.splitlines() if "grass" in line and "%" in line)
-    assert int(re.search(r"grass\W+(\d+)", row).group(1)) > 100  # samples of grass in the coverage report
+    assert trained.exit_code == 2, trained.output[-3000:]
+    assert "ground 'grass'" in trained.output and "held commands" in trained.output and not model.exists()
 
 
 @pytest.mark.timeout(300)
