@@ -113,7 +113,7 @@ def test_a_skipped_transition_re_anchors_the_response() -> None:
         est.observe(*row)
     x, u, x1 = rows[10]  # rows 5-9 never observed: this step does not start where the last one ended
     est.observe(x, u, x1)
-    response = load_response().select(list(model.terrains))
+    response = model.require_calibration().response.select(list(model.terrains))  # what the estimator reads
     np.testing.assert_allclose(est._response_pred, response.step(np.tile(x[3:5], (3, 1)), u))
 
 

@@ -167,6 +167,10 @@ def register(app: typer.Typer) -> None:
         distance: float = typer.Option(2000.0, "--distance", min=1.0, help="metres driven per terrain"),
         seed: int = typer.Option(0, "--seed", min=0, help="seed of the excitation and the sensor noise"),
         robot: str = typer.Option(DEFAULT_ROBOT, "--robot", help="robot name in the key expressions"),
+        lane_holds: float = typer.Option(
+            0.0, "--lane-holds", min=0.0, max=0.9,
+            help="share of the segments that are long holds (5-8 s) where the planner drives (v_ref 0.8-1.8 m/s, "
+                 "|omega_ref| <= 0.8 rad/s), for the terrain calibration's steady map; 0: the plain excitation"),
         force: bool = typer.Option(False, "--force", help="replace an existing --output file"),
     ) -> None:
         """Drive the physics plant with random excitation over terrains; record state, cmd and labels."""
@@ -184,7 +188,7 @@ def register(app: typer.Typer) -> None:
         ) as progress:
             tasks = {name: progress.add_task(name, total=int(distance)) for name in terrain}
             runs = simulate_dataset(
-                terrains, list(terrain), distance=distance, seed=seed, dt=DATASET_DT,
+                terrains, list(terrain), distance=distance, seed=seed, dt=DATASET_DT, lane_holds=lane_holds,
                 progress=lambda name, d: progress.update(tasks[name], completed=int(d)),
             )
         simulated = time.perf_counter() - started

@@ -9,6 +9,10 @@ driving with moderate turning), and the jumpy commands MPPI produces:
 - chirp:  a forward speed with a sinusoidal yaw-rate command swept 0.1 -> 1.5 Hz over 4-10 s;
 - jitter: a random walk of the command, changing every tick, 2-6 s (MPPI-like).
 
+Optionally (`lane_holds`, off by default so the default stream is unchanged) a share of the segments are long holds
+where the planner drives (`LANE_V` x `LANE_OMEGA`): the terrain estimator's steady map must be right to about
+1 mrad/s there, and the holds at random commands leave 2-6 (docs/terrain_identification.md, "Calibration from logs").
+
 Array form of a run (agreed with the trainer): per tick k at t_k = k dt, `state[k]` is the measured
 `[X, Y, yaw, v, omega]` at t_k and `command[k]` the `[v_ref, omega_ref]` applied over [t_k, t_k + dt).
 One run is one contiguous segment (so a residual pairs tick k with tick k+1 of the same run).
@@ -26,6 +30,9 @@ from gpmppi.plant.terrains import TerrainSet
 
 SEGMENT_KINDS = ("hold", "ramp", "chirp", "jitter")
 SEGMENT_PROBS = (0.35, 0.2, 0.15, 0.3)
+LANE_V = (0.8, 1.8)  # forward-speed commands of the planner's lanes [m/s]
+LANE_OMEGA = 0.8  # ... and their largest |yaw-rate command| [rad/s]
+LANE_HOLD_S = (5.0, 8.0)  # (shortest, longest) lane hold [s]: settled, then averaged for 3.4-6.4 s
 
 
 class Excitation:
@@ -33,13 +40,16 @@ class Excitation:
 
     def __init__(
         self, seed: int = 0, dt: float = 0.1, v_max: float = 2.0, w_max: float = np.pi,
-        hold_s: tuple[float, float] = (0.5, 4.0),
+        hold_s: tuple[float, float] = (0.5, 4.0), lane_holds: float = 0.0,
     ) -> None:
+        if not 0.0 <= lane_holds < 1.0:
+            raise ValueError(f"lane_holds {lane_holds}: the share of lane holds must be in [0, 1)")
         self.rng = np.random.default_rng(seed)
         self.dt = dt
         self.v_max = v_max
         self.w_max = w_max
         self.hold_s = hold_s  # (shortest, longest) held command [s]
+        self.lane_holds = lane_holds  # share of the segments that are lane holds (LANE_V, LANE_OMEGA, LANE_HOLD_S)
         self.current = np.zeros(2)
 
     def _random_command(self) -> np.ndarray:
@@ -53,7 +63,17 @@ class Excitation:
     def _ticks(self, lo: float, hi: float) -> int:
         return max(1, int(round(self.rng.uniform(lo, hi) / self.dt)))
 
+    def _lane_hold(self) -> np.ndarray:
+        v = self.rng.uniform(min(LANE_V[0], self.v_max), min(LANE_V[1], self.v_max))
+        w = self.rng.uniform(-min(LANE_OMEGA, self.w_max), min(LANE_OMEGA, self.w_max))
+        seg = np.tile([v, w], (self._ticks(*LANE_HOLD_S), 1))
+        self.current = seg[-1].copy()
+        return seg
+
     def next_segment(self) -> np.ndarray:
+        # no draw at all when off: the default stream (and the shipped GP's data) stays as it was
+        if self.lane_holds > 0.0 and self.rng.random() < self.lane_holds:
+            return self._lane_hold()
         kind = SEGMENT_KINDS[self.rng.choice(len(SEGMENT_KINDS), p=SEGMENT_PROBS)]
         if kind == "hold":
             seg = np.tile(self._random_command(), (self._ticks(*self.hold_s), 1))
@@ -237,14 +257,16 @@ def drive(
     dt: float = 0.1,
     max_time: float | None = None,
     progress: Callable[[float], None] | None = None,
+    lane_holds: float = 0.0,
 ) -> TerrainRun:
-    """Drive `plant` on `terrain` with excitation commands until `distance` metres are covered."""
+    """Drive `plant` on `terrain` with excitation commands (`lane_holds`: `Excitation`'s) until `distance` metres are
+    covered."""
     if not distance > 0:
         raise ValueError(f"distance must be positive, got {distance}")
     limit = max_time if max_time is not None else 20.0 * distance + 600.0
     plant.set_terrain(terrain)
     plant.reset(np.zeros(5))
-    exc = Excitation(seed=seed, dt=dt)
+    exc = Excitation(seed=seed, dt=dt, lane_holds=lane_holds)
     states, trues, cmds = [], [], []
     travelled = 0.0
     true = plant.state()
@@ -274,12 +296,13 @@ def simulate_dataset(
     dt: float = 0.1,
     noise: bool = True,
     progress: Callable[[str, float], None] | None = None,
+    lane_holds: float = 0.0,
 ) -> dict[str, TerrainRun]:
     """One run per terrain (default: every terrain but sand).
 
     Every terrain gets the same excitation command stream (seeded by `seed`; matched commands, as in
     the paper's data, so terrain differences are not confounded with different inputs) and its own
-    sensor-noise seed.
+    sensor-noise seed. `lane_holds`: `Excitation`'s share of long holds where the planner drives (0: none).
     """
     names = names if names is not None else [n for n in terrains.names if n != "sand"]
     runs: dict[str, TerrainRun] = {}
@@ -287,7 +310,7 @@ def simulate_dataset(
         terrains.get(name)
         plant = PhysicsPlant(terrains, name, seed=seed * 1000 + i, noise=noise)
         cb = (lambda d, _n=name: progress(_n, d)) if progress is not None else None
-        runs[name] = drive(plant, name, distance, seed=seed, dt=dt, progress=cb)
+        runs[name] = drive(plant, name, distance, seed=seed, dt=dt, progress=cb, lane_holds=lane_holds)
     return runs
 
 
