@@ -1,6 +1,7 @@
 """gpmppi as the local controller under Nav2: rosbags-made nav_msgs/Path and geometry_msgs/PoseStamped on both key
 forms (rmw_zenoh jazzy with its attachment, zenoh-bridge-ros2dds humble) to a running stack over loopback Zenoh; the
-robot waits for a task, follows a path, drives on through a path swap and through bad input, reaches a goal, and the
+robot waits for a task, follows a path, drives on through a path swap and through bad input, takes Nav2's costmap
+(refusing one in the wrong frame), reaches a goal around the costmap's block, and the
 plan comes out as a nav_msgs/Path rosbags decodes. And, in process through the same conversion, a path made from the
 shipped oval tracks as well as the oval lane file."""
 
@@ -19,7 +20,7 @@ from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
 from gpmppi.evaluation.metrics import lane_rmse_mm
 from gpmppi.evaluation.runner import EvalSettings, cached_gp_model, make_planner, make_plant
 from gpmppi.scenarios import load_lane, shipped_lane_files
-from schemas import BaseCommand, Command, State, Task, decode
+from schemas import BaseCommand, Command, OccupancyGrid, State, Task, decode
 from services.codec import ros2
 from services.codec.convert import task_from_message
 from services.codec.nav_tasks import LaneFromPath, NavTasks
@@ -30,6 +31,9 @@ PATH_KEY = "0/plan/nav_msgs::msg::dds_::Path_/" + JAZZY.hash_rihs01("nav_msgs/ms
 GOAL_KEY = "0/goal_pose/geometry_msgs::msg::dds_::PoseStamped_/" + JAZZY.hash_rihs01("geometry_msgs/msg/PoseStamped")
 PLAN_KEY = "0/local_plan/nav_msgs::msg::dds_::Path_/" + JAZZY.hash_rihs01("nav_msgs/msg/Path")
 BRIDGE_PATH, BRIDGE_GOAL = "robot/plan", "robot/goal_pose"  # zenoh-bridge-ros2dds keys (namespace /robot)
+GRID_KEY = ("0/local_costmap/costmap/nav_msgs::msg::dds_::OccupancyGrid_/"
+            + JAZZY.hash_rihs01("nav_msgs/msg/OccupancyGrid"))
+BRIDGE_GRID = "robot/local_costmap/costmap"
 
 
 def test_a_path_made_from_the_oval_tracks_like_the_oval_lane() -> None:
@@ -55,7 +59,8 @@ def test_a_path_made_from_the_oval_tracks_like_the_oval_lane() -> None:
 def _nav_config(port: int, service: str, key_style: str, distro: str, namespace: str = "") -> dict:
     topic = {"key_style": key_style, "distro": distro, "namespace": namespace}
     return settings(service, port, ROBOT, heartbeat_hz=5.0, frame_id="odom", half_width=1.5, speed_target=1.25,
-                    goal_tolerance=0.4, path={"topic": "plan", **topic}, goal={"topic": "goal_pose", **topic})
+                    goal_tolerance=0.4, path={"topic": "plan", **topic}, goal={"topic": "goal_pose", **topic},
+                    costmap={"topic": "local_costmap/costmap", **topic})
 
 
 def _attachment(seq: int) -> bytes:
@@ -180,11 +185,33 @@ def _drive(s: zenoh.Session, col: Collector, plans: Collector) -> None:
     robot = _states(col)[-1][1]
     assert abs(plan.poses[0].pose.position.x - robot.x) < 1.0 and plan.poses[-1].pose.position.x > robot.x + 2.0
 
-    # a goal (humble, bridge key) 3 m to the side ahead: reached
+    # a costmap (Nav2's local costmap) with a 0.6 m block halfway to the goal below: one in the wrong frame on the
+    # rmw_zenoh key is refused by name; the good one (humble, bridge key) reaches the planner, which plans the goal
+    # among it
     goal = np.array([robot.x + 3.0, robot.y + 2.0])
+    block = (np.array([robot.x, robot.y]) + goal) / 2
+    res, origin = 0.05, (robot.x - 2.0, robot.y - 3.0, 0.0)
+    values = np.zeros((160, 160), dtype=np.int8)
+    col_, row_ = ((block - np.array(origin[:2])) / res).astype(int)
+    values[row_ - 6:row_ + 6, col_ - 6:col_ + 6] = 100
+    rmw_grid = s.declare_publisher(GRID_KEY, encoding=zenoh.Encoding("application/cdr"))
+    bridge_grid = s.declare_publisher(BRIDGE_GRID)
+    for pub in (rmw_grid, bridge_grid):
+        assert wait_for(lambda p=pub: p.matching_status.matching, 15.0)
+    rmw_grid.put(ros2.occupancy_grid_cdr(values, res, origin, time.time_ns(), frame_id="map"),
+                 attachment=_attachment(12))
+    assert wait_for(lambda: _hb_counts(col, "nav").get("costmap_frame") == 1, 5.0), _hb_counts(col, "nav")
+    bridge_grid.put(ros2.occupancy_grid_cdr(values, res, origin, time.time_ns(), frame_id="odom", distro="humble"))
+    assert wait_for(lambda: any(decode(OccupancyGrid, p).width == 160
+                                for _, p, _ in col.on(f"gpmppi/{ROBOT}/costmap")), 5.0), "no grid forwarded"
+
+    # a goal (humble, bridge key) 3 m to the side ahead, the block on the straight line to it: reached around it
+    sent = time.monotonic()
     bridge_goal.put(goal_cdr(float(goal[0]), float(goal[1]), distro="humble"))
     reached = wait_for(lambda: np.hypot(*(np.array([_states(col)[-1][1].x, _states(col)[-1][1].y]) - goal)) < 0.4,
                        15.0)
     last = _states(col)[-1][1]
     assert reached, f"goal {goal.tolist()} not reached: robot at {[last.x, last.y]}"
+    driven = np.array([[st.x, st.y] for t, st in _states(col) if t >= sent])
+    assert np.all(np.max(np.abs(driven - block), axis=1) > 0.3), "the robot drove through the costmap's block"
     assert decode(Task, col.on(f"gpmppi/{ROBOT}/task")[-1][1]).kind == "goal"
