@@ -37,6 +37,9 @@ timeout 120 $py -m tools.cli bench planner --backend cuda --samples 4096 --horiz
   --table-collapse whole --json >> "$out/bench_cuda_whole.jsonl" 2>> "$out/bench.err"
 timeout 120 $py -m tools.cli bench planner --backend cuda --samples 2048 --horizon 100 --iters 200 --json \
   >> "$out/bench_cuda_anchor.jsonl" 2>> "$out/bench.err"
+# the costmap critic: circles against a 200 x 200 grid, and a new grid's upload to the device (issue 43)
+timeout 90 $py -m tools.cli bench planner --backend cuda --costmap --iters 50 --json \
+  >> "$out/bench_cuda_costmap.jsonl" 2>> "$out/bench.err"
 tail -n 5 "$out/bench.err"
 
 echo "== 2. CUDA tests on the device $(date -u +%T)"

@@ -277,15 +277,18 @@ def run(settings: Settings) -> int:
 
 def take_costmap(node: Node, cycle: PlannerCycle, msg: OccupancyGrid, state_frame: str,
                  now: float | None = None) -> bool:
-    """Plan goal tasks among the grid of `msg` from now on; refused (counted in the heartbeat's rejects, with the
-    reason) when it is not in the states' frame."""
+    """Plan goal tasks among the grid of `msg` from now on; refused (counted by name in the heartbeat,
+    `costmap_frame` / `costmap_invalid`, and in its rejects with the reason) when it is not in the states' frame or
+    not a valid grid."""
     if msg.header.frame_id != state_frame:
+        node.counters.count("costmap_frame")
         node.reject(f"costmap: grid in frame {msg.header.frame_id!r}, but the states are in {state_frame!r}; publish "
                     f"the grid in {state_frame!r} (the planner does not transform it)")
         return False
     try:
         cycle.set_costmap(costmap_from_message(msg), now)
     except ValueError as exc:
+        node.counters.count("costmap_invalid")
         node.reject(f"costmap: {exc}")
         return False
     node.log.info("new costmap: %d x %d cells of %.3f m in %s", msg.width, msg.height, msg.resolution, state_frame)

@@ -94,6 +94,7 @@ def test_the_planner_service_plans_among_a_grid_and_refuses_bad_ones(tmp_path: P
             drive(0.5)
             assert wait(lambda: hb()[-1].rejected > rejected, 15.0), hb()[-1]
             assert "grid in frame 'map', but the states are in 'odom'" in hb()[-1].last_error
+            assert hb()[-1].counts.get("costmap_frame") == 1  # counted by name
             bad = json.loads(encode(_wall_grid("odom", time.time_ns())))
             bad["height"] = 7
             rejected = hb()[-1].rejected
