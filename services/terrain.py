@@ -78,6 +78,7 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
     # a predecessor's last weights (the launcher saw them): published first instead of the prior, and the
     # estimator starts from them
     resumed = _resumed_weights(node, terrains)
+    unknown = UnknownReport(node)
     while node.ok():
         received_ns = time.time_ns()  # the loop wakes on arrival: when the base got them, on the states' clock
         for c in command_sub.drain():
@@ -113,6 +114,7 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
         update = cycle.solve()
         if update.error is not None:
             node.error(update.error)
+        unknown.report(update, terrains)
         out.put(_weights_message(terrains, update))
         node.cycle()
         node.spin_once(0.0)
@@ -138,8 +140,36 @@ def _estimator(model: GPModel, settings: Settings) -> EstimatorLike:
     return make_estimator(model, settings.estimator)
 
 
+class UnknownReport:
+    """"None of these grounds" into the health: the heartbeat's flag `unknown_ground` (the hysteretic decision),
+    its counter `unknown_permille` (the last P(unknown) x 1000) and `unknown_entered` (how often it was set), and a
+    log line each time the decision changes."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.active = False
+        with node.counters.lock:
+            node.counters.flags["unknown_ground"] = False
+
+    def report(self, update: WeightsUpdate, terrains: list[str]) -> None:
+        c = self.node.counters
+        with c.lock:
+            c.counts["unknown_permille"] = round(1000 * update.unknown)
+            c.flags["unknown_ground"] = update.unknown_active
+        if update.unknown_active == self.active:
+            return
+        self.active = update.unknown_active
+        nearest = terrains[int(np.argmax(update.weights))]
+        if self.active:
+            c.count("unknown_entered")
+            self.node.log.warning(f"ground unknown: no trained ground explains the last steps (P(unknown) "
+                                  f"{update.unknown:.2f}; nearest {nearest})")
+        else:
+            self.node.log.info(f"ground known again (P(unknown) {update.unknown:.2f}; {nearest})")
+
+
 def _weights_message(terrains: list[str], update: WeightsUpdate) -> TerrainWeights:
     msg = TerrainWeights(names=terrains, weights=update.weights.tolist(), solver_ok=update.ok,
-                         residual=update.residual)
+                         residual=update.residual, unknown=update.unknown, unknown_active=update.unknown_active)
     msg.header.stamp_ns = update.stamp_ns
     return msg

@@ -95,6 +95,8 @@ class WeightsUpdate:
     error: str | None = None  # a failed solve past the warm-up (the service logs it as an error)
     observed: int = 0  # transitions this update observed
     skipped: int = 0  # transitions skipped: no command for the state, or a gap off dt
+    unknown: float = 0.0  # P(the ground is none of the trained ones), in [0, 1] (0: not assessed)
+    unknown_active: bool = False  # the hysteretic decision on `unknown` (gpmppi.terrain.novelty.UnknownLatch)
 
 
 class TerrainCycle:
@@ -227,4 +229,6 @@ class TerrainCycle:
             error = f"weight solve: {est.message}"
         stamp = self.pending[-1][0]
         self.pending = []
-        return WeightsUpdate(weights, bool(est.ok), residual, stamp, error, observed, skipped)
+        unknown = float(np.clip(est.unknown, 0.0, 1.0)) if np.isfinite(est.unknown) else 0.0
+        return WeightsUpdate(weights, bool(est.ok), residual, stamp, error, observed, skipped, unknown,
+                             bool(est.unknown_active))
