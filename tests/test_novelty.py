@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from gpmppi.profile.novelty_calibration import NoveltyCalibration
 from gpmppi.terrain.novelty import (
     DEFAULT_CALIBRATION,
-    NoveltyCalibration,
     NoveltyTest,
     UnknownLatch,
     calibrate,

@@ -32,31 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DEFAULT_CALIBRATION", "NoveltyCalibration", "NoveltyTest", "UnknownLatch", "calibrate",
+from gpmppi.profile.novelty_calibration import NoveltyCalibration
+
+__all__ = ["DEFAULT_CALIBRATION", "NoveltyTest", "UnknownLatch", "calibrate",
            "profile_novelty", "window_statistics"]
-
-
-@dataclass(frozen=True)
-class NoveltyCalibration:
-    """How the best ground's windowed mean residual is turned into P(unknown)."""
-
-    window_steps: int  # scored steps the residual mean is taken over
-    spread: tuple[float, float]  # the windowed mean's spread on known ground: v [m/s], omega [rad/s]
-    enter: float  # the statistic (a length in units of `spread`) at which P(unknown) = 0.5
-    width: float  # how fast P rises past `enter` (logistic scale, same units)
-    source: str = "default"  # where the numbers come from (a profile, or the stated default)
-
-    def __post_init__(self) -> None:
-        if self.window_steps < 1:
-            raise ValueError(f"novelty window_steps must be >= 1, got {self.window_steps}")
-        if len(self.spread) != 2 or not all(np.isfinite(s) and s > 0 for s in self.spread):
-            raise ValueError(f"novelty spread must be two finite numbers > 0, got {list(self.spread)}")
-        if not (np.isfinite(self.enter) and self.enter > 0 and np.isfinite(self.width) and self.width > 0):
-            raise ValueError(f"novelty enter and width must be finite and > 0, got {self.enter}, {self.width}")
-
-    def probability(self, z: float) -> float:
-        """P(unknown) at statistic `z`."""
-        return float(1.0 / (1.0 + np.exp(-np.clip((z - self.enter) / self.width, -50.0, 50.0))))
 
 
 # The stated default for a profile that holds no novelty calibration: measured on the simulated Jackal's closed loops
@@ -76,6 +55,8 @@ class NoveltyTest:
         self.reset()
 
     def reset(self) -> None:
+        # with `recorded` a list, every scored step's residuals (M, 2) are kept there too (calibration from logs)
+        self.recorded: list[np.ndarray] | None = getattr(self, "recorded", None)
         self._window: deque[np.ndarray] = deque()
         self._sum = np.zeros((self._m, 2))
         self.statistic = 0.0
@@ -92,6 +73,8 @@ class NoveltyTest:
         if not np.all(np.isfinite(r)):
             return self.probability
         self._window.append(r.copy())
+        if self.recorded is not None:
+            self.recorded.append(r.copy())
         self._sum += r
         if len(self._window) > self.calibration.window_steps:
             self._sum -= self._window.popleft()
