@@ -10,6 +10,7 @@ import pytest
 from gpmppi.profile.novelty_calibration import NoveltyCalibration
 from gpmppi.terrain.novelty import (
     DEFAULT_CALIBRATION,
+    ENTER_SPREADS,
     NoveltyTest,
     UnknownLatch,
     calibrate,
@@ -71,7 +72,8 @@ def test_calibration_puts_the_enter_level_at_the_quantile_of_known_ground() -> N
     rng = np.random.default_rng(2)
     bias = np.array([[0.0, 0.0], [0.05, 0.0], [0.0, 0.08]])
     runs = [(np.roll(_residuals(rng, 500, bias), g, axis=1), g) for g in range(3)]
-    cal = calibrate(runs, window_steps=10, false_rate=0.01, source="synthetic")
+    assert calibrate(runs, window_steps=10).enter == ENTER_SPREADS  # the stated level, by default
+    cal = calibrate(runs, window_steps=10, enter=None, false_rate=0.01, source="synthetic")
     assert np.allclose(cal.spread, STEP_STD / np.sqrt(10), rtol=0.15)
     test = NoveltyTest(3, cal)
     fresh = [test.observe(r) for r in _residuals(rng, 2000, bias)]
