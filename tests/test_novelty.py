@@ -93,3 +93,20 @@ def test_bad_calibrations_are_refused_and_a_profile_without_one_takes_the_stated
 
     assert profile_novelty(Profile()) is DEFAULT_CALIBRATION
     assert "default" in DEFAULT_CALIBRATION.source
+
+
+def test_a_profile_keeps_its_novelty_calibration_and_one_without_loads_with_the_default(tmp_path) -> None:  # noqa: ANN001
+    from gpmppi.gp.model_file import GPModel, load_default_model
+    from gpmppi.terrain.estimator import make_estimator
+    from gpmppi.terrain.settings import EstimatorConfig
+
+    shipped = load_default_model()  # made before the test: no calibration of its own
+    assert shipped.novelty is None
+    est = make_estimator(shipped, EstimatorConfig())
+    assert est.novelty.calibration is DEFAULT_CALIBRATION  # type: ignore[union-attr]
+    shipped.novelty = NoveltyCalibration(20, (0.004, 0.01), 4.0, 0.5, "fitted on the logs of a test")
+    shipped.save(tmp_path / "p.npz")
+    back = GPModel.load(tmp_path / "p.npz")
+    assert back.novelty == shipped.novelty
+    assert make_estimator(back, EstimatorConfig()).novelty.calibration == shipped.novelty  # type: ignore[union-attr]
+    assert make_estimator(back, EstimatorConfig(novelty=False)).novelty is None  # type: ignore[union-attr]
