@@ -229,6 +229,8 @@ class TerrainCycle:
             error = f"weight solve: {est.message}"
         stamp = self.pending[-1][0]
         self.pending = []
-        unknown = float(np.clip(est.unknown, 0.0, 1.0)) if np.isfinite(est.unknown) else 0.0
+        # an estimator without the novelty test (the paper's, another's) says nothing: known ground
+        unknown = float(getattr(est, "unknown", 0.0))
+        unknown = float(np.clip(unknown, 0.0, 1.0)) if np.isfinite(unknown) else 0.0
         return WeightsUpdate(weights, bool(est.ok), residual, stamp, error, observed, skipped, unknown,
-                             bool(est.unknown_active))
+                             bool(getattr(est, "unknown_active", False)))
