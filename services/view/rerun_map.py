@@ -61,8 +61,10 @@ DRAW = {name: layer.order for name, layer in geo.LAYERS.items()}
 
 # heartbeat counters / flags that change in normal operation: egress limiting a ramp is shaping, not an event
 # (the base command's reason shows it in the plots)
-# and the terrain service's last P(unknown), which the weights plot shows
-ROUTINE_HEALTH = frozenset({"limited", "unknown_permille"})
+# and unknown ground: the terrain service's P(unknown) (the weights plot shows it) and its decision and count (the
+# weights' own event says it), and the planner's caution counters (its `caution` flag is the event)
+ROUTINE_HEALTH = frozenset({"limited", "unknown_permille", "unknown_ground", "unknown_entered", "caution_on",
+                            "caution_off"})
 
 
 @dataclass
