@@ -71,6 +71,8 @@ class Takeover:
     rmse_before_mm: float | None  # lane RMSE over the 5 s before the kill
     rmse_after_mm: float | None  # ... over the 5 s after the new process's first output
     load_avg_1min: float
+    kill_ns: int = 0  # when the SIGKILL was sent, by the wall clock the states are stamped with [ns]
+    first_output_ns: int | None = None  # the new process's first output at the outside client, same clock [ns]
 
 
 @dataclass
@@ -301,7 +303,8 @@ def _kill_once(launcher: Launcher, monitor: Monitor, child: Child, timeout_s: fl
         service=child.name, old_pid=old_pid, pid=new_pid, by_spare=by_spare, spare_ready_s=spare_ready,
         kill_to_output_s=None if first is None else round(first[0] - t_kill, 3), gap_s=gap,
         zero_after_last_cmd_s=zero, driving_after_last_cmd_s=driving, rmse_before_mm=rmse_before,
-        rmse_after_mm=rmse_after, load_avg_1min=load,
+        rmse_after_mm=rmse_after, load_avg_1min=load, kill_ns=kill_ns,
+        first_output_ns=None if first is None else kill_ns + int((first[0] - t_kill) * 1e9),
     )
 
 
@@ -341,9 +344,11 @@ def measure_startup(
     show_logs: bool = False,
     kills: int = 0,
     kill_services: list[str] | None = None,
+    record: str | Path | None = None,
 ) -> StartupResult:
     """Cold-start the stack, then restart each service in turn `repeats` times, then kill each of `kill_services`
-    `kills` times (its spare takes over); see the module docstring."""
+    `kills` times (its spare takes over); see the module docstring. `record`: an MCAP file the stack records to (the
+    recorder runs beside it, as `gpmppi launch --record`), kept to look into a takeover afterwards."""
     services = services or RESTARTABLE
     kill_services = kill_services or []
     unknown = [s for s in services + kill_services if s not in PRIMARY_OUTPUT]
@@ -361,7 +366,8 @@ def measure_startup(
 
     hook.__name__ = "restarts_then_kills"
     logs = None if show_logs else io.StringIO()
-    result.exit_code, result.summary = run_launch(launch_path, port=port, out=logs, then=hook)
+    result.exit_code, result.summary = run_launch(launch_path, record=None if record is None else str(record),
+                                                   port=port, out=logs, then=hook)
     result.load_avg_1min = [round(before, 2), round(os.getloadavg()[0], 2)]
     return result
 
@@ -388,13 +394,18 @@ def register(bench_app: typer.Typer) -> None:
         port: int = typer.Option(7462, min=1, max=65535, help="router port on 127.0.0.1"),
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
         show_logs: bool = typer.Option(False, help="print the services' logs too"),
+        record: Path | None = typer.Option(
+            None, help="record the run to this MCAP file (the recorder runs beside the stack; the takeovers' kill_ns "
+            "and first_output_ns in --json find the kills in it)"
+        ),
     ) -> None:
         """Time to first output of each service restarted on its own while the stack runs, and of the cold start
         of the whole stack (timings are noisy on a shared machine: see the load average)."""
         names = [s.strip() for s in services.split(",") if s.strip()]
         killed = [s.strip() for s in kill_services.split(",") if s.strip()]
         try:
-            result = measure_startup(launch_file, names, repeats, settle, timeout, port, show_logs, kills, killed)
+            result = measure_startup(launch_file, names, repeats, settle, timeout, port, show_logs, kills, killed,
+                                     record)
         except (ValueError, FileNotFoundError) as exc:
             typer.echo(f"gpmppi bench startup: {exc}", err=True)
             raise typer.Exit(2) from exc
