@@ -34,6 +34,7 @@ from schemas import Task
 from services.launch.launcher import run_launch
 from services.launch.monitor import PRIMARY_OUTPUT, Monitor, Summary
 from services.launch.supervisor import Child, Launcher
+from tools.cli_checks import OUT_FILE
 
 RESTARTABLE = list(PRIMARY_OUTPUT)  # sim, ingress, terrain, planner, egress
 MOVING = 0.05  # [m/s] a base command above this is driving
@@ -395,8 +396,8 @@ def register(bench_app: typer.Typer) -> None:
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
         show_logs: bool = typer.Option(False, help="print the services' logs too"),
         record: Path | None = typer.Option(
-            None, help="record the run to this MCAP file (the recorder runs beside the stack; the takeovers' kill_ns "
-            "and first_output_ns in --json find the kills in it)"
+            None, metavar=OUT_FILE, help="record the run to this MCAP file (the recorder runs beside the stack; the "
+            "takeovers' kill_ns and first_output_ns in --json find the kills in it)"
         ),
     ) -> None:
         """Time to first output of each service restarted on its own while the stack runs, and of the cold start
