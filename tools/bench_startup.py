@@ -35,6 +35,7 @@ from services.launch.launcher import run_launch
 from services.launch.monitor import PRIMARY_OUTPUT, Monitor, Summary
 from services.launch.supervisor import Child, Launcher
 from tools.cli_checks import OUT_FILE
+from tools.lane_windows import consecutive_window_ratios, ratio_summary
 
 RESTARTABLE = list(PRIMARY_OUTPUT)  # sim, ingress, terrain, planner, egress
 MOVING = 0.05  # [m/s] a base command above this is driving
@@ -83,6 +84,9 @@ class StartupResult:
     summary: Summary | None = None
     exit_code: int = 0
     load_avg_1min: list[float] = field(default_factory=list)  # before and after the whole run
+    # the lane RMSE ratio of consecutive 5 s windows where nothing was killed (`lane_windows`): the reference for
+    # the takeovers' after / before ratios
+    no_kill_ratio: dict[str, float | int | None] = field(default_factory=dict)
 
     def per_service(self) -> dict[str, dict[str, float | int | None]]:
         """service -> n, timeouts, p50 and max of the restart time to first output [s]."""
@@ -143,6 +147,7 @@ class StartupResult:
             "restarts": [asdict(r) for r in self.restarts],
             "takeover": self.per_takeover(),
             "takeovers": [asdict(t) for t in self.takeovers],
+            "no_kill_rmse_ratio": self.no_kill_ratio,
         }
 
 
@@ -320,6 +325,22 @@ def _lane_rmse(states: list[tuple[int, float, float]], task: Task | None, t0_ns:
     return round(metrics.lane_rmse_mm(xy, np.asarray(task.centerline), task.closed), 1)
 
 
+def _no_kill_reference(monitor: Monitor, takeovers: list[Takeover], begin_ns: int) -> dict[str, float | int | None]:
+    """The after / before RMSE ratio of consecutive windows over the kill rounds' states, away from every kill
+    (from RMSE_WINDOW_S before it to RMSE_WINDOW_S after the new process's first output)."""
+    with monitor.lock:
+        states = [s for s in monitor.states if s[0] >= begin_ns]
+        task = monitor.task
+    if task is None or task.kind != "lane" or not states:
+        return {}
+    w = int(RMSE_WINDOW_S * 1e9)
+    excluded = [(t.kill_ns - w, (t.first_output_ns or t.kill_ns) + w) for t in takeovers]
+    stamps = np.array([s[0] for s in states])
+    xy = np.array([[x, y] for _, x, y in states])
+    ratios = consecutive_window_ratios(stamps, xy, np.asarray(task.centerline), task.closed, excluded, RMSE_WINDOW_S)
+    return ratio_summary(ratios)
+
+
 def _first_output(
     launcher: Launcher, monitor: Monitor, key: str, started: float, old_last: int | None, timeout_s: float
 ) -> tuple[float, int] | None:
@@ -363,7 +384,9 @@ def measure_startup(
     def hook(launcher: Launcher, monitor: Monitor) -> None:
         restarts(launcher, monitor)
         if not launcher.stop_event.is_set():
+            begin_ns = time.time_ns()
             takeovers(launcher, monitor)
+            result.no_kill_ratio = _no_kill_reference(monitor, result.takeovers, begin_ns)
 
     hook.__name__ = "restarts_then_kills"
     logs = None if show_logs else io.StringIO()
@@ -438,6 +461,11 @@ def register(bench_app: typer.Typer) -> None:
                     f" -> driving again p95 {row['driving_after_last_cmd_p95_s']}; lane RMSE 5 s before "
                     f"{row['rmse_before_p50_mm']} mm, 5 s after {row['rmse_after_p50_mm']} mm (p50; worst ratio "
                     f"{row['rmse_after_over_before_max']})"
+                )
+            if ref := data["no_kill_rmse_ratio"]:
+                typer.echo(
+                    f"  reference, the same ratio of consecutive 5 s windows with no kill: n {ref['n']}, p50 "
+                    f"{ref['p50']} p95 {ref['p95']} max {ref['max']}, above {ref['limit']} in {ref['share_over_limit']}"
                 )
             typer.echo(f"cold start of the whole stack, start -> first output [s]: {data['cold_first_output_s']}")
             typer.echo(f"cold start, process start -> first heartbeat [s]: {data['cold_first_heartbeat_s']}")
