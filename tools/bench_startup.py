@@ -212,16 +212,25 @@ def _ready_s(child: Child, timeout_s: float = 60.0) -> float | None:
 
 
 def kill_rounds(
-    services: list[str], kills: int, settle_s: float, timeout_s: float, records: list[Takeover]
+    services: list[str], kills: int, settle_s: float, timeout_s: float, records: list[Takeover],
+    jitter_s: float = 0.0, seed: int = 0,
 ) -> Callable[[Launcher, Monitor], None]:
     """A `then` hook: SIGKILL each service `kills` times while the robot drives, each once its spare is ready and
-    its process has run `restart_reset_s` (an earlier death is then not "in a row", which a takeover requires)."""
+    its process has run `restart_reset_s` (an earlier death is then not "in a row", which a takeover requires), and
+    a further random 0-`jitter_s` (seeded): a planner killed always after the same time is killed always at the same
+    plan count, so at the same place in its seeded noise, and its kills repeat one draw rather than sample many."""
+    rng = np.random.default_rng(seed)
 
     def kill_each_service(launcher: Launcher, monitor: Monitor) -> None:
         for _ in range(kills):
             for name in services:
                 child = launcher.child(name)
-                if not _wait_ready_to_kill(launcher, monitor, child, timeout_s):
+                ready = _wait_ready_to_kill(launcher, monitor, child, timeout_s)
+                if ready and jitter_s > 0:
+                    if launcher.stop_event.wait(float(rng.uniform(0.0, jitter_s))):
+                        return
+                    ready = _wait_ready_to_kill(launcher, monitor, child, timeout_s)
+                if not ready:
                     if launcher.stop_event.is_set():
                         return
                     launcher.say("bench", f"{name}: no spare ready or not driving within {timeout_s:.0f} s; "
@@ -367,6 +376,8 @@ def measure_startup(
     kills: int = 0,
     kill_services: list[str] | None = None,
     record: str | Path | None = None,
+    kill_jitter_s: float = 0.0,
+    seed: int = 0,
 ) -> StartupResult:
     """Cold-start the stack, then restart each service in turn `repeats` times, then kill each of `kill_services`
     `kills` times (its spare takes over); see the module docstring. `record`: an MCAP file the stack records to (the
@@ -379,7 +390,7 @@ def measure_startup(
     result = StartupResult()
     before = os.getloadavg()[0]
     restarts = restart_rounds(services, repeats, settle_s, timeout_s, result.restarts)
-    takeovers = kill_rounds(kill_services, kills, settle_s, timeout_s, result.takeovers)
+    takeovers = kill_rounds(kill_services, kills, settle_s, timeout_s, result.takeovers, kill_jitter_s, seed)
 
     def hook(launcher: Launcher, monitor: Monitor) -> None:
         restarts(launcher, monitor)
@@ -418,6 +429,11 @@ def register(bench_app: typer.Typer) -> None:
         port: int = typer.Option(7462, min=1, max=65535, help="router port on 127.0.0.1"),
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
         show_logs: bool = typer.Option(False, help="print the services' logs too"),
+        kill_jitter: float = typer.Option(
+            10.0, min=0.0, max=600.0, help="wait a further random 0 to this many seconds before each kill, so that "
+            "kills fall at different plan counts (a planner's noise is seeded by its count) [s]"
+        ),
+        seed: int = typer.Option(0, min=0, help="seed of the kills' random waits"),
         record: Path | None = typer.Option(
             None, metavar=OUT_FILE, help="record the run to this MCAP file (the recorder runs beside the stack; the "
             "takeovers' kill_ns and first_output_ns in --json find the kills in it)"
@@ -429,7 +445,7 @@ def register(bench_app: typer.Typer) -> None:
         killed = [s.strip() for s in kill_services.split(",") if s.strip()]
         try:
             result = measure_startup(launch_file, names, repeats, settle, timeout, port, show_logs, kills, killed,
-                                     record)
+                                     record, kill_jitter, seed)
         except (ValueError, FileNotFoundError) as exc:
             typer.echo(f"gpmppi bench startup: {exc}", err=True)
             raise typer.Exit(2) from exc
