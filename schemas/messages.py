@@ -115,6 +115,27 @@ class TerrainWeights(Message):
         return self
 
 
+class GroundLearn(Message):
+    """Learn the ground under the robot as a new ground of the robot profile (the terrain service, gpmppi/gp/
+    online_ground.py), or stop learning it."""
+
+    name: str = Field("", max_length=64, description="the new ground's name ('' : the next free new-1, new-2, ...)")
+    action: Literal["start", "cancel"] = Field("start", description="start collecting its steps, or drop them")
+
+
+class ModelUpdate(Message):
+    """A new robot profile on disk (a ground was learned): the planner loads it between plans."""
+
+    version: int = Field(ge=0, description="the model version: 0 for the profile the services started with, +1 per "
+                         "learned ground")
+    path: str = Field(min_length=1, description="the profile file (.npz), as the terrain service saved it")
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 of the file's bytes (a reader checks it)")
+    grounds: list[str] = Field(min_length=1, description="the profile's grounds, model order")
+    learned: str = Field("", description="the ground this version added")
+    samples: int = Field(0, ge=0, description="steps it was learned from")
+    message: str = Field("", description="what the fit did, in words")
+
+
 class Circle(Strict):
     x: float
     y: float
@@ -184,6 +205,8 @@ class Plan(Message):
     sample_costs: list[float] = Field(default_factory=list)
     terrain_weights: list[float] = Field(default_factory=list)
     weights_stale: bool = Field(False, description="the terrain weights planned with are older than the limit")
+    model_version: int = Field(0, ge=0, description="the robot profile's version planned with (`ModelUpdate.version`; "
+                               "0: the one the planner started with)")
     timings_ms: dict[str, float] = Field(default_factory=dict)
     critic_costs: dict[str, float] = Field(
         default_factory=dict,
@@ -222,5 +245,6 @@ class EStop(Message):
 # Every top-level message model by class name (schema registry for files and tools).
 MODELS: dict[str, type[Message]] = {
     m.__name__: m
-    for m in (State, Command, BaseCommand, TerrainLabel, TerrainWeights, Task, OccupancyGrid, Plan, Heartbeat, EStop)
+    for m in (State, Command, BaseCommand, TerrainLabel, TerrainWeights, Task, OccupancyGrid, Plan, Heartbeat, EStop,
+              GroundLearn, ModelUpdate)
 }
