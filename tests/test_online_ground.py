@@ -136,3 +136,30 @@ def test_estimator_identifies_the_learned_ground() -> None:
         est.observe(*row)
     w = est.estimate().weights
     assert w[1] >= 0.8, w
+
+
+def test_a_failing_write_leaves_the_old_profile_byte_identical(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    import gpmppi.gp.model_file as model_file
+    from gpmppi.gp.profile_store import file_sha256, load_checked, save_profile
+
+    path = tmp_path / "robot.npz"
+    sha = save_profile(_model(), path)
+    before = path.read_bytes()
+    new, _ = learn_ground(_model(), samples(_model(), 250), settings=SETTINGS)
+
+    def disk_full(f, **arrays) -> None:  # noqa: ANN001, ANN003 - np.savez_compressed's form
+        f.write(b"PK\x03\x04 half an archive")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(model_file.np, "savez_compressed", disk_full)
+    with pytest.raises(OSError, match="No space left"):
+        save_profile(new, path)
+    assert path.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == ["robot.npz"]
+    monkeypatch.undo()
+    new_sha = save_profile(new, path)
+    assert new_sha == file_sha256(path) != sha
+    assert load_checked(path, new_sha).terrains[-1] == "new-1"
+    with pytest.raises(model_file.ModelFileError, match="is not the announced"):
+        load_checked(path, sha)
