@@ -36,6 +36,7 @@ from services.codec.convert import (
     task_to_message,
 )
 from services.codec.ros2_topic import Ros2Topic
+from services.model_swap import ModelSwap, Swap
 from services.runtime.node import Node, TypedSubscription
 from services.runtime.node_settings import NodeSettings
 from services.runtime.scheduling import process_age_s
@@ -215,6 +216,8 @@ def run(settings: Settings) -> int:
         weights_sub = node.subscribe("terrain_weights")
         task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
         costmap_sub = node.subscribe("costmap", remote_only=True)
+        model_sub = node.subscribe("model_update")
+        swap = ModelSwap(settings.planner, profile_sha256(settings.model_file))
         pending_grid: OccupancyGrid | None = None  # a grid that came before the first state (its frame unchecked)
         outputs = Outputs(node, settings, startup)
         outputs.started = time.monotonic()
@@ -233,6 +236,10 @@ def run(settings: Settings) -> int:
         fresh = False
         while node.ok():
             now = time.monotonic()
+            if (update := model_sub.take()) is not None and (line := swap.offer(update)) is not None:
+                node.log.info(line)
+            if (ready := swap.take()) is not None:  # between plans: the next state plans with the new model
+                take_swap(node, cycle, ready, outputs)
             if (new_task := task_sub.take()) is not None:
                 try:
                     cycle.set_task(task_from_message(new_task))
@@ -275,6 +282,26 @@ def run(settings: Settings) -> int:
     return 0
 
 
+def profile_sha256(model_file: str | None) -> str | None:
+    """The sha256 of the profile file the planner started with (None: the shipped one, or unreadable)."""
+    from gpmppi.gp.profile_store import file_sha256
+
+    try:
+        return None if model_file is None else file_sha256(model_file)
+    except OSError:
+        return None
+
+
+def take_swap(node: Node, cycle: PlannerCycle, swap: Swap, outputs: Outputs) -> None:
+    """Plan with a new model version's planner from the next state on (or log why it was not taken)."""
+    if swap.error or swap.planner is None or swap.model is None:
+        node.error(swap.error)
+        return
+    cycle.swap_planner(swap.planner, swap.model.terrains)
+    outputs.model_version = swap.update.version
+    node.log.info("planning with model version %d: grounds %s", swap.update.version, swap.model.terrains)
+
+
 def take_costmap(node: Node, cycle: PlannerCycle, msg: OccupancyGrid, state_frame: str,
                  now: float | None = None) -> bool:
     """Plan goal tasks among the grid of `msg` from now on; refused (counted by name in the heartbeat,
@@ -308,6 +335,7 @@ class Outputs:
         self.ros_plan = Ros2PlanPublisher(node, settings.ros2_plan, settings.planner.dt) \
             if settings.ros2_plan.enabled else None
         self.published = 0
+        self.model_version = 0  # the `ModelUpdate.version` planned with, on each Plan
         self.started = time.monotonic()  # when the loop started, for the time to the first command [monotonic s]
 
     def grid_message(self, task: LaneTask | GoalTask, latest: State | None) -> OccupancyGrid | None:
@@ -338,8 +366,10 @@ class Outputs:
             self.node.log.info("first command", extra={"fields": fields})
         if self.published % self.s.plan_every == 0:
             try:
-                self.plan.put(plan_message(result, out.stamp_ns, task, self.s.plan_samples,
-                                           {"state_to_cmd": state_to_cmd_ms}, out.weights_stale))
+                plan = plan_message(result, out.stamp_ns, task, self.s.plan_samples,
+                                    {"state_to_cmd": state_to_cmd_ms}, out.weights_stale)
+                plan.model_version = self.model_version
+                self.plan.put(plan)
             except DecodeError as exc:  # e.g. non-finite sample costs: the command went out, the plan cannot
                 self.node.counters.count("plan_invalid")
                 self.node.error(f"plan not published: {exc}")

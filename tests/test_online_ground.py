@@ -163,3 +163,32 @@ def test_a_failing_write_leaves_the_old_profile_byte_identical(tmp_path, monkeyp
     assert load_checked(path, new_sha).terrains[-1] == "new-1"
     with pytest.raises(model_file.ModelFileError, match="is not the announced"):
         load_checked(path, sha)
+
+
+def test_the_planner_cycle_takes_the_learned_model_between_plans() -> None:
+    from gpmppi.mppi.config import PlannerConfig
+    from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle
+    from gpmppi.mppi.planner import Planner
+    from gpmppi.tasks import LaneTask
+
+    model = _model()
+    new, _ = learn_ground(model, samples(model, 250), settings=SETTINGS)
+    config = PlannerConfig(samples=64, horizon=20, seed=3)
+    lane = LaneTask(np.array([[0.0, 0.0], [100.0, 0.0]]), half_width=1.0, closed=False)
+    cycle = PlannerCycle(Planner(config, model), lane, CycleConfig(compensate_delay=False), model.n_terrains,
+                         model.terrains, clock=lambda: 0.0)
+    x = np.array([0.0, 0.0, 0.0, 1.0, 0.0])
+    t_ns = 1_000_000_000
+    first = cycle.on_state(x, t_ns, 0.0, t_ns)
+    assert isinstance(first, Planned)
+    warm = cycle.planner.warm_start
+    cycle.swap_planner(Planner(config, new), new.terrains)
+    np.testing.assert_array_equal(cycle.planner.warm_start, warm)  # the warm start carries over
+    names = list(reversed(new.terrains))  # weights by name, the learned ground on top
+    assert cycle.on_weights([0.9, 0.04, 0.03, 0.03], 0.05, names=names)
+    assert cycle.weights[-1] == pytest.approx(0.9)
+    planned = cycle.on_state(x, t_ns + 100_000_000, 0.1, t_ns + 100_000_000)
+    assert isinstance(planned, Planned) and np.all(np.isfinite(planned.result.controls))
+    np.testing.assert_allclose(planned.result.weights, cycle.weights)
+    # the old grounds' weights by their names are refused now: the model has four
+    assert not cycle.on_weights([0.5, 0.3, 0.2], 0.2, names=list(model.terrains))

@@ -1,0 +1,115 @@
+"""The terrain service's learner shell: runs a new ground's fit in a separate process and swaps the model when it is in.
+
+The fit (gpmppi/gp/online_ground.py, 10-20 s of numpy on one core) runs in a child process started with `spawn` (never
+a fork of a process with a Zenoh session) at a lower CPU priority (nice 10), so it cannot hold the terrain service's
+loop (no GIL shared) nor take a core from the planner ahead of it. The child saves the profile atomically
+(gpmppi/gp/profile_store.py) and returns its path and sha256; the service then loads it back (what the planner will
+load), builds the estimator over the new grounds and publishes a `ModelUpdate`.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+from schemas import ModelUpdate
+
+if TYPE_CHECKING:
+    from gpmppi.gp.model_file import GPModel
+    from gpmppi.terrain.learning import FitJob, GroundLearning
+
+
+@dataclass
+class FitOutcome:
+    """What a fit gave: the saved profile (path, sha256, grounds) and the report line, or the reason it made none."""
+
+    path: str = ""
+    sha256: str = ""
+    grounds: tuple[str, ...] = ()
+    learned: str = ""
+    samples: int = 0
+    message: str = ""
+    error: str = ""  # set: no ground was added (too little data, a failed save); the message says why
+
+
+def _lower_priority() -> None:
+    try:
+        os.nice(10)
+    except OSError:
+        pass
+
+
+def run_fit(job: FitJob, path: str) -> FitOutcome:
+    """In the child: learn the ground and save the profile to `path` atomically (the old file stays on any error)."""
+    from gpmppi.gp.online_ground import TooLittleData, learn_ground
+    from gpmppi.gp.profile_store import save_profile
+
+    try:
+        model, report = learn_ground(job.model, job.samples(), job.name, job.settings)
+    except TooLittleData as e:
+        return FitOutcome(learned=job.name, samples=len(job.x), error=str(e))
+    model.made_by = (f"{job.model.made_by or 'a robot profile'}; ground {job.name!r} learned online from "
+                     f"{len(job.x)} steps")
+    try:
+        sha = save_profile(model, path)
+    except OSError as e:
+        return FitOutcome(learned=job.name, samples=len(job.x),
+                          error=f"learned ground {job.name!r} not saved to {path}: {e.strerror or e}; the profile "
+                          "there is unchanged")
+    return FitOutcome(path, sha, tuple(model.terrains), job.name, len(job.x), report.line())
+
+
+class Learner:
+    """Submits `GroundLearning`'s fit jobs to a child process and hands back the saved model when one is in."""
+
+    def __init__(self, learning: GroundLearning, path: str | None, version: int = 0) -> None:
+        self.learning = learning
+        self.path = path  # where the learned profile goes (None: nowhere; a request is refused)
+        self.version = version
+        self._pool: ProcessPoolExecutor | None = None
+        self._future: Future[FitOutcome] | None = None
+
+    def submit_ready(self) -> str | None:
+        """Start the fit when the collection is complete; the log line, else None."""
+        if self._future is not None or (job := self.learning.take_job()) is None:
+            return None
+        if self._pool is None:
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=_lower_priority)
+        assert self.path is not None
+        self._future = self._pool.submit(run_fit, job, self.path)
+        return f"fitting ground {job.name!r} from {len(job.x)} steps in the background"
+
+    def poll(self) -> tuple[GPModel | None, ModelUpdate | None, str | None]:
+        """(the new model, its update message, a log line) once a fit is in; (None, None, error line) for a fit that
+        added nothing; (None, None, None) while none is done."""
+        from gpmppi.gp.model_file import ModelFileError
+        from gpmppi.gp.profile_store import load_checked
+
+        if self._future is None or not self._future.done():
+            return None, None, None
+        future, self._future = self._future, None
+        try:
+            out = future.result()
+        except Exception as e:  # noqa: BLE001 - a crashed child: nothing was added, say so and carry on
+            out = FitOutcome(learned=self.learning.name, error=f"the fit of {self.learning.name!r} failed: {e!r}")
+        if out.error:
+            self.learning.failed()
+            return None, None, out.error
+        try:
+            model = load_checked(out.path, out.sha256)
+        except ModelFileError as e:
+            self.learning.failed()
+            return None, None, str(e)
+        self.learning.finished(model)
+        self.version += 1
+        msg = ModelUpdate(version=self.version, path=str(out.path), sha256=out.sha256, grounds=list(out.grounds),
+                          learned=out.learned, samples=out.samples, message=out.message)
+        return model, msg, out.message
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
