@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from schemas import ModelUpdate
@@ -33,8 +34,10 @@ class Swap:
 class ModelSwap:
     """Builds the planner of each new model version off the loop; `take()` hands it over when it is ready."""
 
-    def __init__(self, config: PlannerConfig, sha256: str | None = None, version: int = 0) -> None:
+    def __init__(self, config: PlannerConfig, sha256: str | None = None, version: int = 0,
+                 search_dir: str | None = None) -> None:
         self.config = config
+        self.search_dir = search_dir  # also holds announced profiles as <sha256>.npz (a replay's, from its log)
         self.sha256 = sha256  # the profile planned with (None: not known, e.g. the shipped one)
         self.version = version  # the `ModelUpdate.version` planned with (0: the profile the planner started with)
         self._pool: ThreadPoolExecutor | None = None
@@ -58,8 +61,11 @@ class ModelSwap:
         from gpmppi.gp.profile_store import load_checked
         from gpmppi.mppi.planner import Planner
 
+        path = update.path
+        if self.search_dir is not None and (found := Path(self.search_dir) / f"{update.sha256}.npz").is_file():
+            path = str(found)  # the recording's copy of what was announced (the original may be gone or replaced)
         try:
-            model = load_checked(update.path, update.sha256)
+            model = load_checked(path, update.sha256)
             if list(model.terrains) != list(update.grounds):
                 raise ModelFileError(f"{update.path}: grounds {model.terrains} are not the announced {update.grounds}")
             return Swap(update, model, Planner(self.config, model))

@@ -71,6 +71,9 @@ class Settings(NodeSettings, CycleConfig):
     )
     model_file: str | None = Field(None, description="the robot profile (.npz from `gpmppi train`; a launch "
                                    "file's top-level `profile` fills it; None: the shipped Jackal profile)")
+    learned_dir: str | None = Field(None, description="a folder that also holds announced profiles as "
+                                    "<sha256>.npz, taken before the announced path (replay puts a recording's "
+                                    "learned profiles there)")
     trigger: Literal["state", "rate"] = Field("state", description="plan on each new state, or at rate_hz")
     rate_hz: float = Field(10.0, gt=0, description="planning rate when trigger == 'rate' [Hz]")
     actuation_delay_s: float = Field(
@@ -217,7 +220,7 @@ def run(settings: Settings) -> int:
         task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
         costmap_sub = node.subscribe("costmap", remote_only=True)
         model_sub = node.subscribe("model_update")
-        swap = ModelSwap(settings.planner, profile_sha256(settings.model_file))
+        swap = ModelSwap(settings.planner, profile_sha256(settings.model_file), search_dir=settings.learned_dir)
         pending_grid: OccupancyGrid | None = None  # a grid that came before the first state (its frame unchecked)
         outputs = Outputs(node, settings, startup)
         outputs.started = time.monotonic()

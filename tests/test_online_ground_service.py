@@ -83,3 +83,70 @@ def test_a_fit_with_too_little_data_adds_nothing_and_says_why(tmp_path: Path) ->
     out = run_fit(job, str(profile))
     assert out.error == ("ground 'dune': 40 steps collected, at least 100 needed (10 s of driving on it); not added")
     assert profile.read_bytes() == before and out.sha256 == ""
+
+
+def test_the_recorder_attaches_each_announced_profile_and_replay_finds_it(tmp_path: Path) -> None:
+    from services.recording.player_log import read_run_info
+    from tools.replay_live import LiveService, finalize
+
+    profile = tmp_path / "robot.npz"
+    sha = save_profile(_model(), profile)
+    gone = ModelUpdate(version=2, path=str(tmp_path / "gone.npz"), sha256="0" * 64, grounds=["x"])
+    update = ModelUpdate(version=1, path=str(profile), sha256=sha, grounds=list(_model().terrains))
+    path = tmp_path / "run.mcap"
+    port = free_port()
+    with router(port):
+        observer = client(port)
+        col = Collector(observer, "gpmppi/r1/health/**")
+        rec = ServiceProcess("recorder", settings("recorder", port, path=str(path)), tmp_path)
+        try:
+            assert wait_for(lambda: bool(col.on("gpmppi/r1/health/recorder")), 15.0), rec.log()
+            outside = client(port)
+            pub = outside.declare_publisher("gpmppi/r1/model")
+            pub.put(encode(update))
+            pub.put(encode(gone))
+            assert wait_for(lambda: "gone.npz (version 2) not attached" in rec.log(), 15.0), rec.log()[-2000:]
+            outside.close()
+        finally:
+            assert rec.stop() == 0
+            observer.close()
+    info = read_run_info([path])
+    assert info.attachments[f"learned/{sha}.npz"] == profile.read_bytes()
+    assert [n for n in info.attachments if n.startswith("learned/")] == [f"learned/{sha}.npz"]
+    # replay: the planner gets a folder holding the recording's copy by its hash, which the swap takes first
+    planner = LiveService("planner", "planner", {"model_file": str(profile)}, False)
+    finalize([planner], info, "r1", "tcp/127.0.0.1:7447", tmp_path)
+    assert (Path(planner.config["learned_dir"]) / f"{sha}.npz").read_bytes() == profile.read_bytes()
+
+
+def test_the_planner_swap_loads_the_announced_model_on_a_thread_and_refuses_other_bytes(tmp_path: Path) -> None:
+    from test_online_ground import SETTINGS, samples
+
+    from gpmppi.gp.online_ground import learn_ground
+    from gpmppi.mppi.config import PlannerConfig
+    from services.model_swap import ModelSwap
+
+    new, _ = learn_ground(_model(), samples(_model(), 250), settings=SETTINGS)
+    (tmp_path / "store").mkdir()
+    sha = save_profile(new, tmp_path / "store" / "x.npz")
+    (tmp_path / "store" / "x.npz").rename(tmp_path / "store" / f"{sha}.npz")
+    swap = ModelSwap(PlannerConfig(samples=64, horizon=20), search_dir=str(tmp_path / "store"))
+    update = ModelUpdate(version=1, path=str(tmp_path / "moved.npz"), sha256=sha, grounds=list(new.terrains))
+    assert "model version 1" in (swap.offer(update) or "")
+    assert swap.offer(update) is None  # the same bytes: loading already
+    out: list = []
+
+    def taken() -> bool:
+        if (ready := swap.take()) is not None:
+            out.append(ready)
+        return bool(out)
+
+    assert wait_for(taken, 30.0, step=0.05)
+    ready = out.pop()
+    assert not ready.error and ready.model.terrains == new.terrains and ready.planner is not None
+    assert swap.version == 1 and swap.sha256 == sha and swap.offer(update) is None  # planned with now
+    wrong = ModelUpdate(version=2, path=str(tmp_path / "store" / f"{sha}.npz"), sha256="f" * 64, grounds=["x"])
+    swap.offer(wrong)
+    assert wait_for(taken, 30.0, step=0.05)
+    assert "not taken" in out[-1].error and "is not the announced" in out[-1].error and swap.version == 1
+    swap.close()
