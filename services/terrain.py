@@ -104,8 +104,13 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
                 node.log.info("model version %d: %s (saved to %s)", update_msg.version, line, update_msg.path)
             elif line is not None:
                 node.error(line)
-            _serve_once(node, settings, model, cycle, learning, out, states, command_sub, terrains, resumed)
+            sent = _serve_once(node, settings, model, cycle, learning, out, states, command_sub, terrains, resumed)
             resumed = None if cycle.estimator is not None else resumed
+            # new ground noticed (the estimator's `unknown`, where it publishes one) starts the learning too
+            unknown = getattr(sent, "unknown", None)
+            if unknown is not None and learner.path is not None:
+                if (started := learning.on_unknown(float(unknown), time.monotonic())) is not None:
+                    node.log.info("ground unknown for %.1f s: %s", settings.learn.unknown_hold_s, started)
             if (started := learner.submit_ready()) is not None:
                 node.log.info(started)
     finally:
@@ -125,8 +130,10 @@ def _on_learn_request(node: Node, learning: GroundLearning, learner, request: Gr
 
 
 def _serve_once(node: Node, settings: Settings, model: GPModel, cycle: TerrainCycle, learning: GroundLearning,
-                out, states, command_sub, terrains: list[str], resumed: np.ndarray | None) -> None:  # noqa: ANN001
-    """One pass of the loop: take states and commands, solve when due, publish the weights over `terrains`."""
+                out, states, command_sub, terrains: list[str], resumed: np.ndarray | None  # noqa: ANN001
+                ) -> TerrainWeights | None:
+    """One pass of the loop: take states and commands, solve when due, publish the weights over `terrains`; the
+    solved weights' message, if one went out."""
     received_ns = time.time_ns()  # the loop wakes on arrival: when the base got them, on the states' clock
     for c in command_sub.drain():
         cycle.on_command(c.header.stamp_ns, command_array(c))
@@ -136,7 +143,7 @@ def _serve_once(node: Node, settings: Settings, model: GPModel, cycle: TerrainCy
         cycle.on_states([(m.header.stamp_ns, state_to_array(m)) for m in new], time.monotonic())
     if not cycle.pending:
         node.spin_once()
-        return
+        return None
     if cycle.estimator is None:
         # up at once with the prior (uniform weights, solver_ok False: what the planner uses without us,
         # and what a short history gives), then the slow part of the start: cvxpy and the problem (the paper's
@@ -151,19 +158,21 @@ def _serve_once(node: Node, settings: Settings, model: GPModel, cycle: TerrainCy
             cycle.estimator.reset(resumed)
             node.log.info("resumed from the last published weights", extra={"fields": {
                 "weights": [round(w, 3) for w in resumed.tolist()]}})
-        return
+        return None
     # the state's own command arrives when the planner is done with it: solving then, not alongside the
     # planner, keeps this service off the cores the control path needs (it gets the same weights a cycle on)
     wait = cycle.wait_s(time.monotonic())
     if wait > 0.0:
         node.spin_once(wait)
-        return
+        return None
     update = cycle.solve()
     if update.error is not None:
         node.error(update.error)
-    out.put(_weights_message(terrains, update))
+    msg = _weights_message(terrains, update)
+    out.put(msg)
     node.cycle()
     node.spin_once(0.0)
+    return msg
 
 
 def _resumed_weights(node: Node, terrains: list[str]) -> np.ndarray | None:

@@ -192,3 +192,26 @@ def test_the_planner_cycle_takes_the_learned_model_between_plans() -> None:
     np.testing.assert_allclose(planned.result.weights, cycle.weights)
     # the old grounds' weights by their names are refused now: the model has four
     assert not cycle.on_weights([0.5, 0.3, 0.2], 0.2, names=list(model.terrains))
+
+
+def test_learning_starts_on_request_or_after_unknown_ground_and_hands_out_one_fit() -> None:
+    from gpmppi.terrain.learning import GroundLearning, LearnConfig, TeeEstimator
+
+    model = _model()
+    learning = GroundLearning(model, LearnConfig(steps=50, unknown_threshold=0.5, unknown_hold_s=3.0))
+    assert learning.on_unknown(0.9, 10.0) is None and learning.on_unknown(0.2, 12.0) is None  # not for long
+    assert learning.on_unknown(0.9, 13.0) is None and learning.phase == "idle"
+    assert learning.on_unknown(0.8, 16.0) == "learning ground 'new-1': collecting 50 steps"
+    assert "already learning 'new-1'" in learning.start("mud")
+    tee = TeeEstimator(make_estimator(model, EstimatorConfig()), learning)
+    for row in drive(model, 49, seed=3):
+        tee.observe(*row)  # the estimator's steps are the learner's
+    assert len(learning.samples) == 49 and learning.take_job() is None
+    tee.observe(*drive(model, 1, seed=4)[0])
+    job = learning.take_job()
+    assert job is not None and job.name == "new-1" and len(job.x) == 50 and learning.phase == "fitting"
+    assert learning.take_job() is None  # one fit at a time
+    new, _ = learn_ground(model, job.samples(), job.name, settings=SETTINGS.__class__(min_samples=50, max_points=40))
+    learning.finished(new)
+    assert learning.phase == "idle" and learning.start("") == "learning ground 'new-2': collecting 50 steps"
+    assert learning.cancel() == "learning 'new-2' cancelled" and learning.phase == "idle"
