@@ -3,8 +3,9 @@
 The fit (gpmppi/gp/online_ground.py, 10-20 s of numpy on one core) runs in a child process started with `spawn` (never
 a fork of a process with a Zenoh session) at a lower CPU priority (nice 10), so it cannot hold the terrain service's
 loop (no GIL shared) nor take a core from the planner ahead of it. The child saves the profile atomically
-(gpmppi/gp/profile_store.py) and returns its path and sha256; the service then loads it back (what the planner will
-load), builds the estimator over the new grounds and publishes a `ModelUpdate`.
+(gpmppi/gp/profile_store.py), keeps the steps it learned from beside it as a log (`gpmppi train` refits the ground
+from it together with other logs), and returns the profile's path and sha256; the service then loads it back (what
+the planner will load), builds the estimator over the new grounds and publishes a `ModelUpdate`.
 """
 
 from __future__ import annotations
@@ -13,7 +14,10 @@ import multiprocessing
 import os
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
+
+import numpy as np
 
 from schemas import ModelUpdate
 
@@ -42,8 +46,35 @@ def _lower_priority() -> None:
         pass
 
 
+def steps_log_path(profile: str | Path, ground: str) -> Path:
+    """Where the steps a ground was learned from are kept: beside the profile, `<profile stem>.<ground>.mcap`."""
+    p = Path(profile)
+    return p.with_name(f"{p.stem}.{ground}.mcap")
+
+
+def write_steps_log(path: Path, steps: np.ndarray, ground: str, robot: str, dt: float) -> None:
+    """The learned ground's steps as a log `gpmppi train` reads (state, cmd and terrain/label of `robot`): each step
+    a segment of its own (its state and command at t, its next state at t + dt, then a gap), so no step is paired
+    with another. Written to a temporary file and renamed: never half there."""
+    from schemas import Command, Header, State, TerrainLabel
+    from services.recording.mcap_io import McapWriter
+
+    tick = round(dt * 1e9)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with McapWriter(tmp) as w:
+        for k, row in enumerate(np.asarray(steps, dtype=np.float64)):
+            t = (1 + 4 * k) * tick
+            for stamp, x in ((t, row[:5]), (t + tick, row[7:])):
+                h = Header(stamp_ns=stamp)
+                w.write(f"gpmppi/{robot}/state", State(header=h, x=x[0], y=x[1], theta=x[2], v=x[3], omega=x[4]))
+                w.write(f"gpmppi/{robot}/terrain/label", TerrainLabel(header=h, terrain=ground))
+            w.write(f"gpmppi/{robot}/cmd", Command(header=Header(stamp_ns=t), v_ref=row[5], omega_ref=row[6]))
+    os.replace(tmp, path)
+
+
 def run_fit(job: FitJob, path: str) -> FitOutcome:
-    """In the child: learn the ground and save the profile to `path` atomically (the old file stays on any error)."""
+    """In the child: learn the ground, save the profile to `path` atomically (the old file stays on any error), and
+    the steps it was learned from beside it (`steps_log_path`) for `gpmppi train`."""
     from gpmppi.gp.online_ground import TooLittleData, learn_ground
     from gpmppi.gp.profile_store import save_profile
 
@@ -54,6 +85,8 @@ def run_fit(job: FitJob, path: str) -> FitOutcome:
     model.made_by = (f"{job.model.made_by or 'a robot profile'}; ground {job.name!r} learned online from "
                      f"{len(job.x)} steps")
     try:
+        if job.steps is not None:
+            write_steps_log(steps_log_path(path, job.name), job.steps, job.name, model.robot, model.dt)
         sha = save_profile(model, path)
     except OSError as e:
         return FitOutcome(learned=job.name, samples=len(job.x),

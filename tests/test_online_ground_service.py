@@ -150,3 +150,25 @@ def test_the_planner_swap_loads_the_announced_model_on_a_thread_and_refuses_othe
     assert wait_for(taken, 30.0, step=0.05)
     assert "not taken" in out[-1].error and "is not the announced" in out[-1].error and swap.version == 1
     swap.close()
+
+
+def test_the_fit_keeps_its_steps_as_a_log_that_gpmppi_train_reads(tmp_path: Path) -> None:
+    from test_online_ground import SETTINGS, samples
+
+    from gpmppi.gp.train import prepare_from_series
+    from services.terrain_learning import steps_log_path
+    from tools.train import read_log_series
+
+    profile = tmp_path / "robot.npz"
+    save_profile(_model(), profile)
+    s = samples(_model(), 250)
+    x, y, du = s.arrays()
+    out = run_fit(FitJob(_model(), "dune", x, y, du, SETTINGS, np.stack(s.steps)), str(profile))
+    assert not out.error and GPModel.load(profile).terrains[-1] == "dune"
+    log = steps_log_path(profile, "dune")
+    assert log == tmp_path / "robot.dune.mcap" and [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+    series = read_log_series(log, 0.1, None, None)
+    assert list(series) == ["dune"] and len(series["dune"]["v"]) == 2 * len(x)
+    sets, _, _ = prepare_from_series(series, 0.1, theta=_model().theta, edd5={"dune": np.zeros(5)})
+    np.testing.assert_allclose(sets["dune"].x, x, atol=1e-9)  # the same steps, one pair each
+    np.testing.assert_allclose(sets["dune"].residual, y, atol=1e-9)

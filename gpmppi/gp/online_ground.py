@@ -75,6 +75,7 @@ class GroundSamples:
     x: list[np.ndarray] = field(default_factory=list)
     y: list[np.ndarray] = field(default_factory=list)
     du: list[np.ndarray] = field(default_factory=list)
+    steps: list[np.ndarray] = field(default_factory=list)  # each step as it came: state (5), command (2), next (5)
     _u_prev: np.ndarray | None = None
 
     def __len__(self) -> int:
@@ -92,6 +93,7 @@ class GroundSamples:
         self.x.append(np.array([u[0], u[1], s[3], s[4]]))
         self.y.append(np.array([s1[3] - pv[0], s1[4] - pw[0]]))
         self.du.append(np.zeros(2) if self._u_prev is None else u - self._u_prev)
+        self.steps.append(np.concatenate([s, u, s1]))
         self._u_prev = u
 
     def gap(self) -> None:

@@ -55,6 +55,7 @@ class FitJob:
     y: np.ndarray  # (N, 2) residuals
     du: np.ndarray  # (N, 2) command changes
     settings: LearnSettings
+    steps: np.ndarray | None = None  # (N, 12) each step: state (5), command (2), next state (5) (None: not kept)
 
     def samples(self) -> GroundSamples:
         s = GroundSamples(self.model.theta, self.model.dt)
@@ -113,8 +114,9 @@ class GroundLearning:
         if self.phase != "collecting" or self.samples is None or len(self.samples) < self.config.steps:
             return None
         x, y, du = self.samples.arrays()
+        steps = np.stack(self.samples.steps)
         self.phase, self.samples = "fitting", None
-        return FitJob(self.model, self.name, x, y, du, self.config.learn_settings())
+        return FitJob(self.model, self.name, x, y, du, self.config.learn_settings(), steps)
 
     def finished(self, model: GPModel) -> None:
         """The fit is in: later requests extend `model`."""
