@@ -23,12 +23,22 @@ def learn_on_ground(
 ) -> str:
     """Drive, learn, save; the report line."""
     from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
-    from gpmppi.evaluation.runner import EvalSettings, cached_gp_model, make_planner, make_plant, make_terrain_estimator
+    from gpmppi.evaluation.runner import (
+        EvalSettings,
+        cached_gp_model,
+        cached_terrain_set,
+        make_planner,
+        make_plant,
+        make_terrain_estimator,
+    )
     from gpmppi.scenarios import circle_lane, square_lane
     from gpmppi.terrain.learning import GroundLearning, LearnConfig, TeeEstimator
     from services.terrain_learning import run_fit
 
     settings = EvalSettings(gp_model=None if profile is None else str(profile), samples=samples)
+    grounds = sorted(cached_terrain_set(None).terrains)
+    if ground not in grounds:
+        fail(f"--terrain {ground!r}: not a ground of the plant's terrain set {grounds}")
     model = cached_gp_model(settings.gp_model)
     sc = circle_lane() if scenario == "circle" else square_lane()
     plant = make_plant(settings, ground, seed)
@@ -55,7 +65,7 @@ def register(app: typer.Typer) -> None:
     @app.command("learn-ground")
     def learn_ground_cmd(
         output: Annotated[Path, typer.Option("-o", "--output", metavar=OUT_FILE, help="the learned profile (.npz)")],
-        ground: Annotated[str, typer.Option("-t", "--terrain", help="the plant's ground to drive on (e.g. sand, "
+        terrain: Annotated[str, typer.Option("-t", "--terrain", help="the plant's ground to drive on (e.g. sand, "
                                             "held out of the shipped profile)")] = "sand",
         seconds: Annotated[float, typer.Option(min=2.0, help="seconds of driving on it before the fit")] = 60.0,
         name: Annotated[str, typer.Option(help="the learned ground's name ('' : new-1)")] = "",
@@ -70,5 +80,5 @@ def register(app: typer.Typer) -> None:
             fail(f"--scenario {scenario!r}: choose circle or square")
         if hyperparameters not in ("kept", "fitted"):
             fail(f"--hyperparameters {hyperparameters!r}: choose kept or fitted")
-        print(learn_on_ground(ground, seconds, output, name, profile, scenario, seed, hyperparameters,  # type: ignore[arg-type]
+        print(learn_on_ground(terrain, seconds, output, name, profile, scenario, seed, hyperparameters,  # type: ignore[arg-type]
                               samples))
