@@ -43,6 +43,7 @@ class ModelSwap:
         self._pool: ThreadPoolExecutor | None = None
         self._future: Future[Swap] | None = None
         self._wanted: str | None = None  # the sha256 being loaded
+        self._grounds: tuple[str, ...] = ()  # and its grounds
 
     def offer(self, update: ModelUpdate) -> str | None:
         """Start loading `update`'s profile unless it is the one planned with or being loaded; the log line."""
@@ -52,7 +53,7 @@ class ModelSwap:
             self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="model-swap")
         if self._future is not None:  # a newer version supersedes the one loading: it is dropped when done
             self._future.cancel()
-        self._wanted = update.sha256
+        self._wanted, self._grounds = update.sha256, tuple(update.grounds)
         self._future = self._pool.submit(self._build, update)
         return f"model version {update.version} ({', '.join(update.grounds)}): loading {update.path}"
 
@@ -71,6 +72,11 @@ class ModelSwap:
             return Swap(update, model, Planner(self.config, model))
         except (ModelFileError, ValueError, OSError) as e:
             return Swap(update, error=f"model version {update.version} not taken: {e}")
+
+    @property
+    def loading(self) -> tuple[str, ...] | None:
+        """The grounds of the model being loaded (None: none is)."""
+        return None if self._future is None else self._grounds
 
     def take(self) -> Swap | None:
         """The swap once its load is done (the caller hands `planner` to the cycle), else None."""

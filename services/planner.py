@@ -254,7 +254,8 @@ def run(settings: Settings) -> int:
             if pending_grid is not None and latest is not None:  # its frame is checked against the states'
                 take_costmap(node, cycle, pending_grid, latest.header.frame_id, now)
                 pending_grid = None
-            if (w := weights_sub.take()) is not None:
+            if (w := weights_sub.take()) is not None and tuple(w.names) != swap.loading:
+                # weights over the grounds of a model still loading wait for it (not refused as foreign ones)
                 cycle.on_weights(w.weights, now, names=w.names)
             cycle.tick(now)
             report(cycle.drain_events())
