@@ -126,8 +126,8 @@ class GroundLearn(Message):
 class ModelUpdate(Message):
     """A new robot profile on disk (a ground was learned): the planner loads it between plans."""
 
-    version: int = Field(ge=0, description="the model version: 0 for the profile the services started with, +1 per "
-                         "learned ground")
+    version: int = Field(ge=0, description="the model version: how many grounds were learned into the profile online "
+                         "(0: as `gpmppi train` wrote it; kept in the profile, so it counts on across restarts)")
     path: str = Field(min_length=1, description="the profile file (.npz), as the terrain service saved it")
     sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 of the file's bytes (a reader checks it)")
     grounds: list[str] = Field(min_length=1, description="the profile's grounds, model order")
@@ -205,8 +205,8 @@ class Plan(Message):
     sample_costs: list[float] = Field(default_factory=list)
     terrain_weights: list[float] = Field(default_factory=list)
     weights_stale: bool = Field(False, description="the terrain weights planned with are older than the limit")
-    model_version: int = Field(0, ge=0, description="the robot profile's version planned with (`ModelUpdate.version`; "
-                               "0: the one the planner started with)")
+    model_version: int = Field(0, ge=0, description="the robot profile's version planned with (`ModelUpdate.version`: "
+                               "grounds learned into it online; 0: none)")
     timings_ms: dict[str, float] = Field(default_factory=dict)
     critic_costs: dict[str, float] = Field(
         default_factory=dict,

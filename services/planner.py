@@ -220,9 +220,11 @@ def run(settings: Settings) -> int:
         task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
         costmap_sub = node.subscribe("costmap", remote_only=True)
         model_sub = node.subscribe("model_update")
-        swap = ModelSwap(settings.planner, profile_sha256(settings.model_file), search_dir=settings.learned_dir)
+        swap = ModelSwap(settings.planner, profile_sha256(settings.model_file), model_version(model),
+                         search_dir=settings.learned_dir)
         pending_grid: OccupancyGrid | None = None  # a grid that came before the first state (its frame unchecked)
         outputs = Outputs(node, settings, startup)
+        outputs.model_version = swap.version
         outputs.started = time.monotonic()
         initial_task = None if settings.scenario == NO_TASK else scenario.task
         cycle = PlannerCycle(planner, initial_task, settings.cycle_config(), len(model.terrains), model.terrains)
@@ -284,6 +286,12 @@ def run(settings: Settings) -> int:
                 node.cycle()
             node.spin_once(0.0)
     return 0
+
+
+def model_version(model: GPModel) -> int:
+    from gpmppi.gp.online_ground import model_version as version
+
+    return version(model)
 
 
 def profile_sha256(model_file: str | None) -> str | None:

@@ -75,11 +75,12 @@ def run(settings: Settings) -> int:
 def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLike | None = None) -> int:
     """The terrain service's event loop on an open node, until it is stopped: decode, `TerrainCycle`, encode.
     `estimator`: one already built (None: built after the first prior is out, as the service starts)."""
+    from gpmppi.gp.online_ground import model_version
     from services.terrain_learning import Learner
 
     terrains = list(model.terrains)
     learning = GroundLearning(model, settings.learn)
-    learner = Learner(learning, settings.learn.save_to or settings.model_file)
+    learner = Learner(learning, settings.learn.save_to or settings.model_file, model_version(model))
     cycle = TerrainCycle(TerrainCycleConfig.from_settings(settings), len(terrains),
                          None if estimator is None else TeeEstimator(estimator, learning))
     out = node.publisher("terrain_weights")

@@ -120,6 +120,7 @@ class Learner:
         """(the new model, its update message, a log line) once a fit is in; (None, None, error line) for a fit that
         added nothing; (None, None, None) while none is done."""
         from gpmppi.gp.model_file import ModelFileError
+        from gpmppi.gp.online_ground import model_version
         from gpmppi.gp.profile_store import load_checked
 
         if self._future is None or not self._future.done():
@@ -138,7 +139,7 @@ class Learner:
             self.learning.failed()
             return None, None, str(e)
         self.learning.finished(model)
-        self.version += 1
+        self.version = model_version(model)
         msg = ModelUpdate(version=self.version, path=str(out.path), sha256=out.sha256, grounds=list(out.grounds),
                           learned=out.learned, samples=out.samples, message=out.message)
         return model, msg, out.message

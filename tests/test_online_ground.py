@@ -16,6 +16,7 @@ from gpmppi.gp.online_ground import (
     TooLittleData,
     implied_steady,
     learn_ground,
+    model_version,
     next_name,
 )
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
@@ -124,7 +125,8 @@ def test_too_little_data_is_refused_in_one_line() -> None:
 def test_estimator_identifies_the_learned_ground() -> None:
     model = _model()
     new, _ = learn_ground(model, samples(model, 300), settings=SETTINGS)
-    assert next_name(new) == "new-2"
+    assert next_name(new) == "new-2" and model_version(model) == 0 and model_version(new) == 1
+    assert new.fit_report["learned"][0]["ground"] == "new-1"
     est = make_estimator(new, EstimatorConfig())  # the default filter: the learned calibration's gain and response
     for row in drive(model, 150, seed=5):
         est.observe(*row)

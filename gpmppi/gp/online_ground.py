@@ -127,6 +127,12 @@ class LearnReport:
                 f"{self.rmse_learned[0]:.4f}/{self.rmse_learned[1]:.4f}")
 
 
+def model_version(model: GPModel) -> int:
+    """The profile's model version: how many grounds were learned into it online (0: as `gpmppi train` wrote it).
+    Kept in the profile (its fit report's `learned` list), so a restarted service counts on from it."""
+    return len((model.fit_report or {}).get("learned", []))
+
+
 def next_name(model: GPModel) -> str:
     """`new-1`, `new-2`, ...: the first such name the model does not have."""
     k = 1
@@ -317,4 +323,7 @@ def learn_ground(model: GPModel, samples: GroundSamples, name: str | None = None
 
     report = LearnReport(name, model.terrains[near], len(x), len(z), cfg.hyperparameters, rmse(y), rmse(y - m_near),
                          rmse(y - learned))
+    entry = {"ground": name, "steps": len(x), "inputs": len(z), "nearest": report.nearest,
+             "hyperparameters": cfg.hyperparameters}
+    new.fit_report = {**(model.fit_report or {}), "learned": [*(model.fit_report or {}).get("learned", []), entry]}
     return new, report
