@@ -11,14 +11,16 @@ from __future__ import annotations
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from schemas import ModelUpdate
 
 if TYPE_CHECKING:
     from gpmppi.gp.model_file import GPModel
     from gpmppi.mppi.config import PlannerConfig
+    from gpmppi.mppi.cycle import PlannerCycle
     from gpmppi.mppi.planner import Planner
+    from services.runtime.node import Node
 
 
 @dataclass
@@ -93,3 +95,30 @@ class ModelSwap:
     def close(self) -> None:
         if self._pool is not None:
             self._pool.shutdown(wait=False, cancel_futures=True)
+
+
+def model_version(model: GPModel) -> int:
+    """The profile's model version (`gpmppi.gp.online_ground.model_version`)."""
+    from gpmppi.gp.online_ground import model_version as version
+
+    return version(model)
+
+
+def profile_sha256(model_file: str | None) -> str | None:
+    """The sha256 of the profile file the planner started with (None: the shipped one, or unreadable)."""
+    from gpmppi.gp.profile_store import file_sha256
+
+    try:
+        return None if model_file is None else file_sha256(model_file)
+    except OSError:
+        return None
+
+
+def take_swap(node: Node, cycle: PlannerCycle, swap: Swap, outputs: Any) -> None:  # outputs: planner.Outputs
+    """Plan with a new model version's planner from the next state on (or log why it was not taken)."""
+    if swap.error or swap.planner is None or swap.model is None:
+        node.error(swap.error)
+        return
+    cycle.swap_planner(swap.planner, swap.model.terrains)
+    outputs.model_version = swap.update.version
+    node.log.info("planning with model version %d: grounds %s", swap.update.version, swap.model.terrains)

@@ -36,7 +36,7 @@ from services.codec.convert import (
     task_to_message,
 )
 from services.codec.ros2_topic import Ros2Topic
-from services.model_swap import ModelSwap, Swap
+from services.model_swap import ModelSwap, model_version, profile_sha256, take_swap
 from services.runtime.node import Node, TypedSubscription
 from services.runtime.node_settings import NodeSettings
 from services.runtime.scheduling import process_age_s
@@ -286,32 +286,6 @@ def run(settings: Settings) -> int:
                 node.cycle()
             node.spin_once(0.0)
     return 0
-
-
-def model_version(model: GPModel) -> int:
-    from gpmppi.gp.online_ground import model_version as version
-
-    return version(model)
-
-
-def profile_sha256(model_file: str | None) -> str | None:
-    """The sha256 of the profile file the planner started with (None: the shipped one, or unreadable)."""
-    from gpmppi.gp.profile_store import file_sha256
-
-    try:
-        return None if model_file is None else file_sha256(model_file)
-    except OSError:
-        return None
-
-
-def take_swap(node: Node, cycle: PlannerCycle, swap: Swap, outputs: Outputs) -> None:
-    """Plan with a new model version's planner from the next state on (or log why it was not taken)."""
-    if swap.error or swap.planner is None or swap.model is None:
-        node.error(swap.error)
-        return
-    cycle.swap_planner(swap.planner, swap.model.terrains)
-    outputs.model_version = swap.update.version
-    node.log.info("planning with model version %d: grounds %s", swap.update.version, swap.model.terrains)
 
 
 def take_costmap(node: Node, cycle: PlannerCycle, msg: OccupancyGrid, state_frame: str,
