@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -95,26 +96,54 @@ def run_fit(job: FitJob, path: str) -> FitOutcome:
     return FitOutcome(path, sha, tuple(model.terrains), job.name, len(job.x), report.line())
 
 
+def _child(job: FitJob, path: str, conn: Connection) -> None:
+    """The fit process: lower priority, fit and save, send the outcome back."""
+    _lower_priority()
+    try:
+        conn.send(run_fit(job, path))
+    finally:
+        conn.close()
+
+
 class Learner:
-    """Submits `GroundLearning`'s fit jobs to a child process and hands back the saved model when one is in."""
+    """Runs `GroundLearning`'s fit jobs in a child process and hands back the saved model when one is in."""
 
     def __init__(self, learning: GroundLearning, path: str | None, version: int = 0) -> None:
         self.learning = learning
         self.path = path  # where the learned profile goes (None: nowhere; a request is refused)
         self.version = version
-        self._pool: ProcessPoolExecutor | None = None
-        self._future: Future[FitOutcome] | None = None
+        self._process: BaseProcess | None = None
+        self._conn: Connection | None = None
 
     def submit_ready(self) -> str | None:
         """Start the fit when the collection is complete; the log line, else None."""
-        if self._future is not None or (job := self.learning.take_job()) is None:
+        if self._process is not None or (job := self.learning.take_job()) is None:
             return None
-        if self._pool is None:
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                                             initializer=_lower_priority)
         assert self.path is not None
-        self._future = self._pool.submit(run_fit, job, self.path)
+        ctx = multiprocessing.get_context("spawn")
+        self._conn, child = ctx.Pipe(duplex=False)
+        self._process = ctx.Process(target=_child, args=(job, self.path, child), name="ground-fit", daemon=True)
+        self._process.start()
+        child.close()
         return f"fitting ground {job.name!r} from {len(job.x)} steps in the background"
+
+    def _outcome(self) -> FitOutcome | None:
+        """The child's outcome once it is done (None while it runs)."""
+        assert self._process is not None and self._conn is not None
+        if self._conn.poll():
+            try:
+                out = self._conn.recv()
+            except (EOFError, OSError) as e:
+                out = FitOutcome(learned=self.learning.name, error=f"the fit of {self.learning.name!r} failed: {e!r}")
+        elif self._process.is_alive():
+            return None
+        else:
+            out = FitOutcome(learned=self.learning.name, error=f"the fit of {self.learning.name!r} ended with exit "
+                             f"code {self._process.exitcode} and no result; the profile is unchanged")
+        self._process.join(1.0)
+        self._conn.close()
+        self._process = self._conn = None
+        return out
 
     def poll(self) -> tuple[GPModel | None, ModelUpdate | None, str | None]:
         """(the new model, its update message, a log line) once a fit is in; (None, None, error line) for a fit that
@@ -123,13 +152,8 @@ class Learner:
         from gpmppi.gp.online_ground import model_version
         from gpmppi.gp.profile_store import load_checked
 
-        if self._future is None or not self._future.done():
+        if self._process is None or (out := self._outcome()) is None:
             return None, None, None
-        future, self._future = self._future, None
-        try:
-            out = future.result()
-        except Exception as e:  # noqa: BLE001 - a crashed child: nothing was added, say so and carry on
-            out = FitOutcome(learned=self.learning.name, error=f"the fit of {self.learning.name!r} failed: {e!r}")
         if out.error:
             self.learning.failed()
             return None, None, out.error
@@ -145,5 +169,7 @@ class Learner:
         return model, msg, out.message
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=False, cancel_futures=True)
+        """Stop a fit still running (the service is stopping: its save is atomic, the old profile stays)."""
+        if self._process is not None and self._process.is_alive():
+            self._process.terminate()
+            self._process.join(5.0)
