@@ -66,6 +66,14 @@ def test_terrain_service_learns_a_ground_and_announces_the_new_model(tmp_path: P
             assert file_sha256(profile) == update.sha256
             assert GPModel.load(profile).terrains[-1] == "dune"  # on disk: a restart keeps it
             assert "fitting ground 'dune'" in proc.log() and "model version 1" in proc.log()
+            assert proc.stop() == 0, proc.log()[-3000:]
+            # a restarted terrain service comes up with the learned ground (it is in the profile on disk)
+            seen = len(weights())
+            (tmp_path / "again").mkdir()
+            proc = ServiceProcess("terrain", settings("terrain", port, command_wait_s=0.05, model_file=str(profile),
+                                                      learn=learn), tmp_path / "again")
+            assert wait_for(lambda: (step(), len(weights()) > seen and weights()[-1].names[-1] == "dune")[1], 60.0,
+                            step=0.02), proc.log()[-3000:]
             feeder.close()
         finally:
             code = proc.stop()
