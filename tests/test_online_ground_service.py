@@ -180,3 +180,58 @@ def test_the_fit_keeps_its_steps_as_a_log_that_gpmppi_train_reads(tmp_path: Path
     sets, _, _ = prepare_from_series(series, 0.1, theta=_model().theta, edd5={"dune": np.zeros(5)})
     np.testing.assert_allclose(sets["dune"].x, x, atol=1e-9)  # the same steps, one pair each
     np.testing.assert_allclose(sets["dune"].residual, y, atol=1e-9)
+
+
+def test_the_planner_service_takes_a_new_model_version_between_plans(tmp_path: Path) -> None:
+    import math
+
+    from test_online_ground import SETTINGS, samples
+    from zenoh_helpers import matched_publisher
+
+    from gpmppi.gp.online_ground import learn_ground
+    from schemas import Header, Plan
+
+    profile = tmp_path / "robot.npz"
+    save_profile(_model(), profile)
+    new, _ = learn_ground(_model(), samples(_model(), 250), "dune", settings=SETTINGS)
+    learned = tmp_path / "learned.npz"
+    sha = save_profile(new, learned)
+    cfg = settings("planner", port := free_port(), compensate_delay=False, model_file=str(profile),
+                   planner={"samples": 64, "horizon": 20, "backend": "cpu"})
+    with router(port):
+        observer = client(port)
+        col = Collector(observer, "gpmppi/r1/**")
+        proc = ServiceProcess("planner", cfg, tmp_path)
+        try:
+            assert wait_for(lambda: bool(col.on("gpmppi/r1/health/planner")), 120.0), proc.log()[-3000:]
+            state_pub = matched_publisher(observer, "gpmppi/r1/state")
+            model_pub = observer.declare_publisher("gpmppi/r1/model")
+            weights_pub = observer.declare_publisher("gpmppi/r1/terrain/weights")
+            k = 0
+
+            def plans() -> list[Plan]:
+                return [decode(Plan, p) for _, p, _ in col.on("gpmppi/r1/plan")]
+
+            def step() -> None:
+                nonlocal k
+                x = np.array([20.0, 0.1 * k, math.pi / 2, 1.0, 0.05])
+                k += 1
+                state_pub.put(encode(State(x=x[0], y=x[1], theta=x[2], v=x[3], omega=x[4],
+                                           header=Header(stamp_ns=time.time_ns()))))
+                time.sleep(0.05)
+
+            assert wait_for(lambda: (step(), bool(plans()))[1], 30.0), proc.log()[-3000:]
+            assert plans()[-1].model_version == 0 and len(plans()[-1].terrain_weights) == 3
+            model_pub.put(encode(ModelUpdate(version=1, path=str(learned), sha256=sha, grounds=list(new.terrains),
+                                             learned="dune", samples=250)))
+            assert wait_for(lambda: (step(), plans()[-1].model_version == 1)[1], 30.0), proc.log()[-3000:]
+            w = TerrainWeights(names=list(new.terrains), weights=[0.05, 0.05, 0.1, 0.8])
+            weights_pub.put(encode(w))
+            assert wait_for(lambda: (step(), plans()[-1].terrain_weights == [0.05, 0.05, 0.1, 0.8])[1], 30.0), \
+                proc.log()[-3000:]
+            assert "planning with model version 1: grounds" in proc.log()
+            assert "weights_invalid" not in str([h for _, h, _ in col.on("gpmppi/r1/health/planner")][-1:])
+        finally:
+            code = proc.stop()
+            observer.close()
+    assert code == 0, proc.log()[-3000:]
