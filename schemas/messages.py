@@ -119,7 +119,8 @@ class GroundLearn(Message):
     """Learn the ground under the robot as a new ground of the robot profile (the terrain service, gpmppi/gp/
     online_ground.py), or stop learning it."""
 
-    name: str = Field("", max_length=64, description="the new ground's name ('' : the next free new-1, new-2, ...)")
+    name: str = Field("", max_length=64, pattern=r"^[A-Za-z0-9_-]*$", description="the new ground's name: letters, "
+                      "digits, '_' and '-' ('' : the next free new-1, new-2, ...)")
     action: Literal["start", "cancel"] = Field("start", description="start collecting its steps, or drop them")
 
 

@@ -118,6 +118,8 @@ def test_too_little_data_is_refused_in_one_line() -> None:
         standing.add(np.zeros(5), np.zeros(2), np.zeros(5))
     with pytest.raises(TooLittleData, match="span 0.000 m/s of forward speed"):
         learn_ground(model, standing, settings=SETTINGS)
+    with pytest.raises(TooLittleData, match="use 1-64 letters"):
+        learn_ground(model, samples(model, 250), "../up", settings=SETTINGS)
     with pytest.raises(TooLittleData, match="already in the profile"):
         learn_ground(model, samples(model, 250), "grass", settings=SETTINGS)
 

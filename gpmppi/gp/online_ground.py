@@ -31,6 +31,7 @@ implied map); the rate is the nearest ground's.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -290,8 +291,8 @@ def learn_ground(model: GPModel, samples: GroundSamples, name: str | None = None
     Raises TooLittleData (one line) when the samples cannot make a ground (`check_samples`)."""
     cfg = settings or LearnSettings()
     name = next_name(model) if name is None else name.strip()
-    if not name:
-        raise TooLittleData("a learned ground needs a non-empty name")
+    if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", name):
+        raise TooLittleData(f"ground name {name!r}: use 1-64 letters, digits, '_' or '-'; not added")
     x, y, du = samples.arrays()
     check_samples(model, name, x, cfg)
     near, mean = nearest_ground(model, x, y)

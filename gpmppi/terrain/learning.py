@@ -9,6 +9,7 @@ it holds `steps` of them hands out a fit job (`take_job`). The service runs the 
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from typing import Literal
 
@@ -81,6 +82,8 @@ class GroundLearning:
         if self.phase != "idle":
             return f"already learning {self.name!r} ({self.phase}): request ignored"
         name = name.strip() or next_name(self.model)
+        if not re.fullmatch(r"[A-Za-z0-9_-]{1,64}", name):
+            return f"ground name {name!r}: use 1-64 letters, digits, '_' or '-'; request ignored"
         if name in self.model.terrains:
             return f"ground {name!r} is already in the profile: request ignored; name the new ground differently"
         self.phase, self.name = "collecting", name
