@@ -256,9 +256,11 @@ def run(settings: Settings) -> int:
             if pending_grid is not None and latest is not None:  # its frame is checked against the states'
                 take_costmap(node, cycle, pending_grid, latest.header.frame_id, now)
                 pending_grid = None
-            if (w := weights_sub.take()) is not None and tuple(w.names) != swap.loading:
-                # weights over the grounds of a model still loading wait for it (not refused as foreign ones)
-                cycle.on_weights(w.weights, now, names=w.names)
+            if (w := weights_sub.take()) is not None:
+                if tuple(w.names) == swap.loading:  # for the model loading: they wait for it (not refused)
+                    cycle.weights_pending(now)
+                else:
+                    cycle.on_weights(w.weights, now, names=w.names)
             cycle.tick(now)
             report(cycle.drain_events())
             if (s := state_sub.take()) is not None:

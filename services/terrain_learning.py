@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
@@ -79,11 +80,12 @@ def run_fit(job: FitJob, path: str) -> FitOutcome:
     from gpmppi.gp.online_ground import TooLittleData, learn_ground
     from gpmppi.gp.profile_store import save_profile
 
+    base = job.profile()
     try:
-        model, report = learn_ground(job.model, job.samples(), job.name, job.settings)
+        model, report = learn_ground(base, job.samples(), job.name, job.settings)
     except TooLittleData as e:
         return FitOutcome(learned=job.name, samples=len(job.x), error=str(e))
-    model.made_by = (f"{job.model.made_by or 'a robot profile'}; ground {job.name!r} learned online from "
+    model.made_by = (f"{base.made_by or 'a robot profile'}; ground {job.name!r} learned online from "
                      f"{len(job.x)} steps")
     try:
         if job.steps is not None:
@@ -114,6 +116,8 @@ class Learner:
         self.version = version
         self._process: BaseProcess | None = None
         self._conn: Connection | None = None
+        self._pool: ThreadPoolExecutor | None = None
+        self._loading: Future[tuple[GPModel | None, ModelUpdate | None, str | None]] | None = None
 
     def submit_ready(self) -> str | None:
         """Start the fit when the collection is complete; the log line, else None."""
@@ -122,7 +126,8 @@ class Learner:
         assert self.path is not None
         ctx = multiprocessing.get_context("spawn")
         self._conn, child = ctx.Pipe(duplex=False)
-        self._process = ctx.Process(target=_child, args=(job, self.path, child), name="ground-fit", daemon=True)
+        self._process = ctx.Process(target=_child, args=(job.for_process(), self.path, child), name="ground-fit",
+                                    daemon=True)
         self._process.start()
         child.close()
         return f"fitting ground {job.name!r} from {len(job.x)} steps in the background"
@@ -146,26 +151,41 @@ class Learner:
         return out
 
     def poll(self) -> tuple[GPModel | None, ModelUpdate | None, str | None]:
-        """(the new model, its update message, a log line) once a fit is in; (None, None, error line) for a fit that
-        added nothing; (None, None, None) while none is done."""
-        from gpmppi.gp.model_file import ModelFileError
-        from gpmppi.gp.online_ground import model_version
-        from gpmppi.gp.profile_store import load_checked
-
+        """(the new model, its update message, a log line) once a fit is in and its profile loaded back; (None, None,
+        error line) for a fit that added nothing; (None, None, None) while none is done. The saved profile is loaded
+        on a thread (a second or two of reading and decoding that would otherwise hold the terrain loop)."""
+        if self._loading is not None:
+            if not self._loading.done():
+                return None, None, None
+            loading, self._loading = self._loading, None
+            model, msg, line = loading.result()
+            if model is None or msg is None:
+                self.learning.failed()
+            else:  # here, on the loop's thread, like every other change of the learning's state
+                self.learning.finished(model)
+                self.version = msg.version
+            return model, msg, line
         if self._process is None or (out := self._outcome()) is None:
             return None, None, None
         if out.error:
             self.learning.failed()
             return None, None, out.error
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ground-load")
+        self._loading = self._pool.submit(self._load, out)
+        return None, None, None
+
+    def _load(self, out: FitOutcome) -> tuple[GPModel | None, ModelUpdate | None, str | None]:
+        from gpmppi.gp.model_file import ModelFileError
+        from gpmppi.gp.online_ground import model_version
+        from gpmppi.gp.profile_store import load_checked
+
         try:
             model = load_checked(out.path, out.sha256)
         except ModelFileError as e:
-            self.learning.failed()
             return None, None, str(e)
-        self.learning.finished(model)
-        self.version = model_version(model)
-        msg = ModelUpdate(version=self.version, path=str(out.path), sha256=out.sha256, grounds=list(out.grounds),
-                          learned=out.learned, samples=out.samples, message=out.message)
+        msg = ModelUpdate(version=model_version(model), path=str(out.path), sha256=out.sha256,
+                          grounds=list(out.grounds), learned=out.learned, samples=out.samples, message=out.message)
         return model, msg, out.message
 
     def close(self) -> None:
@@ -173,3 +193,5 @@ class Learner:
         if self._process is not None and self._process.is_alive():
             self._process.terminate()
             self._process.join(5.0)
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)

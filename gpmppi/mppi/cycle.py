@@ -209,6 +209,12 @@ class PlannerCycle:
         if warm is not None and resume is not None:
             resume(warm, 0)
 
+    def weights_pending(self, now: float) -> None:
+        """Weights arrived for a model still loading (`swap_planner` comes next): the terrain estimate is alive, so
+        the weights planned with do not age meanwhile (no stale alarm for the second a swap takes)."""
+        if self.weights_time is not None and not self.weights_prior:
+            self.weights_time, self.weights_stale = now, False
+
     def resume_from(self, controls: Sequence[Sequence[float]] | np.ndarray, stamp_ns: int, dt: float) -> None:
         """Start from a predecessor's last plan (its control sequence, planned from a state stamped `stamp_ns`)
         instead of the configured initial sequence: at the next state, shifted by the steps of `dt` since, so a

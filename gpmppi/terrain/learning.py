@@ -9,8 +9,10 @@ it holds `steps` of them hands out a fit job (`take_job`). The service runs the 
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -50,16 +52,33 @@ class LearnConfig(BaseModel):
 class FitJob:
     """What a fit needs: the profile to extend, the new ground's name and steps, how to fit."""
 
-    model: GPModel
+    model: GPModel | None  # None: read from `model_path` (`profile()`)
     name: str
     x: np.ndarray  # (N, 4) GP inputs
     y: np.ndarray  # (N, 2) residuals
     du: np.ndarray  # (N, 2) command changes
     settings: LearnSettings
     steps: np.ndarray | None = None  # (N, 12) each step: state (5), command (2), next state (5) (None: not kept)
+    model_path: str | None = None  # the profile's file, when `model` travels by it (`for_process`)
+
+    def for_process(self) -> FitJob:
+        """The job as another process takes it: the profile by its file where it has one (tens of MB of arrays,
+        whose pickling would hold the sender for seconds), else as it is."""
+        path = None if self.model is None else self.model.source
+        if path is None or not Path(path).is_file():
+            return self
+        return dataclasses.replace(self, model=None, model_path=path)  # type: ignore[arg-type]
+
+    def profile(self) -> GPModel:
+        """The profile to extend (read from `model_path` when it came by file)."""
+        if self.model is None:
+            assert self.model_path is not None
+            self.model = GPModel.load(self.model_path)
+        return self.model
 
     def samples(self) -> GroundSamples:
-        s = GroundSamples(self.model.theta, self.model.dt)
+        model = self.profile()
+        s = GroundSamples(model.theta, model.dt)
         s.x, s.y, s.du = list(self.x), list(self.y), list(self.du)
         return s
 
