@@ -116,6 +116,7 @@ class Learner:
         self.version = version
         self._process: BaseProcess | None = None
         self._conn: Connection | None = None
+        self._done: list[BaseProcess] = []  # finished fits not yet reaped
         self._pool: ThreadPoolExecutor | None = None
         self._loading: Future[tuple[GPModel | None, ModelUpdate | None, str | None]] | None = None
 
@@ -145,7 +146,9 @@ class Learner:
         else:
             out = FitOutcome(learned=self.learning.name, error=f"the fit of {self.learning.name!r} ended with exit "
                              f"code {self._process.exitcode} and no result; the profile is unchanged")
-        self._process.join(1.0)
+        # not joined here: the child's interpreter teardown takes a second or more, which would hold the loop; it
+        # is a daemon that exits on its own, reaped by a later `_outcome` or at `close`
+        self._done.append(self._process)
         self._conn.close()
         self._process = self._conn = None
         return out
@@ -165,6 +168,7 @@ class Learner:
                 self.learning.finished(model)
                 self.version = msg.version
             return model, msg, line
+        self._done = [p for p in self._done if p.is_alive()]  # is_alive reaps an exited child
         if self._process is None or (out := self._outcome()) is None:
             return None, None, None
         if out.error:
