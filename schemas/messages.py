@@ -12,8 +12,10 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 # 2: `Command.source`, the publishing process's identity. A version-1 message (no such field) still decodes.
-SCHEMA_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+# 3: `TerrainWeights.unknown` and `unknown_active`, "none of the trained grounds". Older messages still decode (they
+#    read as known ground: unknown 0, not active).
+SCHEMA_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 
@@ -101,10 +103,19 @@ class TerrainLabel(Message):
 
 
 class TerrainWeights(Message):
+    """Which mixture of the trained grounds is under the robot, and whether none of them is (schema 3)."""
+
     names: list[str] = Field(min_length=1, description="terrain names, model order")
     weights: list[float] = Field(min_length=1, description="convex weights, same order as names")
     solver_ok: bool = Field(True, description="False when the last solve failed and weights were kept")
     residual: float = Field(0.0, ge=0.0, description="objective value of the last solve")
+    unknown: float = Field(
+        0.0, ge=0.0, le=1.0, description="probability that the ground under the robot is none of `names` (the "
+        "recent velocity residuals fit no trained ground as well as they did on held-out training drives; "
+        "gpmppi/terrain/novelty.py); 0 where not assessed (before enough steps, schema 1-2 messages) [probability]")
+    unknown_active: bool = Field(
+        False, description="the ground is taken as unknown: set once `unknown` exceeds the enter level, cleared once "
+        "it falls below the exit level (hysteresis, so it does not flicker); the planner's caution follows it")
 
     @model_validator(mode="after")
     def _on_simplex(self) -> TerrainWeights:
@@ -112,6 +123,9 @@ class TerrainWeights(Message):
             raise ValueError(f"{len(self.names)} names but {len(self.weights)} weights")
         if any(w < -1e-6 or w > 1 + 1e-6 for w in self.weights) or abs(sum(self.weights) - 1) > 1e-3:
             raise ValueError(f"weights {self.weights} are not on the simplex (each in [0, 1], sum 1)")
+        if (self.unknown > 0.0 or self.unknown_active) and self.header.schema_version < 3:
+            raise ValueError("unknown and unknown_active are schema_version 3 fields; this message says version "
+                             f"{self.header.schema_version}")
         return self
 
 

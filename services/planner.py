@@ -260,7 +260,7 @@ def run(settings: Settings) -> int:
                 if tuple(w.names) == swap.loading:  # for the model loading: they wait for it (not refused)
                     cycle.weights_pending(now)
                 else:
-                    cycle.on_weights(w.weights, now, names=w.names)
+                    cycle.on_weights(w.weights, now, names=w.names, unknown_active=w.unknown_active)
             cycle.tick(now)
             report(cycle.drain_events())
             if (s := state_sub.take()) is not None:
@@ -416,11 +416,12 @@ def warm_up(node: Node, planner: Planner, scenario: Scenario) -> None:
 
 class CycleReport:
     """The cycle's events into the heartbeat's counters and the log, and the terrain weights' state into its
-    flags (`weights_stale`, `weights_prior`) and status (degraded while stale)."""
+    flags (`weights_stale`, `weights_prior`, `caution`: planning carefully on unknown ground) and status (degraded
+    while stale)."""
 
     def __init__(self, node: Node, cycle: PlannerCycle) -> None:
         self.node, self.cycle = node, cycle
-        self.shown: tuple[bool, bool] | None = None
+        self.shown: tuple[bool, bool, bool] | None = None
         self([])
 
     def __call__(self, events: list[Event]) -> None:
@@ -435,10 +436,10 @@ class CycleReport:
                 node.log.warning(e.message)
             else:
                 node.log.info(e.message)
-        state = (self.cycle.weights_stale, self.cycle.weights_prior)
+        state = (self.cycle.weights_stale, self.cycle.weights_prior, self.cycle.unknown_active)
         if state != self.shown:
             self.shown = state
             c = node.counters
             with c.lock:
-                c.flags["weights_stale"], c.flags["weights_prior"] = state
+                c.flags["weights_stale"], c.flags["weights_prior"], c.flags["caution"] = state
                 c.status = "degraded" if state[0] else "ok"

@@ -91,6 +91,7 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
     # a predecessor's last weights (the launcher saw them): published first instead of the prior, and the
     # estimator starts from them
     resumed = _resumed_weights(node, terrains)
+    unknown = UnknownReport(node)
     try:
         while node.ok():
             for request in learn_sub.drain():
@@ -105,12 +106,12 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
                 node.log.info("model version %d: %s (saved to %s)", update_msg.version, line, update_msg.path)
             elif line is not None:
                 node.error(line)
-            sent = _serve_once(node, settings, model, cycle, learning, out, states, command_sub, terrains, resumed)
+            sent = _serve_once(node, settings, model, cycle, learning, out, states, command_sub, terrains, resumed,
+                               unknown)
             resumed = None if cycle.estimator is not None else resumed
-            # new ground noticed (the estimator's `unknown`, where it publishes one) starts the learning too
-            unknown = getattr(sent, "unknown", None)
-            if unknown is not None and learner.path is not None:
-                if (started := learning.on_unknown(float(unknown), time.monotonic())) is not None:
+            # new ground noticed (the novelty test's P(unknown), held above the threshold) starts the learning too
+            if sent is not None and learner.path is not None:
+                if (started := learning.on_unknown(sent.unknown, time.monotonic())) is not None:
                     node.log.info("ground unknown for %.1f s: %s", settings.learn.unknown_hold_s, started)
             if (started := learner.submit_ready()) is not None:
                 node.log.info(started)
@@ -131,8 +132,8 @@ def _on_learn_request(node: Node, learning: GroundLearning, learner, request: Gr
 
 
 def _serve_once(node: Node, settings: Settings, model: GPModel, cycle: TerrainCycle, learning: GroundLearning,
-                out, states, command_sub, terrains: list[str], resumed: np.ndarray | None  # noqa: ANN001
-                ) -> TerrainWeights | None:
+                out, states, command_sub, terrains: list[str], resumed: np.ndarray | None,  # noqa: ANN001
+                unknown: UnknownReport) -> TerrainWeights | None:
     """One pass of the loop: take states and commands, solve when due, publish the weights over `terrains`; the
     solved weights' message, if one went out."""
     received_ns = time.time_ns()  # the loop wakes on arrival: when the base got them, on the states' clock
@@ -169,6 +170,7 @@ def _serve_once(node: Node, settings: Settings, model: GPModel, cycle: TerrainCy
     update = cycle.solve()
     if update.error is not None:
         node.error(update.error)
+    unknown.report(update, terrains)
     msg = _weights_message(terrains, update)
     out.put(msg)
     node.cycle()
@@ -195,8 +197,36 @@ def _estimator(model: GPModel, settings: Settings) -> EstimatorLike:
     return make_estimator(model, settings.estimator)
 
 
+class UnknownReport:
+    """"None of these grounds" into the health: the heartbeat's flag `unknown_ground` (the hysteretic decision),
+    its counter `unknown_permille` (the last P(unknown) x 1000) and `unknown_entered` (how often it was set), and a
+    log line each time the decision changes."""
+
+    def __init__(self, node: Node) -> None:
+        self.node = node
+        self.active = False
+        with node.counters.lock:
+            node.counters.flags["unknown_ground"] = False
+
+    def report(self, update: WeightsUpdate, terrains: list[str]) -> None:
+        c = self.node.counters
+        with c.lock:
+            c.counts["unknown_permille"] = round(1000 * update.unknown)
+            c.flags["unknown_ground"] = update.unknown_active
+        if update.unknown_active == self.active:
+            return
+        self.active = update.unknown_active
+        nearest = terrains[int(np.argmax(update.weights))]
+        if self.active:
+            c.count("unknown_entered")
+            self.node.log.warning(f"ground unknown: no trained ground explains the last steps (P(unknown) "
+                                  f"{update.unknown:.2f}; nearest {nearest})")
+        else:
+            self.node.log.info(f"ground known again (P(unknown) {update.unknown:.2f}; {nearest})")
+
+
 def _weights_message(terrains: list[str], update: WeightsUpdate) -> TerrainWeights:
     msg = TerrainWeights(names=terrains, weights=update.weights.tolist(), solver_ok=update.ok,
-                         residual=update.residual)
+                         residual=update.residual, unknown=update.unknown, unknown_active=update.unknown_active)
     msg.header.stamp_ns = update.stamp_ns
     return msg

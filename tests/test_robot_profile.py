@@ -217,6 +217,8 @@ def test_train_writes_a_whole_profile_from_a_log(dataset: Path, tmp_path: Path) 
     assert np.all(np.isfinite(p.calibration.command_gain)) and np.all(p.calibration.command_gain[:, 0] < 0)
     assert p.made_by is not None and p.made_by.startswith(f"gpmppi train {dataset} -o {out} --robot jackal")
     make_estimator(p, EstimatorConfig())  # the defaults run on it
+    # the novelty test's calibration, fitted on the same logs (gpmppi/terrain/novelty.py)
+    assert p.novelty is not None and "fitted on the logs" in p.novelty.source and min(p.novelty.spread) > 0
     coverage = (p.fit_report or {})["coverage"]  # the fit's coverage report travels with it
     assert [c["terrain"] for c in coverage] == GROUNDS and all(c["held_commands"] > 0 for c in coverage)
 

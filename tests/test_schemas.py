@@ -44,6 +44,7 @@ EXAMPLES = [
     BaseCommand(v=0.0, omega=0.0, reason="watchdog"),
     TerrainLabel(terrain="grass"),
     TerrainWeights(names=["asphalt", "grass"], weights=[0.3, 0.7], solver_ok=False, residual=0.5),
+    TerrainWeights(names=["asphalt", "grass"], weights=[0.6, 0.4], unknown=0.875, unknown_active=True),
     Task(kind="lane", centerline=[[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]], half_width=1.0),
     Task(kind="goal", goal=[7.0, 5.0], obstacles=[Circle(x=1.0, y=2.0, r=0.5)]),
     Plan(
@@ -99,6 +100,22 @@ def test_a_version_1_command_still_decodes_and_only_version_2_names_its_process(
     assert decode(Command, encode(Command(v_ref=1.0, omega_ref=0.0, source="abc"))).source == "abc"
     with pytest.raises(DecodeError, match="source"):
         decode(Command, b'{"header": {"schema_version": 1}, "v_ref": 1.0, "omega_ref": 0.0, "source": "abc"}')
+
+
+def test_older_terrain_weights_decode_as_known_ground_and_only_version_3_says_unknown() -> None:
+    for version in (1, 2):
+        old = f'{{"header": {{"schema_version": {version}}}, "names": ["a", "b"], "weights": [0.5, 0.5]}}'.encode()
+        msg = decode(TerrainWeights, old)
+        assert msg.header.schema_version == version and msg.unknown == 0.0 and not msg.unknown_active
+        bad = json.loads(old)
+        bad["unknown"] = 0.7
+        with pytest.raises(DecodeError, match="schema_version 3"):
+            decode(TerrainWeights, json.dumps(bad).encode())
+    new = decode(TerrainWeights, encode(TerrainWeights(names=["a"], weights=[1.0], unknown=0.7, unknown_active=True)))
+    assert new.header.schema_version == 3 and new.unknown == 0.7 and new.unknown_active
+    for bad_p in (-0.1, 1.5):
+        with pytest.raises(DecodeError, match="unknown"):
+            decode(TerrainWeights, f'{{"names": ["a"], "weights": [1.0], "unknown": {bad_p}}}'.encode())
 
 
 def test_bad_payloads_name_the_problem() -> None:

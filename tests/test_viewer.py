@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from mcap.writer import Writer
 
-from schemas import BaseCommand, Heartbeat, State
+from schemas import BaseCommand, Heartbeat, State, TerrainWeights
 from services.recording.mcap_io import McapWriter
 from services.view import geometry as geo
 from services.viewer import Ring
@@ -135,6 +135,34 @@ def test_events_from_watchdog_rejections_and_restarts(tmp_path: Path) -> None:
     assert "egress: watchdog +1 (now 1)" in text
     assert "ingress: rejected 3 input(s) (total 3): state: stale by 2 s" in text
     assert "ingress: status ok -> degraded" in text and "ingress: restarted" in text
+
+
+def test_unknown_ground_is_plotted_with_the_weights_and_its_decision_changes_are_events(tmp_path: Path) -> None:
+    log = tmp_path / "unknown.mcap"
+    t0 = 1_700_000_000_000_000_000
+    # P(unknown) crosses 0.5 back and forth; only the service's hysteretic decision makes events (on, then off)
+    probs = [0.0, 0.2, 0.7, 0.4, 0.9, 0.3, 0.1, 0.05]
+    active = [False, False, True, True, True, True, False, False]
+    with McapWriter(log) as w:
+        for i, (p, a) in enumerate(zip(probs, active, strict=True)):
+            msg = TerrainWeights(names=["asphalt", "grass"], weights=[0.1, 0.9], unknown=p, unknown_active=a)
+            msg.header.stamp_ns = t0 + i * 100_000_000
+            w.write("gpmppi/r1/terrain/weights", msg, log_time_ns=msg.header.stamp_ns)
+        # the terrain service's heartbeat carries the probability and the decision: no events of their own
+        for i in range(3):
+            hb = Heartbeat(service="terrain", counts={"unknown_permille": 300 * i, "unknown_entered": i},
+                           flags={"unknown_ground": i == 1})
+            hb.header.stamp_ns, hb.header.seq = t0 + i * 1_000_000_000, i
+            w.write("gpmppi/r1/health/terrain", hb, log_time_ns=hb.header.stamp_ns)
+    out = tmp_path / "unknown.rrd"
+    convert(log, "save", str(out))
+    rows, _, events = read_rrd(out)
+    assert rows["/plots/terrain/unknown"] == len(probs) and rows["/plots/terrain/grass"] == len(probs)
+    unknown = [e for e in events if "ground" in e]
+    assert len(unknown) == 2, events
+    assert "ground unknown" in unknown[0] and "P(unknown) 0.70" in unknown[0] and "nearest grass" in unknown[0]
+    assert "ground known again" in unknown[1]
+    assert not any("unknown_permille" in e or "unknown_entered" in e or "unknown_ground" in e for e in events)
 
 
 def test_keys_exclude_and_time_window(tmp_path: Path) -> None:

@@ -104,6 +104,39 @@ def _replay_scores(model, rec: dict, spec: str) -> dict:
             "top_changes_after_3s": top_changes(rec["times"], w)}
 
 
+def _novelty_scores(model, rec: dict) -> dict:
+    """The novelty test's statistic (gpmppi/terrain/novelty.py: the best ground's windowed mean residual in spreads)
+    over the recorded steps it scores, replayed through the default filter: quantiles on the trained grounds and on
+    the others, after each stretch's first whole window."""
+    from gpmppi.terrain.estimator import make_estimator
+    from gpmppi.terrain.settings import EstimatorConfig
+
+    est = make_estimator(model, EstimatorConfig())
+    test = getattr(est, "novelty", None)
+    if test is None:
+        return {}
+    test.recorded = []
+    x, u = np.asarray(rec["states"]), np.asarray(rec["commands"])
+    terrains = [str(t) for t in rec["terrains"]]
+    z: dict[bool, list[float]] = {True: [], False: []}
+    run, last = 0, None
+    for k in range(1, u.shape[0]):
+        scored = len(test.recorded)
+        est.observe(x[k - 1], u[k - 1], x[k])
+        terrain = terrains[k - 1]
+        run = run + 1 if terrain == last else 1
+        last = terrain
+        if len(test.recorded) > scored and run > test.calibration.window_steps and test.ready:
+            z[terrain in model.terrains].append(test.statistic)
+    out = {}
+    for known, name in ((True, "trained"), (False, "new")):
+        if z[known]:
+            q = np.quantile(z[known], [0.1, 0.5, 0.99, 1.0])
+            out[name] = {"steps": len(z[known]), "z_p10": float(q[0]), "z_p50": float(q[1]), "z_p99": float(q[2]),
+                         "z_max": float(q[3])}
+    return out
+
+
 def _fmt(x) -> str:
     return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.2f}"
 
@@ -294,6 +327,7 @@ def _separability_result(model, recs: dict[str, dict], specs: list[str], windows
             "switch_response": switch_response(rec["times"], rec["weights"], terr, names),
             "closed_loop_top_changes_after_3s": top_changes(rec["times"], rec["weights"]),
             "replay": {spec: _replay_scores(model, rec, spec) for spec in specs},
+            "novelty": _novelty_scores(model, rec),
         }
     runs = {key: (rec["states"], rec["commands"], [str(x) for x in rec["terrains"]]) for key, rec in recs.items()}
     result.update(pooled_separability(model, runs, windows))

@@ -411,7 +411,7 @@ def register(app: typer.Typer) -> None:
         """Fit a robot profile from a log: the per-terrain residual GPs and the terrain calibration."""
         from gpmppi.gp.grid_table import build_grid
         from gpmppi.gp.train import Transitions, train_model
-        from gpmppi.terrain.log_calibration import calibrate_from_runs
+        from gpmppi.terrain.log_calibration import calibrate_from_runs, novelty_from_runs
         from tools.profile_fit import train_command
 
         console = Console()
@@ -458,6 +458,11 @@ def register(app: typer.Typer) -> None:
                                           holdout)
             if runs is not None:
                 model.calibration = calibrate_from_runs(model, runs)
+                try:
+                    model.novelty = novelty_from_runs(model, runs)
+                except ValueError as e:  # too short to calibrate: the profile works with the test's stated default
+                    Console(stderr=True, soft_wrap=True).print(f"[yellow]warning:[/yellow] {e}; the profile's novelty "
+                                                               "test uses its stated default", highlight=False)
         except ValueError as e:
             fail(str(e))
         model.save(output)
@@ -480,3 +485,8 @@ def register(app: typer.Typer) -> None:
                               for t, g in zip(model.terrains, model.calibration.command_gain, strict=True))
             console.print(f"robot profile of {model.robot!r}: terrain calibration of {list(model.terrains)}; "
                           f"command-change gains (v, omega): {gains}")
+        if model.novelty is not None:
+            n = model.novelty
+            console.print(f"novelty test: P(unknown ground) = 0.5 at {n.enter:.2f} spreads of the windowed mean "
+                          f"residual (spread v {n.spread[0]:.4f} m/s, omega {n.spread[1]:.4f} rad/s, "
+                          f"{n.window_steps} steps)")

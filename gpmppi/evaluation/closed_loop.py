@@ -120,6 +120,9 @@ class Trajectory:
     base_reasons: list[str] = field(default_factory=list)
     # each terrain solve: (time [s], stamp of the newest state it answers [ns], weights (M,), solved ok)
     terrain_solves: list[tuple[float, int, np.ndarray, bool]] = field(default_factory=list)
+    # (T,) the terrain service's P(unknown ground) and its hysteretic decision as the plan of cycle k had them
+    unknown: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    unknown_active: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     @property
     def positions(self) -> np.ndarray:
@@ -138,6 +141,8 @@ class _Cycle:
     terrain: str  # the plant's terrain
     effective_samples: float  # the update's effective sample size
     plan_xy: np.ndarray | None  # the nominal plan (N+1, 2), if recorded
+    unknown: float = 0.0  # the last terrain solve's P(unknown ground)
+    unknown_active: bool = False  # and its hysteretic decision (the planner's caution)
 
 
 def _trajectory(
@@ -163,6 +168,8 @@ def _trajectory(
         base_commands=np.asarray(path.base_commands, dtype=np.float64).reshape(-1, 2),
         base_reasons=list(path.base_reasons),
         terrain_solves=list(path.solves),
+        unknown=np.asarray([c.unknown for c in cycles], dtype=np.float64),
+        unknown_active=np.asarray([c.unknown_active for c in cycles], dtype=bool),
     )
 
 
@@ -227,6 +234,7 @@ def run_closed_loop(
             tightened=np.asarray(result.tightened).copy(), terrain=terrain,
             effective_samples=float(result.effective_samples),
             plan_xy=np.asarray(result.states)[:, :2].copy() if record_plans else None,
+            unknown=path.unknown[-1][1] if path.unknown else 0.0, unknown_active=cycle.unknown_active,
         )
         path.on_planned(t, t + cfg.latency_s, stamp_ns, command)
 

@@ -55,6 +55,7 @@ class CommandPath:
         self.base_reasons: list[str] = []
         self.refusals: list[str] = []
         self.solves: list[tuple[float, int, np.ndarray, bool]] = []  # (time, stamp, weights, ok) of each solve
+        self.unknown: list[tuple[float, float, bool]] = []  # (time, P(unknown), unknown_active) of each solve
 
     # ---- inputs at a planner cycle
     def on_state(self, stamp_ns: int, state: np.ndarray, now: float) -> None:
@@ -108,7 +109,8 @@ class CommandPath:
             update = self.terrain.solve()
             self.weights_ok = update.ok
             self.solves.append((now, update.stamp_ns, update.weights.copy(), update.ok))
-            planner.on_weights(update.weights, now)
+            self.unknown.append((now, update.unknown, update.unknown_active))
+            planner.on_weights(update.weights, now, unknown_active=update.unknown_active)
 
     def _next(self, now: float, end: float) -> float:
         t = end

@@ -257,3 +257,31 @@ def top_terrain_confusion(
         return [], np.zeros((0, len(names)))
     matrix = np.stack([rows[n] / rows[n].sum() for n in order])
     return order, matrix
+
+
+def unknown_share(times: np.ndarray, unknown: np.ndarray, driven: list[str], terrain_names: list[str],
+                  level: float = 0.5) -> float | None:
+    """Share of the time on trained grounds (`driven[k]` in `terrain_names`) during which P(unknown) `unknown[k]`
+    (T,) was above `level`: the test's false alarms. None without time on a trained ground or without values."""
+    u = np.asarray(unknown, dtype=np.float64).reshape(-1)
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    if u.size == 0 or t.size != u.size + 1 or len(driven) != u.size:
+        return None
+    span = np.diff(t) * np.array([name in terrain_names for name in driven])
+    total = float(span.sum())
+    return float(span[u > level].sum() / total) if total > 0 else None
+
+
+def unknown_delay_s(times: np.ndarray, unknown: np.ndarray, driven: list[str], terrain_names: list[str],
+                    level: float = 0.5) -> float | None:
+    """Seconds from the start of the first stretch on a ground not in `terrain_names` until P(unknown) `unknown[k]`
+    first exceeds `level` on it (inf when it never does there); None without such a stretch."""
+    u = np.asarray(unknown, dtype=np.float64).reshape(-1)
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    new = np.array([name not in terrain_names for name in driven], dtype=bool)
+    if u.size == 0 or not new.any():
+        return None
+    start = int(np.argmax(new))
+    end = start + (int(np.argmin(new[start:])) if not new[start:].all() else int(new[start:].size))
+    hits = np.flatnonzero(u[start:end] > level)
+    return float(t[start + hits[0]] - t[start]) if hits.size else float("inf")

@@ -20,6 +20,8 @@ from gpmppi.evaluation.metrics import (
     mean_std,
     path_length,
     true_weight_mean,
+    unknown_delay_s,
+    unknown_share,
     weight_switches_per_min,
 )
 from gpmppi.evaluation.task_runs import run_for
@@ -108,6 +110,11 @@ class RunScore:
     true_weight_mean: float | None = None  # time-averaged weight of the terrain driven on, after the first 3 s
     # (None: a model without terrain weights, a terrain the model does not know, or nothing after 3 s)
     weight_switches_per_min: float | None = None  # changes of the top-weight terrain per minute (None: no weights)
+    # share of the time on trained grounds with P(unknown ground) > 0.5 (None: no estimator or no such time)
+    unknown_share: float | None = None
+    # seconds from reaching a ground the model was not trained on until P(unknown) > 0.5 (inf: never; None: none)
+    unknown_delay_s: float | None = None
+    unknown_active_share: float | None = None  # share of the run's time planned with the caution on
     final_weights: list[float] = field(default_factory=list)
     message: str = ""
 
@@ -257,6 +264,10 @@ def score(
     if cfg.adapt_weights and terrain_names is not None:
         s.true_weight_mean = true_weight_mean(traj.times, traj.weights, traj.terrains, terrain_names)
         s.weight_switches_per_min = weight_switches_per_min(traj.times, traj.weights)
+        s.unknown_share = unknown_share(traj.times, traj.unknown, traj.terrains, terrain_names)
+        s.unknown_delay_s = unknown_delay_s(traj.times, traj.unknown, traj.terrains, terrain_names)
+        if traj.unknown_active.size:
+            s.unknown_active_share = float(np.mean(traj.unknown_active))
     for name, value in run_for(task).score(pos, traj.times, traj.status, cfg).items():
         setattr(s, name, value)
     return s
@@ -300,10 +311,11 @@ def run_job(job: Job, settings: EvalSettings) -> tuple[list[RunScore], list[Traj
 SMOOTHNESS_AND_WEIGHT_METRICS = (
     "v_ref_rate_mean", "v_ref_rate_p95", "omega_ref_rate_mean", "omega_ref_rate_p95", "base_v_rate_mean",
     "base_v_rate_p95", "base_omega_rate_mean", "base_omega_rate_p95", "base_limited_fraction", "true_weight_mean",
-    "weight_switches_per_min", "effective_samples_p50", "effective_samples_p10",
+    "weight_switches_per_min", "effective_samples_p50", "effective_samples_p10", "unknown_share",
+    "unknown_active_share",
 )
 # of those, the ones with no value (None, not nan) where no trial has one: a model without terrain weights
-OPTIONAL_CELL_METRICS = ("true_weight_mean", "weight_switches_per_min")
+OPTIONAL_CELL_METRICS = ("true_weight_mean", "weight_switches_per_min", "unknown_share", "unknown_active_share")
 
 
 def _mean_and_std(runs: list[RunScore], names: tuple[str, ...]) -> dict:
@@ -339,6 +351,9 @@ def summarize(scores: list[RunScore]) -> dict:
         "mean_speed_mps": mean_std([s.mean_speed_mps for s in runs])[0],
         "infeasible": len(scores) - len(runs),
         "final_weights_mean": [float(x) for x in np.mean(finals, axis=0)] if finals else [],
+        # the slowest detection of new ground over the trials (None: no trial reached one)
+        "unknown_delay_max_s": max(d) if (d := [s.unknown_delay_s for s in runs if s.unknown_delay_s is not None])
+        else None,
         **_mean_and_std(runs, SMOOTHNESS_AND_WEIGHT_METRICS),
         "statuses": {st: sum(s.status == st for s in scores) for st in sorted({s.status for s in scores})},
     }

@@ -33,6 +33,7 @@ import numpy as np
 from gpmppi.gp.grid_table import GridTable, build_grid
 from gpmppi.gp.profile_arrays import CALIBRATION_ARRAYS, calibration_arrays, calibration_from_arrays
 from gpmppi.models.lateral_slip import N_LATERAL
+from gpmppi.profile.novelty_calibration import NoveltyCalibration
 from gpmppi.profile.terrain_calibration import TerrainCalibration
 
 FORMAT_NAME = "gpmppi-gp-model"
@@ -78,6 +79,8 @@ class GPModel:
     robot: str = DEFAULT_ROBOT  # the robot the profile was fitted for: its name in the log keys gpmppi/{robot}/...
     # the terrain estimator's per-ground calibration, in this model's ground order (None: a GP model alone)
     calibration: TerrainCalibration | None = field(default=None, compare=False)
+    # the novelty test's calibration ("none of these grounds", in the metadata; None: the test's stated default)
+    novelty: NoveltyCalibration | None = field(default=None, compare=False)
     # how the profile was made (e.g. the command line of `gpmppi train`), when the writer recorded it
     made_by: str | None = field(default=None, compare=False)
     source: str | None = field(default=None, compare=False)  # the file it was loaded from (None: built in memory)
@@ -151,6 +154,7 @@ class GPModel:
             "inputs": list(INPUT_NAMES),
             "dt": float(self.dt),
             **({} if self.fit_report is None else {"fit": self.fit_report}),
+            **({} if self.novelty is None else {"novelty": self.novelty.to_metadata()}),
         }
 
     def fit_warnings(self) -> list[str]:
@@ -253,6 +257,8 @@ class GPModel:
             if cal_arr and meta["version"] < 2:
                 raise ValueError("a v1 model file cannot hold a terrain calibration; refit the profile")
             model.calibration = calibration_from_arrays(cal_arr, terrains)
+            if "novelty" in meta:  # optional: profiles made before the novelty test load without it
+                model.novelty = NoveltyCalibration.from_metadata(meta["novelty"])
             if grid_arr:
                 table = decode_grid_table(grid_arr["grid_q"], grid_arr["grid_offset"], grid_arr["grid_scale"])
                 lo = np.asarray(grid_arr["grid_lo"], dtype=np.float64)

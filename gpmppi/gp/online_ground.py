@@ -208,6 +208,7 @@ def _append_tasks(model: GPModel, name: str, near: str, z: np.ndarray, chol_new:
         noise=np.concatenate([model.noise, noise]), chol=chol, alpha=alpha, dt=model.dt,
         lateral_slip={**model.lateral_slip, name: model.lateral_slip[near].copy()} if model.lateral_slip else None,
         fit_report=model.fit_report, robot=model.robot, made_by=model.made_by,
+        novelty=model.novelty,  # the novelty test's calibration is one for all grounds: it carries over as it is
     )
 
 
@@ -315,8 +316,6 @@ def learn_ground(model: GPModel, samples: GroundSamples, name: str | None = None
     new = _append_tasks(model, name, model.terrains[near], z, np.stack([f[0] for f in factors]), alpha_old,
                         np.stack([f[1] for f in factors]), ls, os_, noise)
     new.calibration = _calibration(model, new, near, x, y, du)
-    if hasattr(model, "novelty"):  # a profile's novelty-test calibration (one for all grounds) carries over as it is
-        new.novelty = model.novelty
     _extend_grid(model, new, near, cfg.hyperparameters == "kept", z, np.stack([f[0] for f in factors]))
     learned = np.column_stack([task_mean(new, new.n_tasks - 2, x), task_mean(new, new.n_tasks - 1, x)])
 

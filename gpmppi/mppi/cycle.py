@@ -32,7 +32,9 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal, Protocol
 
 import numpy as np
-from pydantic import BaseModel, Field, model_validator
+from pydantic import Field, model_validator
+
+from gpmppi.mppi.caution import CautionConfig, cautious_task, extra_variance
 
 if TYPE_CHECKING:
     from gpmppi.costmap import Costmap
@@ -45,8 +47,8 @@ Refusal = Literal["no_task", "state_nonfinite", "state_stale", "state_future", "
                   "costmap_stale"]
 
 
-class CycleConfig(BaseModel):
-    """The planning cycle's checks and delay compensation."""
+class CycleConfig(CautionConfig):
+    """The planning cycle's checks and delay compensation, and its caution on unknown ground (`CautionConfig`)."""
 
     max_state_age_s: float = Field(0.5, gt=0, description="do not plan from a state older than this [s]")
     max_state_future_s: float = Field(
@@ -172,6 +174,7 @@ class PlannerCycle:
         self.weights_time: float | None = None  # arrival of the last valid weights [monotonic s]
         self.weights_stale = False
         self.weights_prior = True
+        self.unknown_active = False  # the terrain service says the ground is none of the trained ones
         self.previous: tuple[int, np.ndarray] | None = None  # the last state planned from: (stamp, array)
         self.last_plan_s = 0.0
         self.events: list[Event] = []
@@ -275,8 +278,11 @@ class PlannerCycle:
             return task
         return dataclasses.replace(task, costmap=self.costmap)
 
-    def on_weights(self, weights: Sequence[float], now: float, names: Sequence[str] | None = None) -> bool:
+    def on_weights(self, weights: Sequence[float], now: float, names: Sequence[str] | None = None,
+                   unknown_active: bool = False) -> bool:
         """Take new terrain weights (in the model's order, or by `names`); False when refused (the previous stay).
+        `unknown_active`: the ground is none of the trained ones (`TerrainWeights.unknown_active`): the plans are
+        careful while it lasts (`CautionConfig`).
 
         The table collapse for them is done now: new weights arrive between states (terrain solves after each
         command), so it stays off the next state's path to its command."""
@@ -294,9 +300,23 @@ class PlannerCycle:
             self._event("weights_back", "info",
                         f"terrain weights arrive again after {now - (self.weights_time or now):.1f} s")
         self.weights = w
+        self._set_unknown(unknown_active)
         self.weights_time, self.weights_stale = now, False
         self.weights_prior = bool(np.allclose(w, self.prior, rtol=0.0, atol=1e-9))
         return True
+
+    def _set_unknown(self, active: bool) -> None:
+        active = bool(active) and self.config.unknown_caution
+        if active != self.unknown_active:
+            self.unknown_active = active
+            if active:
+                self._event("caution_on", "warning", "ground unknown: planning with caution (lane speed x "
+                            f"{self.config.unknown_speed_scale:g}, extra residual std "
+                            f"{list(self.config.unknown_residual_std)})")
+            else:
+                self._event("caution_off", "info", "ground known again: planning without the caution")
+        if hasattr(self.planner, "extra_variance"):
+            self.planner.extra_variance = extra_variance(self.config) if active else (0.0, 0.0)
 
     def tick(self, now: float) -> None:
         """Age the terrain weights: flag them stale, then fall back to the prior."""
@@ -378,7 +398,8 @@ class PlannerCycle:
         delay_s = max(0.0, age_s) + self.last_plan_s + c.actuation_delay_s if c.compensate_delay else 0.0
         try:
             t_plan = self.clock()
-            result = self.planner.plan(x, self.task, self.weights, state_cov=cov, delay_s=delay_s)
+            task = cautious_task(self.task, self.config) if self.unknown_active else self.task
+            result = self.planner.plan(x, task, self.weights, state_cov=cov, delay_s=delay_s)
             self.last_plan_s = self.clock() - t_plan
         except (ValueError, FloatingPointError) as exc:
             return self._refuse("plan_failed", "error", f"planning failed: {exc}")

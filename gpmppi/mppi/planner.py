@@ -89,6 +89,9 @@ class Planner:
         self._rate_step = np.full(2, np.inf) if limits is None else np.asarray(limits, dtype=np.float64) * c.dt
         self._smoother = savgol_matrix(c.horizon, c.savgol_window, c.smoothing_order) if c.savgol_window else None
         self._may_compile_ahead = self.backend == "cpu"  # until the first plan (`compile_ahead`)
+        # per-step residual variance [(m/s)^2, (rad/s)^2] the chance constraints add beyond the GP's: the caution on
+        # unknown ground (gpmppi/mppi/caution.py; `PlannerCycle` sets it), zero otherwise
+        self.extra_variance = (0.0, 0.0)
         self.reset()
 
     def reset(self) -> None:
@@ -159,9 +162,14 @@ class Planner:
         """
         self.terrain.set_weights(self.terrain.check_weights(weights), ahead=True)
 
+    def _noise_var(self, model: ModelBundle) -> tuple[float, float]:
+        """The step variance the covariance propagation adds beyond what the kernels' GP gives (the exact GP's
+        likelihood noise, the caution's extra variance)."""
+        nv, nw = self.terrain.exact_noise_var(model.terrain_w)
+        return nv + self.extra_variance[0], nw + self.extra_variance[1]
+
     def _propagate(self, x: np.ndarray, controls: np.ndarray, model: ModelBundle, cov0: np.ndarray) -> tuple:
-        noise = self.terrain.exact_noise_var(model.terrain_w)
-        return propagate(model.args(), x, controls, self.config.dt, *noise, cov0)
+        return propagate(model.args(), x, controls, self.config.dt, *self._noise_var(model), cov0)
 
     def _predict_ahead(
         self, x: np.ndarray, cov0: np.ndarray, delay_s: float, model: ModelBundle
@@ -181,7 +189,7 @@ class Planner:
             )
         held = self._command_in_effect(x)
         return predict_ahead(model.args(), x, cov0, np.ascontiguousarray(held, dtype=np.float64), float(delay_s),
-                             c.dt, *self.terrain.exact_noise_var(model.terrain_w))
+                             c.dt, *self._noise_var(model))
 
     def _command_in_effect(self, x: np.ndarray) -> np.ndarray:
         """The command the base is under at state `x`: the last one this planner returned (since a reset: the

@@ -95,6 +95,8 @@ class WeightsUpdate:
     error: str | None = None  # a failed solve past the warm-up (the service logs it as an error)
     observed: int = 0  # transitions this update observed
     skipped: int = 0  # transitions skipped: no command for the state, or a gap off dt
+    unknown: float = 0.0  # P(the ground is none of the trained ones), in [0, 1] (0: not assessed)
+    unknown_active: bool = False  # the hysteretic decision on `unknown` (gpmppi.terrain.novelty.UnknownLatch)
 
 
 class TerrainCycle:
@@ -227,4 +229,8 @@ class TerrainCycle:
             error = f"weight solve: {est.message}"
         stamp = self.pending[-1][0]
         self.pending = []
-        return WeightsUpdate(weights, bool(est.ok), residual, stamp, error, observed, skipped)
+        # an estimator without the novelty test (the paper's, another's) says nothing: known ground
+        unknown = float(getattr(est, "unknown", 0.0))
+        unknown = float(np.clip(unknown, 0.0, 1.0)) if np.isfinite(unknown) else 0.0
+        return WeightsUpdate(weights, bool(est.ok), residual, stamp, error, observed, skipped, unknown,
+                             bool(getattr(est, "unknown_active", False)))

@@ -17,6 +17,8 @@ class TerrainEstimate:
     ok: bool  # False: the weights are the previous ones (see message)
     residual: float  # fit term ||Y - F w||^2 at the returned weights (unnormalised, in (m/s)^2 + (rad/s)^2)
     message: str
+    unknown: float = 0.0  # P(the ground is none of the trained ones) (gpmppi.terrain.novelty; 0: not assessed)
+    unknown_active: bool = False  # the hysteretic decision on `unknown` (planner caution, events)
 
 
 class EstimatorLike(Protocol):

@@ -31,6 +31,7 @@ from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.terrain.estimate import EstimatorLike, TerrainEstimate
+from gpmppi.terrain.novelty import NoveltyTest, UnknownLatch, profile_novelty
 from gpmppi.terrain.settings import EstimatorConfig, profile_calibration
 
 # command changes the roughness has seen before the response is scored: a few, so that commands jittery from the
@@ -210,6 +211,8 @@ class BayesTerrainEstimator:
         self._response_spread = np.asarray(config.response_spread, dtype=np.float64)
         self._max_roughness = np.asarray(config.response_max_roughness, dtype=np.float64)
         self._max_transient = np.asarray(config.response_max_transient, dtype=np.float64)
+        # the absolute test of fit ("none of these grounds"): the profile's calibration or the stated default
+        self.novelty = NoveltyTest(self._m, profile_novelty(model)) if config.novelty else None
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:
@@ -239,6 +242,10 @@ class BayesTerrainEstimator:
         self._roughness_sum = np.zeros(2)
         self._roughness_weight = 0.0
         self._roughness_seen = 0
+        self._unknown = 0.0
+        self._latch = UnknownLatch()
+        if self.novelty is not None:
+            self.novelty.reset()
 
     @property
     def weights(self) -> np.ndarray:
@@ -287,6 +294,10 @@ class BayesTerrainEstimator:
         loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
         if u[0] - x[3] > self.config.gp_max_speed_gap:  # a start from rest: see EstimatorConfig.gp_max_speed_gap
             loglik = np.zeros(self._m)
+        elif self.novelty is not None:  # the same steps as the GP evidence
+            self._unknown = self.novelty.observe(r)
+        if self.novelty is not None:
+            self._latch.update(self._unknown)
         loglik = loglik + self._response_loglik(x, u, x1, du, first)
         log_post = np.log(prior) + loglik
         p = np.exp(log_post - log_post.max())
@@ -393,7 +404,8 @@ class BayesTerrainEstimator:
                                    "weights")
         self._weights = self._published(self._posterior)
         fit = float(sum(np.sum((y - self._weights @ pred) ** 2) for y, pred in self._rows))
-        return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps")
+        return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps", self._unknown,
+                               self._latch.active)
 
 
 def make_estimator(model: GPModel, config: EstimatorConfig | None = None) -> EstimatorLike:

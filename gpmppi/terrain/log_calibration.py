@@ -26,6 +26,7 @@ from scipy.interpolate import RBFInterpolator
 
 from gpmppi.gp.model_file import GPModel
 from gpmppi.plant.excitation import TerrainRun
+from gpmppi.profile.novelty_calibration import NoveltyCalibration
 from gpmppi.profile.response import TerrainResponse
 from gpmppi.profile.terrain_calibration import CalibrationDataError, TerrainCalibration
 from gpmppi.terrain.calibration import fit_command_gain
@@ -52,6 +53,7 @@ WHEEL_LIMITS = np.round(np.arange(1.0, 3.01, 0.1), 2)
 # 0.194 and wet concrete's as 0.170 against 0.212; the 0.1 grid reads 0.185 and 0.211
 LOG_V_REF = np.round(np.arange(0.0, 2.0 + 1e-9, 0.1), 4)  # [m/s]
 LOG_OMEGA_REF = np.round(np.arange(-3.2, 3.2 + 1e-9, 0.1), 4) + 0.0  # [rad/s] (no -0.0)
+NOVELTY_MAX_STEPS = 6000  # steps of each ground's log the novelty calibration replays (10 min of driving)
 _SCALE = np.array([2.0, 3.2])  # m/s, rad/s: the response grid's extent, so both inputs weigh alike in the fit
 
 
@@ -262,3 +264,34 @@ def calibrate_from_runs(
         gains[m] = fit_gain_runs(model, runs[terrain], terrain)
     response = TerrainResponse(LOG_V_REF, LOG_OMEGA_REF, tuple(names), steady, rates)
     return TerrainCalibration(tuple(names), gains, response)
+
+
+def novelty_from_runs(model: GPModel, runs: dict[str, list[TerrainRun]],
+                      max_steps: int = NOVELTY_MAX_STEPS) -> NoveltyCalibration:
+    """The novelty test's calibration (gpmppi.terrain.novelty.calibrate) from the logged runs of the grounds of
+    `model`, whose terrain calibration must be set: each run replayed through the terrain filter as the service runs
+    it, the residuals under every ground of the steps the filter scores collected, and the test calibrated on the
+    ground each run drove on. The GP conditions on a few hundred clustered inputs of the thousands a log holds, so
+    nearly every step is out of its sample. At most `max_steps` steps of each ground are replayed (the replay costs
+    ~2 ms a step)."""
+    from gpmppi.terrain.estimator import BayesTerrainEstimator
+    from gpmppi.terrain.novelty import calibrate
+    from gpmppi.terrain.settings import EstimatorConfig
+
+    names = list(model.terrains)
+    known = []
+    for terrain in names:
+        left = max_steps
+        for run in runs.get(terrain, []):
+            if left <= 0:
+                break
+            est = BayesTerrainEstimator(model, EstimatorConfig())
+            assert est.novelty is not None
+            est.novelty.recorded = []
+            steps = min(len(run.command) - 1, left)
+            left -= steps
+            for k in range(steps):
+                est.observe(run.state[k], run.command[k], run.state[k + 1])
+            if est.novelty.recorded:
+                known.append((np.array(est.novelty.recorded), names.index(terrain)))
+    return calibrate(known, source=f"fitted on the logs of {names}")

@@ -84,6 +84,11 @@ class EstimatorConfig(BaseModel):
         (0.08, 0.016), description="bayes, response steady_map: the spread (v [m/s], omega [rad/s]) the averaged "
         "response residual is scored against (smaller: trust it more)")
 
+    novelty: bool = Field(
+        True, description="bayes: also test how well the best trained ground explains the recent steps at all and "
+        "publish P(unknown ground) (gpmppi/terrain/novelty.py; calibrated by the robot profile, else a stated "
+        "default)")
+
     @model_validator(mode="after")
     def _consistent(self) -> EstimatorConfig:
         if self.min_history > self.history:

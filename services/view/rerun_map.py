@@ -50,6 +50,7 @@ SERIES: dict[str, tuple[str, tuple[int, int, int], float]] = {
     "plots/tightening/last": ("tightened, last step", (200, 90, 0), 2.0),
     "plots/cost/min": ("min rollout cost", (20, 150, 130), 2.0),
     "plots/cost/median": ("median rollout cost", (215, 50, 50), 1.5),
+    "plots/terrain/unknown": ("P(unknown ground)", (20, 20, 20), 2.5),
 }
 PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
            (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]  # fmt: skip
@@ -60,7 +61,10 @@ DRAW = {name: layer.order for name, layer in geo.LAYERS.items()}
 
 # heartbeat counters / flags that change in normal operation: egress limiting a ramp is shaping, not an event
 # (the base command's reason shows it in the plots)
-ROUTINE_HEALTH = frozenset({"limited"})
+# and unknown ground: the terrain service's P(unknown) (the weights plot shows it) and its decision and count (the
+# weights' own event says it), and the planner's caution counters (its `caution` flag is the event)
+ROUTINE_HEALTH = frozenset({"limited", "unknown_permille", "unknown_ground", "unknown_entered", "caution_on",
+                            "caution_off"})
 
 
 @dataclass
@@ -106,6 +110,7 @@ class RerunMapper:
         self._estop: bool | None = None
         self._stale: bool | None = None
         self._solver_ok: bool | None = None
+        self._unknown: bool | None = None  # the terrain service's unknown_active, as last shown
         self._health: dict[str, Heartbeat] = {}
         self.buffered = 0
 
@@ -221,6 +226,17 @@ class RerunMapper:
                 text = "terrain: weight solve failed, weights kept" if not msg.solver_ok else "terrain: solving again"
                 self.event(t, text, "WARN" if not msg.solver_ok else "INFO")
             self._solver_ok = msg.solver_ok
+        # "none of these grounds" on the same plot (a probability, like the weights), and an event each time the
+        # terrain service's hysteretic decision changes (not each time the probability crosses 0.5)
+        self._scalar("plots/terrain/unknown", t, msg.unknown, "unknown")
+        if msg.unknown_active != self._unknown:
+            if self._unknown is not None or msg.unknown_active:
+                nearest = msg.names[max(range(len(msg.weights)), key=msg.weights.__getitem__)]
+                text = (f"terrain: ground unknown, none of the trained grounds explains it (P(unknown) "
+                        f"{msg.unknown:.2f}, nearest {nearest})" if msg.unknown_active else
+                        f"terrain: ground known again ({nearest}, P(unknown) {msg.unknown:.2f})")
+                self.event(t, text, "WARN" if msg.unknown_active else "INFO")
+            self._unknown = msg.unknown_active
 
     def _task(self, msg: Task, t: int) -> None:
         import rerun as rr

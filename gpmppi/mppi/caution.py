@@ -1,0 +1,50 @@
+"""The planner's caution on unknown ground (`TerrainWeights.unknown_active`, gpmppi/terrain/novelty.py).
+
+While no trained ground explains the steps, the GP's residual mean and variance were never fitted to the ground under
+the robot, and the chance constraints trust a variance that is too small. Two things change while it lasts, and
+nothing else (the robot keeps driving the task):
+
+- the residual variance the chance constraints propagate gets `unknown_residual_std`^2 more per step (v, omega):
+  the lane is tightened and the obstacles inflated by more, so the plan keeps the margin the misfit eats. It is the
+  size of the misfit measured on new grounds (docs/new_ground.md): the windowed mean residual of the best trained
+  ground on sand and the grounds made for the tests;
+- a lane's speed target is scaled by `unknown_speed_scale`: slower driving leaves each step's misfit less distance
+  to act over.
+
+Pure: a task and settings in, the task to plan for and the variance out. `PlannerCycle` applies them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from pydantic import BaseModel, Field
+
+from gpmppi.tasks import LaneTask, Task
+
+
+class CautionConfig(BaseModel):
+    """What the planner changes while the ground is unknown (the planner service's settings inherit these)."""
+
+    unknown_caution: bool = Field(True, description="be more careful while the terrain service says the ground is "
+                                  "unknown (TerrainWeights.unknown_active): the two settings below")
+    unknown_speed_scale: float = Field(
+        0.8, gt=0, le=1, description="lane tasks: the speed target is multiplied by this while the ground is "
+        "unknown [1]")
+    unknown_residual_std: tuple[float, float] = Field(
+        (0.03, 0.03), description="extra one-step residual std (v [m/s], omega [rad/s]) the chance constraints "
+        "propagate while the ground is unknown (added as variance to the GP's, every step of the horizon)")
+
+
+def cautious_task(task: Task, config: CautionConfig) -> Task:
+    """The task to plan for while the ground is unknown: a lane at the scaled speed target; a goal unchanged (its
+    care is the inflated obstacles)."""
+    if isinstance(task, LaneTask):
+        return dataclasses.replace(task, speed_target=task.speed_target * config.unknown_speed_scale)
+    return task
+
+
+def extra_variance(config: CautionConfig) -> tuple[float, float]:
+    """The per-step residual variance [(m/s)^2, (rad/s)^2] added while the ground is unknown."""
+    sv, sw = config.unknown_residual_std
+    return float(sv) ** 2, float(sw) ** 2

@@ -1,0 +1,51 @@
+"""The terrain service's cycle flags new ground: the physics plant driven on grass, then on sand (held out of the
+shipped profile), through `TerrainCycle` with the real estimator; P(unknown) stays low on grass and passes 0.5 within
+3 s of the change, and the decision (`unknown_active`) follows."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gpmppi.gp.model_file import load_default_model
+from gpmppi.plant.physics import PhysicsPlant
+from gpmppi.plant.terrains import load_terrains
+from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig
+from gpmppi.terrain.estimator import make_estimator
+from gpmppi.terrain.settings import EstimatorConfig
+
+NS = 1_000_000_000
+DT = 0.1
+SWITCH_S = 8.0
+
+
+def _command(t: float) -> np.ndarray:
+    """Smooth driving: up to 1.3 m/s, turning gently one way and the other (as a lane controller would)."""
+    return np.array([min(1.3, 0.5 * t), 0.4 * np.sin(0.5 * t)])
+
+
+@pytest.mark.parametrize("new_ground", ["sand"])
+def test_cycle_flags_a_switch_to_a_ground_the_profile_was_not_trained_on(new_ground: str) -> None:
+    model = load_default_model()
+    plant = PhysicsPlant(load_terrains(None), "grass", seed=4, noise=True)
+    plant.reset(np.zeros(5))
+    cycle = TerrainCycle(TerrainCycleConfig(pairing="stamp"), model.n_terrains,
+                         make_estimator(model, EstimatorConfig()))
+    updates = []
+    x = plant.measure()
+    for k in range(int((SWITCH_S + 4.0) / DT)):
+        t = k * DT
+        if abs(t - SWITCH_S) < 1e-9:
+            plant.set_terrain(new_ground)
+        u = _command(t)
+        cycle.on_states([(round(t * NS), x)], t)
+        cycle.on_command(round(t * NS), u)
+        updates.append((t, cycle.solve()))
+        plant.step(u, DT)
+        x = plant.measure()
+    on_grass = [u.unknown for t, u in updates if 3.0 <= t < SWITCH_S]
+    after = [(t, u) for t, u in updates if t >= SWITCH_S]
+    assert max(on_grass) < 0.5 and not any(u.unknown_active for t, u in updates if t < SWITCH_S)
+    first = next(t for t, u in after if u.unknown > 0.5)
+    assert first - SWITCH_S <= 3.0, f"P(unknown) passed 0.5 only {first - SWITCH_S:.1f} s after the change"
+    assert after[-1][1].unknown_active
