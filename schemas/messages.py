@@ -14,8 +14,10 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 # 2: `Command.source`, the publishing process's identity. A version-1 message (no such field) still decodes.
 # 3: `TerrainWeights.unknown` and `unknown_active`, "none of the trained grounds". Older messages still decode (they
 #    read as known ground: unknown 0, not active).
-SCHEMA_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+# 4: `Plan.model_version` (the robot profile's version planned with), and the `GroundLearn` and `ModelUpdate`
+#    messages (learning a new ground online). Older plans still decode (model version 0).
+SCHEMA_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 
@@ -234,6 +236,13 @@ class Plan(Message):
         "1 when one rollout decides it, the sample count when all weigh the same, 0 when none was finite; "
         "None in recordings made before it was reported [samples]",
     )
+
+    @model_validator(mode="after")
+    def _versioned(self) -> Plan:
+        if self.model_version > 0 and self.header.schema_version < 4:
+            raise ValueError(f"model_version is a schema_version 4 field; this message says version "
+                             f"{self.header.schema_version}")
+        return self
 
 
 class Heartbeat(Message):
