@@ -434,6 +434,8 @@ class CycleReport:
                 node.error(e.message)
             elif e.level == "warning":
                 node.log.warning(e.message)
+            elif e.level == "count":
+                continue
             else:
                 node.log.info(e.message)
         state = (self.cycle.weights_stale, self.cycle.weights_prior, self.cycle.unknown_active)

@@ -19,7 +19,7 @@ from types import ModuleType
 
 from pydantic import ValidationError
 
-from services.runtime.node import setup_logging
+from services.runtime.node import SettingsChanged, setup_logging
 from services.runtime.scheduling import apply_process_settings
 
 SERVICES: dict[str, str] = {
@@ -36,6 +36,8 @@ SERVICES: dict[str, str] = {
     "calibrate": "services.calibrate",
 }
 
+
+SETTINGS_CHANGED_EXIT = 3  # a spare's settings changed before it took over: it exits, the service restarts
 
 # set by the launcher in each child's environment: the launcher's pid (services.launch.supervisor)
 LAUNCHER_PID_ENV = "GPMPPI_LAUNCHER_PID"
@@ -102,6 +104,9 @@ def run_service(kind: str, config: str | Path | None = None) -> int:
     except KeyboardInterrupt:
         # SIGINT before the service's node took over the signal (e.g. while the planner compiles)
         return 0
+    except SettingsChanged as exc:
+        logging.getLogger(f"gpmppi.{settings.service}").error("%s", exc)
+        return SETTINGS_CHANGED_EXIT
     except Exception:
         logging.getLogger(f"gpmppi.{settings.service}").exception("service failed")
         return 1

@@ -294,3 +294,66 @@ def test_a_sensor_grid_too_old_stops_planning_until_a_new_one_arrives() -> None:
     cycle.set_costmap(None, now=11.4)
     cycle.set_task(GoalTask(goal=np.array([1.0, 3.0]), costmap=_wall()))
     assert isinstance(cycle.on_state(X0, stamp + 3 * NS, 100.0, stamp + 3 * NS), Planned)
+
+
+class WarmStartSpy:
+    """A real `Planner` whose warm start is read just before each plan (the sequence that plan starts from)."""
+
+    def __init__(self, planner) -> None:
+        self.planner = planner
+        self.starts: list[np.ndarray] = []
+
+    def __getattr__(self, name: str):
+        return getattr(self.planner, name)
+
+    def plan(self, *args, **kwargs):
+        self.starts.append(self.planner._nominal.copy())
+        return self.planner.plan(*args, **kwargs)
+
+
+def test_the_warm_start_follows_the_states_stamps_across_a_lost_state() -> None:
+    """States lost between two plans (an ingress that took over, a state dropped under load): the next plan starts
+    from the last plan's sequence shifted by the steps its stamps say have gone by, not by one step per plan, so it
+    is not a step behind the robot; a state one dt later (with jitter) shifts one step, as always."""
+    from gpmppi.gp.model_file import load_default_model
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+
+    model = load_default_model()
+    planner = Planner(PlannerConfig(samples=32, horizon=8, seed=5), model)
+    spy = WarmStartSpy(planner)
+    cycle = PlannerCycle(spy, LANE, CycleConfig(compensate_delay=False), len(model.terrains), clock=lambda: 0.0)
+    t0 = 100 * NS
+    x = X0.copy()
+    results = []
+    # a state every 0.1 s (one 14 ms late), then two lost: the next comes 0.3 s after the last planned from
+    for stamp in (t0, t0 + NS // 10 + 14_000_000, t0 + 2 * NS // 10, t0 + 5 * NS // 10):
+        out = cycle.on_state(x, stamp, 0.0, stamp)
+        assert isinstance(out, Planned)
+        results.append(out.result.controls.copy())
+
+    def shifted(u: np.ndarray, steps: int) -> np.ndarray:
+        return np.concatenate([u[steps:], np.repeat(u[-1:], steps, axis=0)], axis=0)
+
+    np.testing.assert_array_equal(spy.starts[1], shifted(results[0], 1))
+    np.testing.assert_array_equal(spy.starts[2], shifted(results[1], 1))
+    # without the stamps this would be shifted(results[2], 1): the command for 0.2 s ago applied now
+    np.testing.assert_array_equal(spy.starts[3], shifted(results[2], 3))
+    assert not np.array_equal(spy.starts[3], shifted(results[2], 1))
+    assert cycle.counts.get("warm_start_caught_up") == 1
+    assert [e.level for e in cycle.drain_events() if e.name == "warm_start_caught_up"] == ["count"]
+
+
+def test_catch_up_drops_the_steps_gone_by_beyond_one() -> None:
+    from gpmppi.gp.model_file import load_default_model
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+
+    planner = Planner(PlannerConfig(samples=32, horizon=6, seed=5), load_default_model())
+    u = np.column_stack([np.linspace(0.5, 1.0, 6), np.linspace(-0.5, 0.0, 6)])
+    planner._nominal = u.copy()
+    for elapsed in (0.0, 0.05, 0.1, 0.149, float("nan")):  # one dt or less (or unknown): the plan's own shift only
+        assert planner.catch_up(elapsed) == 0
+        np.testing.assert_array_equal(planner._nominal, u)
+    assert planner.catch_up(0.21) == 1
+    np.testing.assert_array_equal(planner._nominal, np.concatenate([u[1:], u[-1:]]))
+    assert planner.catch_up(30.0) == 6  # longer than the horizon: the last command held throughout
+    np.testing.assert_array_equal(planner._nominal, np.repeat(u[-1:], 6, axis=0))

@@ -34,6 +34,8 @@ from schemas import Task
 from services.launch.launcher import run_launch
 from services.launch.monitor import PRIMARY_OUTPUT, Monitor, Summary
 from services.launch.supervisor import Child, Launcher
+from tools.cli_checks import OUT_FILE
+from tools.lane_windows import consecutive_window_ratios, ratio_summary
 
 RESTARTABLE = list(PRIMARY_OUTPUT)  # sim, ingress, terrain, planner, egress
 MOVING = 0.05  # [m/s] a base command above this is driving
@@ -71,6 +73,8 @@ class Takeover:
     rmse_before_mm: float | None  # lane RMSE over the 5 s before the kill
     rmse_after_mm: float | None  # ... over the 5 s after the new process's first output
     load_avg_1min: float
+    kill_ns: int = 0  # when the SIGKILL was sent, by the wall clock the states are stamped with [ns]
+    first_output_ns: int | None = None  # the new process's first output at the outside client, same clock [ns]
 
 
 @dataclass
@@ -80,6 +84,9 @@ class StartupResult:
     summary: Summary | None = None
     exit_code: int = 0
     load_avg_1min: list[float] = field(default_factory=list)  # before and after the whole run
+    # the lane RMSE ratio of consecutive 5 s windows where nothing was killed (`lane_windows`): the reference for
+    # the takeovers' after / before ratios
+    no_kill_ratio: dict[str, float | int | None] = field(default_factory=dict)
 
     def per_service(self) -> dict[str, dict[str, float | int | None]]:
         """service -> n, timeouts, p50 and max of the restart time to first output [s]."""
@@ -140,6 +147,7 @@ class StartupResult:
             "restarts": [asdict(r) for r in self.restarts],
             "takeover": self.per_takeover(),
             "takeovers": [asdict(t) for t in self.takeovers],
+            "no_kill_rmse_ratio": self.no_kill_ratio,
         }
 
 
@@ -204,16 +212,25 @@ def _ready_s(child: Child, timeout_s: float = 60.0) -> float | None:
 
 
 def kill_rounds(
-    services: list[str], kills: int, settle_s: float, timeout_s: float, records: list[Takeover]
+    services: list[str], kills: int, settle_s: float, timeout_s: float, records: list[Takeover],
+    jitter_s: float = 0.0, seed: int = 0,
 ) -> Callable[[Launcher, Monitor], None]:
     """A `then` hook: SIGKILL each service `kills` times while the robot drives, each once its spare is ready and
-    its process has run `restart_reset_s` (an earlier death is then not "in a row", which a takeover requires)."""
+    its process has run `restart_reset_s` (an earlier death is then not "in a row", which a takeover requires), and
+    a further random 0-`jitter_s` (seeded): a planner killed always after the same time is killed always at the same
+    plan count, so at the same place in its seeded noise, and its kills repeat one draw rather than sample many."""
+    rng = np.random.default_rng(seed)
 
     def kill_each_service(launcher: Launcher, monitor: Monitor) -> None:
         for _ in range(kills):
             for name in services:
                 child = launcher.child(name)
-                if not _wait_ready_to_kill(launcher, monitor, child, timeout_s):
+                ready = _wait_ready_to_kill(launcher, monitor, child, timeout_s)
+                if ready and jitter_s > 0:
+                    if launcher.stop_event.wait(float(rng.uniform(0.0, jitter_s))):
+                        return
+                    ready = _wait_ready_to_kill(launcher, monitor, child, timeout_s)
+                if not ready:
                     if launcher.stop_event.is_set():
                         return
                     launcher.say("bench", f"{name}: no spare ready or not driving within {timeout_s:.0f} s; "
@@ -301,7 +318,8 @@ def _kill_once(launcher: Launcher, monitor: Monitor, child: Child, timeout_s: fl
         service=child.name, old_pid=old_pid, pid=new_pid, by_spare=by_spare, spare_ready_s=spare_ready,
         kill_to_output_s=None if first is None else round(first[0] - t_kill, 3), gap_s=gap,
         zero_after_last_cmd_s=zero, driving_after_last_cmd_s=driving, rmse_before_mm=rmse_before,
-        rmse_after_mm=rmse_after, load_avg_1min=load,
+        rmse_after_mm=rmse_after, load_avg_1min=load, kill_ns=kill_ns,
+        first_output_ns=None if first is None else kill_ns + int((first[0] - t_kill) * 1e9),
     )
 
 
@@ -314,6 +332,22 @@ def _lane_rmse(states: list[tuple[int, float, float]], task: Task | None, t0_ns:
     if xy.shape[0] < 5:
         return None
     return round(metrics.lane_rmse_mm(xy, np.asarray(task.centerline), task.closed), 1)
+
+
+def _no_kill_reference(monitor: Monitor, takeovers: list[Takeover], begin_ns: int) -> dict[str, float | int | None]:
+    """The after / before RMSE ratio of consecutive windows over the kill rounds' states, away from every kill
+    (from RMSE_WINDOW_S before it to RMSE_WINDOW_S after the new process's first output)."""
+    with monitor.lock:
+        states = [s for s in monitor.states if s[0] >= begin_ns]
+        task = monitor.task
+    if task is None or task.kind != "lane" or not states:
+        return {}
+    w = int(RMSE_WINDOW_S * 1e9)
+    excluded = [(t.kill_ns - w, (t.first_output_ns or t.kill_ns) + w) for t in takeovers]
+    stamps = np.array([s[0] for s in states])
+    xy = np.array([[x, y] for _, x, y in states])
+    ratios = consecutive_window_ratios(stamps, xy, np.asarray(task.centerline), task.closed, excluded, RMSE_WINDOW_S)
+    return ratio_summary(ratios)
 
 
 def _first_output(
@@ -341,9 +375,13 @@ def measure_startup(
     show_logs: bool = False,
     kills: int = 0,
     kill_services: list[str] | None = None,
+    record: str | Path | None = None,
+    kill_jitter_s: float = 0.0,
+    seed: int = 0,
 ) -> StartupResult:
     """Cold-start the stack, then restart each service in turn `repeats` times, then kill each of `kill_services`
-    `kills` times (its spare takes over); see the module docstring."""
+    `kills` times (its spare takes over); see the module docstring. `record`: an MCAP file the stack records to (the
+    recorder runs beside it, as `gpmppi launch --record`), kept to look into a takeover afterwards."""
     services = services or RESTARTABLE
     kill_services = kill_services or []
     unknown = [s for s in services + kill_services if s not in PRIMARY_OUTPUT]
@@ -352,16 +390,19 @@ def measure_startup(
     result = StartupResult()
     before = os.getloadavg()[0]
     restarts = restart_rounds(services, repeats, settle_s, timeout_s, result.restarts)
-    takeovers = kill_rounds(kill_services, kills, settle_s, timeout_s, result.takeovers)
+    takeovers = kill_rounds(kill_services, kills, settle_s, timeout_s, result.takeovers, kill_jitter_s, seed)
 
     def hook(launcher: Launcher, monitor: Monitor) -> None:
         restarts(launcher, monitor)
         if not launcher.stop_event.is_set():
+            begin_ns = time.time_ns()
             takeovers(launcher, monitor)
+            result.no_kill_ratio = _no_kill_reference(monitor, result.takeovers, begin_ns)
 
     hook.__name__ = "restarts_then_kills"
     logs = None if show_logs else io.StringIO()
-    result.exit_code, result.summary = run_launch(launch_path, port=port, out=logs, then=hook)
+    result.exit_code, result.summary = run_launch(launch_path, record=None if record is None else str(record),
+                                                   port=port, out=logs, then=hook)
     result.load_avg_1min = [round(before, 2), round(os.getloadavg()[0], 2)]
     return result
 
@@ -388,13 +429,23 @@ def register(bench_app: typer.Typer) -> None:
         port: int = typer.Option(7462, min=1, max=65535, help="router port on 127.0.0.1"),
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
         show_logs: bool = typer.Option(False, help="print the services' logs too"),
+        kill_jitter: float = typer.Option(
+            10.0, min=0.0, max=600.0, help="wait a further random 0 to this many seconds before each kill, so that "
+            "kills fall at different plan counts (a planner's noise is seeded by its count) [s]"
+        ),
+        seed: int = typer.Option(0, min=0, help="seed of the kills' random waits"),
+        record: Path | None = typer.Option(
+            None, metavar=OUT_FILE, help="record the run to this MCAP file (the recorder runs beside the stack; the "
+            "takeovers' kill_ns and first_output_ns in --json find the kills in it)"
+        ),
     ) -> None:
         """Time to first output of each service restarted on its own while the stack runs, and of the cold start
         of the whole stack (timings are noisy on a shared machine: see the load average)."""
         names = [s.strip() for s in services.split(",") if s.strip()]
         killed = [s.strip() for s in kill_services.split(",") if s.strip()]
         try:
-            result = measure_startup(launch_file, names, repeats, settle, timeout, port, show_logs, kills, killed)
+            result = measure_startup(launch_file, names, repeats, settle, timeout, port, show_logs, kills, killed,
+                                     record, kill_jitter, seed)
         except (ValueError, FileNotFoundError) as exc:
             typer.echo(f"gpmppi bench startup: {exc}", err=True)
             raise typer.Exit(2) from exc
@@ -426,6 +477,11 @@ def register(bench_app: typer.Typer) -> None:
                     f" -> driving again p95 {row['driving_after_last_cmd_p95_s']}; lane RMSE 5 s before "
                     f"{row['rmse_before_p50_mm']} mm, 5 s after {row['rmse_after_p50_mm']} mm (p50; worst ratio "
                     f"{row['rmse_after_over_before_max']})"
+                )
+            if ref := data["no_kill_rmse_ratio"]:
+                typer.echo(
+                    f"  reference, the same ratio of consecutive 5 s windows with no kill: n {ref['n']}, p50 "
+                    f"{ref['p50']} p95 {ref['p95']} max {ref['max']}, above {ref['limit']} in {ref['share_over_limit']}"
                 )
             typer.echo(f"cold start of the whole stack, start -> first output [s]: {data['cold_first_output_s']}")
             typer.echo(f"cold start, process start -> first heartbeat [s]: {data['cold_first_heartbeat_s']}")

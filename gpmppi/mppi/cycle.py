@@ -41,7 +41,8 @@ if TYPE_CHECKING:
     from gpmppi.mppi.planner import PlanResult
     from gpmppi.tasks import Task
 
-Level = Literal["reject", "error", "warning", "info"]
+# "count": counted (the heartbeat's counters), not logged: it may come at every state under load
+Level = Literal["reject", "error", "warning", "info", "count"]
 # why a state gave no command
 Refusal = Literal["no_task", "state_nonfinite", "state_stale", "state_future", "plan_failed", "plan_nonfinite",
                   "costmap_stale"]
@@ -176,6 +177,7 @@ class PlannerCycle:
         self.weights_prior = True
         self.unknown_active = False  # the terrain service says the ground is none of the trained ones
         self.previous: tuple[int, np.ndarray] | None = None  # the last state planned from: (stamp, array)
+        self._planned_ns: int | None = None  # the stamp of the last state a plan was made from (its warm start's) [ns]
         self.last_plan_s = 0.0
         self.events: list[Event] = []
         self.counts: dict[str, int] = {}
@@ -236,6 +238,15 @@ class PlannerCycle:
         else:
             self._event("resume_skipped", "warning", f"the predecessor's last plan ({(stamp_ns - plan_ns) / 1e9:.3f} "
                         "s old) does not fit: starting from the configured initial sequence")
+
+    def _catch_up(self, elapsed_ns: int) -> None:
+        """The warm start shifted by the time between the states' stamps, not by one step per plan: after lost
+        states (an ingress that took over, a state dropped under load) it would otherwise start that many steps
+        behind the robot (`Planner.catch_up`). A state one dt after the last changes nothing."""
+        catch_up = getattr(self.planner, "catch_up", None)
+        if catch_up is not None and (steps := catch_up(elapsed_ns / 1e9)):
+            self._event("warm_start_caught_up", "count", f"warm start shifted {steps} more steps: this state came "
+                        f"{elapsed_ns / 1e9:.3f} s after the last one planned from")
 
     def set_task(self, task: Task) -> None:
         """Plan for `task` from now on. A task of the kind being planned for (a replanned path, a moved goal) keeps
@@ -385,11 +396,15 @@ class PlannerCycle:
             return self._refuse("state_future", "reject",
                                 f"state stamped {-age_s:.3f} s in the future (limit {c.max_state_future_s} s): not "
                                 "planning; the state source's clock is ahead of this host's")
+        jumped = False
         if self.previous is not None and (jump := odometry_jump(self.previous, stamp_ns, x, c)):
             # the warm start was planned for the old pose: from the new one it is a wrong guess
             self._event("odom_jump", "warning", f"{jump}: warm start reset")
             self.planner.reset()
             self._resume = None
+            jumped = True
+        if self._planned_ns is not None and not jumped and self._resume is None:
+            self._catch_up(stamp_ns - self._planned_ns)
         self.previous = (stamp_ns, x)
         if self._resume is not None:
             self._apply_resume(stamp_ns)
@@ -401,6 +416,7 @@ class PlannerCycle:
             task = cautious_task(self.task, self.config) if self.unknown_active else self.task
             result = self.planner.plan(x, task, self.weights, state_cov=cov, delay_s=delay_s)
             self.last_plan_s = self.clock() - t_plan
+            self._planned_ns = stamp_ns
         except (ValueError, FloatingPointError) as exc:
             return self._refuse("plan_failed", "error", f"planning failed: {exc}")
         if not plan_is_finite(result):

@@ -126,6 +126,24 @@ class Planner:
         self._last_control = None
         return True
 
+    def catch_up(self, elapsed_s: float) -> int:
+        """Align the warm start with a state that came `elapsed_s` after the one the last plan was made from.
+
+        Each plan leaves its sequence shifted by one step for the next, which is right when the next state comes one
+        `dt` later. When states were lost (an ingress that took over, a state dropped under load, a planner busy past
+        one), more steps have passed: the robot has driven those commands already, so they are dropped too (the last
+        held for the rest, as the shift does). Returns the steps dropped beyond the one: 0 for a state about one dt
+        later (the rounding's half-step tolerance absorbs stamp jitter), or an earlier one."""
+        c = self.config
+        if not np.isfinite(elapsed_s):
+            return 0
+        extra = min(int(round(elapsed_s / c.dt)) - 1, c.horizon)
+        if extra < 1:
+            return 0
+        u = self._nominal
+        self._nominal = np.concatenate([u[extra:], np.repeat(u[-1:], extra, axis=0)], axis=0)
+        return extra
+
     def kind(self, task: Task) -> TaskKind:
         """This planner's kind of `task` (`task_kinds`); a ValueError for a task of no registered kind."""
         kind = self._kinds.get(type(task))

@@ -34,12 +34,19 @@ import zenoh
 
 from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_for
 from schemas.codec import ENCODING
-from services.runtime.node_settings import NodeSettings
+from services.runtime.config_file import ConfigFileError
+from services.runtime.node_settings import NodeSettings, changed_since_loaded
 from services.runtime.role import HANDOVER, notify_systemd_ready, say_joined, standby_requested, wait_for_role
 from services.runtime.scheduling import Inbox
 from services.runtime.session import StoppedWhileWaiting, open_session
 
 M = TypeVar("M", bound=Message)
+
+
+class SettingsChanged(RuntimeError):
+    """A process that was started ahead of need found, when it was to take over, that its settings file says
+    otherwise than what it loaded at its start."""
+
 LIVELINESS_PREFIX = "gpmppi/{robot}/alive/{service}"
 
 
@@ -211,6 +218,7 @@ class Node:
         # predecessor published last (services.runtime.role)
         role = wait_for_role(self._stop)
         if role is not None:
+            self._settings_still_current()
             self.handover = dict(role.handover)
             if role.waited_s > 1.0:
                 self.log.info("taking over", extra={"fields": {"waited_s": round(role.waited_s, 1),
@@ -225,6 +233,7 @@ class Node:
             self._wait_while_alive(token_key)
         elif standby_requested():
             self._stand_by(token_key)
+            self._settings_still_current()
         self._token = self.session.liveliness().declare_token(token_key)
         say_joined()
         notify_systemd_ready()
@@ -233,6 +242,21 @@ class Node:
             "session open", extra={"fields": {"zid": str(self.session.zid()), "mode": self.settings.zenoh.mode}}
         )
         return self
+
+    def _settings_still_current(self) -> None:
+        """Settings are read at the takeover, not only when the process started: a spare that loaded its settings
+        before they were changed must not take over with the old ones. It exits instead (`SettingsChanged`), and the
+        service restarts with the new ones, as a service restarted after a change does. A file that no longer loads
+        leaves the settings loaded at the start (a restart would fail on it: the robot is better served by them)."""
+        try:
+            changed = changed_since_loaded(self.settings)
+        except (ConfigFileError, ValueError, OSError) as exc:
+            self.log.warning("the settings file no longer loads (%s): taking over with the settings loaded at the "
+                             "start", exc)
+            return
+        if changed:
+            raise SettingsChanged(f"{self.name}: the settings changed since this process loaded them "
+                                  f"({', '.join(changed)}): exiting, so that the service restarts with them")
 
     def _alive(self, key: str) -> bool:
         """Whether a liveliness token on `key` (another process of this service) is alive at the router."""

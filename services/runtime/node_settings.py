@@ -118,3 +118,16 @@ class NodeSettings(BaseSettings):
             return bound(**overrides)
         except ValidationError as exc:
             raise ConfigFileError(one_line(validation_problems(exc, path, marks))) from None
+
+
+def changed_since_loaded(settings: NodeSettings) -> list[str]:
+    """The fields (top level, by name) whose value in the settings' file and environment now differs from
+    `settings`, which were loaded from them (`NodeSettings.load`) earlier: a warm spare loads its settings when it
+    starts, which may be long before it takes over. [] when nothing changed, or when they came from no file.
+    ConfigFileError (one line) when the file no longer loads."""
+    path = settings.model_config.get("yaml_file")
+    if not path:
+        return []
+    now = type(settings).__bases__[0].load(str(path))  # `load` made the settings' class, bound to the file
+    old, new = settings.model_dump(), now.model_dump()
+    return sorted(k for k in old if old[k] != new.get(k))
