@@ -14,8 +14,10 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 # 2: `Command.source`, the publishing process's identity. A version-1 message (no such field) still decodes.
 # 3: `TerrainWeights.unknown` and `unknown_active`, "none of the trained grounds". Older messages still decode (they
 #    read as known ground: unknown 0, not active).
-SCHEMA_VERSION = 3
-READABLE_VERSIONS = (1, 2, 3)
+# 4: `Plan.model_version` (the robot profile's version planned with), and the `GroundLearn` and `ModelUpdate`
+#    messages (learning a new ground online). Older plans still decode (model version 0).
+SCHEMA_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 4)
 
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 
@@ -129,6 +131,28 @@ class TerrainWeights(Message):
         return self
 
 
+class GroundLearn(Message):
+    """Learn the ground under the robot as a new ground of the robot profile (the terrain service, gpmppi/gp/
+    online_ground.py), or stop learning it."""
+
+    name: str = Field("", max_length=64, pattern=r"^[A-Za-z0-9_-]*$", description="the new ground's name: letters, "
+                      "digits, '_' and '-' ('' : the next free new-1, new-2, ...)")
+    action: Literal["start", "cancel"] = Field("start", description="start collecting its steps, or drop them")
+
+
+class ModelUpdate(Message):
+    """A new robot profile on disk (a ground was learned): the planner loads it between plans."""
+
+    version: int = Field(ge=0, description="the model version: how many grounds were learned into the profile online "
+                         "(0: as `gpmppi train` wrote it; kept in the profile, so it counts on across restarts)")
+    path: str = Field(min_length=1, description="the profile file (.npz), as the terrain service saved it")
+    sha256: str = Field(pattern=r"^[0-9a-f]{64}$", description="sha256 of the file's bytes (a reader checks it)")
+    grounds: list[str] = Field(min_length=1, description="the profile's grounds, model order")
+    learned: str = Field("", description="the ground this version added")
+    samples: int = Field(0, ge=0, description="steps it was learned from")
+    message: str = Field("", description="what the fit did, in words")
+
+
 class Circle(Strict):
     x: float
     y: float
@@ -198,6 +222,8 @@ class Plan(Message):
     sample_costs: list[float] = Field(default_factory=list)
     terrain_weights: list[float] = Field(default_factory=list)
     weights_stale: bool = Field(False, description="the terrain weights planned with are older than the limit")
+    model_version: int = Field(0, ge=0, description="the robot profile's version planned with (`ModelUpdate.version`: "
+                               "grounds learned into it online; 0: none)")
     timings_ms: dict[str, float] = Field(default_factory=dict)
     critic_costs: dict[str, float] = Field(
         default_factory=dict,
@@ -210,6 +236,13 @@ class Plan(Message):
         "1 when one rollout decides it, the sample count when all weigh the same, 0 when none was finite; "
         "None in recordings made before it was reported [samples]",
     )
+
+    @model_validator(mode="after")
+    def _versioned(self) -> Plan:
+        if self.model_version > 0 and self.header.schema_version < 4:
+            raise ValueError(f"model_version is a schema_version 4 field; this message says version "
+                             f"{self.header.schema_version}")
+        return self
 
 
 class Heartbeat(Message):
@@ -236,5 +269,6 @@ class EStop(Message):
 # Every top-level message model by class name (schema registry for files and tools).
 MODELS: dict[str, type[Message]] = {
     m.__name__: m
-    for m in (State, Command, BaseCommand, TerrainLabel, TerrainWeights, Task, OccupancyGrid, Plan, Heartbeat, EStop)
+    for m in (State, Command, BaseCommand, TerrainLabel, TerrainWeights, Task, OccupancyGrid, Plan, Heartbeat, EStop,
+              GroundLearn, ModelUpdate)
 }

@@ -36,6 +36,7 @@ from services.codec.convert import (
     task_to_message,
 )
 from services.codec.ros2_topic import Ros2Topic
+from services.model_swap import ModelSwap, model_version, profile_sha256, take_swap
 from services.runtime.node import Node, TypedSubscription
 from services.runtime.node_settings import NodeSettings
 from services.runtime.scheduling import process_age_s
@@ -70,6 +71,9 @@ class Settings(NodeSettings, CycleConfig):
     )
     model_file: str | None = Field(None, description="the robot profile (.npz from `gpmppi train`; a launch "
                                    "file's top-level `profile` fills it; None: the shipped Jackal profile)")
+    learned_dir: str | None = Field(None, description="a folder that also holds announced profiles as "
+                                    "<sha256>.npz, taken before the announced path (replay puts a recording's "
+                                    "learned profiles there)")
     trigger: Literal["state", "rate"] = Field("state", description="plan on each new state, or at rate_hz")
     rate_hz: float = Field(10.0, gt=0, description="planning rate when trigger == 'rate' [Hz]")
     actuation_delay_s: float = Field(
@@ -215,8 +219,12 @@ def run(settings: Settings) -> int:
         weights_sub = node.subscribe("terrain_weights")
         task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
         costmap_sub = node.subscribe("costmap", remote_only=True)
+        model_sub = node.subscribe("model_update")
+        swap = ModelSwap(settings.planner, profile_sha256(settings.model_file), model_version(model),
+                         search_dir=settings.learned_dir)
         pending_grid: OccupancyGrid | None = None  # a grid that came before the first state (its frame unchecked)
         outputs = Outputs(node, settings, startup)
+        outputs.model_version = swap.version
         outputs.started = time.monotonic()
         initial_task = None if settings.scenario == NO_TASK else scenario.task
         cycle = PlannerCycle(planner, initial_task, settings.cycle_config(), len(model.terrains), model.terrains)
@@ -233,6 +241,10 @@ def run(settings: Settings) -> int:
         fresh = False
         while node.ok():
             now = time.monotonic()
+            if (update := model_sub.take()) is not None and (line := swap.offer(update)) is not None:
+                node.log.info(line)
+            if (ready := swap.take()) is not None:  # between plans: the next state plans with the new model
+                take_swap(node, cycle, ready, outputs)
             if (new_task := task_sub.take()) is not None:
                 try:
                     cycle.set_task(task_from_message(new_task))
@@ -245,7 +257,10 @@ def run(settings: Settings) -> int:
                 take_costmap(node, cycle, pending_grid, latest.header.frame_id, now)
                 pending_grid = None
             if (w := weights_sub.take()) is not None:
-                cycle.on_weights(w.weights, now, names=w.names, unknown_active=w.unknown_active)
+                if tuple(w.names) == swap.loading:  # for the model loading: they wait for it (not refused)
+                    cycle.weights_pending(now)
+                else:
+                    cycle.on_weights(w.weights, now, names=w.names, unknown_active=w.unknown_active)
             cycle.tick(now)
             report(cycle.drain_events())
             if (s := state_sub.take()) is not None:
@@ -308,6 +323,7 @@ class Outputs:
         self.ros_plan = Ros2PlanPublisher(node, settings.ros2_plan, settings.planner.dt) \
             if settings.ros2_plan.enabled else None
         self.published = 0
+        self.model_version = 0  # the `ModelUpdate.version` planned with, on each Plan
         self.started = time.monotonic()  # when the loop started, for the time to the first command [monotonic s]
 
     def grid_message(self, task: LaneTask | GoalTask, latest: State | None) -> OccupancyGrid | None:
@@ -338,8 +354,10 @@ class Outputs:
             self.node.log.info("first command", extra={"fields": fields})
         if self.published % self.s.plan_every == 0:
             try:
-                self.plan.put(plan_message(result, out.stamp_ns, task, self.s.plan_samples,
-                                           {"state_to_cmd": state_to_cmd_ms}, out.weights_stale))
+                plan = plan_message(result, out.stamp_ns, task, self.s.plan_samples,
+                                    {"state_to_cmd": state_to_cmd_ms}, out.weights_stale)
+                plan.model_version = self.model_version
+                self.plan.put(plan)
             except DecodeError as exc:  # e.g. non-finite sample costs: the command went out, the plan cannot
                 self.node.counters.count("plan_invalid")
                 self.node.error(f"plan not published: {exc}")

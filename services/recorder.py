@@ -5,7 +5,8 @@
   schema'd channel. Keys with no registered model are recorded as schema-less JSON on their own key.
 - Record fields: log time = receive time, publish time = header stamp, sequence = header seq.
 - Run metadata (`gpmppi.run`), each service's resolved settings (`gpmppi.settings.<name>`) and attachments
-  (`launch.yaml`, `model/<file>`): see `services.recording.recorder_meta`.
+  (`launch.yaml`, `model/<file>`, and each learned profile a `ModelUpdate` announces as `learned/<sha256>.npz`): see
+  `services.recording.recorder_meta`.
 - The subscription is a FIFO channel, which never drops: when it is full Zenoh waits for us instead.
   Chunks are flushed at least every `flush_interval_s`, so a SIGKILL loses at most about that long;
   SIGINT / SIGTERM finish the file (summary and index). Files rotate by size or duration.
@@ -29,7 +30,13 @@ from pydantic import Field
 
 from schemas import DecodeError, decode, model_for_key
 from services.recording.mcap_io import REJECTED_SUFFIX, McapWriter
-from services.recording.recorder_meta import RunRecord, ServiceConfig, resolve_run_record
+from services.recording.recorder_meta import (
+    MODEL_UPDATE_SUFFIX,
+    RunRecord,
+    ServiceConfig,
+    learned_attachment,
+    resolve_run_record,
+)
 from services.runtime.node import Node
 from services.runtime.node_settings import NodeSettings
 from services.view.foxglove_scene import FoxgloveSceneMapper, schema_of
@@ -114,6 +121,7 @@ def run(settings: Settings) -> int:
     # them imports their modules), so recording starts at once; it is written when it is ready
     pool = ThreadPoolExecutor(1, thread_name_prefix="recorder-meta")
     meta: Future[RunRecord] | None = pool.submit(resolve_run_record, settings, started_ns)
+    learned: list[Future[tuple[str, bytes, str] | str]] = []  # learned profiles being read, to attach
     try:
         with Node(settings) as node:
             assert node.session is not None
@@ -159,6 +167,8 @@ def run(settings: Settings) -> int:
                         unwritten += 1
                         continue
                     quarantined += not ok and not str(sample.key_expr).endswith(REJECTED_SUFFIX)
+                    if ok and str(sample.key_expr).endswith(MODEL_UPDATE_SUFFIX):  # a learned profile: attach it
+                        learned.append(pool.submit(learned_attachment, payload))
                 with node.counters.lock:
                     node.counters.received += n
                 if quarantined:
@@ -180,12 +190,26 @@ def run(settings: Settings) -> int:
                 except OSError as exc:
                     failed(exc)
 
+            def write_learned(wait: bool) -> None:
+                for f in [f for f in learned if wait or f.done()]:
+                    learned.remove(f)
+                    att = f.result()
+                    if isinstance(att, str):
+                        node.log.warning(att)
+                    elif writer is not None and not failure:
+                        try:
+                            writer.add_attachment(*att)
+                        except OSError as exc:
+                            failed(exc)
+
             while node.ok():
                 if drain():
                     node.cycle()
                 if meta is not None and meta.done():
                     write_metadata(meta.result())
                     meta = None
+                if learned:
+                    write_learned(False)
                 if writer is not None and not failure:
                     try:
                         writer.flush_if_due()  # a quiet stream still reaches the disk within flush_interval_s
@@ -193,6 +217,7 @@ def run(settings: Settings) -> int:
                         failed(exc)
                 node.spin_once()
             drain()  # what arrived before the stop
+            write_learned(True)
             if meta is not None:  # stopped soon after the start: the run's metadata still goes in
                 try:
                     write_metadata(meta.result(timeout=10.0))

@@ -15,8 +15,9 @@ import numpy as np
 from pydantic import Field
 
 from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig, WeightsUpdate
+from gpmppi.terrain.learning import GroundLearning, LearnConfig, TeeEstimator
 from gpmppi.terrain.settings import EstimatorConfig
-from schemas import BaseCommand, Command, TerrainWeights
+from schemas import BaseCommand, Command, GroundLearn, TerrainWeights
 from services.codec.convert import state_to_array
 from services.runtime.node import Node
 from services.runtime.node_settings import NodeSettings
@@ -36,6 +37,10 @@ class Settings(NodeSettings, TerrainCycleConfig):
     estimator: EstimatorConfig = Field(
         default_factory=EstimatorConfig, description="the estimator: method ('bayes', the default, or the paper's "
         "convex problem 'paper') and its parameters (gpmppi.terrain.settings.EstimatorConfig)"
+    )
+    learn: LearnConfig = Field(
+        default_factory=LearnConfig, description="learning a new ground while driving: when, how, where it is saved "
+        "(gpmppi.terrain.learning.LearnConfig)"
     )
 
 
@@ -70,55 +75,107 @@ def run(settings: Settings) -> int:
 def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLike | None = None) -> int:
     """The terrain service's event loop on an open node, until it is stopped: decode, `TerrainCycle`, encode.
     `estimator`: one already built (None: built after the first prior is out, as the service starts)."""
+    from gpmppi.gp.online_ground import model_version
+    from services.terrain_learning import Learner
+
     terrains = list(model.terrains)
-    cycle = TerrainCycle(TerrainCycleConfig.from_settings(settings), len(terrains), estimator)
+    learning = GroundLearning(model, settings.learn)
+    learner = Learner(learning, settings.learn.save_to or settings.model_file, model_version(model))
+    cycle = TerrainCycle(TerrainCycleConfig.from_settings(settings), len(terrains),
+                         None if estimator is None else TeeEstimator(estimator, learning))
     out = node.publisher("terrain_weights")
+    updates = node.publisher("model_update")
+    learn_sub = node.subscribe("ground_learn", newest_only=False, capacity=16)
     states = node.subscribe("state", newest_only=False, capacity=64)
     command_sub = node.subscribe(settings.command_source, newest_only=False, capacity=64)
     # a predecessor's last weights (the launcher saw them): published first instead of the prior, and the
     # estimator starts from them
     resumed = _resumed_weights(node, terrains)
     unknown = UnknownReport(node)
-    while node.ok():
-        received_ns = time.time_ns()  # the loop wakes on arrival: when the base got them, on the states' clock
-        for c in command_sub.drain():
-            cycle.on_command(c.header.stamp_ns, command_array(c))
-            if isinstance(c, BaseCommand):
-                cycle.on_output(received_ns, command_array(c))
-        if new := states.drain():
-            cycle.on_states([(m.header.stamp_ns, state_to_array(m)) for m in new], time.monotonic())
-        if not cycle.pending:
-            node.spin_once()
-            continue
-        if cycle.estimator is None:
-            # up at once with the prior (uniform weights, solver_ok False: what the planner uses without us,
-            # and what a short history gives), then the slow part of the start: cvxpy and the problem (the paper's
-            # method) or the GP predictor
-            first = cycle.prior_update()
-            if resumed is not None:
-                first = WeightsUpdate(resumed, False, 0.0, first.stamp_ns)
-            out.put(_weights_message(terrains, first))
-            node.cycle()
-            cycle.estimator = _estimator(model, settings)
-            if resumed is not None and (reset := getattr(cycle.estimator, "reset", None)) is not None:
-                reset(resumed)
-                node.log.info("resumed from the last published weights", extra={"fields": {
-                    "weights": [round(w, 3) for w in resumed.tolist()]}})
-            continue
-        # the state's own command arrives when the planner is done with it: solving then, not alongside the
-        # planner, keeps this service off the cores the control path needs (it gets the same weights a cycle on)
-        wait = cycle.wait_s(time.monotonic())
-        if wait > 0.0:
-            node.spin_once(wait)
-            continue
-        update = cycle.solve()
-        if update.error is not None:
-            node.error(update.error)
-        unknown.report(update, terrains)
-        out.put(_weights_message(terrains, update))
-        node.cycle()
-        node.spin_once(0.0)
+    try:
+        while node.ok():
+            for request in learn_sub.drain():
+                _on_learn_request(node, learning, learner, request)
+            new_model, update_msg, line = learner.poll()
+            if new_model is not None and update_msg is not None:
+                # the learned ground joins: the estimator over the new grounds, the weights published by their names
+                model, terrains = new_model, list(new_model.terrains)
+                cycle.n_terrains = len(terrains)
+                cycle.estimator = TeeEstimator(_estimator(new_model, settings), learning)
+                updates.put(update_msg)
+                node.log.info("model version %d: %s (saved to %s)", update_msg.version, line, update_msg.path)
+            elif line is not None:
+                node.error(line)
+            sent = _serve_once(node, settings, model, cycle, learning, out, states, command_sub, terrains, resumed,
+                               unknown)
+            resumed = None if cycle.estimator is not None else resumed
+            # new ground noticed (the novelty test's P(unknown), held above the threshold) starts the learning too
+            if sent is not None and learner.path is not None:
+                if (started := learning.on_unknown(sent.unknown, time.monotonic())) is not None:
+                    node.log.info("ground unknown for %.1f s: %s", settings.learn.unknown_hold_s, started)
+            if (started := learner.submit_ready()) is not None:
+                node.log.info(started)
+    finally:
+        learner.close()
     return 0
+
+
+def _on_learn_request(node: Node, learning: GroundLearning, learner, request: GroundLearn) -> None:  # noqa: ANN001
+    """A GroundLearn request: start or cancel, logged in one line (refused when there is no file to save to)."""
+    if request.action == "cancel":
+        node.log.info(learning.cancel())
+    elif learner.path is None:
+        node.reject("ground_learn: the service runs the shipped profile and has no file to save a learned ground to; "
+                    "set model_file (a launch file's profile) or learn.save_to")
+    else:
+        node.log.info(learning.start(request.name))
+
+
+def _serve_once(node: Node, settings: Settings, model: GPModel, cycle: TerrainCycle, learning: GroundLearning,
+                out, states, command_sub, terrains: list[str], resumed: np.ndarray | None,  # noqa: ANN001
+                unknown: UnknownReport) -> TerrainWeights | None:
+    """One pass of the loop: take states and commands, solve when due, publish the weights over `terrains`; the
+    solved weights' message, if one went out."""
+    received_ns = time.time_ns()  # the loop wakes on arrival: when the base got them, on the states' clock
+    for c in command_sub.drain():
+        cycle.on_command(c.header.stamp_ns, command_array(c))
+        if isinstance(c, BaseCommand):
+            cycle.on_output(received_ns, command_array(c))
+    if new := states.drain():
+        cycle.on_states([(m.header.stamp_ns, state_to_array(m)) for m in new], time.monotonic())
+    if not cycle.pending:
+        node.spin_once()
+        return None
+    if cycle.estimator is None:
+        # up at once with the prior (uniform weights, solver_ok False: what the planner uses without us,
+        # and what a short history gives), then the slow part of the start: cvxpy and the problem (the paper's
+        # method) or the GP predictor
+        first = cycle.prior_update()
+        if resumed is not None:
+            first = WeightsUpdate(resumed, False, 0.0, first.stamp_ns)
+        out.put(_weights_message(terrains, first))
+        node.cycle()
+        cycle.estimator = TeeEstimator(_estimator(model, settings), learning)
+        if resumed is not None:
+            cycle.estimator.reset(resumed)
+            node.log.info("resumed from the last published weights", extra={"fields": {
+                "weights": [round(w, 3) for w in resumed.tolist()]}})
+        return None
+    # the state's own command arrives when the planner is done with it: solving then, not alongside the
+    # planner, keeps this service off the cores the control path needs (it gets the same weights a cycle on)
+    wait = cycle.wait_s(time.monotonic())
+    if wait > 0.0:
+        node.spin_once(wait)
+        return None
+    update = cycle.solve()
+    if update.error is not None:
+        node.error(update.error)
+    unknown.report(update, terrains)
+    msg = _weights_message(terrains, update)
+    out.put(msg)
+    node.cycle()
+    node.spin_once(0.0)
+    return msg
 
 
 def _resumed_weights(node: Node, terrains: list[str]) -> np.ndarray | None:

@@ -37,7 +37,7 @@ from gpmppi.scenarios import (
     paper_obstacle_scene,
     square_lane,
 )
-from tools import terrain_cmd
+from tools import learn_drive, terrain_cmd
 from tools.choices import ModelName
 from tools.cli_checks import OUT_DIR, check_output_dir, fail, only_with
 from tools.real_data_cmd import real_data_cmd
@@ -477,6 +477,7 @@ def register(app: typer.Typer) -> None:
     ev.command("avoidance")(make("avoidance", "Obstacle avoidance (the paper's scene or --scene-file): success."))
     ev.command("table")(make("table", "The whole grid (terrains x models x {circle, square, avoidance}) into -o DIR."))
     terrain_cmd.register(ev)
+    learn_drive.register(ev)
     ev.command("terrain-real-data")(real_data_cmd)
     app.add_typer(ev, name="evaluate")
 

@@ -199,12 +199,19 @@ def finalize(
         GPModel.load(profile)  # ModelFileError (one line) before any service starts
 
     models = {name.split("/", 1)[1]: data for name, data in info.attachments.items() if name.startswith("model/")}
+    learned = {name.split("/", 1)[1]: data for name, data in info.attachments.items() if name.startswith("learned/")}
+    if learned:  # the profiles learned during the run: the replayed ModelUpdates find them by their sha256
+        (tmp / "learned").mkdir(exist_ok=True)
+        for name, data in learned.items():
+            (tmp / "learned" / Path(name).name).write_bytes(data)
     for live in services:
         c = live.config
         c.update(service=live.name, robot=robot, zenoh={"mode": "client", "connect": [endpoint]})
         if profile is not None and live.kind in ("planner", "terrain"):
             c["model_file"] = str(Path(profile).resolve())
         elif live.kind == "planner":
+            if learned:
+                c["learned_dir"] = str(tmp / "learned")
             recorded = c.get("model_file")
             name = Path(recorded).name if recorded else None
             data = models.get(name) if name else (next(iter(models.values())) if len(models) == 1 else None)

@@ -199,6 +199,27 @@ class PlannerCycle:
         return events
 
     # ---- inputs between states
+    def swap_planner(self, planner: PlannerLike, terrains: Sequence[str]) -> None:
+        """Plan with `planner` (over a model with grounds `terrains`, e.g. one more learned ground) from the next state
+        on: called between states, so no plan mixes the two. The warm start carries over (the robot is driving it);
+        the weights restart from the prior over the new grounds until the terrain service's next weights, which
+        name them."""
+        warm = getattr(self.planner, "warm_start", None)
+        self.planner = planner
+        self.terrains = list(terrains)
+        self.prior = np.full(len(self.terrains), 1.0 / len(self.terrains))
+        self.weights, self.weights_prior = self.prior.copy(), True
+        planner.prepare(self.weights)
+        resume = getattr(planner, "resume", None)
+        if warm is not None and resume is not None:
+            resume(warm, 0)
+
+    def weights_pending(self, now: float) -> None:
+        """Weights arrived for a model still loading (`swap_planner` comes next): the terrain estimate is alive, so
+        the weights planned with do not age meanwhile (no stale alarm for the second a swap takes)."""
+        if self.weights_time is not None and not self.weights_prior:
+            self.weights_time, self.weights_stale = now, False
+
     def resume_from(self, controls: Sequence[Sequence[float]] | np.ndarray, stamp_ns: int, dt: float) -> None:
         """Start from a predecessor's last plan (its control sequence, planned from a state stamped `stamp_ns`)
         instead of the configured initial sequence: at the next state, shifted by the steps of `dt` since, so a

@@ -104,6 +104,11 @@ class Planner:
         for kind in self._kinds.values():
             kind.reset()
 
+    @property
+    def warm_start(self) -> np.ndarray:
+        """(N, 2) the control sequence the next plan starts from (a copy): what a successor planner resumes."""
+        return self._nominal.copy()
+
     def resume(self, controls: np.ndarray, steps: int) -> bool:
         """Warm-start from another planner's sequence (a predecessor's last plan, `controls` (N, 2) from its
         state on), `steps` dt-steps later: its controls from `steps` on, the last one held for the rest. The

@@ -9,7 +9,10 @@ Metadata records (MCAP metadata, string -> string):
   when the settings could not be resolved).
 
 Attachments: the launch file as `launch.yaml` (application/yaml), and each planner's GP model file as
-`model/<file name>` (the shipped model when the planner's `model_file` is unset).
+`model/<file name>` (the shipped model when the planner's `model_file` is unset). Each profile a `ModelUpdate`
+announces (a ground learned during the run) as `learned/<sha256>.npz`, read when the update is recorded and checked
+against its sha256: the update's message on `gpmppi/{robot}/model` says when and which version; replay finds the
+file by the hash (tools/replay_live.py).
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ RUN_METADATA = "gpmppi.run"
 SETTINGS_METADATA_PREFIX = "gpmppi.settings."
 LAUNCH_ATTACHMENT = "launch.yaml"
 MODEL_ATTACHMENT_PREFIX = "model/"
+LEARNED_ATTACHMENT_PREFIX = "learned/"
+MODEL_UPDATE_SUFFIX = "/model"  # the key of ModelUpdate messages, gpmppi/{robot}/model
 _SECRET = re.compile(r"pass(word)?|secret|token|private|credential", re.IGNORECASE)
 
 
@@ -41,6 +46,27 @@ class RunRecord:
     metadata: list[tuple[str, dict[str, str]]] = field(default_factory=list)
     attachments: list[tuple[str, bytes, str]] = field(default_factory=list)  # (name, data, media type)
     warnings: list[str] = field(default_factory=list)
+
+
+def learned_attachment(payload: bytes) -> tuple[str, bytes, str] | str:
+    """(name, data, media type) of the profile a ModelUpdate payload announces, or the warning why it is not
+    attached (the file is gone, or its bytes are not the announced ones)."""
+    import hashlib
+
+    from schemas import DecodeError, ModelUpdate, decode
+
+    try:
+        update = decode(ModelUpdate, payload)
+    except DecodeError as exc:
+        return f"model update not attached: {exc}"
+    try:
+        data = Path(update.path).read_bytes()
+    except OSError as exc:
+        return f"learned profile {update.path} (version {update.version}) not attached: {exc.strerror or exc}"
+    if hashlib.sha256(data).hexdigest() != update.sha256:
+        return (f"learned profile {update.path} (version {update.version}) not attached: its bytes are no longer the "
+                "announced ones (replaced since)")
+    return f"{LEARNED_ATTACHMENT_PREFIX}{update.sha256}.npz", data, "application/octet-stream"
 
 
 def git_commit(root: Path = REPO_ROOT) -> str:
