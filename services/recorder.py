@@ -32,7 +32,7 @@ from services.recording.mcap_io import REJECTED_SUFFIX, McapWriter
 from services.recording.recorder_meta import RunRecord, ServiceConfig, resolve_run_record
 from services.runtime.node import Node
 from services.runtime.node_settings import NodeSettings
-from services.view.foxglove_scene import FoxgloveSceneMapper, schema_of
+from services.view.foxglove_scene import FoxgloveSceneMapper, scene_feeds, schema_of
 
 
 class Settings(NodeSettings):
@@ -87,6 +87,8 @@ def run(settings: Settings) -> int:
     def write_scene(key: str, payload: bytes, log_time_ns: int) -> None:
         """The scene of one recorded message (already validated) on its scene channels."""
         assert scene is not None and writer is not None
+        if not scene_feeds(key):  # a key the scene does not draw (cmd, terrain weights, raw odometry): no decode
+            return
         try:
             msg = decode(model_for_key(key), payload)
         except (KeyError, DecodeError):
