@@ -38,10 +38,11 @@ LAYOUT = Path(__file__).resolve().parents[1] / "deploy" / "foxglove" / "gpmppi-l
 MODES = ("off", "connected", "client_stopped")
 
 # the client: connects with Foxglove's WebSocket protocol, subscribes to the channels named in argv[2] (a JSON list;
-# null: every channel advertised), reads forever
+# null: every channel advertised), reads forever, at the CPU priority (nice) argv[3]
 CLIENT = r"""
-import json, sys
+import json, os, sys
 from websockets.sync.client import connect
+os.nice(int(sys.argv[3]))
 topics = json.loads(sys.argv[2])
 with connect(sys.argv[1], subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"], open_timeout=30) as ws:
     print("connected", flush=True)
@@ -100,7 +101,9 @@ def _cpu_s(pid: int) -> float:
 class Server:
     """The Foxglove service and one client, each its own process, for one round's server windows."""
 
-    def __init__(self, port: int, ws_port: int, topics: list[str] | None, config_dir: str, logs: io.StringIO) -> None:
+    def __init__(
+        self, port: int, ws_port: int, topics: list[str] | None, client_nice: int, config_dir: str, logs: io.StringIO
+    ) -> None:
         config = Path(config_dir) / "foxglove.yaml"
         zenoh_cfg = {"mode": "client", "connect": [f"tcp/127.0.0.1:{port}"]}
         settings = {"service": "foxglove", "robot": "jackal", "zenoh": zenoh_cfg, "port": ws_port, "nice": 10}
@@ -118,7 +121,7 @@ class Server:
                 raise RuntimeError("the Foxglove service did not start serving; --show-logs says why")
             time.sleep(0.1)
         self.client = subprocess.Popen(
-            [sys.executable, "-c", CLIENT, f"ws://127.0.0.1:{ws_port}", json.dumps(topics)],
+            [sys.executable, "-c", CLIENT, f"ws://127.0.0.1:{ws_port}", json.dumps(topics), str(client_nice)],
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
@@ -148,13 +151,20 @@ class Server:
 
 
 def foxglove_numbers(
-    window_s: float, rounds: int, port: int, ws_port: int, subscribe: str, logs: io.StringIO, settle_s: float = 3.0
+    window_s: float,
+    rounds: int,
+    port: int,
+    ws_port: int,
+    subscribe: str,
+    logs: io.StringIO,
+    client_nice: int = 10,
+    settle_s: float = 3.0,
 ) -> dict:
     from services.launch.launcher import run_launch
 
     topics = sorted(layout_topics(json.loads(LAYOUT.read_text()))) if subscribe == "layout" else None
     result: dict = {"load_avg_1min_start": round(os.getloadavg()[0], 2), "window_s": window_s, "rounds": rounds,
-                    "subscribe": subscribe}  # fmt: skip
+                    "subscribe": subscribe, "client_nice": client_nice}  # fmt: skip
     per_round: list[dict] = []
 
     def hook(launcher, monitor) -> None:  # noqa: ANN001 - the launcher's hook
@@ -180,7 +190,7 @@ def foxglove_numbers(
                 if stop.is_set():
                     return
                 numbers = {"off": window(None)}
-                server = Server(port, ws_port, topics, tmp, logs)
+                server = Server(port, ws_port, topics, client_nice, tmp, logs)
                 try:
                     stop.wait(settle_s)  # the service's start (imports, first advertisements) outside the windows
                     order = ("connected", "client_stopped") if r % 2 == 0 else ("client_stopped", "connected")
@@ -228,6 +238,13 @@ def register(bench_app: typer.Typer) -> None:
         subscribe: str = typer.Option(
             "layout", help="what the client subscribes to: layout (the shipped layout's topics) or all"
         ),
+        client_nice: int = typer.Option(
+            10,
+            min=0,
+            max=19,
+            help="the client's CPU priority (nice; the server's is 10): a client on the robot runs "
+            "below the control path, as the server does; a laptop's costs the robot nothing",
+        ),
         port: int = typer.Option(7465, min=1, max=65535, help="router port on 127.0.0.1"),
         ws_port: int = typer.Option(8766, min=1, max=65535, help="the Foxglove server's port on 127.0.0.1"),
         as_json: bool = typer.Option(False, "--json", help="print one JSON object instead of text"),
@@ -242,7 +259,7 @@ def register(bench_app: typer.Typer) -> None:
         logs = io.StringIO()
         t0 = time.monotonic()
         try:
-            result = foxglove_numbers(window, rounds, port, ws_port, subscribe, logs)
+            result = foxglove_numbers(window, rounds, port, ws_port, subscribe, logs, client_nice)
         finally:
             if show_logs:
                 typer.echo(logs.getvalue())
@@ -250,8 +267,8 @@ def register(bench_app: typer.Typer) -> None:
         if as_json:
             typer.echo(json.dumps(result))
             return
-        typer.echo(f"load avg {result['load_avg_1min_start']} -> {result['load_avg_1min_end']}, "
-                   f"{rounds} rounds of {window:g} s windows, client subscribed to: {subscribe}")  # fmt: skip
+        load = f"load avg {result['load_avg_1min_start']} -> {result['load_avg_1min_end']}"
+        typer.echo(f"{load}, {rounds} rounds of {window:g} s windows, client: {subscribe}, nice {client_nice}")
         typer.echo("state -> command received, p50 / p99 [ms] (n); Foxglove service CPU [s/s]")
         for i, r in enumerate(result["per_round"]):
             cells = []
