@@ -2,6 +2,9 @@
 
 - Every `gpmppi/**` key is a channel of its own, JSON with the JSON Schema of its pydantic model (as in the MCAP
   recording); the payload goes out as it was received, once it has decoded.
+- What nobody reads costs no decode: a message is decoded and mapped only when a client is subscribed to its key's
+  channel or to a scene topic it feeds (`scene_feeds`), and only the scene topics read are made; the rest is counted
+  `unread`. The plan's scene is drawn at most `plan_hz` times a second.
 - The 3D scene (robot pose and frame transforms, lane and tightened bounds, obstacles and their inflation, plan and
   covariance ellipses, rollouts coloured by cost) goes on `scene/<robot>/...` in Foxglove's own schemas, from the
   one mapping `services.view.foxglove_scene` (shared with the recorder's scene channels and `gpmppi replay`).
