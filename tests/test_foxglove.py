@@ -377,3 +377,15 @@ def test_bench_summary_reads_the_spread_from_one_run() -> None:
     assert s["connected_rounds_within_off_range"] == "2/3" and s["client_stopped_rounds_within_off_range"] == "2/3"
     assert s["received_p99_ms_per_round"]["connected"] == [15.5, 17.0, 15.2] and s["connected_p99_median_ms"] == 15.5
     assert s["connected_service_cpu_s_per_s"] == 0.02
+
+
+def test_bench_refuses_an_unknown_subscription_in_one_line() -> None:
+    """`gpmppi bench foxglove --subscribe x`: one line naming the choices, exit 2, before any process starts."""
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    result = CliRunner().invoke(app, ["bench", "foxglove", "--subscribe", "everything"])
+    assert result.exit_code == 2, result.output
+    assert "--subscribe everything" in result.output and "layout or all" in result.output
+    assert "Traceback" not in result.output
