@@ -2,6 +2,9 @@
 
 - Every `gpmppi/**` key is a channel of its own, JSON with the JSON Schema of its pydantic model (as in the MCAP
   recording); the payload goes out as it was received, once it has decoded.
+- What nobody reads costs no decode: a message is decoded and mapped only when a client is subscribed to its key's
+  channel or to a scene topic it feeds (`scene_feeds`), and only the scene topics read are made; the rest is counted
+  `unread`. The plan's scene is drawn at most `plan_hz` times a second.
 - The 3D scene (robot pose and frame transforms, lane and tightened bounds, obstacles and their inflation, plan and
   covariance ellipses, rollouts coloured by cost) goes on `scene/<robot>/...` in Foxglove's own schemas, from the
   one mapping `services.view.foxglove_scene` (shared with the recorder's scene channels and `gpmppi replay`).
@@ -19,6 +22,7 @@ import json
 import logging
 import threading
 import time
+from typing import Any
 
 import zenoh
 from pydantic import Field
@@ -27,8 +31,15 @@ from schemas import KEYS, DecodeError, decode, model_for_key
 from services.recording.mcap_io import schema_name
 from services.runtime.node import Node
 from services.runtime.node_settings import NodeSettings
-from services.view.foxglove_scene import FoxgloveSceneMapper, scene_topics, schema_of
-from services.view.geometry import Decimation
+from services.view.foxglove_scene import (
+    FoxgloveSceneMapper,
+    SceneOptions,
+    robot_of,
+    scene_feeds,
+    scene_topic,
+    scene_topics,
+    schema_of,
+)
 
 
 class Settings(NodeSettings):
@@ -41,14 +52,19 @@ class Settings(NodeSettings):
     backlog: int = Field(
         256, gt=0, description="messages waiting for one client at most; beyond, the oldest are dropped for it"
     )
-    samples_every: int = Field(2, ge=1, description="draw the rollouts of every n-th plan")
+    plan_hz: float = Field(
+        5.0, ge=0.0, description="draw the plan's scene (nominal, ellipses, bounds, rollouts) at most this often [Hz]; "
+        "0: every plan"
+    )
+    samples_every: int = Field(1, ge=1, description="draw the rollouts of every n-th plan drawn")
     max_samples: int = Field(32, ge=0, description="draw at most this many rollouts of a plan")
     sample_stride: int = Field(2, ge=1, description="draw every n-th point along a rollout")
     ellipse_every: int = Field(8, ge=1, description="draw every n-th covariance ellipse of the plan")
     path_chunk: int = Field(50, ge=2, description="driven-path states per strip (the path grows by strips)")
 
-    def options(self) -> Decimation:
-        return Decimation(
+    def options(self) -> SceneOptions:
+        return SceneOptions(
+            plan_hz=self.plan_hz,
             samples_every=self.samples_every,
             max_samples=self.max_samples,
             sample_stride=self.sample_stride,
@@ -79,6 +95,19 @@ class Newest:
         return list(waiting.values())
 
 
+class Route:
+    """Where one key's messages go: its own JSON channel and the scene channels its messages feed (by name)."""
+
+    def __init__(self, channel: Any, feeds: list[tuple[str, Any]]) -> None:
+        self.channel = channel
+        self.feeds = feeds
+
+    def readers(self) -> tuple[bool, list[str]]:
+        """Whether a client reads the key's own channel, and the scene topics (names) it feeds that a client
+        reads (foxglove-sdk counts a channel's subscribers: `has_sinks`)."""
+        return self.channel.has_sinks(), [name for name, channel in self.feeds if channel.has_sinks()]
+
+
 class Channels:
     """The server's channels, created on first use: `gpmppi/**` keys as JSON with their JSON Schema, scene topics
     in Foxglove's protobuf schemas."""
@@ -86,6 +115,16 @@ class Channels:
     def __init__(self, context: object) -> None:
         self.context = context
         self._channels: dict[str, object] = {}
+        self._routes: dict[str, Route] = {}
+
+    def route(self, key: str) -> Route:
+        """The key's route (KeyError: no message is registered for the key)."""
+        route = self._routes.get(key)
+        if route is None:
+            robot = robot_of(key)
+            feeds = [(name, self.scene(scene_topic(robot, name))) for name in sorted(scene_feeds(key))]
+            route = self._routes[key] = Route(self.json(key), feeds)
+        return route
 
     def json(self, key: str) -> object:
         channel = self._channels.get(key)
@@ -147,23 +186,38 @@ def run(settings: Settings) -> int:
             reported = 0
             node.counters.flags["serving"] = True
             while node.ok():
-                handled = 0
+                handled = unread = 0
                 for sample in newest.take():
                     key = str(sample.key_expr)
+                    try:
+                        route = channels.route(key)
+                    except KeyError as exc:
+                        node.reject(f"{key}: {exc}")
+                        continue
+                    # what nobody reads costs no decode: neither the key's own channel nor a scene topic it feeds
+                    # has a subscribed client
+                    forward, wanted = route.readers()
+                    handled += 1
+                    if not forward and not wanted:
+                        unread += 1
+                        continue
                     payload = sample.payload.to_bytes()
                     try:
                         msg = decode(model_for_key(key), payload, settings.max_payload_bytes)
-                    except (KeyError, DecodeError) as exc:
+                    except DecodeError as exc:
                         node.reject(f"{key}: {exc}")
                         continue
                     now = time.time_ns()
-                    channels.json(key).log(payload, log_time=now)  # type: ignore[attr-defined]
-                    for scene in mapper.map(key, msg, now):
+                    if forward:
+                        route.channel.log(payload, log_time=now)
+                    # each scene message is encoded once here; the server sends the same bytes to every client
+                    for scene in mapper.map(key, msg, now, wanted) if wanted else ():
                         channels.scene(scene.topic).log(scene.data, log_time=now)  # type: ignore[attr-defined]
-                    handled += 1
                 if handled:
                     with node.counters.lock:
                         node.counters.received += handled
+                    if unread:  # received, and dropped unread: no client reads what they feed
+                        node.counters.count("unread", unread)
                     node.cycle()
                 if newest.dropped != reported:
                     node.counters.count("dropped", newest.dropped - reported)

@@ -39,7 +39,7 @@ from services.recording.recorder_meta import (
 )
 from services.runtime.node import Node
 from services.runtime.node_settings import NodeSettings
-from services.view.foxglove_scene import FoxgloveSceneMapper, schema_of
+from services.view.foxglove_scene import FoxgloveSceneMapper, scene_feeds, schema_of
 
 
 class Settings(NodeSettings):
@@ -94,6 +94,8 @@ def run(settings: Settings) -> int:
     def write_scene(key: str, payload: bytes, log_time_ns: int) -> None:
         """The scene of one recorded message (already validated) on its scene channels."""
         assert scene is not None and writer is not None
+        if not scene_feeds(key):  # a key the scene does not draw (cmd, terrain weights, raw odometry): no decode
+            return
         try:
             msg = decode(model_for_key(key), payload)
         except (KeyError, DecodeError):

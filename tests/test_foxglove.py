@@ -20,6 +20,7 @@ from mcap.reader import make_reader
 from schemas import Command, EStop, Heartbeat, Plan, State, Task, encode
 from services.view.foxglove_scene import SCENE_SCHEMAS, scene_topics
 from tests.zenoh_helpers import Collector, ServiceProcess, client, free_port, heartbeats, router, settings, wait_for
+from tools.bench_foxglove import layout_topics
 
 pytest.importorskip("foxglove")
 websockets_sync = pytest.importorskip("websockets.sync.client")
@@ -83,6 +84,14 @@ def test_live_server_speaks_the_foxglove_websocket_protocol(tmp_path: Path) -> N
         service = ServiceProcess("foxglove", {**settings("foxglove", port, robot), "port": ws_port}, tmp_path)
         try:
             assert wait_for(lambda: len(heartbeats(col, robot, "foxglove")) >= 1, 60.0), service.log()
+            # no client: nothing is decoded, so a malformed payload on a served key is not even looked at
+            seen = len(heartbeats(col, robot, "foxglove"))
+            observer.put(f"gpmppi/{robot}/state", b"{not json")
+            for key, payload in _stack_messages(robot, 0)[1:]:  # all but the state, so the malformed one is taken
+                observer.put(key, payload)
+            assert wait_for(lambda: len(heartbeats(col, robot, "foxglove")) >= seen + 2, 15.0)  # a loop cycle or more
+            assert heartbeats(col, robot, "foxglove")[-1].counts.get("unread", 0) >= 5
+            assert heartbeats(col, robot, "foxglove")[-1].rejected == 0
             with websockets_sync.connect(f"ws://127.0.0.1:{ws_port}", subprotocols=SUBPROTOCOLS, open_timeout=10) as ws:
                 assert ws.subprotocol in SUBPROTOCOLS
                 channels: dict[int, dict] = {}
@@ -134,6 +143,9 @@ def test_live_server_speaks_the_foxglove_websocket_protocol(tmp_path: Path) -> N
                     except TimeoutError:
                         pass
                 assert needed <= set(received), (sorted(received), service.log()[-3000:])
+                # read now: the same malformed payload is decoded, and refused
+                observer.put(f"gpmppi/{robot}/state", b"{not json")
+                assert wait_for(lambda: heartbeats(col, robot, "foxglove")[-1].rejected >= 1, 15.0), service.log()
         finally:
             code = service.stop(20.0)
             observer.close()
@@ -250,26 +262,130 @@ def test_layout_names_only_served_topics() -> None:
     assert {"scene/jackal/plan", "gpmppi/jackal/state", "gpmppi/jackal/plan"} <= named
 
 
-def layout_topics(layout: dict) -> set[str]:
-    """The topics a Foxglove layout names: the 3D panel's topic settings, message paths' quoted topics, and the
-    log panel's topic."""
-    import re
+def _plan_at(stamp_ns: int, seq: int) -> Plan:
+    plan = Plan(
+        command=Command(v_ref=1.0, omega_ref=0.0), controls=[[1.0, 0.0]] * 10,
+        states=[[0.1 * k, 0.0, 0.0, 1.0, 0.0] for k in range(11)],
+        cov_xy=[[1e-3 * k, 0.0, 1e-3 * k] for k in range(11)],
+        samples=[[[0.1 * k, 0.01 * j] for k in range(11)] for j in range(4)], sample_costs=[1.0, 2.0, 3.0, 4.0],
+    )  # fmt: skip
+    plan.header.stamp_ns, plan.header.seq = stamp_ns, seq
+    return plan
 
-    topics: set[str] = set()
 
-    def walk(node: object, key: str = "") -> None:
-        if isinstance(node, dict):
-            for k, v in node.items():
-                if key == "topics" and isinstance(v, dict):
-                    topics.add(k)
-                walk(v, k)
-        elif isinstance(node, list):
-            for v in node:
-                walk(v, key)
-        elif isinstance(node, str) and key in ("value", "topicPath", "topicToRender"):
-            # a message path names its topic in quotes ("gpmppi/jackal/state".v); a topic setting names it bare
-            quoted = re.match(r'^"([^"]+)"', node)
-            topics.add(quoted.group(1) if quoted else node.split(".")[0])
+def test_the_mapper_makes_only_the_topics_asked_for() -> None:
+    """`map(..., wanted)` makes only the scene topics named, and a topic left out keeps no state: the driven path
+    starts when "robot" is first asked for. `scene_feeds` names what each key feeds (the task feeds the plan)."""
+    from services.view.foxglove_scene import FoxgloveSceneMapper, scene_feeds
 
-    walk(layout.get("configById", layout))
-    return topics
+    mapper = FoxgloveSceneMapper()
+    t = 1_000_000_000
+    state = State(x=1.0, y=2.0, theta=0.0, v=0.5, omega=0.0)
+    state.header.stamp_ns = t
+    assert [m.topic for m in mapper.map("gpmppi/r1/state", state, t, {"tf"})] == ["scene/r1/tf"]
+    assert mapper.map("gpmppi/r1/state", state, t, set()) == []
+    assert mapper.map("gpmppi/r1/estop", EStop(engaged=True), t, {"tf", "plan"}) == []
+    assert {m.topic for m in mapper.map("gpmppi/r1/state", state, t)} == {
+        f"scene/r1/{n}" for n in ("tf", "pose", "robot")
+    }
+    assert "robot" not in mapper.map.__self__._paths or mapper._paths["r1"].points == [[1.0, 2.0]]
+    # a task not asked for is still kept: the plan's tightened bounds are drawn from it
+    assert mapper.map("gpmppi/r1/task", lane_task(), t, {"plan"}) == [] and "r1" in mapper.task
+    assert scene_feeds("gpmppi/r1/state") == {"tf", "pose", "robot"} and scene_feeds("gpmppi/r1/odom/raw") == set()
+    assert scene_feeds("gpmppi/r1/task") == {"task", "plan", "events"} and scene_feeds("gpmppi/r1/cmd") == set()
+    assert scene_feeds("gpmppi/r1/health/planner") == {"events"} and scene_feeds("elsewhere/x") == set()
+
+
+def test_the_plan_scene_rate_limit_holds() -> None:
+    """Plans at 10 Hz with jitter (seeded) for 20 s: the plan's scene at plan_hz (5 Hz), evenly (no gap over two
+    periods), never more than T * hz + 2 over any span; plan_hz 0 draws every plan; a stamp going back (a new run)
+    restarts the schedule."""
+    from services.view.foxglove_scene import FoxgloveSceneMapper, RateLimit, SceneOptions
+
+    rng = np.random.default_rng(46)
+    stamps = (np.arange(200) * 100_000_000 + rng.uniform(-20e6, 20e6, 200)).astype(np.int64) + 10**12
+    mapper = FoxgloveSceneMapper(SceneOptions(plan_hz=5.0))
+    drawn = [int(s) for i, s in enumerate(stamps) if mapper.map("gpmppi/r1/plan", _plan_at(int(s), i), 0)]
+    assert 95 <= len(drawn) <= 20 * 5 + 2, len(drawn)
+    gaps = np.diff(drawn) / 1e9
+    assert gaps.max() < 0.4, gaps.max()
+    for span in (1.0, 3.0):  # any window of `span` seconds
+        starts = np.asarray(drawn)
+        counts = [np.sum((starts >= a) & (starts < a + span * 1e9)) for a in starts]
+        assert max(counts) <= span * 5 + 2, (span, max(counts))
+    every = FoxgloveSceneMapper(SceneOptions(plan_hz=0.0))
+    assert all(every.map("gpmppi/r1/plan", _plan_at(int(s), i), 0) for i, s in enumerate(stamps[:20]))
+    limit = RateLimit(5.0)
+    assert limit(10**12) and not limit(10**12 + 50_000_000) and limit(10**9)  # back in time: a new schedule
+    # the plan's entities: nominal, ellipses, rollouts in every drawn plan (samples_every 1 by default)
+    fresh = FoxgloveSceneMapper()
+    ids = {e.id for e in _scene_update(fresh.map("gpmppi/r1/plan", _plan_at(10**12, 0), 0)[0].data).entities}
+    assert {"plan/nominal", "plan/covariance", "plan/rollouts"} <= ids
+
+
+def _scene_update(data: bytes) -> Any:
+    from foxglove import messages
+
+    return protobuf_class("foxglove.SceneUpdate", messages.SceneUpdate.get_schema().data).FromString(data)
+
+
+def test_routes_follow_what_a_client_subscribes() -> None:
+    """A real server and a real client: a key's route reports readers only for the channels the client subscribed
+    to (its own, or a scene topic it feeds), and none again once the client unsubscribes."""
+    import foxglove
+
+    from services.foxglove import Channels
+
+    context = foxglove.Context()
+    channels = Channels(context)
+    for key in ("gpmppi/jackal/state", "gpmppi/jackal/task", "gpmppi/jackal/cmd"):
+        channels.route(key)
+    server = foxglove.start_server(host="127.0.0.1", port=0, context=context)
+    try:
+        with websockets_sync.connect(f"ws://127.0.0.1:{server.port}", subprotocols=SUBPROTOCOLS) as ws:
+            ids: dict[str, int] = {}
+            while not {"scene/jackal/plan", "gpmppi/jackal/cmd"} <= set(ids):
+                frame = json.loads(ws.recv(timeout=5))
+                if frame["op"] == "advertise":
+                    ids.update({c["topic"]: c["id"] for c in frame["channels"]})
+            assert all(
+                channels.route(k).readers() == (False, []) for k in ("gpmppi/jackal/state", "gpmppi/jackal/task")
+            )
+            subs = [{"id": 1, "channelId": ids["scene/jackal/plan"]}, {"id": 2, "channelId": ids["gpmppi/jackal/cmd"]}]
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+            assert wait_for(lambda: channels.route("gpmppi/jackal/cmd").readers() == (True, []), 5.0)
+            assert channels.route("gpmppi/jackal/task").readers() == (False, ["plan"])
+            assert channels.route("gpmppi/jackal/state").readers() == (False, [])
+            ws.send(json.dumps({"op": "unsubscribe", "subscriptionIds": [1, 2]}))
+            assert wait_for(lambda: channels.route("gpmppi/jackal/task").readers() == (False, []), 5.0)
+    finally:
+        server.stop()
+
+
+def test_bench_summary_reads_the_spread_from_one_run() -> None:
+    """`gpmppi bench foxglove`'s summary: each mode's p99 per round, the off rounds' range and spread, and how many
+    rounds of the other modes stay at or under the off rounds' largest p99."""
+    from tools.bench_foxglove import summarize
+
+    def row(off: float, conn: float, stopped: float) -> dict:
+        q = lambda p99: {"state_to_cmd_received": {"n": 100, "p50_ms": 8.0, "p99_ms": p99}}  # noqa: E731
+        return {"off": q(off), "connected": {**q(conn), "service_cpu_s_per_s": 0.02},
+                "client_stopped": {**q(stopped), "service_cpu_s_per_s": 0.01}}  # fmt: skip
+
+    s = summarize([row(15.0, 15.5, 14.0), row(16.0, 17.0, 15.9), row(15.5, 15.2, 16.1)])
+    assert s["off_p99_range_ms"] == [15.0, 16.0] and s["off_p99_spread_ms"] == 1.0
+    assert s["connected_rounds_within_off_range"] == "2/3" and s["client_stopped_rounds_within_off_range"] == "2/3"
+    assert s["received_p99_ms_per_round"]["connected"] == [15.5, 17.0, 15.2] and s["connected_p99_median_ms"] == 15.5
+    assert s["connected_service_cpu_s_per_s"] == 0.02
+
+
+def test_bench_refuses_an_unknown_subscription_in_one_line() -> None:
+    """`gpmppi bench foxglove --subscribe x`: one line naming the choices, exit 2, before any process starts."""
+    from typer.testing import CliRunner
+
+    from tools.cli import app
+
+    result = CliRunner().invoke(app, ["bench", "foxglove", "--subscribe", "everything"])
+    assert result.exit_code == 2, result.output
+    assert "--subscribe everything" in result.output and "layout or all" in result.output
+    assert "Traceback" not in result.output

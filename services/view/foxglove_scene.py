@@ -16,17 +16,22 @@ nothing converted. Per robot, on topics outside `gpmppi/**` (they are views, nev
 - `scene/<robot>/events` (foxglove.Log): e-stop, safety overrides, task changes, service status.
 
 Lines lie in the ground plane, lifted by their layer's draw order (1 mm per step) so the layers stack as in rerun.
+
+What is mapped is what is read: `map(..., wanted=...)` makes only the scene topics named (the live server names those
+a client subscribes to; the recorder all), and `scene_feeds(key)` says which scene topics a key's messages feed, so a
+key that feeds nothing anyone reads is never decoded. The plan's scene (its heaviest part: ellipses, tightened
+bounds, rollouts) is drawn at most `plan_hz` times a second of message time, live and recorded alike.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from schemas import BaseCommand, EStop, Heartbeat, Message, OccupancyGrid, Plan, State, Task
+from schemas import BaseCommand, EStop, Heartbeat, Message, OccupancyGrid, Plan, State, Task, model_for_key
 from services.view import geometry as geo
 
 if TYPE_CHECKING:
@@ -44,6 +49,63 @@ SCENE_SCHEMAS = {
     "plan": "SceneUpdate",
     "events": "Log",
 }
+
+
+# which scene topics (names as in SCENE_SCHEMAS) each message model feeds; a model not named feeds none. The task feeds
+# the plan too: the tightened lane bounds and the inflated obstacles are drawn from it.
+_FEEDS: dict[type[Message], frozenset[str]] = {
+    State: frozenset({"tf", "pose", "robot"}),
+    Plan: frozenset({"plan"}),
+    Task: frozenset({"task", "plan", "events"}),
+    OccupancyGrid: frozenset({"task"}),
+    EStop: frozenset({"events"}),
+    BaseCommand: frozenset({"events"}),
+    Heartbeat: frozenset({"events"}),
+}
+
+
+def scene_feeds(key: str) -> frozenset[str]:
+    """The scene topics (names after `scene/<robot>/`) that messages on `key` feed: a key none of whose topics is
+    read need not be decoded for the scene. Only the estimated state (`.../state`) draws the robot, not the raw
+    odometry."""
+    try:
+        model = model_for_key(key)
+    except KeyError:
+        return frozenset()
+    if model is State and not key.endswith("/state"):
+        return frozenset()
+    return _FEEDS.get(model, frozenset())
+
+
+@dataclass
+class SceneOptions(geo.Decimation):
+    """The shared decimation (`geometry.Decimation`, as rerun's) and what only the Foxglove scene bounds."""
+
+    plan_hz: float = 5.0  # draw the plan's scene (nominal, ellipses, bounds, rollouts) at most this often [1/s]
+    samples_every: int = 1  # the rollouts of every drawn plan: plan_hz bounds them already (rerun's 5 Hz at 10 Hz)
+
+
+class RateLimit:
+    """At most `hz` accepted stamps a second, on a grid of 1/hz from the first: a stamp is accepted from a quarter
+    period before its slot on (so a 10 Hz stream with jitter halves evenly to 5 Hz), and the grid restarts after a
+    gap of a period or a stamp that goes back (a new run, a replay looped). Over any span T [s] at most
+    T * hz + 2 are accepted; `hz` <= 0 accepts every stamp."""
+
+    def __init__(self, hz: float) -> None:
+        self.period_ns = int(1e9 / hz) if hz > 0 else 0
+        self._due: int | None = None
+
+    def __call__(self, stamp_ns: int) -> bool:
+        if self.period_ns == 0:
+            return True
+        due = self._due
+        if due is None or stamp_ns < due - 2 * self.period_ns or stamp_ns >= due + self.period_ns:
+            self._due = stamp_ns + self.period_ns
+            return True
+        if stamp_ns >= due - self.period_ns // 4:
+            self._due = due + self.period_ns
+            return True
+        return False
 
 
 def scene_topic(robot: str, name: str) -> str:
@@ -76,7 +138,8 @@ class SceneMessage:
     stamp_ns: int
 
 
-def _robot(key: str) -> str:
+def robot_of(key: str) -> str:
+    """The robot a `gpmppi/<robot>/...` key belongs to."""
     parts = key.split("/")
     return parts[1] if len(parts) >= 3 and parts[0] == "gpmppi" else "robot"
 
@@ -91,7 +154,9 @@ class FoxgloveSceneMapper:
         self.fm = fm
         self._timestamp = Timestamp
         self._forever = Duration(0, 0)
-        self.opt = options or geo.Decimation()
+        self.opt = options or SceneOptions()
+        self.plan_hz = self.opt.plan_hz if isinstance(self.opt, SceneOptions) else SceneOptions.plan_hz
+        self._plan_rate: dict[str, RateLimit] = {}
         self.task: dict[str, Task] = {}
         self._paths: dict[str, geo.PathStrips] = {}
         self._plans: dict[str, int] = {}
@@ -111,7 +176,8 @@ class FoxgloveSceneMapper:
     def _line(self, points: np.ndarray, layer: str, color: Sequence[int] | np.ndarray | None = None) -> Any:
         style = geo.LAYERS[layer]
         z = style.order / 1000.0
-        pts = [self.fm.Point3(x=float(x), y=float(y), z=z) for x, y in np.asarray(points, dtype=np.float64)[:, :2]]
+        point = self.fm.Point3  # the list of floats first: a numpy scalar per coordinate costs as much as the point
+        pts = [point(x=x, y=y, z=z) for x, y in np.asarray(points, dtype=np.float64)[:, :2].tolist()]
         rgba = color if color is not None else style.color
         assert rgba is not None and style.radius is not None
         return self.fm.LinePrimitive(
@@ -144,18 +210,26 @@ class FoxgloveSceneMapper:
         return SceneMessage(scene_topic(robot, "events"), "foxglove.Log", msg.encode(), stamp_ns)
 
     # ---- messages ---------------------------------------------------------------------------------------------
-    def map(self, key: str, msg: Message, fallback_ns: int) -> list[SceneMessage]:
-        """The scene messages for one message received on `key` (`fallback_ns` when its header has no stamp)."""
+    def map(
+        self, key: str, msg: Message, fallback_ns: int, wanted: Collection[str] | None = None
+    ) -> list[SceneMessage]:
+        """The scene messages for one message received on `key` (`fallback_ns` when its header has no stamp): only
+        those on the scene topics named in `wanted` (names after `scene/<robot>/`; None: every topic). A topic left
+        out costs nothing and keeps no state (a driven path, a plan count), as if its messages had not come."""
         t = msg.header.stamp_ns or fallback_ns
-        robot = _robot(key)
+        robot = robot_of(key)
+        if wanted is None:
+            wanted = SCENE_SCHEMAS
         if isinstance(msg, State):
-            return self._state(robot, msg, t) if key.endswith("/state") else []
+            return self._state(robot, msg, t, wanted) if key.endswith("/state") else []
         if isinstance(msg, Plan):
-            return self._plan(robot, msg, t)
+            return self._plan(robot, msg, t) if "plan" in wanted else []
         if isinstance(msg, Task):
-            return self._task(robot, msg, t)
+            return self._task(robot, msg, t, wanted)
         if isinstance(msg, OccupancyGrid):
-            return self._costmap(robot, msg, t)
+            return self._costmap(robot, msg, t) if "task" in wanted else []
+        if "events" not in wanted:
+            return []
         if isinstance(msg, EStop):
             if msg.engaged != self._estop.get(robot):
                 self._estop[robot] = msg.engaged
@@ -177,10 +251,33 @@ class FoxgloveSceneMapper:
                 return [self._log(robot, t, text, level)]
         return []
 
-    def _state(self, robot: str, msg: State, t: int) -> list[SceneMessage]:
+    def _state(self, robot: str, msg: State, t: int, wanted: Collection[str]) -> list[SceneMessage]:
         fm = self.fm
         half = msg.theta / 2.0
         rotation = fm.Quaternion(x=0.0, y=0.0, z=float(np.sin(half)), w=float(np.cos(half)))
+        out = []
+        if "tf" in wanted:
+            out.append(self._tf(robot, msg, t, rotation))
+        if "pose" in wanted:
+            pose = fm.PoseInFrame(
+                timestamp=self._ts(t),
+                frame_id=MAP_FRAME,
+                pose=fm.Pose(position=fm.Vector3(x=msg.x, y=msg.y, z=0.0), orientation=rotation),
+            )
+            out.append(SceneMessage(scene_topic(robot, "pose"), "foxglove.PoseInFrame", pose.encode(), t))
+        if "robot" in wanted:
+            path = self._paths.setdefault(robot, geo.PathStrips(self.opt.path_chunk))
+            index, points = path.add(msg.x, msg.y)
+            outline = geo.robot_outline(msg.x, msg.y, msg.theta)
+            entities = [self._entity("robot", t, lines=[self._line(outline, "robot")])]
+            if len(points) >= 2:
+                strip = self._line(np.asarray(points), "path")
+                entities.append(self._entity(f"driven_path/{index:05d}", t, lines=[strip]))
+            out.append(self._update(scene_topic(robot, "robot"), t, entities))
+        return out
+
+    def _tf(self, robot: str, msg: State, t: int, rotation: Any) -> SceneMessage:
+        fm = self.fm
         tf = fm.FrameTransforms(
             transforms=[
                 fm.FrameTransform(
@@ -192,38 +289,29 @@ class FoxgloveSceneMapper:
                 )
             ]
         )
-        pose = fm.PoseInFrame(
-            timestamp=self._ts(t),
-            frame_id=MAP_FRAME,
-            pose=fm.Pose(position=fm.Vector3(x=msg.x, y=msg.y, z=0.0), orientation=rotation),
-        )
-        path = self._paths.setdefault(robot, geo.PathStrips(self.opt.path_chunk))
-        index, points = path.add(msg.x, msg.y)
-        entities = [self._entity("robot", t, lines=[self._line(geo.robot_outline(msg.x, msg.y, msg.theta), "robot")])]
-        if len(points) >= 2:
-            entities.append(self._entity(f"driven_path/{index:05d}", t, lines=[self._line(np.asarray(points), "path")]))
-        return [
-            SceneMessage(scene_topic(robot, "tf"), "foxglove.FrameTransforms", tf.encode(), t),
-            SceneMessage(scene_topic(robot, "pose"), "foxglove.PoseInFrame", pose.encode(), t),
-            self._update(scene_topic(robot, "robot"), t, entities),
-        ]
+        return SceneMessage(scene_topic(robot, "tf"), "foxglove.FrameTransforms", tf.encode(), t)
 
     def _costmap(self, robot: str, msg: OccupancyGrid, t: int) -> list[SceneMessage]:
         """A grid's lethal cells as flat cubes on the task's topic (sent with every grid message, as the task is)."""
         centres, half = geo.lethal_cells(msg)
         style = geo.LAYERS["costmap"]
         q = self.fm.Quaternion(x=0.0, y=0.0, z=float(np.sin(msg.origin_yaw / 2)), w=float(np.cos(msg.origin_yaw / 2)))
-        cubes = [self.fm.CubePrimitive(pose=self.fm.Pose(position=self.fm.Vector3(x=float(x), y=float(y), z=0.05),
-                                                         orientation=q),
-                                       size=self.fm.Vector3(x=2 * half, y=2 * half, z=0.1),
-                                       color=self._color(style.color or (200, 40, 40)))
-                 for x, y in centres]
+        cubes = [
+            self.fm.CubePrimitive(
+                pose=self.fm.Pose(position=self.fm.Vector3(x=float(x), y=float(y), z=0.05), orientation=q),
+                size=self.fm.Vector3(x=2 * half, y=2 * half, z=0.1),
+                color=self._color(style.color or (200, 40, 40)),
+            )
+            for x, y in centres
+        ]
         return [self._update(scene_topic(robot, "task"), t, [self._entity("costmap", t, cubes=cubes)])]
 
-    def _task(self, robot: str, msg: Task, t: int) -> list[SceneMessage]:
+    def _task(self, robot: str, msg: Task, t: int, wanted: Collection[str]) -> list[SceneMessage]:
         previous = self.task.get(robot)
         changed = previous is None or previous.model_dump(exclude={"header"}) != msg.model_dump(exclude={"header"})
-        self.task[robot] = msg
+        self.task[robot] = msg  # kept whatever is read: the plan's bounds are drawn from it
+        if "task" not in wanted and "events" not in wanted:
+            return []
         # sent with every task message (the planner re-publishes it once a second), so a client that connects late,
         # or a recording opened in the middle, shows the map within a second
         if msg.kind == "lane":
@@ -255,8 +343,10 @@ class FoxgloveSceneMapper:
                 entities.append(self._entity("goal", t, lines=[self._line(goal, "goal")]))
             gone = ["lane/edges", "lane/centre"] + (["goal"] if goal is None else [])
             text = f"task: goal {msg.goal}, {len(msg.obstacles)} obstacles"
-        out = [self._update(scene_topic(robot, "task"), t, entities, gone if changed else [])]
-        if changed:
+        out = (
+            [self._update(scene_topic(robot, "task"), t, entities, gone if changed else [])] if "task" in wanted else []
+        )
+        if changed and "events" in wanted:
             out.append(self._log(robot, t, text if previous is None else "task changed: " + text))
         return out
 
@@ -264,6 +354,8 @@ class FoxgloveSceneMapper:
         if msg.header.seq < self._plan_seq.get(robot, -1):  # a new planner process counts from 0 again
             self._plans[robot] = 0
         self._plan_seq[robot] = msg.header.seq
+        if not self._plan_rate.setdefault(robot, RateLimit(self.plan_hz))(t):
+            return []
         plans = self._plans[robot] = self._plans.get(robot, 0) + 1
         entities = []
         states = geo.plan_states(msg)
