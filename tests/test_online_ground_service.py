@@ -9,13 +9,22 @@ from pathlib import Path
 
 import numpy as np
 from test_online_ground import _model, drive
-from zenoh_helpers import Collector, ServiceProcess, client, free_port, router, settings, wait_for
+from zenoh_helpers import (
+    Collector,
+    ServiceProcess,
+    client,
+    free_port,
+    put_state_and_base_command,
+    router,
+    settings,
+    wait_for,
+)
 
 from gpmppi.gp.model_file import GPModel
 from gpmppi.gp.online_ground import LearnSettings
 from gpmppi.gp.profile_store import file_sha256, save_profile
 from gpmppi.terrain.learning import FitJob
-from schemas import BaseCommand, GroundLearn, ModelUpdate, State, TerrainWeights, decode, encode
+from schemas import GroundLearn, ModelUpdate, State, TerrainWeights, decode, encode
 from services.terrain_learning import run_fit
 
 
@@ -40,12 +49,7 @@ def test_terrain_service_learns_a_ground_and_announces_the_new_model(tmp_path: P
             def step() -> None:
                 nonlocal t_ns
                 x, u, _ = next(rows)
-                state = State(x=x[0], y=x[1], theta=x[2], v=x[3], omega=x[4])
-                state.header.stamp_ns = t_ns
-                state_pub.put(encode(state))
-                cmd = BaseCommand(v=u[0], omega=u[1])
-                cmd.header.stamp_ns = t_ns
-                cmd_pub.put(encode(cmd))
+                put_state_and_base_command(state_pub, cmd_pub, x, u, t_ns)
                 t_ns += 100_000_000
 
             def weights() -> list[TerrainWeights]:

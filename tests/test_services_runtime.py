@@ -13,9 +13,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from zenoh_helpers import REPO, Collector, ServiceProcess, client, endpoint, free_port, router, settings, wait_for
+from zenoh_helpers import (
+    REPO,
+    Collector,
+    ServiceProcess,
+    client,
+    endpoint,
+    free_port,
+    put_state_and_base_command,
+    router,
+    settings,
+    wait_for,
+)
 
-from schemas import BaseCommand, Command, State, TerrainWeights, decode, encode
+from schemas import Command, State, TerrainWeights, decode
 from services.runtime.node import Node
 from services.runtime.node_settings import NodeSettings, ZenohSettings
 
@@ -111,12 +122,7 @@ def test_terrain_comes_up_with_the_prior_then_solves_from_stamp_paired_commands(
             def step() -> bool:
                 # states at dt = 0.1 s moved by the nominal model; the command for each state carries its stamp
                 nonlocal x, t_ns
-                state = State(x=x[0], y=x[1], theta=x[2], v=x[3], omega=x[4])
-                state.header.stamp_ns = t_ns
-                state_pub.put(encode(state))
-                cmd = BaseCommand(v=u[0], omega=u[1])
-                cmd.header.stamp_ns = t_ns
-                cmd_pub.put(encode(cmd))
+                put_state_and_base_command(state_pub, cmd_pub, x, u, t_ns)
                 v, w = velocity_step_exact(model.theta, x[3:4].copy(), x[4:5].copy(), u[0:1].copy(), u[1:2].copy(), 0.1)
                 x = np.array([x[0], x[1], x[2], v[0], w[0]])
                 t_ns += 100_000_000

@@ -19,7 +19,7 @@ from pathlib import Path
 import yaml
 import zenoh
 
-from schemas import Heartbeat, decode
+from schemas import BaseCommand, Heartbeat, State, decode, encode
 from services.runtime.node_settings import ZenohSettings
 
 REPO = Path(__file__).resolve().parents[1]
@@ -75,6 +75,19 @@ def matched_publisher(session: zenoh.Session, key: str, **kwargs) -> zenoh.Publi
     pub = session.declare_publisher(key, **kwargs)
     assert wait_for(lambda: pub.matching_status.matching, 15.0), f"no subscriber for {key}"
     return pub
+
+
+def put_state_and_base_command(
+    state_pub: zenoh.Publisher, cmd_pub: zenoh.Publisher, x, u, stamp_ns: int
+) -> None:
+    """Publish the state `x` (x, y, theta, v, omega) and the base command `u` (v, omega) applied from it, both stamped
+    `stamp_ns` (how ingress and egress pair them for the terrain service)."""
+    state = State(x=x[0], y=x[1], theta=x[2], v=x[3], omega=x[4])
+    state.header.stamp_ns = stamp_ns
+    state_pub.put(encode(state))
+    cmd = BaseCommand(v=u[0], omega=u[1])
+    cmd.header.stamp_ns = stamp_ns
+    cmd_pub.put(encode(cmd))
 
 
 def wait_for(predicate: Callable[[], bool], timeout: float, step: float = 0.02) -> bool:
