@@ -1,10 +1,10 @@
 """Replay a stack recording's states and commands through the in-process terrain cycle, step by step.
 
-    python -m tools.stack_terrain runs/asphalt.mcap [--json]
+    python -m tools.stack_terrain runs/asphalt.mcap [--json] [--profile robot.npz]
 
 From the log: states, the planner's commands (`cmd`), what the base received (`base/cmd`, with the recorder's
 arrival time), the terrain service's published weights and the sim's terrain label. Replays, each a fresh
-`TerrainCycle` with the shipped model and the default estimator:
+`TerrainCycle` with the robot profile (`--profile`; default the shipped Jackal's) and the default estimator:
 
 - `stack`: `command_source: base_cmd`, `pairing: stamp`: what the terrain service ran before `pairing: applied`
   became the default (set `pairing: stamp` in the launch to check a new log against it); its weights are compared
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
-from gpmppi.gp.model_file import load_default_model
+from gpmppi.gp.model_file import GPModel, load_default_model
 from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig
 from gpmppi.terrain.estimator import make_estimator
 from gpmppi.terrain.settings import EstimatorConfig
@@ -51,9 +51,9 @@ def load(path: Path) -> dict:
     return out
 
 
-def replay(log: dict, config: TerrainCycleConfig, terrains: list[str]) -> dict[int, np.ndarray]:
+def replay(log: dict, config: TerrainCycleConfig, model: GPModel) -> dict[int, np.ndarray]:
     """Weights after each state (by stamp), the inputs fed in their recorded arrival order."""
-    model = load_default_model()
+    terrains = list(model.terrains)
     cycle = TerrainCycle(config, len(terrains), make_estimator(model, EstimatorConfig()))
     events = [(ns, 0, s) for s, ns, _ in log["states"]]
     source = log["base"] if config.command_source == "base_cmd" else log["cmds"]
@@ -87,9 +87,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.stack_terrain", description=__doc__.split("\n")[0])
     parser.add_argument("log", type=Path)
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--profile", type=Path, help="robot profile the stack ran with (default: the shipped one)")
     args = parser.parse_args(argv)
     log = load(args.log)
-    terrains = list(load_default_model().terrains)
+    model = load_default_model() if args.profile is None else GPModel.load(args.profile)
+    terrains = list(model.terrains)
     stamps = [s for s, _, _ in log["states"]]
     labels = log["labels"]
     truth = []
@@ -110,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     configs = (("stack", TerrainCycleConfig(pairing="stamp")), ("cmd", TerrainCycleConfig(command_source="cmd")),
                ("applied", TerrainCycleConfig(pairing="applied")))
     for name, cfg in configs:
-        w = replay(log, cfg, terrains)
+        w = replay(log, cfg, model)
         result[name] = scores(stamps, w, truth, terrains)
         if name == "stack":
             both = [s for s in stamps if s in w and s in recorded]
