@@ -26,7 +26,8 @@ import numpy as np
 from pydantic import Field, ValidationError
 
 from gpmppi.mppi.config import PlannerConfig  # not the planner module: run() imports it alongside the model load
-from gpmppi.mppi.cycle import CycleConfig, Event, Planned, PlannerCycle
+from gpmppi.mppi.cycle import Event, Planned, PlannerCycle
+from gpmppi.mppi.cycle_config import CycleConfig
 from schemas import Command, DecodeError, OccupancyGrid, Plan, State, decode
 from services.codec.convert import (
     costmap_from_message,

@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from gpmppi.gp.model_file import load_default_model
-from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle
+from gpmppi.mppi.cycle import Planned, PlannerCycle
+from gpmppi.mppi.cycle_config import CycleConfig
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.scenarios import circle_lane
 from gpmppi.tasks import LaneTask

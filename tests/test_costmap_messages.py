@@ -116,7 +116,8 @@ def test_the_planner_service_plans_among_a_grid_and_refuses_bad_ones(tmp_path: P
 
 
 def test_a_new_grid_keeps_the_warm_start_and_is_prepared_between_states() -> None:
-    from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle
+    from gpmppi.mppi.cycle import Planned, PlannerCycle
+    from gpmppi.mppi.cycle_config import CycleConfig
     from gpmppi.mppi.planner import Planner, PlannerConfig
     from gpmppi.mppi.synthetic import synthetic_model
     from gpmppi.scenarios import paper_obstacle_scene

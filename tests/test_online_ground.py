@@ -171,7 +171,8 @@ def test_a_failing_write_leaves_the_old_profile_byte_identical(tmp_path, monkeyp
 
 def test_the_planner_cycle_takes_the_learned_model_between_plans() -> None:
     from gpmppi.mppi.config import PlannerConfig
-    from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle
+    from gpmppi.mppi.cycle import Planned, PlannerCycle
+    from gpmppi.mppi.cycle_config import CycleConfig
     from gpmppi.mppi.planner import Planner
     from gpmppi.tasks import LaneTask
 

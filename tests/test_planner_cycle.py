@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from gpmppi.mppi.cycle import CycleConfig, Event, Planned, PlannerCycle
+from gpmppi.mppi.cycle import Event, Planned, PlannerCycle
+from gpmppi.mppi.cycle_config import CycleConfig
 from gpmppi.tasks import GoalTask, LaneTask
 
 NS = 1_000_000_000

@@ -24,7 +24,8 @@ from zenoh_helpers import (
 )
 
 from gpmppi.mppi import kernel_cache
-from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle
+from gpmppi.mppi.cycle import Planned, PlannerCycle
+from gpmppi.mppi.cycle_config import CycleConfig
 from schemas import Command, Header, State, decode, encode
 
 NOTICE = "compiling planner kernels for gp/grid on cpu (not cached yet"

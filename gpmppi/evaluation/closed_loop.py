@@ -33,7 +33,8 @@ import numpy as np
 
 from gpmppi.evaluation.command_path import CommandPath
 from gpmppi.evaluation.task_runs import run_for
-from gpmppi.mppi.cycle import CycleConfig, Planned, PlannerCycle, PlannerLike
+from gpmppi.mppi.cycle import Planned, PlannerCycle, PlannerLike
+from gpmppi.mppi.cycle_config import CycleConfig
 from gpmppi.safety import SafetyConfig
 from gpmppi.tasks import Task
 from gpmppi.terrain.cycle import TerrainCycleConfig
