@@ -17,7 +17,9 @@ from services.runtime.node_settings import NodeSettings
 
 class TerrainSwitch(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    at_s: float = Field(ge=0, allow_inf_nan=False, description="time from the sim's start [s]")
+    # from the first moving command, not the sim's start: a planner that compiles its kernels on a cold start takes
+    # tens of seconds, and a switch timed from the start would then come before the robot drives at all
+    at_s: float = Field(ge=0, allow_inf_nan=False, description="time from the first command that moves the robot [s]")
     terrain: str = Field(description="the ground from then on (a name in the terrain file)")
 
 
@@ -39,9 +41,9 @@ class Settings(NodeSettings):
     )
     frame_id: str = Field("odom", description="frame of the published pose")
     terrain_switches: list[TerrainSwitch] = Field(
-        default_factory=list, description="the ground changes mid-run, in time order: at `at_s` after the sim's "
-        "start the plant's ground becomes `terrain` (a name in the terrain file; it may be one the robot profile "
-        "lacks: new ground is what it is for)"
+        default_factory=list, description="the ground changes mid-run, in time order: `at_s` after the first "
+        "command that moves the robot the plant's ground becomes `terrain` (a name in the terrain file; it may be one "
+        "the robot profile lacks: new ground is what it is for)"
     )
 
     @field_validator("terrain_switches")
@@ -88,23 +90,26 @@ def run(settings: Settings) -> int:
         command = np.zeros(2)
         command_time = -np.inf
         tick = 0
-        next_tick = start = time.monotonic()
+        next_tick = time.monotonic()
         switches = list(settings.terrain_switches)
+        driving_since: float | None = None  # the schedule's clock: the first command that moves the robot
         while node.ok():
             msg = base_cmd.take()
             if msg is not None:
                 command = np.array([msg.v, msg.omega])
                 command_time = time.monotonic()
+                if driving_since is None and np.any(command != 0.0):
+                    driving_since = next_tick
             delay = next_tick - time.monotonic()
             if delay > 0.0:  # wait for the tick (a command arriving meanwhile wakes us; it applies from the tick)
                 node.spin_once(delay)
                 continue
             if time.monotonic() - command_time > settings.command_timeout_s:
                 command = np.zeros(2)  # the base's own safety: no fresh command, no motion
-            while switches and next_tick - start >= switches[0].at_s:
+            while switches and driving_since is not None and next_tick - driving_since >= switches[0].at_s:
                 switch = switches.pop(0)
-                node.log.info("ground switched from %r to %r at %.1f s (schedule)", plant.terrain, switch.terrain,
-                              next_tick - start)
+                node.log.info("ground switched from %r to %r, %.1f s after the first moving command (schedule)",
+                              plant.terrain, switch.terrain, next_tick - driving_since)
                 plant.set_terrain(switch.terrain)
             if tick % publish_every == 0:
                 stamp = time.time_ns()
