@@ -145,8 +145,8 @@ def check_profile_grounds(launch: LaunchFile, path: str | Path) -> list[str]:
             from services.run import settings_class
 
             named = [str(e.config.get("terrain", settings_class("sim").model_fields["terrain"].default))]
-            notes += [f"service {e.name!r} switches to ground {s.get('terrain')!r} at {s.get('at_s')} s, which the "
-                      "profile lacks: new ground" for s in e.config.get("terrain_switches") or []
+            notes += [f"service {e.name!r} switches to ground {s.get('terrain')!r} {s.get('at_s')} s into the drive, "
+                      "which the profile lacks: new ground" for s in e.config.get("terrain_switches") or []
                       if e.enabled and isinstance(s, dict) and s.get("terrain") not in grounds]
         elif kind == "terrain":
             named = [str(t) for t in ((e.config.get("estimator") or {}).get("command_gains") or {})]
