@@ -91,3 +91,37 @@ def test_the_demo_launch_file_switches_to_a_ground_its_profile_lacks(tmp_path: P
     launch_file.write_text(yaml.safe_dump(demo))
     with pytest.raises(LaunchFileError, match="names ground 'sand', which the profile"):
         check_profile_grounds(load_launch(launch_file)[0], launch_file)
+
+
+def test_the_timeline_reads_the_change_the_detection_the_update_and_the_rmse(tmp_path: Path) -> None:
+    """tools.new_ground_timeline on a recording made here (10 Hz, 30 s): the numbers it reports come from it."""
+    from gpmppi.scenarios import lane_scenario
+    from schemas import ModelUpdate, TerrainWeights
+    from services.recording.mcap_io import McapWriter
+    from tools.new_ground_timeline import timeline
+
+    centre = np.asarray(lane_scenario("circle").task.centerline)
+    path = tmp_path / "ng.mcap"
+    with McapWriter(path) as w:
+        for i in range(300):
+            t, ns = i / 10, 10**9 + i * 10**8
+            ground = "asphalt" if t < 10 else "sand"
+            w.write("gpmppi/jackal/terrain/label", TerrainLabel(terrain=ground), ns)
+            # on the centre line, 20 mm off it on the new ground before the update
+            off = 0.02 if 10 <= t < 20 else 0.0
+            p = centre[i % len(centre)] * (1 + off / np.linalg.norm(centre[i % len(centre)]))
+            w.write("gpmppi/jackal/odom/raw", State(x=p[0], y=p[1], theta=0, v=1.0 if t >= 1 else 0.0, omega=0), ns)
+            learned = t >= 20
+            names = ["asphalt", "grass", "tile", *(["new-1"] if learned else [])]
+            weights = [0.0, 0.1, 0.0, 0.9] if learned else [1.0, 0.0, 0.0]
+            w.write("gpmppi/jackal/terrain/weights", TerrainWeights(
+                names=names, weights=weights, unknown=0.9 if 11 <= t < 20 else 0.0), ns)
+            if i == 200:
+                w.write("gpmppi/jackal/model", ModelUpdate(version=1, path="p.npz", sha256="0" * 64, grounds=names,
+                                                           learned="new-1", samples=90), ns)
+    r = timeline(path)
+    assert (r["ground_changed_s"], r["new_ground"], r["first_unknown_over_half_s"]) == (10.0, "sand", 11.0), r
+    assert (r["model_update_s"], r["learned"], r["first_weights_naming_it_s"]) == (20.0, "new-1", 20.0), r
+    assert r["learned_weight_final"] == 0.9 and r["rmse_before_mm"] == pytest.approx(0.0, abs=0.5), r
+    assert r["rmse_new_before_update_mm"] == pytest.approx(20.0, abs=1.0), r
+    assert r["rmse_after_update_mm"] == pytest.approx(0.0, abs=0.5), r
