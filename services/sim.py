@@ -1,17 +1,26 @@
 """sim: the simulated robot. Steps the physics plant in real time with the newest `base/cmd`,
-publishes the measured state on `odom/raw` at `publish_hz` and the true terrain on `terrain/label`."""
+publishes the measured state on `odom/raw` at `publish_hz` and the true terrain on `terrain/label`; its
+`terrain_switches` change the ground mid-run (new ground in a running stack: docs/new_ground.md)."""
 
 from __future__ import annotations
 
 import time
 
 import numpy as np
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from schemas import TerrainLabel
 from services.codec.convert import state_from_array
 from services.runtime.node import Node
 from services.runtime.node_settings import NodeSettings
+
+
+class TerrainSwitch(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    # from the first moving command, not the sim's start: a planner that compiles its kernels on a cold start takes
+    # tens of seconds, and a switch timed from the start would then come before the robot drives at all
+    at_s: float = Field(ge=0, allow_inf_nan=False, description="time from the first command that moves the robot [s]")
+    terrain: str = Field(description="the ground from then on (a name in the terrain file)")
 
 
 class Settings(NodeSettings):
@@ -31,6 +40,29 @@ class Settings(NodeSettings):
         "Jackal's ROS 1 cmd_vel_timeout; egress repeats its output at rate_hz, well inside it)"
     )
     frame_id: str = Field("odom", description="frame of the published pose")
+    terrain_switches: list[TerrainSwitch] = Field(
+        default_factory=list, description="the ground changes mid-run, in time order: `at_s` after the first "
+        "command that moves the robot the plant's ground becomes `terrain` (a name in the terrain file; it may be one "
+        "the robot profile lacks: new ground is what it is for)"
+    )
+
+    @field_validator("terrain_switches")
+    @classmethod
+    def _switches_known(cls, switches: list[TerrainSwitch], info: ValidationInfo) -> list[TerrainSwitch]:
+        # checked against the terrain set when the launch file is read, not at the switch, minutes into a run
+        if not switches:
+            return switches
+        times = [s.at_s for s in switches]
+        if times != sorted(times):
+            raise ValueError(f"switch times {times} are not in time order; list the switches by `at_s`")
+        from gpmppi.plant.terrains import load_terrains
+
+        names = load_terrains(info.data.get("terrain_file")).names
+        for s in switches:
+            if s.terrain not in names:
+                raise ValueError(f"switch at {s.at_s:g} s names ground {s.terrain!r}, which the terrain set lacks "
+                                 f"(its grounds: {names}); name one of them or give a terrain_file that has it")
+        return switches
 
 
 def initial_state(settings: Settings) -> np.ndarray:
@@ -59,23 +91,32 @@ def run(settings: Settings) -> int:
         command_time = -np.inf
         tick = 0
         next_tick = time.monotonic()
+        switches = list(settings.terrain_switches)
+        driving_since: float | None = None  # the schedule's clock: the first command that moves the robot
         while node.ok():
             msg = base_cmd.take()
             if msg is not None:
                 command = np.array([msg.v, msg.omega])
                 command_time = time.monotonic()
+                if driving_since is None and np.any(command != 0.0):
+                    driving_since = next_tick
             delay = next_tick - time.monotonic()
             if delay > 0.0:  # wait for the tick (a command arriving meanwhile wakes us; it applies from the tick)
                 node.spin_once(delay)
                 continue
             if time.monotonic() - command_time > settings.command_timeout_s:
                 command = np.zeros(2)  # the base's own safety: no fresh command, no motion
+            while switches and driving_since is not None and next_tick - driving_since >= switches[0].at_s:
+                switch = switches.pop(0)
+                node.log.info("ground switched from %r to %r, %.1f s after the first moving command (schedule)",
+                              plant.terrain, switch.terrain, next_tick - driving_since)
+                plant.set_terrain(switch.terrain)
             if tick % publish_every == 0:
                 stamp = time.time_ns()
                 measured = plant.measure()
                 if np.all(np.isfinite(measured)):
                     odom.put(state_from_array(measured, stamp, settings.frame_id))
-                    terrain_label = TerrainLabel(terrain=settings.terrain)
+                    terrain_label = TerrainLabel(terrain=plant.terrain)
                     terrain_label.header.stamp_ns = stamp
                     label.put(terrain_label)
                     node.cycle()

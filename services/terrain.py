@@ -111,8 +111,8 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
             resumed = None if cycle.estimator is not None else resumed
             # new ground noticed (the novelty test's P(unknown), held above the threshold) starts the learning too
             if sent is not None and learner.path is not None:
-                if (started := learning.on_unknown(sent.unknown, time.monotonic())) is not None:
-                    node.log.info("ground unknown for %.1f s: %s", settings.learn.unknown_hold_s, started)
+                if (line := learning.on_unknown(sent.unknown, time.monotonic())) is not None:
+                    node.log.info(line)
             if (started := learner.submit_ready()) is not None:
                 node.log.info(started)
     finally:

@@ -124,8 +124,8 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     assert summary.restarts == {} and summary.failed == []
     # the recording holds every registered key (health for each service)
     recorded = {key for key, _, _ in read_messages(record)}
-    # (a costmap is published only with a goal task among a grid; this launch drives a lane; a ground to learn and
-    # the model that learned it only when a new ground is met)
+    # (a costmap is published only with a goal task among a grid; this launch drives a lane; a learn request and a
+    # model update only when a ground is learned: tests/test_online_ground_service.py, deploy/new_ground_demo.yaml)
     expected = {key_for(name) for name in KEYS if name not in ("health", "costmap", "ground_learn", "model_update")}
     expected |= {key_for("health", service=s) for s in SERVICES}
     assert expected <= recorded, f"missing from the MCAP: {expected - recorded}"

@@ -199,6 +199,24 @@ def test_the_planner_cycle_takes_the_learned_model_between_plans() -> None:
     assert not cycle.on_weights([0.5, 0.3, 0.2], 0.2, names=list(model.terrains))
 
 
+def test_a_collection_unknown_ground_started_is_dropped_when_the_ground_is_known_again() -> None:
+    """A transient (a start from rest in the running stack) held `unknown` for 3 s on a trained ground: what it
+    collected is no new ground, and learning starts over when new ground comes. A requested collection is kept."""
+    from gpmppi.terrain.learning import GroundLearning, LearnConfig
+
+    learning = GroundLearning(_model(), LearnConfig(steps=50, unknown_threshold=0.5, unknown_hold_s=3.0))
+    assert learning.on_unknown(0.9, 0.0) is None and "learning ground 'new-1'" in learning.on_unknown(0.9, 3.0)
+    assert learning.on_unknown(0.1, 4.0) is None and learning.on_unknown(0.9, 5.0) is None  # not known for long
+    assert learning.on_unknown(0.1, 6.0) is None and learning.phase == "collecting"
+    dropped = learning.on_unknown(0.1, 9.0)
+    assert learning.phase == "idle" and dropped is not None and "learning 'new-1' dropped (0 steps" in dropped
+    assert learning.on_unknown(0.9, 20.0) is None and "'new-1'" in learning.on_unknown(0.9, 23.0)  # new ground
+    requested = GroundLearning(_model(), LearnConfig(steps=50, unknown_hold_s=3.0))
+    requested.start("dune")
+    assert requested.on_unknown(0.1, 0.0) is None and requested.on_unknown(0.1, 10.0) is None
+    assert requested.phase == "collecting" and requested.name == "dune"
+
+
 def test_learning_starts_on_request_or_after_unknown_ground_and_hands_out_one_fit() -> None:
     from gpmppi.terrain.learning import GroundLearning, LearnConfig, TeeEstimator
 
@@ -206,7 +224,7 @@ def test_learning_starts_on_request_or_after_unknown_ground_and_hands_out_one_fi
     learning = GroundLearning(model, LearnConfig(steps=50, unknown_threshold=0.5, unknown_hold_s=3.0))
     assert learning.on_unknown(0.9, 10.0) is None and learning.on_unknown(0.2, 12.0) is None  # not for long
     assert learning.on_unknown(0.9, 13.0) is None and learning.phase == "idle"
-    assert learning.on_unknown(0.8, 16.0) == "learning ground 'new-1': collecting 50 steps"
+    assert learning.on_unknown(0.8, 16.0) == "ground unknown for 3.0 s: learning ground 'new-1': collecting 50 steps"
     assert "already learning 'new-1'" in learning.start("mud")
     tee = TeeEstimator(make_estimator(model, EstimatorConfig()), learning)
     for row in drive(model, 49, seed=3):

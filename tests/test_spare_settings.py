@@ -34,6 +34,25 @@ def test_changed_since_loaded_names_the_fields_that_differ(tmp_path: Path) -> No
     assert changed_since_loaded(IngressSettings()) == []  # not from a file: nothing to read again
 
 
+def test_a_rewritten_model_file_counts_as_changed(tmp_path: Path) -> None:
+    """The terrain service saves a learned ground over the profile: a spare that loaded the old one must not take
+    over with it (planner and terrain spares load the model before they wait)."""
+    from services.runtime.node_settings import NodeSettings
+
+    class WithModel(NodeSettings):
+        model_file: str | None = None
+
+    model = tmp_path / "profile.npz"
+    model.write_bytes(b"old profile")
+    path = tmp_path / "planner.yaml"
+    path.write_text(f"service: planner\nmodel_file: {model}\n")
+    loaded = WithModel.load(path)
+    assert changed_since_loaded(loaded) == []
+    model.write_bytes(b"profile with a learned ground")
+    assert changed_since_loaded(loaded) == ["model_file (the file was rewritten)"]
+    assert changed_since_loaded(WithModel.load(path)) == []  # a process started after the save has the new one
+
+
 def test_a_spare_whose_settings_changed_exits_at_its_go(tmp_path: Path) -> None:
     path = tmp_path / "ingress.yaml"
     _write(path, 10.0)

@@ -93,6 +93,8 @@ class GroundLearning:
         self.name = ""
         self.samples: GroundSamples | None = None
         self._unknown_since: float | None = None
+        self._known_since: float | None = None
+        self._auto = False  # the collection was started by unknown ground, not by a request
 
     def start(self, name: str = "") -> str:
         """Start collecting the ground under the robot as `name` ('' : the next `new-N`); what happened, in words."""
@@ -105,7 +107,7 @@ class GroundLearning:
             return f"ground name {name!r}: use 1-64 letters, digits, '_' or '-'; request ignored"
         if name in self.model.terrains:
             return f"ground {name!r} is already in the profile: request ignored; name the new ground differently"
-        self.phase, self.name = "collecting", name
+        self.phase, self.name, self._auto = "collecting", name, False
         self.samples = GroundSamples(self.model.theta, self.model.dt)
         return f"learning ground {name!r}: collecting {self.config.steps} steps"
 
@@ -117,14 +119,26 @@ class GroundLearning:
 
     def on_unknown(self, unknown: float, now: float) -> str | None:
         """The estimator's `unknown` probability at `now` [s]: starts learning once it stays above the threshold for
-        `unknown_hold_s`; the start's message, else None."""
+        `unknown_hold_s`, and drops a collection it started so once the probability stays at or below the threshold
+        as long (the ground was known after all: a transient, such as a start from rest, and not new ground; a
+        collection a request started is kept); what happened, in words, else None."""
+        hold = self.config.unknown_hold_s
         if unknown <= self.config.unknown_threshold:
             self._unknown_since = None
+            self._known_since = now if self._known_since is None else self._known_since
+            if self.phase == "collecting" and self._auto and now - self._known_since >= hold:
+                collected = 0 if self.samples is None else len(self.samples)
+                name, self.phase, self.samples, self._auto = self.name, "idle", None, False
+                return (f"ground known again for {hold:.1f} s: learning {name!r} dropped ({collected} steps "
+                        "collected), it was no new ground")
             return None
+        self._known_since = None
         if self._unknown_since is None:
             self._unknown_since = now
-        if self.phase == "idle" and now - self._unknown_since >= self.config.unknown_hold_s:
-            return self.start("")
+        if self.phase == "idle" and now - self._unknown_since >= hold:
+            started = self.start("")
+            self._auto = self.phase == "collecting"
+            return f"ground unknown for {hold:.1f} s: {started}"
         return None
 
     def observe(self, state: np.ndarray, command: np.ndarray, next_state: np.ndarray) -> None:

@@ -118,15 +118,16 @@ def profile_configs(launch: LaunchFile, entries: list[ServiceEntry]) -> list[Ser
             if (e.kind or e.name) in PROFILE_SERVICES else e for e in entries]
 
 
-def check_profile_grounds(launch: LaunchFile, path: str | Path) -> None:
+def check_profile_grounds(launch: LaunchFile, path: str | Path) -> list[str]:
     """LaunchFileError (one line) when the launch file's `profile` is not a readable profile, lacks the terrain
     calibration a terrain service's estimator needs, or a service names a ground it lacks: the sim's `terrain`, a
-    terrain service's `estimator.command_gains`."""
+    terrain service's `estimator.command_gains`. The sim's `terrain_switches` may name grounds the profile lacks
+    (new ground, which the terrain service notices and learns): each is returned as a note for the launch log."""
     from gpmppi.gp.model_file import GPModel, ModelFileError
     from gpmppi.terrain.settings import EstimatorConfig, profile_calibration
 
     if launch.profile is None:
-        return
+        return []
     try:
         model = GPModel.load(launch.profile)
         for e in launch.services:
@@ -136,6 +137,7 @@ def check_profile_grounds(launch: LaunchFile, path: str | Path) -> None:
     except (ModelFileError, ValueError) as exc:
         raise LaunchFileError(f"{path}: profile: {exc}") from None
     grounds = list(model.terrains)
+    notes: list[str] = []
     for e in launch.services:
         kind = e.kind or e.name
         named: list[str] = []
@@ -143,6 +145,9 @@ def check_profile_grounds(launch: LaunchFile, path: str | Path) -> None:
             from services.run import settings_class
 
             named = [str(e.config.get("terrain", settings_class("sim").model_fields["terrain"].default))]
+            notes += [f"service {e.name!r} switches to ground {s.get('terrain')!r} {s.get('at_s')} s into the drive, "
+                      "which the profile lacks: new ground" for s in e.config.get("terrain_switches") or []
+                      if e.enabled and isinstance(s, dict) and s.get("terrain") not in grounds]
         elif kind == "terrain":
             named = [str(t) for t in ((e.config.get("estimator") or {}).get("command_gains") or {})]
         for ground in named:
@@ -151,3 +156,4 @@ def check_profile_grounds(launch: LaunchFile, path: str | Path) -> None:
                     f"{path}: service {e.name!r} names ground {ground!r}, which the profile {launch.profile} lacks "
                     f"(its grounds: {grounds}); drive a ground the profile has, or fit one that has {ground!r} with "
                     "`gpmppi train`")
+    return notes

@@ -226,8 +226,9 @@ def run_launch(
     if edit is not None:
         launch = edit(launch)
     check_launch(launch, path, marks)
-    check_profile_grounds(launch, path)
+    ground_notes = check_profile_grounds(launch, path)
     record, rerun, notes = resolve_outputs(record, rerun)
+    notes = ground_notes + notes
     launcher, service_names = build(launch, record, rerun, port, secrets, path, foxglove)
     launcher.out = out or sys.stdout
     for note in notes:

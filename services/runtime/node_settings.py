@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 import zenoh
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
 from schemas.codec import MAX_PAYLOAD_BYTES
@@ -80,6 +80,9 @@ class NodeSettings(BaseSettings):
     max_payload_bytes: int = Field(MAX_PAYLOAD_BYTES, gt=0, description="larger payloads are rejected")
     log_level: str = Field("INFO", description="logging level")
     log_json: bool = Field(True, description="JSON-lines logs (False: plain text)")
+    # the model file's (mtime, size) when `load` read the settings: a profile rewritten since (a ground learned
+    # online) is a change a warm spare must not take over without (see `changed_since_loaded`)
+    _model_stamp: tuple[int, int] | None = PrivateAttr(None)
 
     @field_validator("numba_threads")
     @classmethod
@@ -115,19 +118,35 @@ class NodeSettings(BaseSettings):
             raise ConfigFileError(f"{path}:1:1: the settings must be a mapping (field: value), not a {kind}")
         bound = type(cls.__name__, (cls,), {"model_config": {**cls.model_config, "yaml_file": str(path)}})
         try:
-            return bound(**overrides)
+            settings = bound(**overrides)
         except ValidationError as exc:
             raise ConfigFileError(one_line(validation_problems(exc, path, marks))) from None
+        settings._model_stamp = _file_stamp(getattr(settings, "model_file", None))
+        return settings
+
+
+def _file_stamp(path: object) -> tuple[int, int] | None:
+    """(mtime [ns], size [bytes]) of the file at `path`; None for no path or no file."""
+    try:
+        st = Path(str(path)).stat() if isinstance(path, str | Path) else None
+    except OSError:
+        return None
+    return None if st is None else (st.st_mtime_ns, st.st_size)
 
 
 def changed_since_loaded(settings: NodeSettings) -> list[str]:
     """The fields (top level, by name) whose value in the settings' file and environment now differs from
     `settings`, which were loaded from them (`NodeSettings.load`) earlier: a warm spare loads its settings when it
-    starts, which may be long before it takes over. [] when nothing changed, or when they came from no file.
+    starts, which may be long before it takes over; a `model_file` whose file was rewritten since counts as changed
+    (a learned ground: the spare holds the old profile). [] when nothing changed, or when they came from no file.
     ConfigFileError (one line) when the file no longer loads."""
     path = settings.model_config.get("yaml_file")
     if not path:
         return []
     now = type(settings).__bases__[0].load(str(path))  # `load` made the settings' class, bound to the file
     old, new = settings.model_dump(), now.model_dump()
-    return sorted(k for k in old if old[k] != new.get(k))
+    changed = sorted(k for k in old if old[k] != new.get(k))
+    # the same model_file, rewritten (the terrain service saves a learned ground over it): the spare loaded the old
+    if "model_file" not in changed and settings._model_stamp is not None and now._model_stamp != settings._model_stamp:
+        changed.append("model_file (the file was rewritten)")
+    return changed
