@@ -151,6 +151,21 @@ def test_weights_by_name_prepared_on_arrival_refused_when_wrong() -> None:
     np.testing.assert_array_equal(planner.calls[-1]["weights"], [0.8, 0.2])
 
 
+def test_weights_naming_a_ground_learned_after_the_model_wait_for_it_and_age_as_usual() -> None:
+    """Weights that name the model's grounds and a learned one (they may reach the planner before the `ModelUpdate`
+    that brings its model) are not refused: counted, the previous weights kept, which age as any others do."""
+    cycle, planner = make(CycleConfig(weights_stale_after_s=1.0, weights_fallback_after_s=3.0))
+    assert cycle.on_weights([0.2, 0.8], 0.0, names=["grass", "asphalt"])
+    assert not cycle.on_weights([0.1, 0.1, 0.8], 0.5, names=["asphalt", "grass", "new-1"])
+    assert cycle.counts == {"weights_ahead_of_model": 1}  # not weights_invalid
+    assert not [e for e in cycle.drain_events() if e.level != "count"]  # nothing logged
+    np.testing.assert_array_equal(cycle.weights, [0.8, 0.2])
+    out = cycle.on_state(X0, NS, 1.5, NS)
+    assert isinstance(out, Planned) and out.weights_stale  # not refreshed by weights the model cannot take
+    assert not cycle.on_weights([0.5, 0.5], 1.6, names=["asphalt", "ice"])  # a ground missing: still refused
+    assert cycle.counts["weights_invalid"] == 1
+
+
 def test_silent_weights_are_flagged_stale_then_replaced_by_the_prior() -> None:
     cycle, planner = make(CycleConfig(weights_stale_after_s=1.0, weights_fallback_after_s=3.0))
     cycle.on_weights([0.9, 0.1], 0.0)

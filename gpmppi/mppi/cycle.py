@@ -253,6 +253,13 @@ class PlannerCycle:
             if names is not None:
                 if self.terrains is None:
                     raise ValueError("weights by name, but this cycle was not given the model's terrain names")
+                if len(names) > len(self.terrains) and set(self.terrains) <= set(names):
+                    # grounds learned after this model: the terrain service announces the model that has them
+                    # (`ModelUpdate`) before such weights, but the two keys are not ordered, so they may come first.
+                    # Not refused; the weights planned with age as usual until the new model is taken.
+                    self._event("weights_ahead_of_model", "count", f"terrain weights for {list(names)} before the "
+                                f"model that has them; kept the previous weights")
+                    return False
                 w = weights_in_order(names, w.tolist(), self.terrains)
             self.planner.prepare(w)
         except ValueError as exc:
