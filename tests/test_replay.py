@@ -493,3 +493,44 @@ def test_compare_matches_by_the_answered_state_stamp() -> None:
     assert c["v_max"] == pytest.approx(0.2) and c["omega_max"] == pytest.approx(0.3)
     assert c["v_rmse"] == pytest.approx(np.sqrt(0.04 / 3)) and c["omega_rmse"] == pytest.approx(np.sqrt(0.09 / 3))
     assert compare([], recorded, None)["compared"] == 0
+
+
+@pytest.mark.parametrize("answer_s", [0.07, 0.16])
+def test_lockstep_keeps_the_recorded_distances_between_state_stamps(tmp_path: Path, answer_s: float) -> None:
+    """A live planner shifts its warm start by the distance between the stamps of the states it plans from
+    (`Planner.catch_up`: one step more once it is dt/2 longer). Lockstep's waits for its answers must not move that
+    distance: a planner answering in 70 ms (slower than a loaded one) gets every state at its recorded distance,
+    and one slower than the recording throughout (160 ms per 100 ms state) gets them late, older by the lateness,
+    until they are more than `lockstep_max_late_s` late: only then does a distance grow (counted)."""
+    from services.recording.player import Player, PlayOptions
+    from services.recording.player_log import iter_records
+
+    period_ns, n = 100_000_000, 16
+    msgs = [m for m in synthetic(n, period_ns) if not m[0].endswith("/cmd")]
+    log = write_log(tmp_path / "run.mcap", msgs)
+    key = f"gpmppi/{ROBOT}/state"
+    port = free_port()
+    with router(port):
+        s = client(port)
+        try:
+            listener = Listener(s, key)
+            options = PlayOptions(track_key=key, lockstep_timeout_s=1.0, lockstep_max_late_s=0.25)
+            player = Player(s, lambda: iter_records(check_log(log)), options)
+            player.answered = lambda stamp, timeout: time.sleep(answer_s) is None  # a planner answering then
+            stats = player.play()
+            assert wait_for(lambda: len(listener.on(key)) == n, 5.0)
+        finally:
+            s.close()
+    got = listener.on(key)
+    stamps = np.array([json.loads(p)["header"]["stamp_ns"] for _, _, p in got])
+    ages_ms = np.array([(e - st) / 1e6 for (_, e, _), st in zip(got, stamps, strict=True)])
+    gaps_ms = np.diff(stamps) / 1e6
+    print(f"\nanswers after {answer_s * 1e3:.0f} ms: stamp distances {np.round(gaps_ms, 1).tolist()} ms; ages "
+          f"{np.round(ages_ms, 1).tolist()} ms; {stats.lockstep_shifts} shifts")
+    moved = np.abs(gaps_ms - period_ns / 1e6) > 1e-3
+    assert int(moved.sum()) == stats.lockstep_shifts  # every other distance exactly as recorded
+    assert ages_ms.max() < 3.0 + 250.0 + 100.0, ages_ms  # never older than the recorded 3 ms + the limit (+ puts)
+    if answer_s < period_ns / 1e9:
+        assert stats.lockstep_shifts == 0
+    else:  # 60 ms later at each state: more than 0.25 s late at the 6th, then again 5 states on
+        assert 1 <= stats.lockstep_shifts <= n // 4, stats.lockstep_shifts

@@ -221,6 +221,7 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
             result["compare"]["live_commands"] = len(got)
             if req.lockstep:
                 result["compare"]["lockstep_misses"] = player.lockstep_misses
+                result["compare"]["lockstep_shifts"] = stats.lockstep_shifts
     finally:
         if session is not None:
             session.close()
@@ -299,6 +300,9 @@ def _print(result: dict[str, Any], as_json: bool) -> None:
                    f"{c['exact']} of them bit for bit: "
                    f"v_ref RMS {c['v_rmse']:.4g} max {c['v_max']:.4g} m/s, omega_ref RMS {c['omega_rmse']:.4g} "
                    f"max {c['omega_max']:.4g} rad/s")
+        if c.get("lockstep_misses") or c.get("lockstep_shifts"):
+            typer.echo(f"lockstep: {c['lockstep_misses']} states not answered within 2 s, {c['lockstep_shifts']} "
+                       "put so late that their stamps moved (their commands may differ)")
 
 
 def register(app: typer.Typer) -> None:

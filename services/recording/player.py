@@ -51,8 +51,15 @@ class PlayOptions:
     # only these recorded header stamps are played on `track_key` (e.g. the states a recorded planner answered)
     only_stamps: set[int] | None = None
     # after each `track_key` message, wait up to this long for `Player.answered(replayed stamp)` (a live service's
-    # answer) before going on; the schedule moves by the wait (None: recorded timing, no waiting)
+    # answer) before going on (None: recorded timing, no waiting). The wait does not move the schedule: the next
+    # messages go out late (at once) until it has caught up, and every stamp stays on the schedule, so the
+    # `track_key` stamps keep their recorded distances (a live planner shifts its warm start by them,
+    # `Planner.catch_up`) and look older by the lateness
     lockstep_timeout_s: float | None = None
+    # lockstep: a `track_key` message more than this late moves the schedule by its lateness (its stamp then follows
+    # the clock: its distance to the one before grows by that much; counted in `PlayStats.lockstep_shifts`), so a
+    # live service that is slower than the recorded one throughout is not fed states that grow older without end
+    lockstep_max_late_s: float = 0.25
 
     def __post_init__(self) -> None:
         if self.speed < 0:
@@ -78,6 +85,7 @@ class PlayStats:
     filtered: int = 0
     quarantined: int = 0
     unanswered: int = 0  # states left out because the recorded planner did not answer them (only_stamps)
+    lockstep_shifts: int = 0  # lockstep: tracked messages so late that the schedule moved (lockstep_max_late_s)
     unshifted: int = 0  # payloads that are not JSON messages with a header: published as recorded
     loops: int = 0
     log_span_s: float = 0.0  # log time covered by what was played (one pass)
@@ -234,6 +242,8 @@ class Player:
         reader = threading.Thread(target=self._reader, args=(q, done), daemon=True, name="replay-reader")
         reader.start()
         speed = self.o.speed
+        lockstep_timeout = self.o.lockstep_timeout_s
+        lockstep = lockstep_timeout is not None
         first_log_ns: int | None = None
         last_log_ns: int | None = None
         w0 = e0 = 0.0
@@ -268,6 +278,11 @@ class Player:
                 last_log_ns = max(last_log_ns or log_ns, log_ns)
                 if speed > 0:
                     due = w0 + (log_ns - first_log_ns) / 1e9 / speed
+                    late = time.monotonic() - due
+                    if lockstep and rec.key == self.o.track_key and late > self.o.lockstep_max_late_s:
+                        w0 += late
+                        due += late
+                        s.lockstep_shifts += 1
                     while (wait := due - time.monotonic()) > 0:
                         if self.stop.wait(min(wait, 0.1)):
                             break
@@ -288,13 +303,13 @@ class Player:
                             self.stamp_map[original + due_epoch_ns - rec.log_time_ns] = original
                 key = rename_robot(rec.key, self.o.robot)
                 self._publisher(key).put(payload)
-                if rec.key == self.o.track_key and self.o.lockstep_timeout_s is not None and self.answered:
-                    t_wait = time.monotonic()
+                if lockstep_timeout is not None and rec.key == self.o.track_key and self.answered:
+                    # the schedule stays: what comes due during the wait goes out after it, stamped on the schedule
+                    # (moving the schedule by each wait made the distance between two states' stamps grow by it,
+                    # and a live planner shifts its warm start by that distance: one more step once it is dt/2)
                     answer_stamp = json.loads(payload)["header"]["stamp_ns"]
-                    if not self.answered(answer_stamp, self.o.lockstep_timeout_s):
+                    if not self.answered(answer_stamp, lockstep_timeout):
                         self.lockstep_misses += 1
-                    waited = time.monotonic() - t_wait
-                    w0 += waited  # the rest of the log keeps its spacing, after the wait (stamps follow the clock)
                 if speed > 0:
                     s.lateness_ms.append((time.monotonic() - due) * 1e3)
                 s.published += 1
