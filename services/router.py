@@ -9,6 +9,7 @@ import json
 import logging
 import signal
 import threading
+import time
 from pathlib import Path
 
 import zenoh
@@ -44,8 +45,9 @@ def run(settings: RouterSettings) -> int:
     try:
         stop.wait()
     finally:
+        t0 = time.monotonic()
         session.close()
-        log.info("router closed")
+        log.info("router closed in %.3f s", time.monotonic() - t0)
     return 0
 
 
