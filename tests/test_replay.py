@@ -136,12 +136,19 @@ def test_speed_1_keeps_the_recorded_timing_and_moves_stamps_to_now(tmp_path: Pat
     print(f"\nspeed 1, {len(msgs)} messages over {logged[-1] - logged[0]:.2f} s: arrival vs recorded timing "
           f"|error| p50 {p50:.2f} ms, p99 {p99:.2f} ms, max {worst:.2f} ms; put lateness p50 {late['p50_ms']:.2f} "
           f"p99 {late['p99_ms']:.2f} max {late['max_ms']:.2f} ms")
-    # a few ms, with room for a loaded 2-core machine (measured: p50 0.1 ms, p99 5 ms there; 14 ms under load)
-    assert p50 < 2.0 and p99 < 20.0, (p50, p99)
-    # stamps: moved to replay time with the recorded age (3 ms before the log time for states)
-    for _, epoch, payload in listener.on(f"gpmppi/{ROBOT}/state"):
-        age_ms = (epoch - json.loads(payload)["header"]["stamp_ns"]) / 1e6
-        assert 2.5 < age_ms < 3.0 + 20.0, age_ms
+    # a few ms, with room for a loaded 2-core machine (measured: p50 0.1 ms, p99 5 ms there; 14 ms under load). The
+    # tail is the player's own (each put against its due time): the arrivals' tail also holds this process's
+    # callbacks, which a loaded machine delays
+    assert p50 < 2.0 and late["p99_ms"] < 20.0, (p50, late)
+    # stamps: moved to replay time with the recorded age (3 ms before the log time for states): every state's stamp
+    # moved by the same amount (its due time keeps the log's spacing), and that is now (its age on arrival here
+    # is the recorded 3 ms plus the put's lateness and the hop: never less, and within 20 ms in the median state)
+    states = listener.on(f"gpmppi/{ROBOT}/state")
+    moved = [json.loads(p)["header"]["stamp_ns"] - (log_ns - 3_000_000)
+             for (_, _, p), (_, log_ns, _, _) in zip(states, [m for m in msgs if m[0].endswith("/state")], strict=True)]
+    assert max(moved) - min(moved) <= 1_000, moved  # ns: the float due time rounds
+    ages_ms = np.array([(epoch - json.loads(p)["header"]["stamp_ns"]) / 1e6 for _, epoch, p in states])
+    assert ages_ms.min() > 2.5 and np.median(ages_ms) < 3.0 + 20.0, ages_ms
     # nested stamps too: unchanged relative order, and each command still carries its state's stamp
     states = [json.loads(p)["header"]["stamp_ns"] for _, _, p in listener.on(f"gpmppi/{ROBOT}/state")]
     cmds = [json.loads(p)["header"]["stamp_ns"] for _, _, p in listener.on(f"gpmppi/{ROBOT}/cmd")]
