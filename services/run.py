@@ -17,10 +17,9 @@ import time
 from pathlib import Path
 from types import ModuleType
 
-from pydantic import ValidationError
-
-from services.runtime.node import SettingsChanged, setup_logging
-from services.runtime.scheduling import apply_process_settings
+# Only the standard library at the top: `main` arms `follow_launcher` first, before the imports of a service
+# (pydantic, numpy, zenoh, ...: 0.4 s on an idle machine, seconds on a loaded one), so a child started just before
+# its launcher dies does not outlive it by its imports (imported in `run_service`)
 
 SERVICES: dict[str, str] = {
     "router": "services.router",
@@ -87,6 +86,11 @@ def settings_class(kind: str) -> type:
 
 
 def run_service(kind: str, config: str | Path | None = None) -> int:
+    from pydantic import ValidationError
+
+    from services.runtime.node import SettingsChanged, setup_logging
+    from services.runtime.scheduling import apply_process_settings
+
     module = service_module(kind)
     try:
         settings = settings_class(kind).load(config)

@@ -225,6 +225,14 @@ def test_a_service_whose_launcher_is_gone_does_not_start(tmp_path: Path) -> None
         capture_output=True, text=True, timeout=60, env=env,
     )
     assert proc.returncode == 0 and "is gone" in proc.stderr, proc.stderr
+    # it found out before a service's imports (a spare started just before its launcher's SIGKILL lived on through
+    # them on a loaded machine: seconds): services.run arms PR_SET_PDEATHSIG with only the standard library loaded
+    heavy = "print(sorted({'pydantic', 'numpy', 'zenoh'} & set(sys.modules)))"
+    probe = subprocess.run(
+        [sys.executable, "-c", f"import sys, services.run; {heavy}"],
+        capture_output=True, text=True, timeout=60, env=env,
+    )
+    assert probe.stdout.strip() == "[]", probe.stdout + probe.stderr
 
 
 def test_a_child_started_from_a_thread_outlives_the_thread(tmp_path: Path) -> None:
