@@ -149,12 +149,13 @@ def test_egress_loop_zeroes_within_20_ms_of_its_deadline_over_10_trials(timeout_
                                  if ta > t and (b := decode(BaseCommand, p)).reason == "watchdog"), None)
 
                 assert wait_for(lambda: zero_after() is not None, 2.0), "no watchdog zero"
-                # egress's own record of it: the deadline is the command it timed out on (the last one put, unless
-                # the router delivered that one after the zero: the zero then rightly timed out on the one before)
+                # egress's own record of it: the deadline is the command it timed out on, when egress accepted it
+                # (the last one put, however late it was delivered: 0.2 s once under load; or, if it came after the
+                # zero, the one before, on which the zero then rightly timed out)
                 seen = timeline.zero_after(t_last)
                 assert seen is not None, "the loop's record holds no zero after the last command"
-                accepted, asked_at, _, cpu_wait = seen
-                assert t_last - 0.25 < accepted < t_last + 0.1
+                accepted, asked_at, woke, cpu_wait = seen
+                assert t_last - 0.25 < accepted < woke
                 arrived, zero = zero_after()  # type: ignore[misc]
                 # sent: the zero's stamp is egress's wall clock when it went out, on this process's monotonic clock
                 sent = (zero.header.stamp_ns - (time.time_ns() - time.monotonic_ns())) / 1e9
