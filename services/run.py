@@ -125,5 +125,19 @@ def main(argv: list[str] | None = None) -> int:
     return run_service(args.name, args.config)
 
 
+def exit_now(code: int) -> None:
+    """Leave once the service has stopped (its session closed, its files finished), without the interpreter's
+    teardown: freeing every module's objects one by one and joining leftover threads took 0.1-0.6 s on an idle
+    machine after the session had closed in 3 ms (the terrain service, with cvxpy, the longest), and seconds on a
+    loaded one, which is how long a service outlived a launcher that died. The output is flushed first."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # the launcher that read it is gone, or it is closed
+            pass
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    exit_now(main())
