@@ -155,17 +155,12 @@ def plan_message(
     result: PlanResult, stamp_ns: int, task: LaneTask | GoalTask, n_samples: int,
     extra_timings_ms: dict[str, float] | None = None, weights_stale: bool = False,
 ) -> Plan:
-    from gpmppi.tasks import GoalTask
+    from gpmppi.mppi.task_kinds import kind_class_for
 
     covs = np.asarray(result.covariances)
     cov_xy = np.stack([covs[:, 0, 0], covs[:, 0, 1], covs[:, 1, 1]], axis=1)
-    tightened = np.asarray(result.tightened, dtype=np.float64)
-    if isinstance(task, GoalTask) and tightened.ndim == 2:
-        # per step: the largest inflation of any obstacle radius
-        radii = task.obstacles[:, 2] if task.obstacles.shape[0] else np.zeros(0)
-        # a costmap's column (after the circles') is its whole radius: the robot's plus the inflation
-        radii = np.concatenate([radii, np.zeros(tightened.shape[1] - radii.size)])
-        tightened = (tightened - radii[None, :]).max(axis=1) if radii.size else np.zeros(tightened.shape[0])
+    # one number a step, as the task's kind says: a lane's tightened half-width, a goal's largest inflation
+    tightened = kind_class_for(task).per_step(task, result.tightened)
     # rollouts are for the viewer: 1 mm is plenty, and short numbers make the bulk of the message (3/4 of its
     # bytes at full precision) cheaper to encode, send, record and decode
     samples = np.round(np.asarray(result.sample_states, dtype=np.float64)[:n_samples], 3)

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from gpmppi.tasks import TaskOutline
 from schemas import Task
 from services.launch.launcher import run_launch
 from services.launch.monitor import PRIMARY_OUTPUT, Monitor, Summary
@@ -324,14 +325,25 @@ def _kill_once(launcher: Launcher, monitor: Monitor, child: Child, timeout_s: fl
 
 
 def _lane_rmse(states: list[tuple[int, float, float]], task: Task | None, t0_ns: int, t1_ns: int) -> float | None:
-    if task is None or task.kind != "lane":
+    lane = _lane(task)
+    if lane is None:
         return None
     from gpmppi.evaluation import metrics
 
     xy = np.array([[x, y] for stamp, x, y in states if t0_ns <= stamp < t1_ns]).reshape(-1, 2)
     if xy.shape[0] < 5:
         return None
-    return round(metrics.lane_rmse_mm(xy, np.asarray(task.centerline), task.closed), 1)
+    return round(metrics.lane_rmse_mm(xy, lane.lane, lane.closed), 1)
+
+
+def _lane(task: Task | None) -> TaskOutline | None:
+    """The task's outline where it has a lane to measure the RMSE to (its kind's `outline`), else None."""
+    if task is None:
+        return None
+    from services.codec.convert import task_from_message
+
+    outline = task_from_message(task).outline()
+    return outline if outline.lane is not None else None
 
 
 def _no_kill_reference(monitor: Monitor, takeovers: list[Takeover], begin_ns: int) -> dict[str, float | int | None]:
@@ -340,13 +352,14 @@ def _no_kill_reference(monitor: Monitor, takeovers: list[Takeover], begin_ns: in
     with monitor.lock:
         states = [s for s in monitor.states if s[0] >= begin_ns]
         task = monitor.task
-    if task is None or task.kind != "lane" or not states:
+    lane = _lane(task)
+    if lane is None or not states:
         return {}
     w = int(RMSE_WINDOW_S * 1e9)
     excluded = [(t.kill_ns - w, (t.first_output_ns or t.kill_ns) + w) for t in takeovers]
     stamps = np.array([s[0] for s in states])
     xy = np.array([[x, y] for _, x, y in states])
-    ratios = consecutive_window_ratios(stamps, xy, np.asarray(task.centerline), task.closed, excluded, RMSE_WINDOW_S)
+    ratios = consecutive_window_ratios(stamps, xy, lane.lane, lane.closed, excluded, RMSE_WINDOW_S)
     return ratio_summary(ratios)
 
 
