@@ -19,7 +19,8 @@ from types import ModuleType
 
 from pydantic import ValidationError
 
-from services.runtime.node import SettingsChanged, setup_logging
+from services.runtime.logs import setup_logging
+from services.runtime.node import SettingsChanged
 from services.runtime.scheduling import apply_process_settings
 
 SERVICES: dict[str, str] = {
