@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
@@ -24,6 +24,9 @@ from gpmppi.gp.grid_table import DEFAULT_SPACING
 from schemas.keys import DEFAULT_ROBOT
 from tools.cli_checks import OUT_FILE, fail
 from tools.train_data import DataError, csv_inputs, csv_residuals, is_mcap, read_csv_columns, read_logs_series
+
+if TYPE_CHECKING:
+    from gpmppi.gp.model_file import GPModel
 
 
 def _load_json(path: Path | None, what: str) -> dict | None:
@@ -159,6 +162,54 @@ def print_report(report, console: Console) -> None:
                       f"{report.final_loss:.4f}")
 
 
+def _test_sets(test_data: Path, sets: dict, terrain: list[str] | None) -> dict:
+    """`--test-data`: a residual CSV's transitions per trained terrain; a DataError where its terrains differ."""
+    from gpmppi.gp.train import Transitions
+
+    cols = read_csv_columns(test_data)
+    tx, tres = csv_inputs(cols, test_data), csv_residuals(cols, test_data)
+    missing = [t for t in sets if t not in tres]
+    extra = [] if terrain else sorted(t for t in tres if t not in sets)
+    if missing or extra:
+        raise DataError(
+            f"{test_data}: its terrains {sorted(tres)} differ from the training data's {sorted(sets)}: "
+            + (f"no residual columns for {missing}" if missing else "")
+            + ("; " if missing and extra else "")
+            + (f"terrains {extra} were not trained (pass --terrain to choose those to train and test)"
+               if extra else "")
+        )
+    return {t: Transitions(tx, tres[t]) for t in sets}
+
+
+def _print_profile(model: GPModel, report, coverage: list[GroundCoverage], output: Path,  # noqa: ANN001
+                   console: Console) -> None:
+    """What `gpmppi train` wrote: the fit, the coverage, its warnings, the profile's parts."""
+    print_report(report, console)
+    print_coverage(coverage, console)
+    for line in model.fit_warnings():
+        Console(stderr=True, soft_wrap=True).print(f"[yellow]warning:[/yellow] {line}", highlight=False)
+    console.print(
+        f"wrote {output}: terrains {model.terrains}, {len(model.train_x)} training inputs, "
+        f"theta {np.array2string(model.theta, precision=4)}"
+    )
+    lateral = ", ".join(f"{t} ({p[0]:+.4f}, {p[1]:+.4f})" for t, p in model.lateral_slip.items())
+    console.print(f"lateral slip (a, b) of v_y = (a + b |omega|) v omega: {lateral}")
+    if model.calibration is None:
+        Console(stderr=True, soft_wrap=True).print(
+            "[yellow]warning:[/yellow] no terrain calibration: the data has no time series (a residual CSV); the "
+            "terrain estimator needs command_change: online and response: none with this file", highlight=False)
+    else:
+        gains = ", ".join(f"{t} ({g[0]:+.3f}, {g[1]:+.3f})"
+                          for t, g in zip(model.terrains, model.calibration.command_gain, strict=True))
+        console.print(f"robot profile of {model.robot!r}: terrain calibration of {list(model.terrains)}; "
+                      f"command-change gains (v, omega): {gains}")
+    if model.novelty is not None:
+        n = model.novelty
+        console.print(f"novelty test: P(unknown ground) = 0.5 at {n.enter:.2f} spreads of the windowed mean "
+                      f"residual (spread v {n.spread[0]:.4f} m/s, omega {n.spread[1]:.4f} rad/s, "
+                      f"{n.window_steps} steps)")
+
+
 def register(app: typer.Typer) -> None:
     """Add `gpmppi train`."""
 
@@ -203,7 +254,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Fit a robot profile from a log: the per-terrain residual GPs and the terrain calibration."""
         from gpmppi.gp.grid_table import build_grid
-        from gpmppi.gp.train import Transitions, train_model
+        from gpmppi.gp.train import train_model
         from gpmppi.terrain.log_calibration import calibrate_from_runs, novelty_from_runs
         from tools.profile_fit import train_command
 
@@ -212,21 +263,7 @@ def register(app: typer.Typer) -> None:
             if not 0.0 <= (holdout or 0.0) < 1.0:
                 raise DataError(f"--holdout must be in [0, 1), got {holdout}")
             sets, th, ed, held, runs = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
-            test_sets = None
-            if test_data is not None:
-                cols = read_csv_columns(test_data)
-                tx, tres = csv_inputs(cols, test_data), csv_residuals(cols, test_data)
-                missing = [t for t in sets if t not in tres]
-                extra = [] if terrain else sorted(t for t in tres if t not in sets)
-                if missing or extra:
-                    raise DataError(
-                        f"{test_data}: its terrains {sorted(tres)} differ from the training data's {sorted(sets)}: "
-                        + (f"no residual columns for {missing}" if missing else "")
-                        + ("; " if missing and extra else "")
-                        + (f"terrains {extra} were not trained (pass --terrain to choose those to train and test)"
-                           if extra else "")
-                    )
-                test_sets = {t: Transitions(tx, tres[t]) for t in sets}
+            test_sets = None if test_data is None else _test_sets(test_data, sets, terrain)
             coverage = [ground_coverage(t, s.x, held[t]) for t, s in sets.items()]
             refused = [r for c in coverage if (r := c.problem(min_samples, min_coverage)) is not None]
             if refused:
@@ -259,27 +296,4 @@ def register(app: typer.Typer) -> None:
         except ValueError as e:
             fail(str(e))
         model.save(output)
-        print_report(report, console)
-        print_coverage(coverage, console)
-        for line in model.fit_warnings():
-            Console(stderr=True, soft_wrap=True).print(f"[yellow]warning:[/yellow] {line}", highlight=False)
-        console.print(
-            f"wrote {output}: terrains {model.terrains}, {len(model.train_x)} training inputs, "
-            f"theta {np.array2string(model.theta, precision=4)}"
-        )
-        lateral = ", ".join(f"{t} ({p[0]:+.4f}, {p[1]:+.4f})" for t, p in model.lateral_slip.items())
-        console.print(f"lateral slip (a, b) of v_y = (a + b |omega|) v omega: {lateral}")
-        if model.calibration is None:
-            Console(stderr=True, soft_wrap=True).print(
-                "[yellow]warning:[/yellow] no terrain calibration: the data has no time series (a residual CSV); the "
-                "terrain estimator needs command_change: online and response: none with this file", highlight=False)
-        else:
-            gains = ", ".join(f"{t} ({g[0]:+.3f}, {g[1]:+.3f})"
-                              for t, g in zip(model.terrains, model.calibration.command_gain, strict=True))
-            console.print(f"robot profile of {model.robot!r}: terrain calibration of {list(model.terrains)}; "
-                          f"command-change gains (v, omega): {gains}")
-        if model.novelty is not None:
-            n = model.novelty
-            console.print(f"novelty test: P(unknown ground) = 0.5 at {n.enter:.2f} spreads of the windowed mean "
-                          f"residual (spread v {n.spread[0]:.4f} m/s, omega {n.spread[1]:.4f} rad/s, "
-                          f"{n.window_steps} steps)")
+        _print_profile(model, report, coverage, output, console)
