@@ -10,7 +10,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from gpmppi.costmap import CostmapError, load_map_yaml
-from gpmppi.tasks import GoalTask, LaneTask, Task, distance_to_polyline
+from gpmppi.tasks import GoalTask, LaneTask, Task
 from gpmppi.yaml_file import yaml_error
 
 
@@ -92,26 +92,9 @@ def random_obstacle_scene(
 
 
 def infeasibility(scenario: Scenario, robot_radius: float = 0.0) -> list[str]:
-    """Why a scenario cannot be done (empty if it can): start or goal inside an obstacle, start off the lane."""
-    problems: list[str] = []
-    task = scenario.task
-    if isinstance(task, GoalTask):
-        for i, (x, y, r) in enumerate(task.obstacles):
-            if np.hypot(scenario.start[0] - x, scenario.start[1] - y) <= r + robot_radius:
-                problems.append(f"start ({scenario.start[0]:g}, {scenario.start[1]:g}) is inside obstacle {i}")
-            if np.hypot(task.goal[0] - x, task.goal[1] - y) + task.tolerance <= r + robot_radius:
-                problems.append(f"goal ({task.goal[0]:g}, {task.goal[1]:g}) lies wholly inside obstacle {i}")
-        if task.costmap is not None:
-            clear = task.costmap.clearance(np.stack([scenario.start[:2], task.goal]), robot_radius)
-            if clear[0] < 0.0:
-                problems.append(f"start ({scenario.start[0]:g}, {scenario.start[1]:g}) is in the map's obstacles")
-            if clear[1] + task.tolerance < 0.0:
-                problems.append(f"goal ({task.goal[0]:g}, {task.goal[1]:g}) lies wholly in the map's obstacles")
-    else:
-        d = float(distance_to_polyline(scenario.start[None, :2], task.centerline, task.closed)[0])
-        if d > task.half_width:
-            problems.append(f"start is {d:.2f} m from the lane centre, outside the half-width {task.half_width:g} m")
-    return problems
+    """Why a scenario cannot be done (empty if it can): its task's kind says (`start_problems`: start or goal inside an
+    obstacle, start off the lane)."""
+    return scenario.task.start_problems(scenario.start, robot_radius)
 
 
 # --- scene and lane files ----------------------------------------------------------------------------------------

@@ -1,12 +1,42 @@
-"""What the planner is asked to do, as plain arrays: follow a lane, or reach a goal."""
+"""What the planner is asked to do, as plain arrays: follow a lane, or reach a goal.
+
+A task type is the plain part of its task kind: what needs no planner, as methods every kind's task has, so nothing
+outside the kinds asks which kind a task is:
+
+* `kind`: the kind's name (a task message's `kind`; the message codecs are keyed by it, `services/codec/convert.py`);
+* `outline()`: what a view draws of it (`TaskOutline`: a lane, circles, a goal, one line of text);
+* `start_problems(start, robot_radius)`: why a run cannot start at `start` (a scenario's feasibility);
+* `cautious(speed_scale)`: the task while the ground is unknown (`gpmppi.mppi.caution`);
+* `with_costmap(costmap, replace_own)`: the task in a world with this occupancy grid (`PlannerCycle.on_costmap`).
+
+The planner's part of a kind is its `gpmppi.mppi.task_kinds.TaskKind`, the evaluation's its
+`gpmppi.evaluation.task_runs.TaskRun`; all three are keyed by the task type.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
+from typing import ClassVar, Literal
 
 import numpy as np
 
 from gpmppi.costmap import Costmap
+
+
+@dataclass(frozen=True)
+class TaskOutline:
+    """What a view draws of a task, as plain geometry [m]; the parts a kind has not are None or empty."""
+
+    summary: str  # one line for the event log, e.g. "lane, 360 points, half-width 1.75 m, speed 1.75 m/s"
+    lane: np.ndarray | None = None  # (P, 2) centre polyline
+    closed: bool = False  # the lane is a loop
+    half_width: float = 0.0  # the lane's half-width
+    circles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (K, 3) obstacles [x, y, r]
+    goal: np.ndarray | None = None  # (2,) goal point
+    tolerance: float = 0.0  # the goal is reached within this distance
+    # what a plan's per-step bound (`Plan.tightened`) is: the lane's tightened half-width, or the circles' inflation
+    bounds: Literal["half_width", "inflation"] = "inflation"
 
 
 @dataclass(frozen=True)
@@ -17,6 +47,8 @@ class LaneTask:
     half_width: float
     speed_target: float = 1.75
     closed: bool = True
+
+    kind: ClassVar[str] = "lane"
 
     def __post_init__(self) -> None:
         c = np.asarray(self.centerline, dtype=np.float64)
@@ -30,6 +62,27 @@ class LaneTask:
             raise ValueError(f"lane speed_target must be >= 0, got {self.speed_target}")
         object.__setattr__(self, "centerline", np.ascontiguousarray(c))
 
+    def outline(self) -> TaskOutline:
+        summary = (f"lane, {len(self.centerline)} points, half-width {self.half_width:.2f} m, speed "
+                   f"{self.speed_target:.2f} m/s")
+        return TaskOutline(summary, lane=self.centerline, closed=self.closed, half_width=float(self.half_width),
+                           bounds="half_width")
+
+    def start_problems(self, start: np.ndarray, robot_radius: float) -> list[str]:
+        """Why a run cannot start at `start` [X, Y, ...]: off the lane."""
+        d = float(distance_to_polyline(np.asarray(start)[None, :2], self.centerline, self.closed)[0])
+        if d > self.half_width:
+            return [f"start is {d:.2f} m from the lane centre, outside the half-width {self.half_width:g} m"]
+        return []
+
+    def cautious(self, speed_scale: float) -> LaneTask:
+        """The lane at the scaled speed target."""
+        return dataclasses.replace(self, speed_target=self.speed_target * speed_scale)
+
+    def with_costmap(self, costmap: Costmap | None, replace_own: bool = False) -> LaneTask:
+        """A lane plans no obstacles: itself."""
+        return self
+
 
 @dataclass(frozen=True)
 class GoalTask:
@@ -40,6 +93,8 @@ class GoalTask:
     tolerance: float = 0.5
     obstacles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     costmap: Costmap | None = None
+
+    kind: ClassVar[str] = "goal"
 
     def __post_init__(self) -> None:
         g = np.asarray(self.goal, dtype=np.float64).reshape(-1)
@@ -54,6 +109,38 @@ class GoalTask:
             raise ValueError(f"costmap must be a gpmppi.costmap.Costmap or None, got {type(self.costmap).__name__}")
         object.__setattr__(self, "goal", g)
         object.__setattr__(self, "obstacles", np.ascontiguousarray(o))
+
+    def outline(self) -> TaskOutline:
+        return TaskOutline(f"goal {self.goal.tolist()}, {self.obstacles.shape[0]} obstacles", circles=self.obstacles,
+                           goal=self.goal, tolerance=float(self.tolerance), bounds="inflation")
+
+    def start_problems(self, start: np.ndarray, robot_radius: float) -> list[str]:
+        """Why a run cannot start at `start` [X, Y, ...]: start or goal inside a circle or the grid's obstacles."""
+        problems: list[str] = []
+        sx, sy = float(start[0]), float(start[1])
+        for i, (x, y, r) in enumerate(self.obstacles):
+            if np.hypot(sx - x, sy - y) <= r + robot_radius:
+                problems.append(f"start ({sx:g}, {sy:g}) is inside obstacle {i}")
+            if np.hypot(self.goal[0] - x, self.goal[1] - y) + self.tolerance <= r + robot_radius:
+                problems.append(f"goal ({self.goal[0]:g}, {self.goal[1]:g}) lies wholly inside obstacle {i}")
+        if self.costmap is not None:
+            clear = self.costmap.clearance(np.stack([np.array([sx, sy]), self.goal]), robot_radius)
+            if clear[0] < 0.0:
+                problems.append(f"start ({sx:g}, {sy:g}) is in the map's obstacles")
+            if clear[1] + self.tolerance < 0.0:
+                problems.append(f"goal ({self.goal[0]:g}, {self.goal[1]:g}) lies wholly in the map's obstacles")
+        return problems
+
+    def cautious(self, speed_scale: float) -> GoalTask:
+        """A goal unchanged: its care is the inflated obstacles."""
+        return self
+
+    def with_costmap(self, costmap: Costmap | None, replace_own: bool = False) -> GoalTask:
+        """The goal among `costmap`'s obstacles (None: none but its circles). A task that brought its own grid keeps it,
+        and without a grid it stays as it is, unless `replace_own` (a new grid replaces the world's)."""
+        if not replace_own and (self.costmap is not None or costmap is None):
+            return self
+        return dataclasses.replace(self, costmap=costmap)
 
 
 Task = LaneTask | GoalTask

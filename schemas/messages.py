@@ -7,6 +7,7 @@ Units are SI, angles in radians wrapped to (-pi, pi], stamps in integer nanoseco
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -173,11 +174,18 @@ class Task(Message):
 
     @model_validator(mode="after")
     def _complete(self) -> Task:
-        if self.kind == "lane" and len(self.centerline) < 2:
-            raise ValueError("a lane task needs a centerline of at least 2 points")
-        if self.kind == "goal" and self.goal is None:
-            raise ValueError("a goal task needs a goal")
+        needs, problem = _TASK_NEEDS[self.kind]
+        if not needs(self):
+            raise ValueError(problem)
         return self
+
+
+# the fields each kind of task message needs, by its `kind` (a message-level check of its own fields: the core's
+# kinds check the rest when the task is converted, `services/codec/convert.py`)
+_TASK_NEEDS: dict[str, tuple[Callable[[Task], bool], str]] = {
+    "lane": (lambda t: len(t.centerline) >= 2, "a lane task needs a centerline of at least 2 points"),
+    "goal": (lambda t: t.goal is not None, "a goal task needs a goal"),
+}
 
 
 class OccupancyGrid(Message):

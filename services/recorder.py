@@ -83,150 +83,167 @@ def _write_failure(path: str, reason: str, written: int, code: int | None = None
     return f"cannot write {path}: {reason}{cause}; recording stopped{kept}"
 
 
-def run(settings: Settings) -> int:
-    # past a file-size limit (RLIMIT_FSIZE) the kernel's default is to kill the process with SIGXFSZ; ignored,
-    # the write fails with EFBIG instead and is handled like a full disk
-    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-    started_ns = time.time_ns()
-    scene = FoxgloveSceneMapper() if settings.foxglove_scene else None
-    scene_schemas: dict[str, tuple[str, str, bytes]] = {}
+class _Recording:
+    """One recording's writer and what feeds it: the subscription's samples (`drain`), the Foxglove scene of each
+    (`settings.foxglove_scene`), the run's metadata and the learned profiles' attachments, resolved off the loop. A
+    write error stops the writing (`failure`, one error line) and never the draining."""
 
-    def write_scene(key: str, payload: bytes, log_time_ns: int) -> None:
+    def __init__(self, settings: Settings, node: Node, writer: McapWriter | None, failure: str,
+                 pool: ThreadPoolExecutor) -> None:
+        self.settings, self.node, self.writer, self.failure, self.pool = settings, node, writer, failure, pool
+        self.scene = FoxgloveSceneMapper() if settings.foxglove_scene else None
+        self.scene_schemas: dict[str, tuple[str, str, bytes]] = {}
+        self.learned: list[Future[tuple[str, bytes, str] | str]] = []  # learned profiles being read, to attach
+        assert node.session is not None
+        self.sub = node.session.declare_subscriber(settings.key_expr,
+                                                   zenoh.handlers.FifoChannel(settings.queue_capacity))
+        node.log.info("recording %s to %s", settings.key_expr, settings.path)
+        if failure:
+            node.error(failure)
+            with node.counters.lock:
+                node.counters.status = "failing"
+        node.counters.flags["writing"] = not failure
+
+    @property
+    def writing(self) -> bool:
+        return self.writer is not None and not self.failure
+
+    def failed(self, exc: OSError) -> None:
+        """A write failed: say so once (the one error line), stop writing, keep draining."""
+        w = self.writer
+        assert w is not None
+        self.failure = _write_failure(self.settings.path, w.failed or str(exc), w.messages_written,
+                                      w.failed_errno or exc.errno)
+        self.node.error(self.failure)
+        with self.node.counters.lock:
+            self.node.counters.status = "failing"
+            self.node.counters.flags["writing"] = False
+
+    def drain(self) -> int:
+        """Record every sample waiting; the number taken off the queue."""
+        n = quarantined = unwritten = 0
+        while (sample := self.sub.try_recv()) is not None:
+            if sample.kind != zenoh.SampleKind.PUT:
+                continue
+            n += 1
+            if not self.writing:
+                unwritten += 1  # still taken off the queue: a failing recorder never blocks a sender
+                continue
+            key, payload, now = str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()
+            try:
+                ok = self.writer.record(key, payload, now, self.settings.max_payload_bytes)
+                if ok and self.scene is not None:
+                    self.write_scene(key, payload, now)
+            except OSError as exc:
+                self.failed(exc)
+                unwritten += 1
+                continue
+            quarantined += not ok and not key.endswith(REJECTED_SUFFIX)
+            if ok and key.endswith(MODEL_UPDATE_SUFFIX):  # a learned profile: attach it
+                self.learned.append(self.pool.submit(learned_attachment, payload))
+        counters = self.node.counters
+        with counters.lock:
+            counters.received += n
+        if quarantined:
+            counters.count("quarantined", quarantined)
+        if unwritten:
+            counters.count("unwritten", unwritten)
+        return n
+
+    def write_scene(self, key: str, payload: bytes, log_time_ns: int) -> None:
         """The scene of one recorded message (already validated) on its scene channels."""
-        assert scene is not None and writer is not None
+        assert self.scene is not None and self.writer is not None
         if not scene_feeds(key):  # a key the scene does not draw (cmd, terrain weights, raw odometry): no decode
             return
         try:
             msg = decode(model_for_key(key), payload)
         except (KeyError, DecodeError):
             return
-        for out in scene.map(key, msg, log_time_ns):
-            if out.topic not in scene_schemas:
-                s = schema_of(out.topic)
-                scene_schemas[out.topic] = (s.name, s.encoding, bytes(s.data))
-            writer.write_encoded(out.topic, scene_schemas[out.topic], "protobuf", out.data, log_time_ns, out.stamp_ns)
+        for out in self.scene.map(key, msg, log_time_ns):
+            if out.topic not in self.scene_schemas:
+                sch = schema_of(out.topic)
+                self.scene_schemas[out.topic] = (sch.name, sch.encoding, bytes(sch.data))
+            self.writer.write_encoded(out.topic, self.scene_schemas[out.topic], "protobuf", out.data, log_time_ns,
+                                      out.stamp_ns)
 
-    failure = ""
-    writer: McapWriter | None = None
+    def write_metadata(self, record: RunRecord) -> None:
+        for warning in record.warnings:
+            self.node.log.warning(warning)
+        if not self.writing:
+            return
+        try:
+            for name, data in record.metadata:
+                self.writer.add_metadata(name, data)
+            for name, data, media_type in record.attachments:
+                self.writer.add_attachment(name, data, media_type)
+        except OSError as exc:
+            self.failed(exc)
+
+    def write_learned(self, wait: bool) -> None:
+        """Attach the learned profiles read so far (`wait`: all of them)."""
+        for f in [f for f in self.learned if wait or f.done()]:
+            self.learned.remove(f)
+            att = f.result()
+            if isinstance(att, str):
+                self.node.log.warning(att)
+            elif self.writing:
+                try:
+                    self.writer.add_attachment(*att)
+                except OSError as exc:
+                    self.failed(exc)
+
+    def flush_if_due(self) -> None:
+        if self.writing:
+            try:
+                self.writer.flush_if_due()  # a quiet stream still reaches the disk within flush_interval_s
+            except OSError as exc:
+                self.failed(exc)
+
+
+def _open_writer(settings: Settings) -> tuple[McapWriter | None, str]:
+    """The file's writer, or None and the one error line why it cannot be written."""
     try:
-        writer = McapWriter(
-            settings.path,
-            chunk_size=settings.chunk_size,
-            flush_interval_s=settings.flush_interval_s,
-            max_bytes=settings.max_bytes,
-            max_duration_s=settings.max_duration_s,
-            compression=settings.compression,
-        )
+        return McapWriter(settings.path, chunk_size=settings.chunk_size, flush_interval_s=settings.flush_interval_s,
+                          max_bytes=settings.max_bytes, max_duration_s=settings.max_duration_s,
+                          compression=settings.compression), ""
     except OSError as exc:
-        failure = _write_failure(settings.path, exc.strerror or str(exc), 0, exc.errno)
+        return None, _write_failure(settings.path, exc.strerror or str(exc), 0, exc.errno)
+
+
+def run(settings: Settings) -> int:
+    # past a file-size limit (RLIMIT_FSIZE) the kernel's default is to kill the process with SIGXFSZ; ignored,
+    # the write fails with EFBIG instead and is handled like a full disk
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    started_ns = time.time_ns()
+    writer, failure = _open_writer(settings)
     # the run's metadata is resolved off the loop (the services' settings in a child process, since loading
     # them imports their modules), so recording starts at once; it is written when it is ready
     pool = ThreadPoolExecutor(1, thread_name_prefix="recorder-meta")
     meta: Future[RunRecord] | None = pool.submit(resolve_run_record, settings, started_ns)
-    learned: list[Future[tuple[str, bytes, str] | str]] = []  # learned profiles being read, to attach
+    rec: _Recording | None = None
     try:
         with Node(settings) as node:
-            assert node.session is not None
-            sub = node.session.declare_subscriber(
-                settings.key_expr, zenoh.handlers.FifoChannel(settings.queue_capacity)
-            )
-            node.log.info("recording %s to %s", settings.key_expr, settings.path)
-
-            def failed(exc: OSError) -> None:
-                nonlocal failure
-                assert writer is not None
-                failure = _write_failure(
-                    settings.path, writer.failed or str(exc), writer.messages_written, writer.failed_errno or exc.errno
-                )
-                node.error(failure)  # the one error line
-                with node.counters.lock:
-                    node.counters.status = "failing"
-                    node.counters.flags["writing"] = False
-
-            if failure:
-                node.error(failure)
-                with node.counters.lock:
-                    node.counters.status = "failing"
-            node.counters.flags["writing"] = not failure
-
-            def drain() -> int:
-                n = quarantined = unwritten = 0
-                while (sample := sub.try_recv()) is not None:
-                    if sample.kind != zenoh.SampleKind.PUT:
-                        continue
-                    n += 1
-                    if failure or writer is None:
-                        unwritten += 1  # still taken off the queue: a failing recorder never blocks a sender
-                        continue
-                    payload = sample.payload.to_bytes()
-                    now = time.time_ns()
-                    try:
-                        ok = writer.record(str(sample.key_expr), payload, now, settings.max_payload_bytes)
-                        if ok and scene is not None:
-                            write_scene(str(sample.key_expr), payload, now)
-                    except OSError as exc:
-                        failed(exc)
-                        unwritten += 1
-                        continue
-                    quarantined += not ok and not str(sample.key_expr).endswith(REJECTED_SUFFIX)
-                    if ok and str(sample.key_expr).endswith(MODEL_UPDATE_SUFFIX):  # a learned profile: attach it
-                        learned.append(pool.submit(learned_attachment, payload))
-                with node.counters.lock:
-                    node.counters.received += n
-                if quarantined:
-                    node.counters.count("quarantined", quarantined)
-                if unwritten:
-                    node.counters.count("unwritten", unwritten)
-                return n
-
-            def write_metadata(record: RunRecord) -> None:
-                for warning in record.warnings:
-                    node.log.warning(warning)
-                if writer is None or failure:
-                    return
-                try:
-                    for name, data in record.metadata:
-                        writer.add_metadata(name, data)
-                    for name, data, media_type in record.attachments:
-                        writer.add_attachment(name, data, media_type)
-                except OSError as exc:
-                    failed(exc)
-
-            def write_learned(wait: bool) -> None:
-                for f in [f for f in learned if wait or f.done()]:
-                    learned.remove(f)
-                    att = f.result()
-                    if isinstance(att, str):
-                        node.log.warning(att)
-                    elif writer is not None and not failure:
-                        try:
-                            writer.add_attachment(*att)
-                        except OSError as exc:
-                            failed(exc)
-
+            rec = _Recording(settings, node, writer, failure, pool)
             while node.ok():
-                if drain():
+                if rec.drain():
                     node.cycle()
                 if meta is not None and meta.done():
-                    write_metadata(meta.result())
+                    rec.write_metadata(meta.result())
                     meta = None
-                if learned:
-                    write_learned(False)
-                if writer is not None and not failure:
-                    try:
-                        writer.flush_if_due()  # a quiet stream still reaches the disk within flush_interval_s
-                    except OSError as exc:
-                        failed(exc)
+                if rec.learned:
+                    rec.write_learned(False)
+                rec.flush_if_due()
                 node.spin_once()
-            drain()  # what arrived before the stop
-            write_learned(True)
+            rec.drain()  # what arrived before the stop
+            rec.write_learned(True)
             if meta is not None:  # stopped soon after the start: the run's metadata still goes in
                 try:
-                    write_metadata(meta.result(timeout=10.0))
+                    rec.write_metadata(meta.result(timeout=10.0))
                 except futures.TimeoutError:  # not the built-in TimeoutError before Python 3.11
                     node.log.warning("run metadata not resolved within 10 s of the stop; the file has none")
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
+        failure = rec.failure if rec is not None else failure
         if writer is not None and not failure:
             writer.close()
         elif writer is not None:

@@ -15,7 +15,7 @@ from pathlib import Path
 import zenoh
 from pydantic import Field
 
-from services.runtime.node import setup_logging
+from services.runtime.logs import setup_logging
 from services.runtime.node_settings import DEFAULT_ROUTER, NodeSettings
 
 log = logging.getLogger("gpmppi.router")

@@ -88,7 +88,8 @@ def settings_class(kind: str) -> type:
 def run_service(kind: str, config: str | Path | None = None) -> int:
     from pydantic import ValidationError
 
-    from services.runtime.node import SettingsChanged, setup_logging
+    from services.runtime.logs import setup_logging
+    from services.runtime.node import SettingsChanged
     from services.runtime.scheduling import apply_process_settings
 
     module = service_module(kind)

@@ -106,7 +106,7 @@ def test_a_short_drive_through_the_stack_is_recorded_and_trains(tmp_path: Path) 
     assert any(isinstance(m, Command) and m.v_ref > 0.2 for _, m in sent)
     assert f"grass in {tmp_path / 'rec'}: 1" in " ".join(result.output.split())  # the total driven, said at the end
     # train reads the stack recording: its grass samples are there (>100 on 0.1 s ticks)
-    from tools.train import read_logs_series
+    from tools.train_data import read_logs_series
 
     series = read_logs_series([files[0]], 0.1, None, None)
     assert list(series) == ["grass"] and len(series["grass"]["v"]) > 100

@@ -12,7 +12,7 @@ from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane
 from schemas.messages import Plan
-from services.planner import plan_message
+from services.planner_outputs import plan_message
 
 
 def test_effective_sample_size_of_known_weights() -> None:

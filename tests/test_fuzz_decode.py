@@ -157,7 +157,8 @@ def test_planner_service_publishes_nothing_non_finite_for_an_extreme_state(v: fl
     then sends no command (`plan_is_finite` is what it checks), and whatever it does send decodes."""
     from gpmppi.mppi.cycle import plan_is_finite
     from gpmppi.mppi.planner import Planner, PlannerConfig
-    from services.planner import load_model, load_scenario, plan_message
+    from services.planner import load_model, load_scenario
+    from services.planner_outputs import plan_message
 
     scenario = load_scenario("circle")
     planner = Planner(PlannerConfig(), load_model(None))

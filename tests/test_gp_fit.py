@@ -196,7 +196,8 @@ PAPER_SEEDS = tuple(int(s) for s in os.environ.get("GPMPPI_PAPER_FIT_SEEDS", "0"
 def _paper_fit(jackal: Path, seed: int):
     """The fit report of `gpmppi train`'s fit on the paper's training data (held-out split by `seed`), scored on
     the paper's test set."""
-    from tools.train import build_training_sets, csv_inputs, csv_residuals, read_csv_columns
+    from tools.train import build_training_sets
+    from tools.train_data import csv_inputs, csv_residuals, read_csv_columns
 
     sets, theta, edd5, _, _ = build_training_sets(jackal / "gp_train.csv", None, jackal / "theta.json",
                                             jackal / "edd5.json", 0.1, None, seed)

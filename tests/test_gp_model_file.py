@@ -11,7 +11,8 @@ import pytest
 
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.grid import GridPredictor, build_grid, predict_dense
-from gpmppi.gp.model_file import GPModel, ModelFileError, decode_grid_table, encode_grid_table, task_names
+from gpmppi.gp.grid_table import decode_grid_table, encode_grid_table
+from gpmppi.gp.model_file import GPModel, ModelFileError, task_names
 from gpmppi.gp.train import Hyperparameters, factorize
 
 

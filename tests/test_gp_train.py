@@ -12,7 +12,7 @@ from gpmppi.gp.model_file import GPModel
 from gpmppi.gp.train import Transitions, residual_targets, select_training_data
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from tools.cli import app
-from tools.train import read_log_series
+from tools.train_data import read_log_series
 
 runner = CliRunner()
 THETA = np.array([0.2, 0.3, 0.05, 1.0, 0.15, 1.05])

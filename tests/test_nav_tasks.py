@@ -16,7 +16,8 @@ from schemas import Circle, Task
 from services.codec import ros2
 from services.codec.convert import task_from_message
 from services.codec.nav_tasks import REFUSALS, LaneFromPath, NavInputError, NavTasks
-from services.planner import Ros2PlanOutput, Settings
+from services.planner import Settings
+from services.planner_outputs import Ros2PlanOutput
 
 STORES = {"jazzy": get_typestore(Stores.ROS2_JAZZY), "humble": get_typestore(Stores.ROS2_HUMBLE)}
 STAMP = 1_700_000_000 * 10**9 + 250

@@ -169,7 +169,7 @@ def test_the_fit_keeps_its_steps_as_a_log_that_gpmppi_train_reads(tmp_path: Path
 
     from gpmppi.gp.train import prepare_from_series
     from services.terrain_learning import steps_log_path
-    from tools.train import read_log_series
+    from tools.train_data import read_log_series
 
     profile = tmp_path / "robot.npz"
     save_profile(_model(), profile)

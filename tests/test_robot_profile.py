@@ -226,7 +226,7 @@ def test_train_writes_a_whole_profile_from_a_log(dataset: Path, tmp_path: Path) 
 def test_train_fits_one_profile_from_several_logs_one_ground_each(dataset: Path, tmp_path: Path) -> None:
     """A calibration drive records one log per ground (and per resumed run): train takes them all at once, and no
     one-step pair spans two logs (each log's series keeps its own segments)."""
-    from tools.train import read_log_series, read_logs_series
+    from tools.train_data import read_log_series, read_logs_series
 
     runs = read_dataset(dataset)
     logs = []

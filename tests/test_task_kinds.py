@@ -4,6 +4,7 @@ own iteration, scored by the goal critics it names, and a task of no registered 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -14,18 +15,34 @@ from gpmppi.evaluation.task_runs import TaskRun, run_for
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.mppi import task_kinds
 from gpmppi.mppi.bundles import TaskBundle
+from gpmppi.mppi.caution import CautionConfig, cautious_task
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.mppi.task_kinds import TaskKind
-from gpmppi.tasks import GoalTask
+from gpmppi.scenarios import Scenario, infeasibility
+from gpmppi.tasks import GoalTask, TaskOutline
 
 W = np.array([0.5, 0.3, 0.2])
 
 
 @dataclass(frozen=True)
 class WaypointTask:
-    """Drive to a point; nothing to avoid."""
+    """Drive to a point; nothing to avoid. Its plain part (`gpmppi.tasks`): what the views draw, why a run cannot
+    start, the task while the ground is unknown, the task in a world with a grid."""
 
     point: np.ndarray
+    kind: ClassVar[str] = "waypoint"
+
+    def outline(self) -> TaskOutline:
+        return TaskOutline(f"waypoint {self.point.tolist()}", goal=self.point, tolerance=0.5)
+
+    def start_problems(self, start: np.ndarray, robot_radius: float) -> list[str]:
+        return ["start is the waypoint"] if np.allclose(start[:2], self.point) else []
+
+    def cautious(self, speed_scale: float) -> WaypointTask:
+        return self
+
+    def with_costmap(self, costmap: object, replace_own: bool = False) -> WaypointTask:
+        return self
 
 
 class WaypointKind(TaskKind):
@@ -106,6 +123,28 @@ def test_a_new_task_kind_drives_a_closed_loop(model, waypoint_kind) -> None:  # 
     assert traj.status == "goal", traj.message
     assert np.linalg.norm(traj.positions[-1] - task.point) <= 0.5
     assert run_for(task).score(traj.positions, traj.times, traj.status, None) == {"success": True}
+
+
+def test_what_outside_the_kinds_handles_a_task_needs_no_change_for_a_new_kind() -> None:
+    """The code that once branched on lane or goal asks the kind: the views draw the toy's outline (its goal circle,
+    no lane, no circles; its plan bounds as inflation), a scenario asks it why it cannot start, the caution and the
+    planner's per-step bounds take it as it is."""
+    from gpmppi.mppi.task_kinds import kind_class_for
+    from schemas import Plan
+    from services.view import geometry as geo
+
+    task = WaypointTask(np.array([4.0, 3.0]))
+    lines = geo.task_lines(task.outline())
+    assert list(lines) == ["goal"] and lines["goal"][0] == "goal"
+    np.testing.assert_allclose(np.hypot(*(lines["goal"][1][0] - task.point).T), 0.5)
+    plan = Plan.model_construct(tightened=[0.1, 0.2])
+    assert geo.plan_bounds(plan, np.zeros((2, 5)), task.outline()) == ("inflated", [])  # no circles to grow
+    assert WaypointKind.per_step(task, np.zeros((41, 0))).shape == (0,)  # the plan message's bounds: none
+    assert infeasibility(Scenario("toy", task, np.array([4.0, 3.0, 0.0, 0.0, 0.0]))) == ["start is the waypoint"]
+    assert infeasibility(Scenario("toy", task, np.zeros(5))) == []
+    assert cautious_task(task, CautionConfig()) is task
+    with pytest.raises(ValueError, match="no task kind plans for it"):
+        kind_class_for(task)  # registered only by the fixture below
 
 
 def test_a_task_of_no_kind_is_refused_not_scored_as_a_goal(model) -> None:  # noqa: ANN001

@@ -57,7 +57,7 @@ USER_ERRORS = frozenset({
     "services.recording.mcap_inspect.InspectError",
     "tools.replay_live.ReplaceError",
     "tools.evaluate_ray.RayBackendError",
-    "tools.train.DataError",
+    "tools.train_data.DataError",
     "yaml.error.YAMLError",
 })
 

@@ -11,7 +11,7 @@ import typer
 from rich.console import Console
 
 from tools.cli_checks import OUT_FILE, AtomicOutput, fail
-from tools.train import INPUT_COLUMNS, DataError, csv_inputs, read_csv_columns
+from tools.train_data import INPUT_COLUMNS, DataError, csv_inputs, read_csv_columns
 
 
 def write_csv_atomic(path: Path, header: list[str], rows: np.ndarray) -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from gpmppi.scenarios import Scenario
-from gpmppi.tasks import GoalTask, LaneTask
+from gpmppi.tasks import TaskOutline
 from tools.cli_checks import AtomicOutput, write_text_atomic
 
 MODEL_LABELS = {"gp": "GP-MPPI", "edd5": "EDD5-MPPI", "unicycle": "Unicycle-MPPI"}
@@ -111,19 +111,36 @@ def write_tables(results: dict, meta: dict, out_dir: Path, models: list[str], te
     return paths
 
 
-def _lane_axes(ax, task: LaneTask) -> None:
-    """Centre line, and the lane edges as the level set {distance to the centre line = half-width}."""
+def _has_rmse(cell: dict) -> bool:
+    """Whether a cell's runs have a lane RMSE (a goal's are NaN, `RunScore.rmse_mm`)."""
+    v = cell.get("rmse_mm")
+    return v is not None and bool(np.isfinite(v))
+
+
+def _task_axes(ax, outline: TaskOutline, start: np.ndarray, inflated: list | None) -> None:  # noqa: ANN001
+    """What the task's kind outlines: a lane's centre line, and its edges as the level set {distance to the centre
+    line = half-width}; circles (with `inflated` radii where larger); a goal's tolerance circle; the start."""
+    from matplotlib.patches import Circle
+
     from gpmppi.tasks import distance_to_polyline
 
-    c = task.centerline
-    line = np.vstack([c, c[:1]]) if task.closed else c
-    ax.plot(line[:, 0], line[:, 1], color="0.6", lw=0.8, ls="--", label="centre line")
-    pad = task.half_width * 1.5
-    xs = np.linspace(c[:, 0].min() - pad, c[:, 0].max() + pad, 240)
-    ys = np.linspace(c[:, 1].min() - pad, c[:, 1].max() + pad, 240)
-    gx, gy = np.meshgrid(xs, ys)
-    d = distance_to_polyline(np.stack([gx.ravel(), gy.ravel()], 1), c, task.closed).reshape(gx.shape)
-    ax.contour(gx, gy, d, levels=[task.half_width], colors="0.2", linewidths=1.0)
+    if outline.lane is not None:
+        c, hw = outline.lane, outline.half_width
+        line = np.vstack([c, c[:1]]) if outline.closed else c
+        ax.plot(line[:, 0], line[:, 1], color="0.6", lw=0.8, ls="--", label="centre line")
+        pad = hw * 1.5
+        xs = np.linspace(c[:, 0].min() - pad, c[:, 0].max() + pad, 240)
+        ys = np.linspace(c[:, 1].min() - pad, c[:, 1].max() + pad, 240)
+        gx, gy = np.meshgrid(xs, ys)
+        d = distance_to_polyline(np.stack([gx.ravel(), gy.ravel()], 1), c, outline.closed).reshape(gx.shape)
+        ax.contour(gx, gy, d, levels=[hw], colors="0.2", linewidths=1.0)
+    for i, (x, y, r) in enumerate(outline.circles):
+        ax.add_patch(Circle((x, y), r, color="0.3", alpha=0.6))
+        if inflated is not None and i < len(inflated) and inflated[i] > r:
+            ax.add_patch(Circle((x, y), inflated[i], fill=False, ls="--", color="tab:red", lw=1.0))
+    if outline.goal is not None:
+        ax.add_patch(Circle(tuple(outline.goal), outline.tolerance, fill=False, color="tab:purple", lw=1.5))
+        ax.plot(*start[:2], "k^")
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -139,7 +156,6 @@ def write_figures(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Circle
 
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
@@ -150,24 +166,11 @@ def write_figures(
         terrains = list(by_terrain)
         fig, axes = plt.subplots(1, len(terrains), figsize=(5.0 * len(terrains), 5.0), squeeze=False)
         for ax, terrain in zip(axes[0], terrains, strict=True):
-            if isinstance(sc.task, LaneTask):
-                _lane_axes(ax, sc.task)
-            else:
-                task: GoalTask = sc.task
-                inflated = by_terrain[terrain].get("gp", {}).get("inflated")
-                for i, (x, y, r) in enumerate(task.obstacles):
-                    ax.add_patch(Circle((x, y), r, color="0.3", alpha=0.6))
-                    if inflated is not None and i < len(inflated) and inflated[i] > r:
-                        ax.add_patch(Circle((x, y), inflated[i], fill=False, ls="--", color="tab:red", lw=1.0))
-                ax.add_patch(Circle(tuple(task.goal), task.tolerance, fill=False, color="tab:purple", lw=1.5))
-                ax.plot(*sc.start[:2], "k^")
-                ax.set_aspect("equal")
-                ax.set_xlabel("x [m]")
-                ax.set_ylabel("y [m]")
+            _task_axes(ax, sc.task.outline(), sc.start, by_terrain[terrain].get("gp", {}).get("inflated"))
             for model, rec in sorted(by_terrain[terrain].items(), key=lambda kv: _model_rank(kv[0])):
                 xy = np.asarray(rec["xy"])
                 cell = _cell(results, task_name, terrain, model)
-                extra = f" ({_fmt(cell['rmse_mm'])} mm)" if cell and isinstance(sc.task, LaneTask) else ""
+                extra = f" ({_fmt(cell['rmse_mm'])} mm)" if cell and _has_rmse(cell) else ""
                 top = model == "gp"  # GP-MPPI on top: it is the closest to the centre line and would be hidden
                 ax.plot(xy[:, 0], xy[:, 1], color=MODEL_COLOURS.get(model), lw=1.6 if top else 1.0,
                         zorder=3 if top else 2, label=MODEL_LABELS.get(model, model) + extra)

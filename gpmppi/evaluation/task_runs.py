@@ -4,7 +4,8 @@ A `TaskRun` is bound to one task type (as the planner's kinds are, `gpmppi.mppi.
 
 * `limits`: the closed loop's limits (`ClosedLoopConfig` fields): a lane drives a distance, a goal has a time;
 * `stop`: whether a closed loop stops after a cycle (an open lane's end; a goal task's goal or collision);
-* `score`: what its runs are scored by (`RunScore` fields): lane RMSE and exits, or reaching the goal.
+* `score`: what its runs are scored by (`RunScore` fields): lane RMSE and exits, or reaching the goal;
+* `outcome`: what a run shows at its end from its positions alone, with no limits (`gpmppi launch`'s summary).
 
 `run_for(task)` gives the run of a task's kind, or a ValueError for a task of no registered kind (`register` adds one).
 """
@@ -48,6 +49,10 @@ class TaskRun(ABC):
     @abstractmethod
     def score(self, positions: np.ndarray, times: np.ndarray, status: str, cfg: Any) -> dict[str, Any]:  # noqa: ANN401
         """The task's own scores of a run (`RunScore` fields) from its true positions (T+1, 2) at `times`."""
+
+    def outcome(self, positions: np.ndarray) -> tuple[dict[str, Any], str]:
+        """A run's outcome from its positions (T, 2) alone, by name, and in one line (`Summary` fields)."""
+        return {}, type(self.task).__name__
 
 
 _RUNS: dict[type, type[TaskRun]] = {}
@@ -102,6 +107,12 @@ class LaneRun(TaskRun):
         return {"rmse_mm": lane_rmse_mm(positions, t.centerline, t.closed), "lane_exits": exits,
                 "success": status in ("distance", "finished") and exits == 0}
 
+    def outcome(self, positions: np.ndarray) -> tuple[dict[str, Any], str]:
+        t = self.task
+        rmse = lane_rmse_mm(positions, t.centerline, t.closed)
+        exits = lane_exit_count(positions, t.centerline, t.half_width, t.closed)
+        return {"lane_rmse_mm": rmse, "lane_exits": exits}, f"lane, RMSE to centre {rmse:.0f} mm, lane exits {exits}"
+
 
 @register
 class GoalRun(TaskRun):
@@ -127,3 +138,9 @@ class GoalRun(TaskRun):
         out = goal_outcome(times, positions, t.goal, t.tolerance, t.obstacles, cfg.time_limit_s, cfg.robot_radius,
                            t.costmap)
         return {"success": out.success, "time_to_goal_s": out.time_to_goal_s, "min_clearance_m": out.min_clearance_m}
+
+    def outcome(self, positions: np.ndarray) -> tuple[dict[str, Any], str]:
+        d = np.linalg.norm(positions - self.task.goal[None, :], axis=1)
+        reached, last = bool(np.any(d <= self.task.tolerance)), float(d[-1])
+        return ({"goal_reached": reached, "final_goal_distance_m": last},
+                f"goal, reached {reached}, final distance {last:.2f} m")

@@ -147,3 +147,30 @@ def build_grid(
     table = np.concatenate([mean, var], axis=1).reshape(*dims, 2 * n_tasks)
     inv_step = (np.asarray(dims) - 1) / (hi - lo)
     return GridTable(table=np.ascontiguousarray(table), lo=lo.copy(), inv_step=inv_step)
+
+
+# ---- the table as the model file stores it ----------------------------------------------------------------------
+def encode_grid_table(table: np.ndarray) -> dict[str, np.ndarray]:
+    """16-bit per-channel quantization, then wrapping (mod 2^16) differences along the 4 grid axes."""
+    table = np.asarray(table, dtype=np.float64)
+    offset = table.min(axis=(0, 1, 2, 3))
+    span = table.max(axis=(0, 1, 2, 3)) - offset
+    scale = np.where(span > 0, span / 65535.0, 1.0)
+    q = np.round((table - offset) / scale).astype(np.uint16)
+    for axis in range(4):
+        q = np.diff(q, axis=axis, prepend=np.zeros_like(q.take([0], axis=axis)))
+    return {"grid_q": q, "grid_offset": offset, "grid_scale": scale}
+
+
+def decode_grid_table(q: np.ndarray, offset: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Inverse of `encode_grid_table` (exact on the quantized values)."""
+    q = np.asarray(q)
+    if q.dtype != np.uint16 or q.ndim != 5:
+        raise ValueError(f"grid_q must be a 5-D uint16 array, got {q.dtype} {q.shape}")
+    offset = np.asarray(offset, dtype=np.float64)
+    scale = np.asarray(scale, dtype=np.float64)
+    if offset.shape != (q.shape[4],) or scale.shape != (q.shape[4],):
+        raise ValueError(f"grid_offset/grid_scale shapes {offset.shape}/{scale.shape} do not match grid_q {q.shape}")
+    for axis in range(4):
+        q = np.cumsum(q, axis=axis, dtype=np.uint16)
+    return np.ascontiguousarray(offset + scale * q)

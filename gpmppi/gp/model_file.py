@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpmppi.gp.grid_table import GridTable, build_grid
+from gpmppi.gp.grid_table import GridTable, build_grid, decode_grid_table, encode_grid_table
 from gpmppi.gp.profile_arrays import CALIBRATION_ARRAYS, calibration_arrays, calibration_from_arrays
 from gpmppi.models.lateral_slip import N_LATERAL
 from gpmppi.profile.novelty_calibration import NoveltyCalibration
@@ -284,32 +284,6 @@ def load_default_model() -> GPModel:
 def task_names(terrains: list[str]) -> list[str]:
     """Task names in model order: [T0_Lin, T0_Ang, T1_Lin, T1_Ang, ...]."""
     return [f"{t}_{o}" for t in terrains for o in ("Lin", "Ang")]
-
-
-def encode_grid_table(table: np.ndarray) -> dict[str, np.ndarray]:
-    """16-bit per-channel quantization, then wrapping (mod 2^16) differences along the 4 grid axes."""
-    table = np.asarray(table, dtype=np.float64)
-    offset = table.min(axis=(0, 1, 2, 3))
-    span = table.max(axis=(0, 1, 2, 3)) - offset
-    scale = np.where(span > 0, span / 65535.0, 1.0)
-    q = np.round((table - offset) / scale).astype(np.uint16)
-    for axis in range(4):
-        q = np.diff(q, axis=axis, prepend=np.zeros_like(q.take([0], axis=axis)))
-    return {"grid_q": q, "grid_offset": offset, "grid_scale": scale}
-
-
-def decode_grid_table(q: np.ndarray, offset: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Inverse of `encode_grid_table` (exact on the quantized values)."""
-    q = np.asarray(q)
-    if q.dtype != np.uint16 or q.ndim != 5:
-        raise ValueError(f"grid_q must be a 5-D uint16 array, got {q.dtype} {q.shape}")
-    offset = np.asarray(offset, dtype=np.float64)
-    scale = np.asarray(scale, dtype=np.float64)
-    if offset.shape != (q.shape[4],) or scale.shape != (q.shape[4],):
-        raise ValueError(f"grid_offset/grid_scale shapes {offset.shape}/{scale.shape} do not match grid_q {q.shape}")
-    for axis in range(4):
-        q = np.cumsum(q, axis=axis, dtype=np.uint16)
-    return np.ascontiguousarray(offset + scale * q)
 
 
 def _parse_metadata(raw: np.ndarray, where: str) -> dict:

@@ -16,11 +16,9 @@ Pure: a task and settings in, the task to plan for and the variance out. `Planne
 
 from __future__ import annotations
 
-import dataclasses
-
 from pydantic import BaseModel, Field
 
-from gpmppi.tasks import LaneTask, Task
+from gpmppi.tasks import Task
 
 
 class CautionConfig(BaseModel):
@@ -37,11 +35,9 @@ class CautionConfig(BaseModel):
 
 
 def cautious_task(task: Task, config: CautionConfig) -> Task:
-    """The task to plan for while the ground is unknown: a lane at the scaled speed target; a goal unchanged (its
-    care is the inflated obstacles)."""
-    if isinstance(task, LaneTask):
-        return dataclasses.replace(task, speed_target=task.speed_target * config.unknown_speed_scale)
-    return task
+    """The task to plan for while the ground is unknown, as its kind says (`cautious`): a lane at the scaled speed
+    target; a goal unchanged (its care is the inflated obstacles)."""
+    return task.cautious(config.unknown_speed_scale)
 
 
 def extra_variance(config: CautionConfig) -> tuple[float, float]:

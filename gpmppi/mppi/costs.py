@@ -37,31 +37,28 @@ from numba import njit
 from scipy.special import chdtri, ndtri
 
 from gpmppi.kernel_flags import FASTMATH
-from gpmppi.mppi.bundles import CRITICS, TASK_LANE
+from gpmppi.mppi.bundles import CRITICS
 from gpmppi.mppi.critics.base import Step
-from gpmppi.mppi.critics.registry import build_states, build_sums, layout
+from gpmppi.mppi.critics.registry import build_by_kind, build_states, build_sums
 from gpmppi.mppi.lane import lane_query
 
 __all__ = [
-    "CRITICS", "STATES", "SUMS", "ChanceQuantiles", "advance_state", "fill_weight_vector", "inflate_grid",
+    "BY_KIND", "CRITICS", "STATES", "SUMS", "ChanceQuantiles", "advance_state", "fill_weight_vector", "inflate_grid",
     "inflate_obstacles",
     "stage_cost", "stage_critics", "start_state",
     "terminal_cost", "terminal_critics", "tighten_lane", "weight_vector", "xy_lambda_max",
 ]
 
 # the registered critics' terms, summed and split, per task kind (`gpmppi.mppi.critics.registry`; the CUDA backend
-# makes each of these functions' device twin from the same terms)
+# makes each of these functions' device twin from the same terms), and the sums of a step's own kind (`BY_KIND`)
 SUMS = build_sums()
-_SUMS = SUMS
-_lane_stage = _SUMS["lane"].stage
-_goal_stage = _SUMS["goal"].stage
-_lane_stage_split = _SUMS["lane"].stage_split
-_goal_stage_split = _SUMS["goal"].stage_split
-_lane_terminal = _SUMS["lane"].terminal
-_goal_terminal = _SUMS["goal"].terminal
-_lane_terminal_split = _SUMS["lane"].terminal_split
-_goal_terminal_split = _SUMS["goal"].terminal_split
-_LANE_TERMINAL = bool(layout().terms("lane", True))  # whether a terminal critic reads the lane at the horizon's end
+BY_KIND = build_by_kind(SUMS)
+_stage = BY_KIND.stage
+_stage_split = BY_KIND.stage_split
+_terminal = BY_KIND.terminal
+_terminal_split = BY_KIND.terminal_split
+_lane_stage = BY_KIND.lane_stage  # whether a kind's stage critics read the lane (the step then queries it)
+_lane_terminal = BY_KIND.lane_terminal  # whether a kind's terminal critics read the lane at the horizon's end
 # the stateful critics' values, carried by the drivers from step to step (`registry.build_states`)
 STATES = build_states()
 start_state = STATES.start  # start_state(cost_w): the values at a rollout's first step
@@ -114,14 +111,11 @@ def stage_cost(
     the critics read its geometry by name); `tightened_hw` this step's tightened half-width (the lane distance is
     exact near it), `radii` (K,) this step's inflated radii; `state` the stateful critics' values of this step
     (`start_state`, `advance_state`); `s` the state after the step (x, y, yaw, v, omega), `u` its command, `var` its
-    GP variances. `task.kind` is `TASK_LANE` or `TASK_GOAL`: `TaskBundle.args` refuses any other, so the goal critics
-    here are the goal kind's.
+    GP variances. `task.kind` picks the critics (`BY_KIND`): one of the kernels' task kinds, as `TaskBundle.args`
+    refuses any other.
     """
-    lane = task.kind == TASK_LANE
-    at = _step(lane, task, tightened_hw, radii, state, s, u, var)
-    if lane:
-        return _lane_stage(0.0, cost_w, task, at)
-    return _goal_stage(0.0, cost_w, task, at)
+    at = _step(_lane_stage(task.kind), task, tightened_hw, radii, state, s, u, var)
+    return _stage(task.kind, 0.0, cost_w, task, at)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
@@ -131,12 +125,8 @@ def stage_critics(
 ) -> None:
     """Add each stage critic's cost of one step to `out` (`CRITICS` order; arguments as `stage_cost`): the kernels
     need only the sum, the plan reports each."""
-    lane = task.kind == TASK_LANE
-    at = _step(lane, task, tightened_hw, radii, state, s, u, var)
-    if lane:
-        _lane_stage_split(cost_w, task, at, out)
-    else:
-        _goal_stage_split(cost_w, task, at, out)
+    at = _step(_lane_stage(task.kind), task, tightened_hw, radii, state, s, u, var)
+    _stage_split(task.kind, cost_w, task, at, out)
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
@@ -145,11 +135,8 @@ def terminal_cost(
 ) -> float:
     """The sum of the task kind's terminal critics at the state after the last step (`s`; bounds of that step; `state`
     the stateful critics' values after it)."""
-    lane = task.kind == TASK_LANE
-    at = _step(lane and _LANE_TERMINAL, task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
-    if lane:
-        return _lane_terminal(0.0, cost_w, task, at)
-    return _goal_terminal(0.0, cost_w, task, at)
+    at = _step(_lane_terminal(task.kind), task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
+    return _terminal(task.kind, 0.0, cost_w, task, at)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
@@ -157,12 +144,8 @@ def terminal_critics(
     cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, out: np.ndarray,
 ) -> None:
     """Add each terminal critic's cost to `out` (`CRITICS` order; arguments as `terminal_cost`)."""
-    lane = task.kind == TASK_LANE
-    at = _step(lane and _LANE_TERMINAL, task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
-    if lane:
-        _lane_terminal_split(cost_w, task, at, out)
-    else:
-        _goal_terminal_split(cost_w, task, at, out)
+    at = _step(_lane_terminal(task.kind), task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
+    _terminal_split(task.kind, cost_w, task, at, out)
 
 
 @dataclass(frozen=True)

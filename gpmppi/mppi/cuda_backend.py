@@ -25,7 +25,7 @@ from gpmppi.gp.cuda_kernels import device_version, set_device_version
 from gpmppi.mppi import costs as critic
 from gpmppi.mppi import dynamics, gp_table, step
 from gpmppi.mppi.bundles import N_COST_TERMS
-from gpmppi.mppi.critics.registry import build_states, build_sums
+from gpmppi.mppi.critics.registry import build_by_kind, build_states, build_sums
 from gpmppi.mppi.dynamics import DYN_GP, GP_EXACT, GP_SIMPLEX
 
 THREADS_PER_BLOCK = 128
@@ -54,9 +54,13 @@ _fill_velocity_coefficients = device_version(dynamics.fill_velocity_coefficients
 # the critics' sums and state chains from the terms' device twins (the CPU ones are closures, which `device_version`
 # cannot rebuild), each made the twin of the CPU function it stands for
 _device_jit = cuda.jit(device=True, inline=True)
-for _kind, _sums in build_sums(_device_jit, device_version).items():
+_device_sums = build_sums(_device_jit, device_version)
+for _kind, _sums in _device_sums.items():
     for _field in fields(_sums):
         set_device_version(getattr(critic.SUMS[_kind], _field.name), getattr(_sums, _field.name))
+_by_kind = build_by_kind(_device_sums, _device_jit)
+for _field in fields(_by_kind):
+    set_device_version(getattr(critic.BY_KIND, _field.name), getattr(_by_kind, _field.name))
 _states = build_states(_device_jit, device_version)
 for _field in fields(_states):
     set_device_version(getattr(critic.STATES, _field.name), getattr(_states, _field.name))

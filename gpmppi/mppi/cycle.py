@@ -25,7 +25,6 @@ with [ns], as in egress's `Safety`. What happened goes into `events` (each named
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -232,13 +231,7 @@ class PlannerCycle:
                 prepare(self.task, self.previous[1])
 
     def _with_costmap(self, task: Task, replace_own: bool = False) -> Task:
-        from gpmppi.tasks import GoalTask
-
-        if not isinstance(task, GoalTask) or (task.costmap is not None and not replace_own):
-            return task
-        if self.costmap is None and not replace_own:
-            return task
-        return dataclasses.replace(task, costmap=self.costmap)
+        return task.with_costmap(self.costmap, replace_own)
 
     def on_weights(self, weights: Sequence[float], now: float, names: Sequence[str] | None = None,
                    unknown_active: bool = False) -> bool:

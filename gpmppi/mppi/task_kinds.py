@@ -7,6 +7,7 @@ been given a task of. Each owns, for its tasks:
 * its chance-constrained bounds from the propagated covariances (`bounds`: tightened lane half-widths, or inflated
   obstacle radii) and the name of the flag that counts their clamps (`clamp_flag`);
 * the kernels' task input (`task_bundle`, with what it caches per task: the lane lookup, the goal field);
+* one number a step of its bounds, for a plan message (`per_step`);
 * its critic chain: the registered critics of a kernel task kind (`critics`, a key of `critics.base.TASK_KINDS`), as
   the cost bundle the kernels read (`cost`), and the sampling noise of its rollouts (`noise_std`).
 
@@ -67,6 +68,12 @@ class TaskKind(ABC):
     @abstractmethod
     def task_bundle(self, task: object, bounds: np.ndarray, x: np.ndarray) -> TaskBundle:
         """The kernels' task input for `task` with `bounds`, planning from state `x`."""
+
+    @classmethod
+    def per_step(cls, task: object, bounds: np.ndarray) -> np.ndarray:
+        """One number a step (N+1,) [m] of `bounds` (`bounds`' result) for a plan message (`Plan.tightened`): here the
+        bounds themselves (a lane's tightened half-widths)."""
+        return np.asarray(bounds, dtype=np.float64).reshape(-1)
 
     def reach(self) -> float:
         """How far [m] one horizon can drive at the largest speed."""
@@ -189,6 +196,14 @@ class GoalKind(TaskKind):
             half_step = 0.5 * c.dt * max(abs(c.v_limits[0]), abs(c.v_limits[1]))
             radii = np.sqrt(radii * radii + half_step * half_step)
         return radii, capped
+
+    @classmethod
+    def per_step(cls, task: GoalTask, bounds: np.ndarray) -> np.ndarray:
+        """Per step the largest inflation of any radius (a costmap's column, after the circles', is its whole radius:
+        the robot's plus the inflation); zeros with nothing to inflate."""
+        bounds = np.asarray(bounds, dtype=np.float64)
+        radii = np.concatenate([task.obstacles[:, 2], np.zeros(bounds.shape[1] - task.obstacles.shape[0])])
+        return (bounds - radii[None, :]).max(axis=1) if radii.size else np.zeros(bounds.shape[0])
 
     def prepare(self, task: GoalTask, x: np.ndarray) -> None:
         """A grid's kernel arrays (its distance transform) and the goal field of the task's scene."""

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from gpmppi.costmap import Costmap
 from gpmppi.tasks import GoalTask, LaneTask
+from gpmppi.tasks import Task as CoreTask
 from schemas import Circle, Header, OccupancyGrid, State, Task
 
 
@@ -43,37 +46,57 @@ def state_from_array(
     )
 
 
-def task_to_message(task: LaneTask | GoalTask, stamp_ns: int = 0) -> Task:
-    header = Header(stamp_ns=stamp_ns)
-    if isinstance(task, LaneTask):
-        return Task(
-            header=header,
-            kind="lane",
-            centerline=[[float(p[0]), float(p[1])] for p in task.centerline],
-            closed=task.closed,
-            half_width=task.half_width,
-            speed_target=task.speed_target,
-        )
-    return Task(
-        header=header,
-        kind="goal",
-        goal=[float(task.goal[0]), float(task.goal[1])],
-        goal_tolerance=task.tolerance,
-        obstacles=[Circle(x=float(o[0]), y=float(o[1]), r=float(o[2])) for o in task.obstacles],
-    )
+@dataclass(frozen=True)
+class TaskCodec:
+    """A task kind's message conversion: `to_message(task, header)` and `from_message(msg)` (`schemas.Task` fields)."""
+
+    to_message: Callable[[CoreTask, Header], Task]
+    from_message: Callable[[Task], CoreTask]
 
 
-def task_from_message(msg: Task) -> LaneTask | GoalTask:
-    if msg.kind == "lane":
-        return LaneTask(
-            np.asarray(msg.centerline, dtype=np.float64),
-            half_width=msg.half_width,
-            speed_target=msg.speed_target,
-            closed=msg.closed,
-        )
-    assert msg.goal is not None  # the Task model guarantees a goal for kind == "goal"
+def _lane_to_message(task: LaneTask, header: Header) -> Task:
+    return Task(header=header, kind="lane", centerline=[[float(p[0]), float(p[1])] for p in task.centerline],
+                closed=task.closed, half_width=task.half_width, speed_target=task.speed_target)
+
+
+def _lane_from_message(msg: Task) -> LaneTask:
+    return LaneTask(np.asarray(msg.centerline, dtype=np.float64), half_width=msg.half_width,
+                    speed_target=msg.speed_target, closed=msg.closed)
+
+
+def _goal_to_message(task: GoalTask, header: Header) -> Task:
+    return Task(header=header, kind="goal", goal=[float(task.goal[0]), float(task.goal[1])],
+                goal_tolerance=task.tolerance,
+                obstacles=[Circle(x=float(o[0]), y=float(o[1]), r=float(o[2])) for o in task.obstacles])
+
+
+def _goal_from_message(msg: Task) -> GoalTask:
     obstacles = np.array([[o.x, o.y, o.r] for o in msg.obstacles], dtype=np.float64).reshape(-1, 3)
     return GoalTask(goal=np.asarray(msg.goal, dtype=np.float64), tolerance=msg.goal_tolerance, obstacles=obstacles)
+
+
+# by the kind's name (the task type's `kind`, the message's `kind`); a new kind adds its codec here
+TASK_CODECS: dict[str, TaskCodec] = {
+    LaneTask.kind: TaskCodec(_lane_to_message, _lane_from_message),
+    GoalTask.kind: TaskCodec(_goal_to_message, _goal_from_message),
+}
+
+
+def _codec(kind: str) -> TaskCodec:
+    codec = TASK_CODECS.get(kind)
+    if codec is None:
+        raise ValueError(f"no message codec for task kind {kind!r}: the kinds are {sorted(TASK_CODECS)} "
+                         "(add one to services.codec.convert.TASK_CODECS)")
+    return codec
+
+
+def task_to_message(task: CoreTask, stamp_ns: int = 0) -> Task:
+    return _codec(task.kind).to_message(task, Header(stamp_ns=stamp_ns))
+
+
+def task_from_message(msg: Task) -> CoreTask:
+    """The core's task of a message (the message model has checked that its kind's fields are there)."""
+    return _codec(msg.kind).from_message(msg)
 
 
 def yaw_from_quaternion(x: float, y: float, z: float, w: float) -> float:

@@ -129,8 +129,8 @@ class NavTasks:
 
     def on_task(self, task: Task) -> None:
         """A task seen on `task` (the planner re-publishes the one it plans for): a goal task's obstacles are the
-        scene the next goal is given in. A lane task has no scene and leaves it as it is."""
-        if task.kind == "goal":
+        scene the next goal is given in. A task with no goal (a lane) has no scene and leaves it as it is."""
+        if task.goal is not None:
             self.obstacles = list(task.obstacles)
 
     def from_path(self, data: bytes, stamp_ns: int, distro: ros2.Distro = "jazzy") -> Task:

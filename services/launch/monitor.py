@@ -130,6 +130,7 @@ class Monitor:
 class Summary:
     duration_s: float = 0.0
     task_kind: str = ""
+    task_line: str = ""  # the task's outcome in one line (`TaskRun.outcome`)
     lane_rmse_mm: float | None = None
     lane_exits: int | None = None
     goal_reached: bool | None = None
@@ -156,12 +157,7 @@ class Summary:
 
     def lines(self) -> list[str]:
         out = [f"duration {self.duration_s:.1f} s, driven {self.distance_driven_m:.1f} m"]
-        if self.task_kind == "lane" and self.lane_rmse_mm is not None:
-            out.append(f"task: lane, RMSE to centre {self.lane_rmse_mm:.0f} mm, lane exits {self.lane_exits}")
-        elif self.task_kind == "goal":
-            out.append(f"task: goal, reached {self.goal_reached}, final distance {self.final_goal_distance_m:.2f} m")
-        else:
-            out.append("task: no task or no states seen")
+        out.append(f"task: {self.task_line}" if self.task_line else "task: no task or no states seen")
         out.append(
             f"planner: {_fmt(self.planner_rate_hz, 'Hz')}; state stamp -> command published p50 "
             f"{_fmt(self.latency_p50_ms, 'ms')} p99 {_fmt(self.latency_p99_ms, 'ms')}; plan compute p99 "
@@ -242,17 +238,14 @@ def summarize(monitor: Monitor | None, launcher: Launcher, service_names: list[s
 
 
 def score_task(s: Summary, task: Task, states: np.ndarray) -> None:
-    from gpmppi.evaluation import metrics
+    """The task's outcome from the driven positions, as its kind's evaluation gives it (`TaskRun.outcome`)."""
+    from gpmppi.evaluation.task_runs import run_for
+    from services.codec.convert import task_from_message
 
     s.task_kind = task.kind
-    if task.kind == "lane":
-        centre = np.asarray(task.centerline)
-        s.lane_rmse_mm = metrics.lane_rmse_mm(states, centre, task.closed)
-        s.lane_exits = metrics.lane_exit_count(states, centre, task.half_width, task.closed)
-    elif task.goal is not None:
-        d = np.linalg.norm(states - np.asarray(task.goal)[None, :], axis=1)
-        s.goal_reached = bool(np.any(d <= task.goal_tolerance))
-        s.final_goal_distance_m = float(d[-1])
+    scores, s.task_line = run_for(task_from_message(task)).outcome(states)
+    for name, value in scores.items():
+        setattr(s, name, value)
 
 
 def _from_recording(

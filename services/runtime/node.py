@@ -20,21 +20,20 @@ Sessions are Zenoh clients of a router (the launcher starts one; `zenohd` works 
 
 from __future__ import annotations
 
-import json
 import logging
 import signal
-import sys
 import threading
 import time
 from collections import deque
 from types import FrameType, TracebackType
-from typing import Any, Generic, Literal, TypeVar
+from typing import Generic, TypeVar
 
 import zenoh
 
 from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_for
 from schemas.codec import ENCODING
 from services.runtime.config_file import ConfigFileError
+from services.runtime.counters import Counters
 from services.runtime.node_settings import NodeSettings, changed_since_loaded
 from services.runtime.role import HANDOVER, notify_systemd_ready, say_joined, standby_requested, wait_for_role
 from services.runtime.scheduling import Inbox
@@ -50,58 +49,7 @@ class SettingsChanged(RuntimeError):
 LIVELINESS_PREFIX = "gpmppi/{robot}/alive/{service}"
 
 
-# ---- logging ----------------------------------------------------------------------------------
-class JsonFormatter(logging.Formatter):
-    def __init__(self, service: str) -> None:
-        super().__init__()
-        self.service = service
-
-    def format(self, record: logging.LogRecord) -> str:
-        entry: dict[str, Any] = {
-            "t": round(record.created, 3),
-            "level": record.levelname,
-            "service": self.service,
-            "logger": record.name,
-            "msg": record.getMessage(),
-        }
-        extra = getattr(record, "fields", None)
-        if isinstance(extra, dict):
-            entry.update(extra)
-        if record.exc_info:
-            entry["exc"] = self.formatException(record.exc_info)
-        return json.dumps(entry, default=str)
-
-
-def setup_logging(service: str, level: str = "INFO", as_json: bool = True) -> None:
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(
-        JsonFormatter(service) if as_json else logging.Formatter(f"%(asctime)s {service} %(levelname)s %(message)s")
-    )
-    root = logging.getLogger()
-    root.handlers[:] = [handler]
-    root.setLevel(level.upper())
-
-
 # ---- typed pub/sub ----------------------------------------------------------------------------
-class Counters:
-    def __init__(self) -> None:
-        self.received = 0
-        self.rejected = 0
-        self.published = 0
-        self.cycles = 0
-        self.last_error = ""
-        # service-specific health, sent in each heartbeat: named counters, named conditions, overall status
-        self.counts: dict[str, int] = {}
-        self.flags: dict[str, bool] = {}
-        self.status: Literal["ok", "degraded", "failing"] = "ok"
-        self.lock = threading.Lock()
-
-    def count(self, name: str, n: int = 1) -> None:
-        """Add n to the named counter `name` (reported in the heartbeat's `counts`)."""
-        with self.lock:
-            self.counts[name] = self.counts.get(name, 0) + n
-
-
 class TypedPublisher(Generic[M]):
     """Publishes one message type on one key; JSON with `application/json` encoding; validated before sending."""
 

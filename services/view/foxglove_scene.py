@@ -31,7 +31,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gpmppi.tasks import TaskOutline
 from schemas import BaseCommand, EStop, Heartbeat, Message, OccupancyGrid, Plan, State, Task, model_for_key
+from services.codec.convert import task_from_message
 from services.view import geometry as geo
 
 if TYPE_CHECKING:
@@ -39,6 +41,8 @@ if TYPE_CHECKING:
 
 SCENE_PREFIX = "scene/"
 MAP_FRAME = "map"
+# where a plan's bounds are drawn, by their layer (`geometry.plan_bounds`)
+_BOUND_ENTITIES = {"tightened": "lane/tightened", "inflated": "obstacles/inflated"}
 BASE_FRAME = "base_link"
 # topic (after scene/<robot>/) -> the Foxglove schema of its messages
 SCENE_SCHEMAS = {
@@ -158,6 +162,7 @@ class FoxgloveSceneMapper:
         self.plan_hz = self.opt.plan_hz if isinstance(self.opt, SceneOptions) else SceneOptions.plan_hz
         self._plan_rate: dict[str, RateLimit] = {}
         self.task: dict[str, Task] = {}
+        self.outline: dict[str, TaskOutline] = {}  # what each robot's task's kind outlines (`Task.outline`)
         self._paths: dict[str, geo.PathStrips] = {}
         self._plans: dict[str, int] = {}
         self._plan_seq: dict[str, int] = {}
@@ -310,39 +315,41 @@ class FoxgloveSceneMapper:
         previous = self.task.get(robot)
         changed = previous is None or previous.model_dump(exclude={"header"}) != msg.model_dump(exclude={"header"})
         self.task[robot] = msg  # kept whatever is read: the plan's bounds are drawn from it
+        if changed:
+            try:
+                self.outline[robot] = task_from_message(msg).outline()
+            except ValueError:  # the message validated, but the core's task refuses it: nothing to draw
+                self.outline.pop(robot, None)
         if "task" not in wanted and "events" not in wanted:
             return []
         # sent with every task message (the planner re-publishes it once a second), so a client that connects late,
         # or a recording opened in the middle, shows the map within a second
-        if msg.kind == "lane":
-            edges, centre = geo.lane_lines(msg)
-            entities = [
-                self._entity("lane/edges", t, lines=[self._line(e, "edges") for e in edges]),
-                self._entity("lane/centre", t, lines=[self._line(centre, "centre")]),
-            ]
-            gone = ["obstacles", "goal"]
-            text = f"task: lane, {len(msg.centerline)} points, half-width {msg.half_width:.2f} m"
-        else:
+        outline = self.outline.get(robot)
+        if outline is None:
+            return [self._log(robot, t, "task not drawn: the planner's core refuses it", "Warning")] if changed and \
+                "events" in wanted else []
+        drawn = geo.task_lines(outline)
+        entities = [self._entity(entity, t, lines=[self._line(line, layer) for line in lines])
+                    for entity, (layer, lines) in drawn.items()]
+        if outline.circles.shape[0]:
             style = geo.LAYERS["obstacles"]
             cylinders = [
                 self.fm.CylinderPrimitive(
                     pose=self.fm.Pose(
-                        position=self.fm.Vector3(x=o.x, y=o.y, z=0.1),
+                        position=self.fm.Vector3(x=x, y=y, z=0.1),
                         orientation=self.fm.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
                     ),
-                    size=self.fm.Vector3(x=2 * o.r, y=2 * o.r, z=0.2),
+                    size=self.fm.Vector3(x=2 * r, y=2 * r, z=0.2),
                     bottom_scale=1.0,
                     top_scale=1.0,
                     color=self._color(style.color or (200, 40, 40)),
                 )
-                for o in msg.obstacles
+                for x, y, r in outline.circles.tolist()
             ]
-            entities = [self._entity("obstacles", t, cylinders=cylinders)]
-            goal = geo.goal_circle(msg)
-            if goal is not None:
-                entities.append(self._entity("goal", t, lines=[self._line(goal, "goal")]))
-            gone = ["lane/edges", "lane/centre"] + (["goal"] if goal is None else [])
-            text = f"task: goal {msg.goal}, {len(msg.obstacles)} obstacles"
+            entities.append(self._entity("obstacles", t, cylinders=cylinders))
+        drawn_ids = set(drawn) | ({"obstacles"} if outline.circles.shape[0] else set())
+        gone = [e for e in geo.TASK_ENTITIES if e not in drawn_ids]  # what an earlier task of another kind drew
+        text = "task: " + outline.summary
         out = (
             [self._update(scene_topic(robot, "task"), t, entities, gone if changed else [])] if "task" in wanted else []
         )
@@ -359,23 +366,18 @@ class FoxgloveSceneMapper:
         plans = self._plans[robot] = self._plans.get(robot, 0) + 1
         entities = []
         states = geo.plan_states(msg)
-        task = self.task.get(robot)
         if states is not None:
             entities.append(self._entity("plan/nominal", t, lines=[self._line(states, "nominal")]))
             ellipses = geo.plan_ellipses(msg, states, self.opt.ellipse_every)
             if ellipses is not None:
                 lines = [self._line(e, "covariance") for e in ellipses]
                 entities.append(self._entity("plan/covariance", t, lines=lines))
-            if msg.tightened and task is not None:
-                if task.kind == "lane":
-                    bounds = geo.plan_tightened_bounds(msg, states, task)
-                    lines = [self._line(b, "tightened") for b in bounds]
-                    entities.append(self._entity("lane/tightened", t, lines=lines))
-                else:
-                    circles = geo.inflated_obstacles(msg, task)
-                    entities.append(
-                        self._entity("obstacles/inflated", t, lines=[self._line(c, "inflated") for c in circles])
-                    )
+            outline = self.outline.get(robot)
+            if msg.tightened and outline is not None:
+                # the bounds as the task's kind says what they are: a lane's tightened half-widths, the circles'
+                # inflation
+                layer, lines = geo.plan_bounds(msg, states, outline)
+                entities.append(self._entity(_BOUND_ENTITIES[layer], t, lines=[self._line(b, layer) for b in lines]))
         if (plans - 1) % self.opt.samples_every == 0:
             drawn = geo.rollouts(msg, self.opt.max_samples, self.opt.sample_stride)
             if drawn is not None:

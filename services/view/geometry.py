@@ -4,8 +4,9 @@ what these functions compute from our messages, and only translate it into their
 - pure geometry (numpy only): circles, covariance ellipses, lane offsets, the tightened lane along the plan horizon,
   the robot's outline, and a cost colour ramp;
 - the map's layers and their style (`LAYERS`: colour, line radius [m], draw order), one table for both viewers;
-- per message, what is drawn: the lane's edges and centre, the plan's covariance ellipses, its tightened bounds or
-  inflated obstacles, and the decimated rollouts with their cost colours.
+- per message, what is drawn: what the task's kind outlines (`gpmppi.tasks.TaskOutline`: a lane's edges and centre,
+  circles, a goal), the plan's covariance ellipses, its bounds as the kind says what they are (a lane's tightened
+  half-widths or the circles' inflation), and the decimated rollouts with their cost colours.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas import OccupancyGrid, Plan, Task
+from gpmppi.tasks import TaskOutline
+from schemas import OccupancyGrid, Plan
 
 # the robot drawn as a footprint with a pointed nose (so its heading reads at a glance), body frame [m]:
 # about a Jackal's 0.51 m x 0.43 m
@@ -173,13 +175,6 @@ class Decimation:
 
 
 # ---- per message: what is drawn -----------------------------------------------------------------------------
-def lane_lines(task: Task) -> tuple[list[np.ndarray], np.ndarray]:
-    """A lane task's two edges (centre +- half-width) and its centre polyline (closed where the lane is)."""
-    c = np.asarray(task.centerline, dtype=np.float64)
-    edges = [offset(c, task.half_width, task.closed), offset(c, -task.half_width, task.closed)]
-    return edges, closed_polyline(c, task.closed)
-
-
 def lethal_cells(grid: OccupancyGrid) -> tuple[np.ndarray, float]:
     """The world positions (n, 2) [m] of a grid's lethal cells' centres (in its header's frame) and the radius [m] to
     draw each with (half a cell)."""
@@ -190,9 +185,21 @@ def lethal_cells(grid: OccupancyGrid) -> tuple[np.ndarray, float]:
     return np.stack([grid.origin_x + c * gx - s * gy, grid.origin_y + s * gx + c * gy], axis=1), 0.5 * grid.resolution
 
 
-def goal_circle(task: Task) -> np.ndarray | None:
-    """The goal's tolerance circle, or None without a goal."""
-    return None if task.goal is None else circle(*task.goal, task.goal_tolerance)
+def task_lines(outline: TaskOutline) -> dict[str, tuple[str, list[np.ndarray]]]:
+    """The lines of what a task's kind outlines (`Task.outline()`), by entity (`TASK_ENTITIES`): (layer, polylines):
+    a lane's two edges (centre +- half-width) and its centre (closed where the lane is), a goal's tolerance circle."""
+    out: dict[str, tuple[str, list[np.ndarray]]] = {}
+    if outline.lane is not None:
+        c, hw = outline.lane, outline.half_width
+        out["lane/edges"] = ("edges", [offset(c, hw, outline.closed), offset(c, -hw, outline.closed)])
+        out["lane/centre"] = ("centre", [closed_polyline(c, outline.closed)])
+    if outline.goal is not None:
+        out["goal"] = ("goal", [circle(outline.goal[0], outline.goal[1], outline.tolerance)])
+    return out
+
+
+# every entity a task may draw (`task_lines`, and "obstacles" for its circles): a new task clears those it does not
+TASK_ENTITIES = ("lane/edges", "lane/centre", "goal", "obstacles")
 
 
 def plan_states(plan: Plan) -> np.ndarray | None:
@@ -219,22 +226,20 @@ def tightening(plan: Plan) -> tuple[float, float] | None:
     return float(tightened[min(1, len(tightened) - 1)]), float(tightened[-1])
 
 
-def plan_tightened_bounds(plan: Plan, states: np.ndarray, task: Task) -> list[np.ndarray]:
-    """A lane plan's tightened bounds: per step of the horizon, the tightened half-width either side of the
-    centre, where the plan is (empty without tightening)."""
+def plan_bounds(plan: Plan, states: np.ndarray, outline: TaskOutline) -> tuple[str, list[np.ndarray]]:
+    """What a plan's per-step bounds (`Plan.tightened`) draw, by what the task's kind says they are (`bounds`), as
+    (layer, polylines): a lane's tightened half-width either side of its centre, per step of the horizon, where the
+    plan is ("tightened"); or the circles grown by the plan's largest inflation ("inflated"). Empty without bounds."""
     tightened = np.asarray(plan.tightened, dtype=np.float64)
-    if tightened.size == 0:
-        return []
-    steps = tightened if len(tightened) == len(states) else np.resize(tightened, len(states))
-    return tightened_bounds(states[:, :2], steps, np.asarray(task.centerline), task.closed)
-
-
-def inflated_obstacles(plan: Plan, task: Task) -> list[np.ndarray]:
-    """A goal plan's obstacles as circles of their radius plus the plan's largest inflation."""
-    if not plan.tightened or not task.obstacles:
-        return []
-    inflation = float(np.max(np.asarray(plan.tightened, dtype=np.float64)))
-    return [circle(o.x, o.y, o.r + inflation) for o in task.obstacles]
+    if outline.bounds == "half_width" and outline.lane is not None:
+        if tightened.size == 0:
+            return "tightened", []
+        steps = tightened if len(tightened) == len(states) else np.resize(tightened, len(states))
+        return "tightened", tightened_bounds(states[:, :2], steps, outline.lane, outline.closed)
+    if tightened.size == 0 or outline.circles.shape[0] == 0:
+        return "inflated", []
+    inflation = float(np.max(tightened))
+    return "inflated", [circle(x, y, r + inflation) for x, y, r in outline.circles]
 
 
 def rollouts(plan: Plan, max_samples: int, stride: int) -> tuple[np.ndarray, np.ndarray] | None:

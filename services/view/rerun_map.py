@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from gpmppi.tasks import TaskOutline
 from schemas import (
     BaseCommand,
     Command,
@@ -29,6 +30,7 @@ from schemas import (
     Task,
     TerrainWeights,
 )
+from services.codec.convert import task_from_message
 from services.view import geometry as geo
 
 if TYPE_CHECKING:
@@ -36,6 +38,8 @@ if TYPE_CHECKING:
 
 TIMELINE = "stamp"
 EVENTS = "events"
+# where a plan's bounds are drawn, by their layer (`geometry.plan_bounds`)
+_BOUND_ENTITIES = {"tightened": "map/lane/tightened", "inflated": "map/obstacles_inflated"}
 
 # (entity, legend name, RGB colour, line width [px]) of every fixed time series
 SERIES: dict[str, tuple[str, tuple[int, int, int], float]] = {
@@ -98,6 +102,7 @@ class RerunMapper:
         self.rec = rec
         self.opt = options or ViewOptions()
         self.task: Task | None = None
+        self.outline: TaskOutline | None = None  # what the task's kind outlines (`gpmppi.tasks.Task.outline`)
         self._grid_key: str | None = None  # the grid drawn (its message without the stamp)
         self._series: dict[str, tuple[list[int], list[float]]] = {}
         self._styled: set[str] = set()
@@ -245,45 +250,23 @@ class RerunMapper:
             return
         first = self.task is None
         self.task = msg
-        if msg.kind == "lane":
-            edges, centre = geo.lane_lines(msg)
-            e, c = geo.LAYERS["edges"], geo.LAYERS["centre"]
-            # the lane is static (the map); a later, different task replaces it
-            self.rec.log(
-                "map/lane/edges",
-                rr.LineStrips2D(edges, colors=[e.color], radii=e.radius, draw_order=e.order),
-                static=True,
-            )
-            self.rec.log(
-                "map/lane/centre",
-                rr.LineStrips2D([centre], colors=[c.color], radii=c.radius, draw_order=c.order),
-                static=True,
-            )
-            n = len(msg.centerline)
-            text = f"task: lane, {n} points, half-width {msg.half_width:.2f} m, speed {msg.speed_target:.2f} m/s"
-        else:
-            obs = msg.obstacles
-            if obs:
-                style = geo.LAYERS["obstacles"]
-                self.rec.log(
-                    "map/obstacles",
-                    rr.Points2D(
-                        [[o.x, o.y] for o in obs],
-                        radii=[o.r for o in obs],
-                        colors=[style.color],
-                        draw_order=style.order,
-                    ),
-                    static=True,
-                )
-            goal = geo.goal_circle(msg)
-            if goal is not None:
-                style = geo.LAYERS["goal"]
-                self.rec.log(
-                    "map/goal",
-                    rr.LineStrips2D([goal], colors=[style.color], radii=style.radius, draw_order=style.order),
-                    static=True,
-                )
-            text = f"task: goal {msg.goal}, {len(obs)} obstacles"
+        try:
+            self.outline = task_from_message(msg).outline()
+        except ValueError as exc:  # the message validated, but the core's task refuses it: say so, draw nothing
+            self.outline = None
+            self.event(t, f"task not drawn: {exc}", "WARN")
+            return
+        # the task is static (the map); a later, different task replaces it
+        for entity, (layer, lines) in geo.task_lines(self.outline).items():
+            style = geo.LAYERS[layer]
+            self.rec.log(f"map/{entity}", rr.LineStrips2D(lines, colors=[style.color], radii=style.radius,
+                                                         draw_order=style.order), static=True)
+        circles = self.outline.circles
+        if circles.shape[0]:
+            style = geo.LAYERS["obstacles"]
+            self.rec.log("map/obstacles", rr.Points2D(circles[:, :2], radii=circles[:, 2], colors=[style.color],
+                                                      draw_order=style.order), static=True)
+        text = "task: " + self.outline.summary
         self.event(t, text if first else "task changed: " + text)
 
     def _costmap(self, msg: OccupancyGrid, t: int) -> None:
@@ -345,25 +328,22 @@ class RerunMapper:
     def _tightened(self, msg: Plan, states: np.ndarray, t: int) -> None:
         import rerun as rr
 
-        task = self.task
         ends = geo.tightening(msg)
         assert ends is not None  # called with a tightening only
-        if task is not None and task.kind == "lane":
-            self._scalar("plots/tightening/nominal", t, task.half_width)
-            self._scalar("plots/tightening/first", t, ends[0])
-            self._scalar("plots/tightening/last", t, ends[1])
-            # per step of the horizon, the tightened half-width on either side of the centre, where the plan is
-            bounds = geo.plan_tightened_bounds(msg, states, task)
-            if bounds:
-                self._static("map/lane/tightened", _line("tightened"))
-                self.rec.log("map/lane/tightened", rr.LineStrips2D.from_fields(strips=_strips(bounds)))
-        else:
-            self._scalar("plots/tightening/first", t, ends[0])
-            self._scalar("plots/tightening/last", t, ends[1])
-            circles = geo.inflated_obstacles(msg, task) if task is not None else []
-            if circles:
-                self._static("map/obstacles_inflated", _line("inflated"))
-                self.rec.log("map/obstacles_inflated", rr.LineStrips2D.from_fields(strips=_strips(circles)))
+        outline = self.outline
+        if outline is not None and outline.bounds == "half_width":
+            self._scalar("plots/tightening/nominal", t, outline.half_width)
+        self._scalar("plots/tightening/first", t, ends[0])
+        self._scalar("plots/tightening/last", t, ends[1])
+        if outline is None:
+            return
+        # the bounds as the task's kind says what they are: per step of the horizon a lane's tightened half-width on
+        # either side of the centre, where the plan is; or the circles grown by the inflation
+        layer, lines = geo.plan_bounds(msg, states, outline)
+        if lines:
+            entity = _BOUND_ENTITIES[layer]
+            self._static(entity, _line(layer))
+            self.rec.log(entity, rr.LineStrips2D.from_fields(strips=_strips(lines)))
 
     def _timings(self, msg: Plan, t: int) -> None:
         if self._plans <= self.opt.timing_warmup_plans:

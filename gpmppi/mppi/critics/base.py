@@ -31,13 +31,17 @@ from numba import njit
 from gpmppi.kernel_flags import FASTMATH
 
 __all__ = [
-    "TASK_GOAL", "TASK_KINDS", "TASK_LANE", "W_GOAL_GEODESIC", "Critic", "Param", "Step", "StepState", "critic_term",
+    "LANE_TASK_KINDS", "TASK_GOAL", "TASK_KINDS", "TASK_LANE", "W_GOAL_GEODESIC", "Critic", "Param", "Step",
+    "StepState", "critic_term",
 ]
 
 # task kinds of the rollout kernels, by the name the config uses
 TASK_LANE = 0
 TASK_GOAL = 1
 TASK_KINDS = {"lane": TASK_LANE, "goal": TASK_GOAL}
+# the kernels' task kinds whose critics read the lane at each step (`Step.lane_dist`, `lane_tx`, `lane_ty`: queried
+# once per step for all of them, `registry.ByKind`)
+LANE_TASK_KINDS = frozenset({"lane"})
 
 # the cost vector's first slot: goal critics measure the distance around the obstacles (1.0) or the straight line
 W_GOAL_GEODESIC = 0

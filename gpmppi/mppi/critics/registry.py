@@ -24,9 +24,11 @@ from dataclasses import dataclass
 from numba import njit
 
 from gpmppi.kernel_flags import FASTMATH
-from gpmppi.mppi.critics.base import TASK_KINDS, W_GOAL_GEODESIC, Critic
+from gpmppi.mppi.critics.base import LANE_TASK_KINDS, TASK_KINDS, W_GOAL_GEODESIC, Critic
 
-__all__ = ["CriticLayout", "States", "Sums", "build_states", "build_sums", "layout", "register"]
+__all__ = [
+    "ByKind", "CriticLayout", "States", "Sums", "build_by_kind", "build_states", "build_sums", "layout", "register",
+]
 
 _REGISTERED: list[Critic] = []
 _LAYOUT: CriticLayout | None = None
@@ -211,3 +213,94 @@ def build_sums(jit: Callable | None = None, twin: Callable | None = None) -> dic
         terminal, terminal_split = _chain(lay.terms(task, True), jit, twin, lay.names, w0)
         out[task] = Sums(stage, stage_split, terminal, terminal_split)
     return out
+
+
+
+@dataclass(frozen=True)
+class ByKind:
+    """The sums of whichever task kind a step's task is (`TaskBundle.kind`), so the kernels name no kind: `stage(kind,
+    c, cost_w, geo, at)`, `stage_split(kind, cost_w, geo, at, out)` (and terminal alike) call that kind's `Sums`;
+    `lane_stage(kind)` / `lane_terminal(kind)` say whether its stage / terminal critics read the lane at the step
+    (`Step.lane_dist`, ...; the drivers query it once for all of them)."""
+
+    stage: Callable
+    stage_split: Callable
+    terminal: Callable
+    terminal_split: Callable
+    lane_stage: Callable
+    lane_terminal: Callable
+
+
+def build_by_kind(sums: Mapping[str, Sums], jit: Callable | None = None) -> ByKind:
+    """`ByKind` over each task kind's `sums` (`build_sums`, compiled by the same `jit`): a chain of `if kind == id`
+    tests in `TASK_KINDS` order, the last kind taking any other id (`TaskBundle.args` refuses ids the kernels have no
+    critics for), so LLVM sees the test the kernels once wrote by hand (seeded plans unchanged)."""
+    jit = jit or njit(fastmath=FASTMATH, inline="always")
+    lay = layout()
+    ids = [TASK_KINDS[name] for name in sums]
+    reads_lane = [name in LANE_TASK_KINDS for name in sums]
+    reads_lane_end = [name in LANE_TASK_KINDS and bool(lay.terms(name, True)) for name in sums]
+
+    def chain(link: Callable, tail: Callable, funcs: list) -> Callable:
+        pick = tail(jit, funcs[-1])
+        for kid, here in reversed(list(zip(ids[:-1], funcs[:-1], strict=True))):
+            pick = link(jit, kid, here, pick)
+        return pick
+
+    return ByKind(
+        chain(_pick_sum, _tail_sum, [s.stage for s in sums.values()]),
+        chain(_pick_split, _tail_split, [s.stage_split for s in sums.values()]),
+        chain(_pick_sum, _tail_sum, [s.terminal for s in sums.values()]),
+        chain(_pick_split, _tail_split, [s.terminal_split for s in sums.values()]),
+        chain(_pick_flag, _tail_flag, reads_lane),
+        chain(_pick_flag, _tail_flag, reads_lane_end),
+    )
+
+
+def _tail_sum(jit: Callable, last: Callable) -> Callable:
+    def pick(kind: int, c: float, cost_w, geo: tuple, at: tuple) -> float:  # noqa: ANN001 - an array
+        return last(c, cost_w, geo, at)
+
+    return jit(pick)
+
+
+def _pick_sum(jit: Callable, kid: int, here: Callable, rest: Callable) -> Callable:
+    def pick(kind: int, c: float, cost_w, geo: tuple, at: tuple) -> float:  # noqa: ANN001 - an array
+        if kind == kid:
+            return here(c, cost_w, geo, at)
+        return rest(kind, c, cost_w, geo, at)
+
+    return jit(pick)
+
+
+def _tail_split(jit: Callable, last: Callable) -> Callable:
+    def pick(kind: int, cost_w, geo: tuple, at: tuple, out) -> None:  # noqa: ANN001 - arrays
+        last(cost_w, geo, at, out)
+
+    return jit(pick)
+
+
+def _pick_split(jit: Callable, kid: int, here: Callable, rest: Callable) -> Callable:
+    def pick(kind: int, cost_w, geo: tuple, at: tuple, out) -> None:  # noqa: ANN001 - arrays
+        if kind == kid:
+            here(cost_w, geo, at, out)
+        else:
+            rest(kind, cost_w, geo, at, out)
+
+    return jit(pick)
+
+
+def _tail_flag(jit: Callable, last: bool) -> Callable:
+    def pick(kind: int) -> bool:
+        return last
+
+    return jit(pick)
+
+
+def _pick_flag(jit: Callable, kid: int, here: bool, rest: Callable) -> Callable:
+    def pick(kind: int) -> bool:
+        if kind == kid:
+            return here
+        return rest(kind)
+
+    return jit(pick)
