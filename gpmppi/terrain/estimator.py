@@ -251,6 +251,12 @@ class BayesTerrainEstimator:
     def weights(self) -> np.ndarray:
         return self._weights.copy()
 
+    def hold_unknown(self) -> None:
+        """Start with the ground unknown (`unknown_active` set): for a model swapped in while the ground was unknown,
+        so that "known again" is said once the new model has explained a whole window of steps (and names the ground
+        identified by then), not at the swap by construction, when the weights are still the prior."""
+        self._latch.active = True
+
     @property
     def calibration(self) -> tuple[np.ndarray, np.ndarray]:
         """(online gain (2,) on the command change [s^0], extra residual std (2,) [m/s, rad/s]) fitted so far."""
@@ -296,7 +302,7 @@ class BayesTerrainEstimator:
             loglik = np.zeros(self._m)
         elif self.novelty is not None:  # the same steps as the GP evidence
             self._unknown = self.novelty.observe(r)
-        if self.novelty is not None:
+        if self.novelty is not None and self.novelty.ready:  # a held decision (`hold_unknown`) waits for a window
             self._latch.update(self._unknown)
         loglik = loglik + self._response_loglik(x, u, x1, du, first)
         log_post = np.log(prior) + loglik
@@ -401,7 +407,7 @@ class BayesTerrainEstimator:
         if self._seen < self.min_history:
             return TerrainEstimate(self.weights, False, float("nan"),
                                    f"history too short ({self._seen} of {self.min_history} steps); keeping previous "
-                                   "weights")
+                                   "weights", 0.0, self._latch.active)
         self._weights = self._published(self._posterior)
         fit = float(sum(np.sum((y - self._weights @ pred) ** 2) for y, pred in self._rows))
         return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps", self._unknown,
