@@ -131,3 +131,18 @@ def test_transients_and_the_steps_after_them_are_not_scored() -> None:
     assert test.statistic == before and test.probability < 0.5
     test.observe(huge)  # then scoring resumes
     assert test.statistic > before
+
+
+@pytest.mark.parametrize(("new_grounds", "robot_file"), [
+    ("tests/data/new_grounds.yaml", None),
+    ("tests/data/new_grounds_light.yaml", "tests/data/light_fast.yaml"),
+    ("tests/data/new_grounds_heavy.yaml", "docs/robots/heavy_wide.yaml"),
+])
+def test_the_new_ground_sets_are_their_robots_with_grounds_added(new_grounds: str, robot_file: str | None) -> None:
+    """docs/new_ground.md measures detection on three robots with these files: each must be its robot, unchanged, and
+    every ground of the robot's own set, unchanged, plus the new ones (a drifted copy would measure another robot)."""
+    from gpmppi.plant.terrains import load_terrains
+
+    new, base = load_terrains(new_grounds), load_terrains(robot_file)
+    assert new.robot == base.robot
+    assert {k: new.terrains[k] for k in base.terrains} == base.terrains and len(new.terrains) > len(base.terrains)
