@@ -212,8 +212,7 @@ class BayesTerrainEstimator:
         self._max_roughness = np.asarray(config.response_max_roughness, dtype=np.float64)
         self._max_transient = np.asarray(config.response_max_transient, dtype=np.float64)
         # the absolute test of fit ("none of these grounds"): the profile's calibration or the stated default
-        self.novelty = (NoveltyTest(self._m, profile_novelty(model), config.gp_max_speed_gap) if config.novelty
-                        else None)
+        self.novelty = NoveltyTest(self._m, profile_novelty(model)) if config.novelty else None
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:
