@@ -14,10 +14,10 @@ windowed mean stays within ~0.006), while the step-to-step scatter, which a mean
 known ground under sharp manoeuvres as on new ground.
 
 The probability. `P(unknown) = 1 / (1 + exp(-(z - enter) / width))`: 0.5 at `enter`, the level that known ground
-exceeds only rarely (calibrated on held-out known-ground steps: `calibrate`), rising over `width`. Steps whose
-residual the filter does not score either (a start from rest: `EstimatorConfig.gp_max_speed_gap`) are not
-scored here, nor the transients of a start from rest or a stop and the second after them (`NoveltyTest.transient`):
-the window keeps the steps before them.
+exceeds only rarely (calibrated on held-out known-ground steps: `calibrate`), rising over `width`. The transients
+of a start from rest or a stop, and the second after them, are not scored (`NoveltyTest.transient`): the window keeps
+the steps before them. A step the filter's GP evidence leaves out because the robot is far below its speed command
+(`EstimatorConfig.gp_max_speed_gap`) is scored here when the robot moves: a slide on a ground with too little grip.
 
 The decision. `UnknownLatch` turns the probability into the published `unknown_active` with hysteresis: set when
 the probability exceeds `enter_p`, cleared only after it stays below `exit_p` for `exit_steps` steps, so a window that
@@ -45,10 +45,10 @@ __all__ = ["DEFAULT_CALIBRATION", "ENTER_SPREADS", "NoveltyTest", "UnknownLatch"
 ENTER_SPREADS = 3.5
 # The window: 2 s. The residual a trained ground leaves on known ground is partly scatter, which a longer mean shrinks
 # (its spread falls from 0.0052 to 0.0041 m/s and 0.0147 to 0.0119 rad/s from 10 to 20 steps on the Jackal's logs),
-# while a new ground's shift stays: sand sits at ~4.9 spreads of a 1 s window and ~6.2 of a 2 s one, the highest
-# trained-ground window of the closed loops falls from ~3.3 to ~2.0, so grounds ~40 % less different from the trained
-# ones than sand are flagged, and sand still within ~1 s of the change (docs/new_ground.md). Longer windows would gain
-# little more (2.5 s: known max ~1.9) and leave a ground near the level no time within the 3 s allowed.
+# while a new ground's shift stays: sand's median is 5.1 spreads of a 1 s window and 6.4 of a 2 s one, the highest
+# trained-ground window of the closed loops falls from 3.4 to 2.3, so grounds from ~55 % of sand's shift on are
+# flagged (1 s: ~70 %), and sand still within ~1 s of the change (docs/new_ground.md). A 3 s window would gain little
+# more (known max 1.9) and leave a ground near the level no time within the 3 s allowed.
 # The transients the test holds off over (`NoveltyTest.transient`): a step from rest (below both) or under a command to
 # stop while moving, and the `SETTLE_STEPS` after the last such step. At a start from rest the plant's hidden states
 # (the motors' currents and integrators) are far from where the training drives had them, and in the stack the base's
@@ -165,8 +165,8 @@ def calibrate(
     `ENTER_SPREADS`), or None: the (1 - `false_rate`) quantile of the statistic (best ground's length in units of
     `spread`) over all windows, so that known ground reaches P = 0.5 in about that share of them. Given by default
     because training logs are excitation drives, whose sharp command changes give the statistic heavier tails than
-    driving a task does (the shipped Jackal's: 99.9 % quantile 4.4 to 7.9 on the logs, at most 3.1 on its lanes and
-    scene; docs/new_ground.md). `width`: `width_share` of `enter`.
+    driving a task does (the shipped Jackal's, 2 s window: 99.9 % quantile 6.2 on the logs, at most 2.3 on its lanes
+    and scene; docs/new_ground.md). `width`: `width_share` of `enter`.
     """
     true_means = [window_statistics(r, window_steps)[:, i] for r, i in known if len(r) >= window_steps]
     if not true_means:
