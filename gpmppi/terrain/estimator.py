@@ -212,7 +212,8 @@ class BayesTerrainEstimator:
         self._max_roughness = np.asarray(config.response_max_roughness, dtype=np.float64)
         self._max_transient = np.asarray(config.response_max_transient, dtype=np.float64)
         # the absolute test of fit ("none of these grounds"): the profile's calibration or the stated default
-        self.novelty = NoveltyTest(self._m, profile_novelty(model)) if config.novelty else None
+        self.novelty = (NoveltyTest(self._m, profile_novelty(model), config.gp_max_speed_gap) if config.novelty
+                        else None)
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:
@@ -300,7 +301,7 @@ class BayesTerrainEstimator:
         loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
         if u[0] - x[3] > self.config.gp_max_speed_gap:  # a start from rest: see EstimatorConfig.gp_max_speed_gap
             loglik = np.zeros(self._m)
-        if self.novelty is not None:  # every step but a start's or a stop's transient (gpmppi.terrain.novelty)
+        if self.novelty is not None:  # the GP evidence's steps less the transients (gpmppi.terrain.novelty)
             self._unknown = self.novelty.observe(r, self.novelty.transient(u[0], x[3], x[4]))
         if self.novelty is not None and self.novelty.ready:  # a held decision (`hold_unknown`) waits for a window
             self._latch.update(self._unknown)
