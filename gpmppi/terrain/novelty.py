@@ -168,7 +168,7 @@ def calibrate(
     `ENTER_SPREADS`), or None: the (1 - `false_rate`) quantile of the statistic (best ground's length in units of
     `spread`) over all windows, so that known ground reaches P = 0.5 in about that share of them. Given by default
     because training logs are excitation drives, whose sharp command changes give the statistic heavier tails than
-    driving a task does (the shipped Jackal's, 2 s window: 99.9 % quantile 6.2 on the logs, at most 2.3 on its lanes
+    driving a task does (the shipped Jackal's, 2 s window: 99.9 % quantile 4.5 on the logs, at most 2.3 on its lanes
     and scene; docs/new_ground.md). `width`: `width_share` of `enter`.
     """
     true_means = [window_statistics(r, window_steps)[:, i] for r, i in known if len(r) >= window_steps]
