@@ -101,7 +101,7 @@ def serve(node: Node, settings: Settings, model: GPModel, estimator: EstimatorLi
                 # the learned ground joins: the estimator over the new grounds, the weights published by their names
                 model, terrains = new_model, list(new_model.terrains)
                 cycle.n_terrains = len(terrains)
-                cycle.estimator = TeeEstimator(_estimator(new_model, settings), learning)
+                cycle.estimator = TeeEstimator(_swapped_estimator(new_model, settings, unknown.active), learning)
                 updates.put(update_msg)
                 node.log.info("model version %d: %s (saved to %s)", update_msg.version, line, update_msg.path)
             elif line is not None:
@@ -195,6 +195,17 @@ def _estimator(model: GPModel, settings: Settings) -> EstimatorLike:
     from gpmppi.terrain.estimator import make_estimator
 
     return make_estimator(model, settings.estimator)
+
+
+def _swapped_estimator(model: GPModel, settings: Settings, unknown: bool) -> EstimatorLike:
+    """The estimator over a model with a learned ground. If the ground was unknown when it came, it stays so until
+    the new model has explained a whole window: a new estimator starts from the prior, and deciding "known" at once
+    named the prior's first ground (asphalt) in the "known again" log and event instead of the learned one."""
+    est = _estimator(model, settings)
+    hold = getattr(est, "hold_unknown", None)
+    if unknown and hold is not None:
+        hold()
+    return est
 
 
 class UnknownReport:

@@ -63,15 +63,19 @@ def write_steps_log(path: Path, steps: np.ndarray, ground: str, robot: str, dt: 
 
     tick = round(dt * 1e9)
     tmp = path.with_name(f".{path.name}.tmp")
-    with McapWriter(tmp) as w:
-        for k, row in enumerate(np.asarray(steps, dtype=np.float64)):
-            t = (1 + 4 * k) * tick
-            for stamp, x in ((t, row[:5]), (t + tick, row[7:])):
-                h = Header(stamp_ns=stamp)
-                w.write(f"gpmppi/{robot}/state", State(header=h, x=x[0], y=x[1], theta=x[2], v=x[3], omega=x[4]))
-                w.write(f"gpmppi/{robot}/terrain/label", TerrainLabel(header=h, terrain=ground))
-            w.write(f"gpmppi/{robot}/cmd", Command(header=Header(stamp_ns=t), v_ref=row[5], omega_ref=row[6]))
-    os.replace(tmp, path)
+    try:
+        with McapWriter(tmp) as w:
+            for k, row in enumerate(np.asarray(steps, dtype=np.float64)):
+                t = (1 + 4 * k) * tick
+                for stamp, x in ((t, row[:5]), (t + tick, row[7:])):
+                    h = Header(stamp_ns=stamp)
+                    w.write(f"gpmppi/{robot}/state", State(header=h, x=x[0], y=x[1], theta=x[2], v=x[3], omega=x[4]))
+                    w.write(f"gpmppi/{robot}/terrain/label", TerrainLabel(header=h, terrain=ground))
+                w.write(f"gpmppi/{robot}/cmd", Command(header=Header(stamp_ns=t), v_ref=row[5], omega_ref=row[6]))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)  # a full disk leaves no half log behind
+        raise
 
 
 def run_fit(job: FitJob, path: str) -> FitOutcome:
@@ -87,11 +91,14 @@ def run_fit(job: FitJob, path: str) -> FitOutcome:
         return FitOutcome(learned=job.name, samples=len(job.x), error=str(e))
     model.made_by = (f"{base.made_by or 'a robot profile'}; ground {job.name!r} learned online from "
                      f"{len(job.x)} steps")
+    log = steps_log_path(path, job.name)
     try:
         if job.steps is not None:
-            write_steps_log(steps_log_path(path, job.name), job.steps, job.name, model.robot, model.dt)
+            write_steps_log(log, job.steps, job.name, model.robot, model.dt)
         sha = save_profile(model, path)
     except OSError as e:
+        if job.steps is not None:  # the steps of a ground the profile did not gain: not left for `gpmppi train`
+            log.unlink(missing_ok=True)
         return FitOutcome(learned=job.name, samples=len(job.x),
                           error=f"learned ground {job.name!r} not saved to {path}: {e.strerror or e}; the profile "
                           "there is unchanged")

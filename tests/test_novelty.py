@@ -11,6 +11,7 @@ from gpmppi.profile.novelty_calibration import NoveltyCalibration
 from gpmppi.terrain.novelty import (
     DEFAULT_CALIBRATION,
     ENTER_SPREADS,
+    SETTLE_STEPS,
     NoveltyTest,
     UnknownLatch,
     calibrate,
@@ -110,3 +111,38 @@ def test_a_profile_keeps_its_novelty_calibration_and_one_without_loads_with_the_
     assert back.novelty == shipped.novelty
     assert make_estimator(back, EstimatorConfig()).novelty.calibration == shipped.novelty  # type: ignore[union-attr]
     assert make_estimator(back, EstimatorConfig(novelty=False)).novelty is None  # type: ignore[union-attr]
+
+
+def test_transients_and_the_steps_after_them_are_not_scored() -> None:
+    """A step from rest or with the v command more than `max_speed_gap` from the speed, in either direction, is a
+    transient; it and the `SETTLE_STEPS` after the last one leave the window as it was."""
+    test = NoveltyTest(3, CAL, max_speed_gap=0.3)
+    assert test.transient(0.5, 0.0, 0.0) and test.transient(0.0, 0.8, 0.2) and test.transient(1.3, 0.9, 0.0)
+    assert not test.transient(1.0, 0.9, 0.0) and not test.transient(0.0, 0.0, 0.5)  # turning on the spot: moving
+    rng = np.random.default_rng(3)
+    known = _residuals(rng, 30, np.zeros((3, 2)))
+    for r in known[:20]:
+        test.observe(r)
+    before = test.statistic
+    huge = np.full((3, 2), 0.5)
+    assert test.observe(huge, transient=True) < 0.5 and test.statistic == before
+    for _ in range(SETTLE_STEPS):
+        test.observe(huge)  # the settling steps after it: not scored either
+    assert test.statistic == before and test.probability < 0.5
+    test.observe(huge)  # then scoring resumes
+    assert test.statistic > before
+
+
+@pytest.mark.parametrize(("new_grounds", "robot_file"), [
+    ("tests/data/new_grounds.yaml", None),
+    ("tests/data/new_grounds_light.yaml", "tests/data/light_fast.yaml"),
+    ("tests/data/new_grounds_heavy.yaml", "docs/robots/heavy_wide.yaml"),
+])
+def test_the_new_ground_sets_are_their_robots_with_grounds_added(new_grounds: str, robot_file: str | None) -> None:
+    """docs/new_ground.md measures detection on three robots with these files: each must be its robot, unchanged, and
+    every ground of the robot's own set, unchanged, plus the new ones (a drifted copy would measure another robot)."""
+    from gpmppi.plant.terrains import load_terrains
+
+    new, base = load_terrains(new_grounds), load_terrains(robot_file)
+    assert new.robot == base.robot
+    assert {k: new.terrains[k] for k in base.terrains} == base.terrains and len(new.terrains) > len(base.terrains)

@@ -239,3 +239,30 @@ def test_the_planner_service_takes_a_new_model_version_between_plans(tmp_path: P
             code = proc.stop()
             observer.close()
     assert code == 0, proc.log()[-3000:]
+
+
+def test_a_full_disk_while_the_fit_saves_leaves_the_old_profile_and_nothing_else(tmp_path: Path, monkeypatch) -> None:  # noqa: ANN001
+    """The fit's whole save (the steps log, then the profile) on a disk that fills up at the profile: one line that
+    says so, the old profile byte-identical, and no temporary file or steps log of the ground it did not gain."""
+    import errno
+
+    from test_online_ground import SETTINGS, samples
+
+    import gpmppi.gp.model_file as model_file
+
+    profile = tmp_path / "robot.npz"
+    save_profile(_model(), profile)
+    before = profile.read_bytes()
+    s = samples(_model(), 250)
+    x, y, du = s.arrays()
+
+    def disk_full(f, **arrays) -> None:  # noqa: ANN001, ANN003 - np.savez_compressed's form
+        f.write(b"PK\x03\x04 half an archive")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(model_file.np, "savez_compressed", disk_full)
+    out = run_fit(FitJob(_model(), "dune", x, y, du, SETTINGS, np.stack(s.steps)), str(profile))
+    assert out.error == (f"learned ground 'dune' not saved to {profile}: No space left on device; the profile there "
+                         "is unchanged") and out.sha256 == ""
+    assert profile.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["robot.npz"]

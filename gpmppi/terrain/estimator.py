@@ -212,7 +212,8 @@ class BayesTerrainEstimator:
         self._max_roughness = np.asarray(config.response_max_roughness, dtype=np.float64)
         self._max_transient = np.asarray(config.response_max_transient, dtype=np.float64)
         # the absolute test of fit ("none of these grounds"): the profile's calibration or the stated default
-        self.novelty = NoveltyTest(self._m, profile_novelty(model)) if config.novelty else None
+        self.novelty = (NoveltyTest(self._m, profile_novelty(model), config.gp_max_speed_gap) if config.novelty
+                        else None)
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:
@@ -250,6 +251,12 @@ class BayesTerrainEstimator:
     @property
     def weights(self) -> np.ndarray:
         return self._weights.copy()
+
+    def hold_unknown(self) -> None:
+        """Start with the ground unknown (`unknown_active` set): for a model swapped in while the ground was unknown,
+        so that "known again" is said once the new model has explained a whole window of steps (and names the ground
+        identified by then), not at the swap by construction, when the weights are still the prior."""
+        self._latch.active = True
 
     @property
     def calibration(self) -> tuple[np.ndarray, np.ndarray]:
@@ -294,9 +301,9 @@ class BayesTerrainEstimator:
         loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
         if u[0] - x[3] > self.config.gp_max_speed_gap:  # a start from rest: see EstimatorConfig.gp_max_speed_gap
             loglik = np.zeros(self._m)
-        elif self.novelty is not None:  # the same steps as the GP evidence
-            self._unknown = self.novelty.observe(r)
-        if self.novelty is not None:
+        if self.novelty is not None:  # the GP evidence's steps less the transients (gpmppi.terrain.novelty)
+            self._unknown = self.novelty.observe(r, self.novelty.transient(u[0], x[3], x[4]))
+        if self.novelty is not None and self.novelty.ready:  # a held decision (`hold_unknown`) waits for a window
             self._latch.update(self._unknown)
         loglik = loglik + self._response_loglik(x, u, x1, du, first)
         log_post = np.log(prior) + loglik
@@ -401,7 +408,7 @@ class BayesTerrainEstimator:
         if self._seen < self.min_history:
             return TerrainEstimate(self.weights, False, float("nan"),
                                    f"history too short ({self._seen} of {self.min_history} steps); keeping previous "
-                                   "weights")
+                                   "weights", 0.0, self._latch.active)
         self._weights = self._published(self._posterior)
         fit = float(sum(np.sum((y - self._weights @ pred) ** 2) for y, pred in self._rows))
         return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps", self._unknown,
