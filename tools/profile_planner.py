@@ -31,13 +31,17 @@ from gpmppi.mppi.cpu_backend import (
     _advance_group,
     _draw_commands,
     _ensure_slabs,
+    _lane_fields,
     _read_rows,
     _request_rows,
     _thread_buffers,
     _unit_normals,
 )
+from gpmppi.mppi.critics.base import Step
+from gpmppi.mppi.critics.registry import _with_state
 from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, velocity_coefficients
 from gpmppi.mppi.gp_table import simplex_params
+from gpmppi.mppi.lane import lane_field_at
 from gpmppi.mppi.step import step_inputs
 
 PHASES = ("ensure_slabs", "request_rows", "draw", "add_costs", "read_rows", "advance", "setup_terminal")
@@ -156,6 +160,74 @@ def _normals_only(seed: int, counter0: int, horizon: int, groups: int, normals: 
     return _cycles() - t
 
 
+def _term_loop(term: object, wi: int, pi: int, slot: int) -> object:
+    """A compiled loop of one critic's term over `reps` passes of a group's steps (cycles): the term alone, as
+    the kernels' sum calls it (`registry._with_state` hands a stateful term its value)."""
+    one = _with_state(njit(fastmath=FASTMATH, inline="always"), term, slot)
+
+    @njit(fastmath=FASTMATH)
+    def loop(reps: int, cost_w: np.ndarray, task: tuple, hw: float, radii: np.ndarray, state: tuple,
+             st: np.ndarray, lane: np.ndarray, out: np.ndarray) -> np.uint64:
+        t = _cycles()
+        for _ in range(reps):
+            for j in range(st.shape[1]):
+                at = Step(st[0, j], st[1, j], st[2, j], st[3, j], st[4, j], st[3, j], st[4, j], 0.01, 0.01, hw, radii,
+                          state, lane[0, j], lane[1, j], lane[2, j])
+                out[j] += one(cost_w[wi], cost_w, pi, task, at)
+        return _cycles() - t
+
+    return loop
+
+
+def _critic_split(model_task: tuple, cost_w: np.ndarray, groups: int, horizon: int, rate: float) -> dict[str, float]:
+    """Each lane critic's term alone over as many steps as a plan's rollouts (its states: one group's first-step
+    states, repeated) and the lane query's parts, [ms] on one thread: the term loops less an empty loop's
+    time (building the step)."""
+    from gpmppi.mppi.critics.registry import layout
+
+    task, st, hw = model_task
+    radii = np.zeros(0)
+    state = advance_state(start_state(cost_w), cost_w)
+    reps = groups * horizon
+    lane = np.empty((4, GROUP))
+    for j in range(GROUP):
+        d, tx, ty, _exact = _field_one(task, st[0, j], st[1, j], hw)
+        lane[0, j], lane[1, j], lane[2, j] = d, tx, ty
+    out = np.zeros(GROUP)
+    lay = layout()
+    empty = _term_loop(_zero_term, 0, 0, -1)
+    empty(1, cost_w, task, hw, radii, state, st, lane, out)
+    base = min(empty(reps, cost_w, task, hw, radii, state, st, lane, out) for _ in range(5)) / rate
+    split = {}
+    for wi, pi, slot, term in lay.terms("lane", False):
+        loop = _term_loop(term, wi, pi, slot)
+        loop(1, cost_w, task, hw, radii, state, st, lane, out)
+        split[lay.names[wi - lay.weight_index(lay.names[0])]] = max(
+            0.0, min(loop(reps, cost_w, task, hw, radii, state, st, lane, out) for _ in range(5)) / rate - base)
+    split["(building the step)"] = base
+    split["lane query, grid part (`_lane_fields`)"] = min(
+        _fields_loop(reps, task, hw, st, lane) for _ in range(5)) / rate
+    return split
+
+
+@njit(fastmath=FASTMATH, inline="always")
+def _zero_term(weight: float, cost_w: np.ndarray, p: int, geo: tuple, at: tuple) -> float:
+    return 0.0
+
+
+@njit(fastmath=FASTMATH)
+def _field_one(task: tuple, x: float, y: float, hw: float) -> tuple:
+    return lane_field_at(task.field, task.origin, task.inv_cell, x, y, hw)
+
+
+@njit
+def _fields_loop(reps: int, task: tuple, hw: float, st: np.ndarray, lane: np.ndarray) -> np.uint64:
+    t = _cycles()
+    for _ in range(reps):
+        _lane_fields(task, hw, GROUP, st, lane)
+    return _cycles() - t
+
+
 def _cycles_per_ms() -> float:
     """The cycle counter's rate, against `time.perf_counter` over 0.2 s."""
     c0, t0 = _cycles_now(), time.perf_counter()
@@ -229,7 +301,17 @@ def profile(samples: int, horizon: int, plans: int, repeats: int) -> dict:
     normals_ms = float(np.median([
         _normals_only(sampling.seed, sampling.iteration * samples, horizon, groups, normals) / rate
         for _ in range(repeats)]))
+    critics = {}
+    if out.xy_out.shape[0] > 0 and task.kind == 0:  # a lane task: its rollouts' first-step XY, repeated to a group
+        states = np.resize(out.xy_out[:, 1, :], (GROUP, 2)).T
+        st = np.zeros((5, GROUP))
+        st[0:2] = states
+        st[2] = np.arctan2(states[1], states[0]) + 0.5 * np.pi
+        st[3] = 1.5
+        st[4] = 0.2
+        critics = _critic_split((task, st, float(task.tightened_hw[1])), cost_w, groups, horizon, rate)
     return {
+        "critics_ms": critics,
         "samples": samples, "horizon": horizon, "plans": len(kept), "plan_p50_ms": plan_split,
         "rollout_one_thread_ms": float(np.median(kernel_ms)), "profiled_copy_ms": mid[0],
         "profiled_copy_costs_equal_kernel": same,
@@ -257,6 +339,10 @@ def main() -> None:
     for name, ms in res["rollout_phases_ms"].items():
         print(f"  {name:15s} {ms:7.3f} ms")
     print(f"  (normals alone {res['normals_alone_ms']:.3f} ms of draw)")
+    if res["critics_ms"]:
+        print("the lane critics' terms alone over the same number of steps (one thread):")
+        for name, ms in res["critics_ms"].items():
+            print(f"  {name:15s} {ms:7.3f} ms")
 
 
 if __name__ == "__main__":
