@@ -118,6 +118,18 @@ def stage_cost(
     return _stage(task.kind, 0.0, cost_w, task, at)
 
 
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def lane_stage_cost_at(
+    cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, u: tuple,
+    var: tuple, lane: tuple,
+) -> float:
+    """`stage_cost` of a lane task given its lane query at the state, `lane` = (d, tx, ty) (`lane.lane_query`): the
+    CPU kernel queries a group's lane in loops of their own (`cpu_backend._add_costs`)."""
+    px, py, yaw, v, w = s
+    at = Step(px, py, yaw, v, w, u[0], u[1], var[0], var[1], tightened_hw, radii, state, lane[0], lane[1], lane[2])
+    return _lane_stage(0.0, cost_w, task, at)
+
+
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def stage_critics(
     cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, u: tuple,

@@ -295,6 +295,27 @@ def grid_cell_at(
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def lane_field_at(
+    field: np.ndarray, origin: np.ndarray, inv_cell: float, x: float, y: float, threshold: float,
+) -> tuple[float, float, float, bool]:
+    """`lane_query`'s part read from the grid alone: the interpolated distance, the lane direction (tx, ty), and
+    whether the exact distance must replace the interpolated one (outside the grid, or within sqrt(2) * cell of
+    `threshold`). Branch-free, so that a loop over samples calling it compiles to vector code (the CPU kernel's
+    `_lane_fields`)."""
+    r, c, r1, c1, tx, ty, out_c, out_r = grid_cell_at(field, origin, inv_cell, x, y)
+    inside = out_c == 0.0 and out_r == 0.0
+    w00 = (1.0 - ty) * (1.0 - tx)
+    w01 = (1.0 - ty) * tx
+    w10 = ty * (1.0 - tx)
+    w11 = ty * tx
+    dir_x = w00 * field[r, c, 1] + w01 * field[r, c1, 1] + w10 * field[r1, c, 1] + w11 * field[r1, c1, 1]
+    dir_y = w00 * field[r, c, 2] + w01 * field[r, c1, 2] + w10 * field[r1, c, 2] + w11 * field[r1, c1, 2]
+    d = w00 * field[r, c, 0] + w01 * field[r, c1, 0] + w10 * field[r1, c, 0] + w11 * field[r1, c1, 0]
+    exact = not (inside and abs(d - threshold) > 1.4143 / inv_cell)
+    return d, dir_x, dir_y, exact
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def lane_query(
     seg: np.ndarray, cell_start: np.ndarray, cand: np.ndarray, field: np.ndarray, origin: np.ndarray, inv_cell: float,
     x: float, y: float, threshold: float,
@@ -311,19 +332,10 @@ def lane_query(
     grid's edge outside it; `_smoothed_tangents`): a unit vector along straight stretches and circles,
     turning over 2 * `TANGENT_HALF_WINDOW` of arc around a corner.
     """
-    r, c, r1, c1, tx, ty, out_c, out_r = grid_cell_at(field, origin, inv_cell, x, y)
-    inside = out_c == 0.0 and out_r == 0.0
-    w00 = (1.0 - ty) * (1.0 - tx)
-    w01 = (1.0 - ty) * tx
-    w10 = ty * (1.0 - tx)
-    w11 = ty * tx
-    dir_x = w00 * field[r, c, 1] + w01 * field[r, c1, 1] + w10 * field[r1, c, 1] + w11 * field[r1, c1, 1]
-    dir_y = w00 * field[r, c, 2] + w01 * field[r, c1, 2] + w10 * field[r1, c, 2] + w11 * field[r1, c1, 2]
-    if inside:
-        d = w00 * field[r, c, 0] + w01 * field[r, c1, 0] + w10 * field[r1, c, 0] + w11 * field[r1, c1, 0]
-        if abs(d - threshold) > 1.4143 / inv_cell:
-            return d, dir_x, dir_y
-    return lane_distance(seg, cell_start, cand, origin, inv_cell, field.shape[1], field.shape[0], x, y), dir_x, dir_y
+    d, dir_x, dir_y, exact = lane_field_at(field, origin, inv_cell, x, y, threshold)
+    if exact:
+        d = lane_distance(seg, cell_start, cand, origin, inv_cell, field.shape[1], field.shape[0], x, y)
+    return d, dir_x, dir_y
 
 
 @njit(cache=True)
