@@ -58,8 +58,9 @@ def shared_folder(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
     """A folder shared by every worker of this run (pytest-xdist's workers each have their own base temporary
     folder, `popen-gwN`, inside the run's one), or this process's own where one process runs the tests."""
     base = tmp_path_factory.getbasetemp()
-    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
-    folder = root / f"shared-{name}"
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    # named by the run too: with `--basetemp` the run's folder is the same from run to run
+    folder = base / f"shared-{name}" if run is None else base.parent / f"shared-{name}-{run}"
     folder.mkdir(exist_ok=True)
     return folder
 
