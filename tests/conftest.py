@@ -31,18 +31,38 @@ def jackal() -> Path:
 @pytest.fixture(scope="session")
 def paper_model_file(jackal: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The paper's fitted GP as `gpmppi train` writes it (with the grid table it stores by default): the same
-    command for every module that uses it, so it is trained once (~10-17 s); the tests only read the file."""
+    command for every module that uses it, so it is trained once a run (~10-17 s of CPU), not once a worker: the
+    first worker to ask trains it into the run's shared temporary folder under a lock, the others wait for that
+    lock and read the file; the tests only read it."""
     from typer.testing import CliRunner
 
     from tools.cli import app
 
-    out = tmp_path_factory.mktemp("paper") / "m.npz"
-    result = CliRunner().invoke(app, [
-        "train", str(jackal / "gp_train.csv"), "--hyperparameters", str(jackal / "gp_hyperparameters.json"),
-        "--theta", str(jackal / "theta.json"), "--edd5", str(jackal / "edd5.json"), "-o", str(out),
-    ])
-    assert result.exit_code == 0, result.output
+    folder = shared_folder(tmp_path_factory, "paper")
+    out = folder / "m.npz"
+    with open(folder / "train.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # held while training: the other workers wait here, then find the file
+        done = folder / "trained"  # written after a training that succeeded: a failed one is tried again
+        if not done.is_file():
+            result = CliRunner().invoke(app, [
+                "train", str(jackal / "gp_train.csv"), "--hyperparameters", str(jackal / "gp_hyperparameters.json"),
+                "--theta", str(jackal / "theta.json"), "--edd5", str(jackal / "edd5.json"), "-o", str(out),
+                "--force",
+            ])
+            assert result.exit_code == 0, result.output
+            done.touch()
     return out
+
+
+def shared_folder(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
+    """A folder shared by every worker of this run (pytest-xdist's workers each have their own base temporary
+    folder, `popen-gwN`, inside the run's one), or this process's own where one process runs the tests."""
+    base = tmp_path_factory.getbasetemp()
+    run = os.environ.get("PYTEST_XDIST_TESTRUNUID")
+    # named by the run too: with `--basetemp` the run's folder is the same from run to run
+    folder = base / f"shared-{name}" if run is None else base.parent / f"shared-{name}-{run}"
+    folder.mkdir(exist_ok=True)
+    return folder
 
 
 # ------------------------------------------------------------------------------------------- how many workers

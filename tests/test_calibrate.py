@@ -83,6 +83,7 @@ def drive_args(tmp_path: Path, *extra: str) -> list[str]:
             str(free_port()), *extra]
 
 
+@pytest.mark.slow(seconds=20)  # the stack launched, a 12 m drive, then the recording read and trained on
 @pytest.mark.timeout(300)
 def test_a_short_drive_through_the_stack_is_recorded_and_trains(tmp_path: Path) -> None:
     result = runner.invoke(app, drive_args(tmp_path, "--distance", "12", "--area", "10"))
@@ -119,6 +120,7 @@ def test_a_short_drive_through_the_stack_is_recorded_and_trains(tmp_path: Path) 
     assert "ground 'grass'" in trained.output and "held commands" in trained.output and not model.exists()
 
 
+@pytest.mark.slow(seconds=12)  # the stack launched in a child process, 4 s of driving, then stopped
 @pytest.mark.timeout(300)
 def test_ctrl_c_stops_the_robot_and_closes_the_recording(tmp_path: Path) -> None:
     log = tmp_path / "out.log"

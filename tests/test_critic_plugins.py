@@ -200,7 +200,7 @@ def plugin_runs(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPat
             proc.wait()
 
 
-@pytest.mark.slow(seconds=30)  # the kernels compiled with the plug-in in a fresh cache (the CUDA run in the CPU run's)
+@pytest.mark.slow(seconds=45)  # the kernels compiled with the plug-in in a fresh cache (the CUDA run in the CPU run's)
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported(
     backend: str, plugin_runs: PluginRuns
@@ -228,7 +228,7 @@ def _plugin_result(backend: str, plugin_runs: PluginRuns) -> dict:
     return json.loads(stdout.split("RESULT ", 1)[1])
 
 
-@pytest.mark.slow(seconds=30)  # shares the plug-in runs of the test above (the same script, both critics)
+@pytest.mark.slow(seconds=45)  # shares the plug-in runs of the test above (the same script, both critics)
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_a_new_stateful_critic_carries_its_value_along_the_horizon_on_both_backends(
     backend: str, plugin_runs: PluginRuns

@@ -67,6 +67,7 @@ def _nvvm_available() -> bool:
         return False
 
 
+@pytest.mark.slow(seconds=25)  # the rollout kernel compiled to PTX twice (lane, goal) and the GP kernels once
 @pytest.mark.skipif(not _nvvm_available(), reason="numba finds no NVVM library to compile CUDA to PTX")
 def test_rollout_and_gp_kernels_compile_to_ptx() -> None:
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_ENABLE_CUDASIM"}

@@ -133,7 +133,7 @@ def _same(a: object, b: object) -> bool:
 
 
 # compiles the planner kernels where the cache is cold, in this process and in the Ray workers
-@pytest.mark.slow(seconds=11)
+@pytest.mark.slow(seconds=35)  # the module: a Ray head, the jobs here and on Ray, then the CLI on Ray
 def test_ray_tasks_give_the_local_runs_scores_seed_by_seed(ray_head: str, local_results: list[tuple]) -> None:
     ray = connect(ray_head)
     try:

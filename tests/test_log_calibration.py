@@ -197,7 +197,7 @@ def _smooth_drive_weights(terrains, model, config, ground: str, seed: int) -> fl
     return float(np.mean(np.array(weights)[30:, list(model.terrains).index(ground)]))
 
 
-@pytest.mark.slow(seconds=40)
+@pytest.mark.slow(seconds=15)
 def test_a_robot_the_project_has_not_seen_is_identified_with_the_calibration_of_its_own_log(tmp_path: Path) -> None:
     """The light robot (tests/data/light_fast.yaml: 9 kg, stiff fast motors, carpet / dirt / ice): its GP and the
     estimator's calibration fitted from 600 m a ground of its log; on 30 s drives of smooth, turning commands (the

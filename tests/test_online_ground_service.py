@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from test_online_ground import _model, drive
 from zenoh_helpers import (
     Collector,
@@ -28,6 +29,7 @@ from schemas import GroundLearn, ModelUpdate, State, TerrainWeights, decode, enc
 from services.terrain_learning import run_fit
 
 
+@pytest.mark.slow(seconds=10)  # a terrain service that collects a drive and fits a ground in its own process
 def test_terrain_service_learns_a_ground_and_announces_the_new_model(tmp_path: Path) -> None:
     profile = tmp_path / "robot.npz"
     save_profile(_model(), profile)

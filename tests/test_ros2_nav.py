@@ -67,7 +67,7 @@ def _attachment(seq: int) -> bytes:
     return ros2.Attachment(seq, time.time_ns(), ros2.new_gid(7)).to_bytes()
 
 
-@pytest.mark.slow(seconds=60)
+@pytest.mark.slow(seconds=15)
 def test_paths_and_goals_from_ros2_drive_a_running_stack(tmp_path: Path) -> None:
     port = free_port()
     configs = {

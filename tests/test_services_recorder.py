@@ -367,7 +367,7 @@ def test_a_file_size_limit_is_one_error_a_readable_file_and_a_failing_heartbeat(
     assert report.truncated and report.messages >= len(seqs)
 
 
-@pytest.mark.slow(seconds=13)
+@pytest.mark.slow(seconds=20)
 def test_a_recorded_stack_run_validates_quarantines_and_carries_its_metadata(tmp_path: Path) -> None:
     """The whole stack (launcher, default launch) recorded while an outside client sends hostile payloads on the
     keys the services subscribe to: every message on every schema'd channel validates with `jsonschema`, the

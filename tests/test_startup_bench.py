@@ -32,6 +32,7 @@ def _observe(port: int, key: str, stop: threading.Event, out: list[Collector]) -
         return
 
 
+@pytest.mark.slow(seconds=12)  # a service started, killed and started again, timed to its first output
 def test_restarted_service_first_output_is_from_the_new_process(tmp_path: Path) -> None:
     port = free_port()
     launch = tmp_path / "sim_only.yaml"
