@@ -155,9 +155,12 @@ def test_egress_survives_bad_input_and_never_publishes_non_finite(tmp_path: Path
         try:
             assert wait_for(lambda: bool(heartbeats(col, "r1", "egress")), 15.0), egress.log()
             pub = matched_publisher(observer, "gpmppi/r1/cmd", congestion_control=zenoh.CongestionControl.BLOCK)
-            for _, payload in _bad_payloads():
+            # one at a time: egress reads its command inbox newest-only, so a bad payload sent before the loop read
+            # the one before would replace it unread (by design), and a loaded machine once lost one that way
+            for i, (what, payload) in enumerate(_bad_payloads()):
                 pub.put(payload)
-                time.sleep(0.05)
+                logged = wait_for(lambda n=i: egress.log().count("rejected input") > n, 10.0)
+                assert logged, (what, egress.log()[-3000:])
             n_bad = len(_bad_payloads())
             # 15 s: the count arrives with a heartbeat, and on a loaded machine the last of them took over 5 s once
             counted = wait_for(lambda: any(h.rejected >= n_bad for h in heartbeats(col, "r1", "egress")), 15.0)
