@@ -104,6 +104,24 @@ def test_the_gp_alone_misreads_steady_asphalt() -> None:
     assert gp_only.estimate().weights[list(model.terrains).index("asphalt")] < 0.5
 
 
+@pytest.mark.parametrize("terrain", ["asphalt", "tile"])
+def test_anchored_to_the_steady_map_the_gp_alone_reads_a_held_command_right(terrain: str) -> None:
+    # `gp_anchor` takes out of each terrain's GP mean its bias at that terrain's measured steady state: the GP evidence
+    # alone (no response scored) then leads with the terrain driven on where, unanchored, it all but rules it out
+    # (measured: asphalt 0.07 -> 0.66, tile 0.04 -> 0.58)
+    model = load_default_model()
+    i = list(model.terrains).index(terrain)
+    rows = _held_drive(terrain, (1.3, 0.6), 12.0, seed=4)
+    weights = {}
+    for anchor in (False, True):
+        est = make_estimator(model, EstimatorConfig(response="none", gp_anchor=anchor))
+        for row in rows:
+            est.observe(*row)
+        weights[anchor] = est.estimate().weights
+    assert weights[False][i] < 0.15, weights
+    assert weights[True][i] > 0.5 and int(np.argmax(weights[True])) == i, weights
+
+
 def test_a_skipped_transition_re_anchors_the_response() -> None:
     model = load_default_model()
     est = make_estimator(model)

@@ -208,6 +208,11 @@ class BayesTerrainEstimator:
         self._rows: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=config.history)  # (y (2,), predictions (M, 2))
         # the robot profile's calibration, unless the settings name explicit gains or a response file
         self._terrain_gains, self._response = profile_calibration(config, model)
+        # the steady map the GP's means are anchored to (gp_anchor): the response's, also when it is not scored
+        self._anchor_map = None
+        if config.gp_anchor:
+            self._anchor_map = (self._response if self._response is not None else
+                                profile_calibration(config.model_copy(update={"response": "steady_map"}), model)[1])
         self._response_spread = np.asarray(config.response_spread, dtype=np.float64)
         self._max_roughness = np.asarray(config.response_max_roughness, dtype=np.float64)
         self._max_transient = np.asarray(config.response_max_transient, dtype=np.float64)
@@ -226,6 +231,7 @@ class BayesTerrainEstimator:
         self._posterior = self._weights.copy()
         self._leader: int | None = None  # the terrain on top of the last published weights (None: none published)
         self._u_prev: np.ndarray | None = None
+        self._gp_offset = np.zeros(2)  # the residual shared by every terrain's GP prediction (gp_offset_steps)
         # exponentially forgotten sums of the calibration: du^2, du * e, and the spread beyond the GP's
         self._s_dd = np.zeros(2)
         self._s_de = np.zeros(2)
@@ -279,6 +285,8 @@ class BayesTerrainEstimator:
         du = np.zeros(2) if first else u - self._u_prev
         self._u_prev = u
         mean = mean[0].reshape(self._m, 2)
+        if self._anchor_map is not None and self._anchor_map.covers(u):
+            mean = mean - self._steady_bias(u)
         gp_var = latent[0].reshape(self._m, 2) + self._noise
         # score with the calibration of the steps before this one, then update it with this one
         h = self.config.switch_prob
@@ -290,8 +298,13 @@ class BayesTerrainEstimator:
             # do not carry over to closed-loop steps, and as a signature they mislead (smooth driving on tile, whose
             # GP noise is twice asphalt's, then reads as asphalt on the log-determinant alone)
             var = np.broadcast_to(prior @ var, var.shape)
+        elif self.config.variance == "epistemic":
+            # the noise part shared (as above), each terrain's own latent variance on top: where a ground's GP has
+            # little data its prediction is scored as the uncertain one it is
+            var = prior @ (self._noise + self._extra_var) + latent[0].reshape(self._m, 2)
         r = y[None, :] - pred
-        loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
+        rs = r - self._gp_offset  # what is scored (the shared offset out, gp_offset_steps); novelty sees r as it is
+        loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + rs * rs / var, axis=1) / self.config.temperature
         if u[0] - x[3] > self.config.gp_max_speed_gap:  # a start from rest: see EstimatorConfig.gp_max_speed_gap
             loglik = np.zeros(self._m)
         elif self.novelty is not None:  # the same steps as the GP evidence
@@ -302,9 +315,33 @@ class BayesTerrainEstimator:
         log_post = np.log(prior) + loglik
         p = np.exp(log_post - log_post.max())
         self._calibrate(y, du, prior, mean, pred, gp_var)
+        if self.config.gp_offset_steps is not None:
+            # the residual all terrains' GPs share: the closed loop's hidden states bias every ground's one-step mean
+            # alike (a GP term then scores levels the response scores without that bias), so only what the grounds
+            # predict differently about the recent steps' variation is evidence
+            beta = 1.0 / self.config.gp_offset_steps
+            self._gp_offset = (1.0 - beta) * self._gp_offset + beta * (y - prior @ pred)
         self._posterior = p / p.sum()
         self._rows.append((y, pred))
         self._seen += 1
+
+    def _steady_bias(self, u: np.ndarray) -> np.ndarray:
+        """(M, 2) each terrain's GP mean minus the one-step residual its measured steady state implies under `u`.
+
+        At its steady state s_i(u) terrain i's next velocity is s_i(u), so its residual there is s_i(u) minus the
+        nominal step from s_i(u); the GP, fitted on transient-rich drives and lacking the plant's hidden states,
+        misses that by as much as the terrains differ (its fixed point is 25-49 mrad/s off). Taking this bias out
+        of each terrain's prediction makes the GP evidence agree with the steady map where the robot drives steadily.
+        """
+        assert self._anchor_map is not None
+        steady = self._anchor_map.steady_at(u)  # (M, 2)
+        m = self._m
+        inputs = np.column_stack([np.repeat(u[None, :], m, axis=0), steady])
+        at_steady, _ = self._predictor.predict(inputs, with_var=False)
+        own = at_steady.reshape(m, m, 2)[np.arange(m), np.arange(m)]  # terrain i's mean at its own steady state
+        v_nom, w_nom = velocity_step_exact(self.model.theta, steady[:, 0].copy(), steady[:, 1].copy(),
+                                           np.full(m, u[0]), np.full(m, u[1]), self.model.dt)
+        return own - (steady - np.column_stack([v_nom, w_nom]))
 
     def _response_loglik(
         self, x: np.ndarray, u: np.ndarray, x1: np.ndarray, du: np.ndarray, first: bool
