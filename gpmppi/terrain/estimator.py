@@ -177,6 +177,11 @@ class BayesTerrainEstimator:
     is right there by construction. Scored only while the commands are smooth (`response_max_roughness`): under
     jittery ones its average is biased, and the command-change term carries the evidence instead.
 
+    With `gp_anchor` each terrain's GP mean is first shifted by its bias at that terrain's measured steady state under
+    the command (`_steady_bias`): the GP, fitted on transient-rich drives with 300 shared inputs, is off at steady
+    driving by about as much as the terrains differ (on the Jackal's lanes it read steady asphalt as tile for seconds
+    after every start), while the steady map is right there by construction.
+
     Neither model holds during a start from rest: the plant's PI integrators and torque limit are far from where the
     training drives had them, so the first second reads as asphalt on every terrain (the response's first-order rate
     and the GP's command-change gains both lag or lead the torque-limited ramp differently per terrain). A step whose
@@ -231,7 +236,6 @@ class BayesTerrainEstimator:
         self._posterior = self._weights.copy()
         self._leader: int | None = None  # the terrain on top of the last published weights (None: none published)
         self._u_prev: np.ndarray | None = None
-        self._gp_offset = np.zeros(2)  # the residual shared by every terrain's GP prediction (gp_offset_steps)
         # exponentially forgotten sums of the calibration: du^2, du * e, and the spread beyond the GP's
         self._s_dd = np.zeros(2)
         self._s_de = np.zeros(2)
@@ -285,8 +289,10 @@ class BayesTerrainEstimator:
         du = np.zeros(2) if first else u - self._u_prev
         self._u_prev = u
         mean = mean[0].reshape(self._m, 2)
+        anchor = np.zeros((self._m, 2))
         if self._anchor_map is not None and self._anchor_map.covers(u):
-            mean = mean - self._steady_bias(u)
+            anchor = self._steady_bias(u)
+            mean = mean - anchor
         gp_var = latent[0].reshape(self._m, 2) + self._noise
         # score with the calibration of the steps before this one, then update it with this one
         h = self.config.switch_prob
@@ -298,29 +304,18 @@ class BayesTerrainEstimator:
             # do not carry over to closed-loop steps, and as a signature they mislead (smooth driving on tile, whose
             # GP noise is twice asphalt's, then reads as asphalt on the log-determinant alone)
             var = np.broadcast_to(prior @ var, var.shape)
-        elif self.config.variance == "epistemic":
-            # the noise part shared (as above), each terrain's own latent variance on top: where a ground's GP has
-            # little data its prediction is scored as the uncertain one it is
-            var = prior @ (self._noise + self._extra_var) + latent[0].reshape(self._m, 2)
         r = y[None, :] - pred
-        rs = r - self._gp_offset  # what is scored (the shared offset out, gp_offset_steps); novelty sees r as it is
-        loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + rs * rs / var, axis=1) / self.config.temperature
+        loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
         if u[0] - x[3] > self.config.gp_max_speed_gap:  # a start from rest: see EstimatorConfig.gp_max_speed_gap
             loglik = np.zeros(self._m)
         elif self.novelty is not None:  # the same steps as the GP evidence
-            self._unknown = self.novelty.observe(r)
+            self._unknown = self.novelty.observe(r + anchor)  # the novelty test's residuals as it was calibrated on
         if self.novelty is not None:
             self._latch.update(self._unknown)
         loglik = loglik + self._response_loglik(x, u, x1, du, first)
         log_post = np.log(prior) + loglik
         p = np.exp(log_post - log_post.max())
         self._calibrate(y, du, prior, mean, pred, gp_var)
-        if self.config.gp_offset_steps is not None:
-            # the residual all terrains' GPs share: the closed loop's hidden states bias every ground's one-step mean
-            # alike (a GP term then scores levels the response scores without that bias), so only what the grounds
-            # predict differently about the recent steps' variation is evidence
-            beta = 1.0 / self.config.gp_offset_steps
-            self._gp_offset = (1.0 - beta) * self._gp_offset + beta * (y - prior @ pred)
         self._posterior = p / p.sum()
         self._rows.append((y, pred))
         self._seen += 1

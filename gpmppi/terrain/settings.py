@@ -39,10 +39,9 @@ class EstimatorConfig(BaseModel):
     extra_noise_std: tuple[float, float] = Field(
         (0.02, 0.04), description="bayes: residual std (v [m/s], omega [rad/s]) added to the GP's predictive spread "
         "(what the GP's noise leaves out on closed-loop steps); with adapt_noise the starting value of its online fit")
-    variance: Literal["shared", "per_terrain", "epistemic"] = Field(
+    variance: Literal["shared", "per_terrain"] = Field(
         "shared", description="bayes: score every terrain against the same predictive spread (the weighted mean of "
-        "the terrains'), each against its own, or ('epistemic') the noise part shared and each terrain's own GP "
-        "latent variance on top")
+        "the terrains'), or each against its own")
     hysteresis: float = Field(
         0.3, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
         "the current top terrain's by this much (0: none)")
@@ -82,12 +81,9 @@ class EstimatorConfig(BaseModel):
         "than this [m/s] (the start from rest: the plant's hidden states, which the GP's inputs lack, are far from "
         "where its training drives had them). inf: never")
     gp_anchor: bool = Field(
-        False, description="bayes, response steady_map: take out of each terrain's GP mean its bias at the terrain's "
-        "measured steady state under the command (the residual the steady map implies there), so that the GP "
-        "evidence agrees with the map at steady driving")
-    gp_offset_steps: float | None = Field(
-        None, ge=1, description="bayes: steps over which the residual common to all terrains' GP predictions is "
-        "averaged (exponentially) and taken out of every terrain's before it is scored; None: not taken out")
+        False, description="bayes: take out of each terrain's GP mean its bias at the terrain's measured steady state "
+        "under the command (the residual its steady map, from the robot profile or `response_file`, implies there; "
+        "also with response: none), so that the GP evidence agrees with the map where the robot drives steadily")
     response_spread: tuple[float, float] = Field(
         (0.08, 0.016), description="bayes, response steady_map: the spread (v [m/s], omega [rad/s]) the averaged "
         "response residual is scored against (smaller: trust it more)")
