@@ -236,6 +236,7 @@ class BayesTerrainEstimator:
         self._posterior = self._weights.copy()
         self._leader: int | None = None  # the terrain on top of the last published weights (None: none published)
         self._u_prev: np.ndarray | None = None
+        self._since_start = 0  # steps since the last one the start gate held (response_settle_steps)
         # exponentially forgotten sums of the calibration: du^2, du * e, and the spread beyond the GP's
         self._s_dd = np.zeros(2)
         self._s_de = np.zeros(2)
@@ -308,11 +309,16 @@ class BayesTerrainEstimator:
         loglik = -0.5 * np.sum(np.log(2.0 * np.pi * var) + r * r / var, axis=1) / self.config.temperature
         if u[0] - x[3] > self.config.gp_max_speed_gap:  # a start from rest: see EstimatorConfig.gp_max_speed_gap
             loglik = np.zeros(self._m)
-        elif self.novelty is not None:  # the same steps as the GP evidence
-            self._unknown = self.novelty.observe(r + anchor)  # the novelty test's residuals as it was calibrated on
+            self._since_start = 0
+        else:
+            self._since_start += 1
+            if self.novelty is not None:  # the same steps as the GP evidence
+                self._unknown = self.novelty.observe(r + anchor)  # the residuals the novelty test was calibrated on
         if self.novelty is not None:
             self._latch.update(self._unknown)
-        loglik = loglik + self._response_loglik(x, u, x1, du, first)
+        response = self._response_loglik(x, u, x1, du, first)  # run every step: its free run and average go on
+        if self._since_start >= self.config.response_settle_steps:
+            loglik = loglik + response
         log_post = np.log(prior) + loglik
         p = np.exp(log_post - log_post.max())
         self._calibrate(y, du, prior, mean, pred, gp_var)
