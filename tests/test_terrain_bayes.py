@@ -209,7 +209,8 @@ def test_short_history_keeps_the_starting_weights() -> None:
      ({"response_smoothing_steps": 0.5}, "response_smoothing_steps"),
      ({"response_max_transient": (0.0, 1.0)}, "response_max_transient"),
      ({"response_max_transient": (0.1, float("nan"))}, "response_max_transient"),
-     ({"gp_max_speed_gap": 0.0}, "gp_max_speed_gap")],
+     ({"gp_max_speed_gap": 0.0}, "gp_max_speed_gap"), ({"gp_anchor": "maybe"}, "gp_anchor"),
+     ({"response_settle_steps": -1}, "response_settle_steps")],
 )
 def test_bad_settings_fail_naming_the_setting(fields: dict, named: str) -> None:
     with pytest.raises(ValidationError, match=named):

@@ -80,6 +80,14 @@ class EstimatorConfig(BaseModel):
         0.3, gt=0, description="bayes: no GP evidence from a step whose v command exceeds the measured speed by more "
         "than this [m/s] (the start from rest: the plant's hidden states, which the GP's inputs lack, are far from "
         "where its training drives had them). inf: never")
+    gp_anchor: bool = Field(
+        False, description="bayes: take out of each terrain's GP mean its bias at the terrain's measured steady state "
+        "under the command (the residual its steady map, from the robot profile or `response_file`, implies there; "
+        "also with response: none), so that the GP evidence agrees with the map where the robot drives steadily")
+    response_settle_steps: int = Field(
+        0, ge=0, description="bayes, response steady_map: steps after the last one the start gate held "
+        "(gp_max_speed_gap), and after a reset, whose response is not scored (its free run and average go on): the "
+        "first maneuvers after a start, where the first-order omega response misreads the swerves; 0: none")
     response_spread: tuple[float, float] = Field(
         (0.08, 0.016), description="bayes, response steady_map: the spread (v [m/s], omega [rad/s]) the averaged "
         "response residual is scored against (smaller: trust it more)")
