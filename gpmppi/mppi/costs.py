@@ -45,7 +45,7 @@ from gpmppi.mppi.lane import lane_query
 __all__ = [
     "BY_KIND", "CRITICS", "STATES", "SUMS", "ChanceQuantiles", "advance_state", "fill_weight_vector", "inflate_grid",
     "inflate_obstacles",
-    "stage_cost", "stage_critics", "start_state",
+    "lane_stage_cost_at", "stage_cost", "stage_reads_lane", "stage_critics", "start_state",
     "terminal_cost", "terminal_critics", "tighten_lane", "weight_vector", "xy_lambda_max",
 ]
 
@@ -58,6 +58,7 @@ _stage_split = BY_KIND.stage_split
 _terminal = BY_KIND.terminal
 _terminal_split = BY_KIND.terminal_split
 _lane_stage = BY_KIND.lane_stage  # whether a kind's stage critics read the lane (the step then queries it)
+stage_reads_lane = _lane_stage  # the same, for the CPU kernel's lane phase (`cpu_backend._add_costs`)
 _lane_terminal = BY_KIND.lane_terminal  # whether a kind's terminal critics read the lane at the horizon's end
 # the stateful critics' values, carried by the drivers from step to step (`registry.build_states`)
 STATES = build_states()
@@ -123,11 +124,12 @@ def lane_stage_cost_at(
     cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, u: tuple,
     var: tuple, lane: tuple,
 ) -> float:
-    """`stage_cost` of a lane task given its lane query at the state, `lane` = (d, tx, ty) (`lane.lane_query`): the
-    CPU kernel queries a group's lane in loops of their own (`cpu_backend._add_costs`)."""
+    """`stage_cost` of a task whose stage critics read the lane (`stage_reads_lane`), given its lane query at the
+    state, `lane` = (d, tx, ty) (`lane.lane_query`): the CPU kernel queries a group's lane in loops of their own
+    (`cpu_backend._add_costs`)."""
     px, py, yaw, v, w = s
     at = Step(px, py, yaw, v, w, u[0], u[1], var[0], var[1], tightened_hw, radii, state, lane[0], lane[1], lane[2])
-    return _lane_stage(0.0, cost_w, task, at)
+    return _stage(task.kind, 0.0, cost_w, task, at)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)

@@ -23,12 +23,13 @@ import numpy as np
 from numba import njit
 
 from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row, vector_phase
-from gpmppi.mppi.bundles import CRITICS, TASK_LANE
+from gpmppi.mppi.bundles import CRITICS
 from gpmppi.mppi.costs import (
     advance_state,
     lane_stage_cost_at,
     stage_cost,
     stage_critics,
+    stage_reads_lane,
     start_state,
     terminal_cost,
     terminal_critics,
@@ -117,7 +118,7 @@ def _add_costs(
     distances they need, then the critics: the same values as `costs.stage_cost`'s query per sample, in a third
     of the time."""
     tightened_hw, radii = bounds
-    if task.kind == TASK_LANE:
+    if stage_reads_lane(task.kind):
         _lane_fields(task, tightened_hw, n_in, st, lane)
         for j in range(n_in):
             if lane[3, j] != 0.0:
