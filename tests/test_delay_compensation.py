@@ -14,7 +14,7 @@ from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.plant.physics import PhysicsPlant
 from gpmppi.plant.terrains import load_terrains
 from gpmppi.scenarios import circle_lane
-from gpmppi.terrain.estimator import TerrainEstimator
+from gpmppi.terrain.least_squares import TerrainEstimator
 
 
 def _model(planner: Planner, w: np.ndarray) -> tuple:

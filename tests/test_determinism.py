@@ -141,7 +141,7 @@ from gpmppi.evaluation.runner import EvalSettings, Job, cached_gp_model, loop_co
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.scenarios import circle_lane
-from gpmppi.terrain.estimator import TerrainEstimator
+from gpmppi.terrain.least_squares import TerrainEstimator
 
 # first a closed loop, so that in an empty cache it compiles the kernels in its own order (the estimator's exact GP,
 # the delay predictor, the rollouts): GP-MPPI on the tile circle, weights moving every cycle, one cycle of command

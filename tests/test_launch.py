@@ -44,7 +44,7 @@ def _in_process_rmse(duration_s: float, latency_s: float) -> float:
     from gpmppi.mppi.planner import Planner, PlannerConfig
     from gpmppi.plant.physics import PhysicsPlant
     from gpmppi.plant.terrains import load_terrains
-    from gpmppi.terrain.estimator import TerrainEstimator
+    from gpmppi.terrain.least_squares import TerrainEstimator
 
     # the services take GPMPPI_MODEL_FILE from the environment (settings override), so the reference does too
     path = os.environ.get("GPMPPI_MODEL_FILE")

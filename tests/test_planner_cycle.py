@@ -199,7 +199,7 @@ def test_the_closed_loop_runs_this_cycle() -> None:
     from gpmppi.plant.physics import PhysicsPlant
     from gpmppi.plant.terrains import load_terrains
     from gpmppi.scenarios import circle_lane
-    from gpmppi.terrain.estimator import TerrainEstimator
+    from gpmppi.terrain.least_squares import TerrainEstimator
 
     model = load_default_model()
     sc = circle_lane()

@@ -11,7 +11,7 @@ from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.mppi.synthetic import synthetic_model
-from gpmppi.terrain.estimator import TerrainEstimator
+from gpmppi.terrain.least_squares import TerrainEstimator
 
 
 @lru_cache(maxsize=1)

@@ -16,7 +16,8 @@ from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel, load_default_model
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.mppi.synthetic import synthetic_model
-from gpmppi.terrain.estimator import BayesTerrainEstimator, TerrainEstimator, make_estimator
+from gpmppi.terrain.estimator import BayesTerrainEstimator, make_estimator
+from gpmppi.terrain.least_squares import TerrainEstimator
 from gpmppi.terrain.separability import replay
 from gpmppi.terrain.settings import EstimatorConfig
 
