@@ -584,8 +584,9 @@ def _two_commanders(cmds: list[tuple[float, Command]], window_s: float = 0.1) ->
             if a[1].source != b[1].source and b[0] - a[0] < window_s]
 
 
+# not `exclusive`: its one timing check (the watchdog's zero) reads the router's timestamps and its waits are long,
+# so the other tests beside it do not move what it checks (measured: green under 3 busy loops and a load of 6-8)
 @pytest.mark.slow(seconds=50)
-@pytest.mark.exclusive
 def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
