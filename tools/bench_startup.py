@@ -138,6 +138,12 @@ def restart_rounds(
     """The `then` hook of `run_launch`: settle, then restart each service `repeats` times, one at a time."""
 
     def restart_each_service(launcher: Launcher, monitor: Monitor) -> None:
+        # the settling time counts from each service's first output, not from the launch: under load a cold start
+        # takes seconds, and a restart before the service published would find no old output to compare with
+        for name in services:
+            child = next(c for c in launcher.children if c.name == name)
+            key = f"gpmppi/{monitor.robot}/{PRIMARY_OUTPUT[child.kind]}"
+            first_output(launcher, monitor, key, child.started_at, None, timeout_s)
         if launcher.stop_event.wait(settle_s):
             return
         for _ in range(repeats):
