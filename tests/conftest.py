@@ -112,8 +112,32 @@ def _run_lock(exclusive: bool) -> Iterator[None]:
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
     """Setup, call and teardown of each test under the run's lock (alone for the `exclusive` tests)."""
-    with _run_lock(item.get_closest_marker("exclusive") is not None):
+    with _run_lock(item.get_closest_marker("exclusive") is not None), _cpu_seconds(item):
         yield
+
+
+@contextlib.contextmanager
+def _cpu_seconds(item: pytest.Item) -> Iterator[None]:
+    """With `GPMPPI_TEST_CPU_LOG` set: appends a line per test to that file, the CPU seconds it cost (this worker's
+    and its reaped child processes', user + system) and its wall seconds. On 2 cores the suite's wall time is bound
+    by its CPU seconds, which `--durations` does not show (a test that waits on a stack costs wall time, not CPU)."""
+    path = os.environ.get("GPMPPI_TEST_CPU_LOG")
+    if not path:
+        yield
+        return
+    import resource
+    import time
+
+    def cpu() -> float:
+        own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+        return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+    c0, t0 = cpu(), time.monotonic()
+    try:
+        yield
+    finally:
+        with open(path, "a") as f:
+            f.write(f"{cpu() - c0:.2f}\t{time.monotonic() - t0:.2f}\t{item.nodeid}\n")
 
 
 
