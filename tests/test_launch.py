@@ -16,7 +16,7 @@ import pytest
 import yaml
 import zenoh
 from mcap.reader import make_reader
-from zenoh_helpers import client, free_port, wait_for
+from zenoh_helpers import client, free_port, wait_for, without_spares
 
 from gpmppi.evaluation.metrics import lane_rmse_mm
 from gpmppi.scenarios import circle_lane
@@ -116,7 +116,8 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 
     side = threading.Thread(target=outside_client, daemon=True)
     side.start()
-    code, summary = run_launch(None, duration=30.0, record=str(record), rerun=["save", str(rrd)], port=port, out=out)
+    code, summary = run_launch(None, duration=30.0, record=str(record), rerun=["save", str(rrd)], port=port, out=out,
+                               edit=without_spares)
     side.join(5)
     result["log"] = out.getvalue()
     assert code == 0, result["log"][-4000:]

@@ -15,7 +15,7 @@ import pytest
 import zenoh
 from mcap.writer import CompressionType, Writer
 from typer.testing import CliRunner
-from zenoh_helpers import client, endpoint, free_port, router, wait_for
+from zenoh_helpers import client, endpoint, free_port, router, wait_for, without_spares
 
 from schemas import Command, State, Task, TerrainWeights, encode
 from services.recording.mcap_io import schema_name
@@ -454,8 +454,9 @@ def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
     text = yaml.safe_dump(launch)
     (tmp_path / "launch.yaml").write_text(text)
     out = io.StringIO()
+    # (a cold numba cache on a loaded machine takes minutes)
     code, _ = run_launch(tmp_path / "launch.yaml", duration=6.0, record=str(tmp_path / "raw.mcap"), out=out,
-                         ready_timeout_s=1200.0)  # a cold numba cache on a loaded machine takes minutes
+                         ready_timeout_s=1200.0, edit=without_spares)
     assert code == 0, out.getvalue()[-3000:]
     log = tmp_path / "run.mcap"
     _add_metadata(tmp_path / "raw.mcap", log, launch, text)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from zenoh_helpers import REPO, ServiceProcess, endpoint, free_port, settings, wait_for
+from zenoh_helpers import REPO, ServiceProcess, endpoint, free_port, settings, wait_for, without_spares
 
 from schemas import BaseCommand, Command, Heartbeat, decode, encode
 from services.launch.launch_file import LaunchFile
@@ -457,7 +457,8 @@ def test_secured_stack_drives(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -
         checks["base"] = list(base)
 
     code, summary = run_launch(
-        REPO / "deploy" / "sim-secure.yaml", port=port, out=out, secrets=str(secrets), then=intruders
+        REPO / "deploy" / "sim-secure.yaml", port=port, out=out, secrets=str(secrets), then=intruders,
+        edit=without_spares,
     )
     log = out.getvalue()
     assert code == 0, log[-4000:]

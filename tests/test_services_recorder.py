@@ -29,6 +29,7 @@ from zenoh_helpers import (
     router,
     settings,
     wait_for,
+    without_spares,
 )
 
 from schemas import Command, Header, State, decode, encode
@@ -397,7 +398,8 @@ def test_a_recorded_stack_run_validates_quarantines_and_carries_its_metadata(tmp
 
     out = io.StringIO()
     # a cold numba cache on a loaded machine can take minutes; past that the hook runs anyway and the asserts say why
-    code, summary = run_launch(None, record=str(record), port=port, out=out, then=hostile, ready_timeout_s=420)
+    code, summary = run_launch(None, record=str(record), port=port, out=out, then=hostile, ready_timeout_s=420,
+                               edit=without_spares)
     assert code == 0, out.getvalue()[-4000:]
     assert summary.failed == []
     checked = _assert_every_schemad_message_validates(record)
