@@ -86,16 +86,17 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
 # would measure. Those are marked `exclusive`.
 #
 # Where this process may raise its CPU priority (root or CAP_SYS_NICE; CI runs as root), an exclusive test runs
-# beside the others with its worker's threads, and so the service processes it starts, at nice -10: the scheduler
-# then gives it about 9 in 10 of a contended core (weights 9548 against 1024) and lets it preempt the others on
-# waking, so the others' load is not what it measures, and the cores it leaves idle are used. Alone, an exclusive
-# test left the other core idle: about 170 s of the suite's 720 s ran with one core busy. Exclusive tests never run
+# beside the others with its worker's threads, and so the service processes it starts, at nice -20: the scheduler
+# weighs each of its threads as 87 of the others' (88761 against 1024) and lets it preempt them on waking, so the
+# others' load is not what it measures, and the cores it leaves idle are used (at -10, weight 9548, a replay's timer
+# at a load of 8-12 was 3.8 ms late at the median, against 2 ms allowed). Alone, an exclusive test left the other
+# core mostly idle: they took about 170 s of the suite's 720 s, using about one core. Exclusive tests never run
 # beside each other (a lock of their own).
 #
 # Elsewhere, or with GPMPPI_TESTS_EXCLUSIVE_ALONE=1, each runs alone: a readers-writer lock over files shared by the
 # run's workers, every test holds it shared, an exclusive one holds it alone; the turnstile makes the other workers'
 # next tests wait behind an exclusive one that waits for the lock (else they could keep it shared for ever).
-EXCLUSIVE_NICE = -10
+EXCLUSIVE_NICE = -20
 
 
 def _set_nice(value: int) -> bool:

@@ -138,12 +138,13 @@ def restart_rounds(
     """The `then` hook of `run_launch`: settle, then restart each service `repeats` times, one at a time."""
 
     def restart_each_service(launcher: Launcher, monitor: Monitor) -> None:
-        # the settling time counts from each service's first output, not from the launch: under load a cold start
-        # takes seconds, and a restart before the service published would find no old output to compare with
+        # the settling time counts from when each service publishes steadily, not from the launch: under load a cold
+        # start takes seconds, and a sim at a load of 8 published its first output, then its second only after the
+        # settling time (the restart then found one old output to compare with)
         for name in services:
             child = next(c for c in launcher.children if c.name == name)
             key = f"gpmppi/{monitor.robot}/{PRIMARY_OUTPUT[child.kind]}"
-            first_output(launcher, monitor, key, child.started_at, None, timeout_s)
+            steady_output(launcher, monitor, key, child.started_at, timeout_s)
         if launcher.stop_event.wait(settle_s):
             return
         for _ in range(repeats):
@@ -180,6 +181,19 @@ def restart_rounds(
                     return
 
     return restart_each_service
+
+
+def steady_output(launcher: Launcher, monitor: Monitor, key: str, started: float, timeout_s: float,
+                  outputs: int = 3) -> bool:
+    """Wait until the process started at `started` has published `outputs` times on `key` (False after
+    `timeout_s` or once the launch stops)."""
+    deadline = started + timeout_s
+    while time.monotonic() < deadline and not launcher.stop_event.is_set():
+        with monitor.lock:
+            if sum(t >= started for t, _ in monitor.output_arrivals[key]) >= outputs:
+                return True
+        time.sleep(0.01)
+    return False
 
 
 def _ready_s(child: Child, timeout_s: float = 60.0) -> float | None:
