@@ -70,11 +70,11 @@ def test_a_skipped_step_or_a_command_off_the_grid_starts_the_free_runs_over() ->
         v1 = v + 0.4 * (u - v)
         test.observe(v, u, v1)
         v = v1
-    assert len(test._runs) == 4
+    assert test._active == 4
     test.observe(v + 0.3, u, v)  # does not start where the last step ended: a skipped transition
-    assert len(test._runs) == 1
+    assert test._active == 1
     test.observe(v, np.array([2.5, 0.0]), v)  # off the grid: no run, and none kept
-    assert len(test._runs) == 0
+    assert test._active == 0
     with pytest.raises(ValueError, match="whole window"):
         calibrate_free_run([(np.zeros((5, 2, 2)), 0)], window_steps=10)
 

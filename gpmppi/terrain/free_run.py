@@ -63,7 +63,11 @@ class FreeRunTest:
     def reset(self) -> None:
         # with `recorded` a list, every completed run's error (M, 2) is kept there too (calibration from logs)
         self.recorded: list[np.ndarray] | None = getattr(self, "recorded", None)
-        self._runs: deque[np.ndarray] = deque()  # the free runs in flight, oldest first: (M, 2) each
+        # the free runs in flight: a ring of `horizon_steps` slots (K, M, 2), `_active` of them from `_head` on (the
+        # oldest first); the free slots are advanced too (one vector update for all), and overwritten when a run starts
+        self._runs = np.zeros((self.calibration.horizon_steps, self._m, 2))
+        self._head = 0
+        self._active = 0
         self._at: np.ndarray | None = None  # the measured velocity the last step ended at
         self._window: deque[np.ndarray] = deque()
         self._sum = np.zeros((self._m, 2))
@@ -82,22 +86,24 @@ class FreeRunTest:
         v1 = np.asarray(next_velocity, dtype=np.float64).reshape(2)
         u = np.asarray(command, dtype=np.float64).reshape(2)
         if not (np.all(np.isfinite(v0)) and np.all(np.isfinite(v1)) and np.all(np.isfinite(u))):
-            self._runs.clear()
+            self._active = 0
             self._at = None
             return self.probability
-        if self._at is None or not np.array_equal(v0, self._at) or not self.response.covers(u):
-            self._runs.clear()  # a skipped transition, or off the map's grid: start over from the measured velocity
+        covered = self.response.covers(u)
+        if self._at is None or not np.array_equal(v0, self._at) or not covered:
+            self._active = 0  # a skipped transition, or off the map's grid: start over from the measured velocity
         self._at = v1.copy()
-        if not self.response.covers(u):
+        if not covered:
             return self.probability
-        steady = self.response.steady_at(u)  # (M, 2)
-        rate = self.response.rate
-        self._runs.append(np.tile(v0, (self._m, 1)))
-        for p in self._runs:
-            p += rate * (steady - p)
-        if len(self._runs) < self.calibration.horizon_steps:
+        k = self.calibration.horizon_steps
+        self._runs[(self._head + self._active) % k] = v0[None, :]
+        self._active += 1
+        self._runs += self.response.rate[None] * (self.response.steady_at(u)[None] - self._runs)
+        if self._active < k:
             return self.probability
-        error = v1[None, :] - self._runs.popleft()
+        error = v1[None, :] - self._runs[self._head]
+        self._head = (self._head + 1) % k
+        self._active -= 1
         self._window.append(error)
         if self.recorded is not None:
             self.recorded.append(error)
