@@ -144,7 +144,7 @@ def _lane_commands() -> np.ndarray:
     return np.vstack([straight, CORNER, after])
 
 
-def _p_unknown(ground: str, free_run: bool) -> np.ndarray:
+def _p_unknown(ground: str, free_run: bool, channels: list[str] | None = None) -> np.ndarray:
     from gpmppi.gp.model_file import load_default_model
     from gpmppi.plant.physics import PhysicsPlant
     from gpmppi.plant.terrains import load_terrains
@@ -162,15 +162,20 @@ def _p_unknown(ground: str, free_run: bool) -> np.ndarray:
         plant.step(u, DT)
         x1 = plant.measure()
         est.observe(x, u, x1)
-        p.append(est.estimate().unknown)
+        estimate = est.estimate()
+        p.append(estimate.unknown)
+        if channels is not None:
+            channels.append(estimate.unknown_channel)
         x = x1
     return np.array(p)
 
 
 def test_glare_ice_in_a_corner_is_flagged_by_the_free_run_and_missed_by_the_one_step_test() -> None:
-    on_ice = _p_unknown("glare_ice", free_run=True)
+    channels: list[str] = []
+    on_ice = _p_unknown("glare_ice", free_run=True, channels=channels)
     first = int(np.argmax(on_ice > 0.5))
     assert on_ice[first] > 0.5, f"glare ice never flagged (P at most {on_ice.max():.2f})"
+    assert channels[first] == "free-run"  # what the terrain service's log line names
     assert first * DT - SWITCH_S <= 3.0, f"flagged {first * DT - SWITCH_S:.1f} s after the change"
     assert max(on_ice[: round(SWITCH_S / DT)]) < 0.5
     without = _p_unknown("glare_ice", free_run=False)

@@ -142,6 +142,7 @@ class BayesTerrainEstimator:
         self._roughness_weight = 0.0
         self._roughness_seen = 0
         self._unknown = 0.0
+        self._channel = "one-step"  # the channel that gave `_unknown`
         self._latch = UnknownLatch()
         if self.novelty is not None:
             self.novelty.reset()
@@ -212,7 +213,9 @@ class BayesTerrainEstimator:
             # residuals the novelty test was calibrated on (without the anchor's correction)
             self._unknown = self.novelty.observe(r + anchor, self.novelty.transient(u[0], x[3], x[4]))
             if self.free_run is not None:  # either channel can say "unknown": no trained ground explains it
-                self._unknown = max(self._unknown, self.free_run.observe(x[3:5], u, x1[3:5]))
+                free = self.free_run.observe(x[3:5], u, x1[3:5])
+                self._channel = "free-run" if free > self._unknown else "one-step"
+                self._unknown = max(self._unknown, free)
         # a held decision (`hold_unknown`) waits for a whole window of either channel
         if self.novelty is not None and (self.novelty.ready or (self.free_run is not None and self.free_run.ready)):
             self._latch.update(self._unknown)
@@ -343,7 +346,7 @@ class BayesTerrainEstimator:
         self._weights = self._published(self._posterior)
         fit = float(sum(np.sum((y - self._weights @ pred) ** 2) for y, pred in self._rows))
         return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps", self._unknown,
-                               self._latch.active)
+                               self._latch.active, self._channel)
 
 
 def make_estimator(model: GPModel, config: EstimatorConfig | None = None) -> EstimatorLike:
