@@ -230,7 +230,10 @@ class UnknownReport:
         nearest = terrains[int(np.argmax(update.weights))]
         if self.active:
             c.count("unknown_entered")
-            self.node.log.warning(f"ground unknown: no trained ground explains the last steps (P(unknown) "
+            # the free-run channel sees a slide (grip lost), the one-step one a ground that drags or turns otherwise
+            how = (" (free-run channel: the robot does not follow the commands as any trained ground would, a loss "
+                   "of grip)" if update.unknown_channel == "free-run" else "")
+            self.node.log.warning(f"ground unknown: no trained ground explains the last steps{how} (P(unknown) "
                                   f"{update.unknown:.2f}; nearest {nearest})")
         else:
             self.node.log.info(f"ground known again (P(unknown) {update.unknown:.2f}; {nearest})")

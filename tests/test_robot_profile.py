@@ -219,6 +219,9 @@ def test_train_writes_a_whole_profile_from_a_log(dataset: Path, tmp_path: Path) 
     make_estimator(p, EstimatorConfig())  # the defaults run on it
     # the novelty test's calibration, fitted on the same logs (gpmppi/terrain/novelty.py)
     assert p.novelty is not None and "fitted on the logs" in p.novelty.source and min(p.novelty.spread) > 0
+    # and its free-run channel's (gpmppi/terrain/free_run.py): the level a quantile of the logs' statistic
+    free = p.novelty.free_run
+    assert free is not None and "fitted on the logs" in free.source and min(free.spread) > 0 and free.enter > 0
     coverage = (p.fit_report or {})["coverage"]  # the fit's coverage report travels with it
     assert [c["terrain"] for c in coverage] == GROUNDS and all(c["held_commands"] > 0 for c in coverage)
 

@@ -208,6 +208,11 @@ def _print_profile(model: GPModel, report, coverage: list[GroundCoverage], outpu
         console.print(f"novelty test: P(unknown ground) = 0.5 at {n.enter:.2f} spreads of the windowed mean "
                       f"residual (spread v {n.spread[0]:.4f} m/s, omega {n.spread[1]:.4f} rad/s, "
                       f"{n.window_steps} steps)")
+        if n.free_run is not None:
+            f = n.free_run
+            console.print(f"novelty test, free-run channel: P(unknown ground) = 0.5 at {f.enter:.2f} spreads of the "
+                          f"windowed mean {f.horizon_steps}-step free-run error (spread v {f.spread[0]:.4f} m/s, "
+                          f"omega {f.spread[1]:.4f} rad/s, {f.window_steps} steps)")
 
 
 def register(app: typer.Typer) -> None:

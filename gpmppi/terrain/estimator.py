@@ -15,6 +15,7 @@ from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.terrain.estimate import EstimatorLike, TerrainEstimate
+from gpmppi.terrain.free_run import FreeRunTest, profile_free_run
 from gpmppi.terrain.least_squares import TerrainEstimator, checked_vector
 from gpmppi.terrain.novelty import NoveltyTest, UnknownLatch, profile_novelty
 from gpmppi.terrain.settings import EstimatorConfig, profile_calibration
@@ -102,6 +103,14 @@ class BayesTerrainEstimator:
         # the absolute test of fit ("none of these grounds"): the profile's calibration or the stated default
         self.novelty = (NoveltyTest(self._m, profile_novelty(model), config.gp_max_speed_gap) if config.novelty
                         else None)
+        # its second channel, the free run of each ground's velocity response (needs the response map)
+        self.free_run: FreeRunTest | None = None
+        if config.novelty and config.novelty_free_run:
+            free_map = self._response if self._response is not None else self._anchor_map
+            if free_map is None and (model.calibration is not None or config.response_file is not None):
+                free_map = profile_calibration(config.model_copy(update={"response": "steady_map"}), model)[1]
+            if free_map is not None:
+                self.free_run = FreeRunTest(free_map, profile_free_run(model))
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:
@@ -133,9 +142,12 @@ class BayesTerrainEstimator:
         self._roughness_weight = 0.0
         self._roughness_seen = 0
         self._unknown = 0.0
+        self._channel = "one-step"  # the channel that gave `_unknown`
         self._latch = UnknownLatch()
         if self.novelty is not None:
             self.novelty.reset()
+        if self.free_run is not None:
+            self.free_run.reset()
 
     @property
     def weights(self) -> np.ndarray:
@@ -200,7 +212,12 @@ class BayesTerrainEstimator:
         if self.novelty is not None:  # the GP evidence's steps less the transients (gpmppi.terrain.novelty), on the
             # residuals the novelty test was calibrated on (without the anchor's correction)
             self._unknown = self.novelty.observe(r + anchor, self.novelty.transient(u[0], x[3], x[4]))
-        if self.novelty is not None and self.novelty.ready:  # a held decision (`hold_unknown`) waits for a window
+            if self.free_run is not None:  # either channel can say "unknown": no trained ground explains it
+                free = self.free_run.observe(x[3:5], u, x1[3:5])
+                self._channel = "free-run" if free > self._unknown else "one-step"
+                self._unknown = max(self._unknown, free)
+        # a held decision (`hold_unknown`) waits for a whole window of either channel
+        if self.novelty is not None and (self.novelty.ready or (self.free_run is not None and self.free_run.ready)):
             self._latch.update(self._unknown)
         response = self._response_loglik(x, u, x1, du, first)  # run every step: its free run and average go on
         if self._since_start >= self.config.response_settle_steps:
@@ -329,7 +346,7 @@ class BayesTerrainEstimator:
         self._weights = self._published(self._posterior)
         fit = float(sum(np.sum((y - self._weights @ pred) ** 2) for y, pred in self._rows))
         return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps", self._unknown,
-                               self._latch.active)
+                               self._latch.active, self._channel)
 
 
 def make_estimator(model: GPModel, config: EstimatorConfig | None = None) -> EstimatorLike:

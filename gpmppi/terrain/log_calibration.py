@@ -19,7 +19,7 @@ the command and the ground's label (`gpmppi dataset` writes them, `tools.dataset
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator
@@ -268,18 +268,20 @@ def calibrate_from_runs(
 
 def novelty_from_runs(model: GPModel, runs: dict[str, list[TerrainRun]],
                       max_steps: int = NOVELTY_MAX_STEPS) -> NoveltyCalibration:
-    """The novelty test's calibration (gpmppi.terrain.novelty.calibrate) from the logged runs of the grounds of
-    `model`, whose terrain calibration must be set: each run replayed through the terrain filter as the service runs
-    it, the residuals under every ground of the steps the filter scores collected, and the test calibrated on the
-    ground each run drove on. The GP conditions on a few hundred clustered inputs of the thousands a log holds, so
-    nearly every step is out of its sample. At most `max_steps` steps of each ground are replayed (the replay costs
-    ~2 ms a step)."""
+    """The novelty test's calibration (gpmppi.terrain.novelty.calibrate, and its free-run channel's,
+    gpmppi.terrain.free_run.calibrate_free_run) from the logged runs of the grounds of `model`, whose terrain
+    calibration must be set: each run replayed through the terrain filter as the service runs it, the residuals under
+    every ground of the steps the filter scores and every ground's free-run errors collected, and both channels
+    calibrated on the ground each run drove on. The GP conditions on a few hundred clustered inputs of the thousands a
+    log holds, so nearly every step is out of its sample. At most `max_steps` steps of each ground are replayed (the
+    replay costs ~2 ms a step)."""
     from gpmppi.terrain.estimator import BayesTerrainEstimator
+    from gpmppi.terrain.free_run import calibrate_free_run
     from gpmppi.terrain.novelty import calibrate
     from gpmppi.terrain.settings import EstimatorConfig
 
     names = list(model.terrains)
-    known = []
+    known, known_free = [], []
     for terrain in names:
         left = max_steps
         for run in runs.get(terrain, []):
@@ -288,10 +290,17 @@ def novelty_from_runs(model: GPModel, runs: dict[str, list[TerrainRun]],
             est = BayesTerrainEstimator(model, EstimatorConfig())
             assert est.novelty is not None
             est.novelty.recorded = []
+            if est.free_run is not None:
+                est.free_run.recorded = []
             steps = min(len(run.command) - 1, left)
             left -= steps
             for k in range(steps):
                 est.observe(run.state[k], run.command[k], run.state[k + 1])
             if est.novelty.recorded:
                 known.append((np.array(est.novelty.recorded), names.index(terrain)))
-    return calibrate(known, source=f"fitted on the logs of {names}")
+            if est.free_run is not None and est.free_run.recorded:
+                known_free.append((np.array(est.free_run.recorded), names.index(terrain)))
+    source = f"fitted on the logs of {names}"
+    one_step = calibrate(known, source=source)
+    free_run = calibrate_free_run(known_free, source=source) if known_free else None
+    return replace(one_step, free_run=free_run)

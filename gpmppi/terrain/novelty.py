@@ -23,6 +23,9 @@ the probability exceeds `enter_p`, cleared only after it stays below `exit_p` fo
 straddles a manoeuvre neither clears nor sets it on one step.
 
 Pure and cheap: per step one (M, 2) sum update and M norms.
+
+A second channel, the free run of each ground's velocity response (gpmppi/terrain/free_run.py), sees what this test
+holds off over or cannot see (a slide: grip lost); the estimator publishes the larger of the two probabilities.
 """
 
 from __future__ import annotations

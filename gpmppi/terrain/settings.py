@@ -96,6 +96,10 @@ class EstimatorConfig(BaseModel):
         True, description="bayes: also test how well the best trained ground explains the recent steps at all and "
         "publish P(unknown ground) (gpmppi/terrain/novelty.py; calibrated by the robot profile, else a stated "
         "default)")
+    novelty_free_run: bool = Field(
+        True, description="bayes, with novelty: also test how well the best trained ground's velocity response, run "
+        "free for a horizon of steps, ends where the robot is (gpmppi/terrain/free_run.py: sees a loss of grip the "
+        "one-step test cannot); P(unknown) is the larger of the two channels'. Needs the profile's response map")
 
     @model_validator(mode="after")
     def _consistent(self) -> EstimatorConfig:
