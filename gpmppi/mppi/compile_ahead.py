@@ -7,6 +7,11 @@ So a planner's first plan on a cold cache hands the rollout kernel's arguments t
 (`python -m gpmppi.mppi.compile_ahead`), which calls the kernel once (compiling it into the shared numba cache) and
 exits; meanwhile this process compiles the serial kernels, and then loads the rollout kernel from the cache.
 
+The child starts at once: its task is an empty one of the same types (`TaskBundle.for_types`), so it does not wait
+for the plan's bounds and lane lookup, which this process compiles after its model step (`propagate`, whose GP
+residual the child then loads). It first compiles the per-critic scorer's split critics (`_compile_critic_split`),
+which this process meets last, then the kernel: the two processes' shares of the compile are then about even.
+
 The results do not depend on it: a kernel loaded from the cache runs the machine code it was compiled to, and
 every function it shares with the serial kernels is either inlined in numba's IR or linked as object code in both
 histories; `tests/test_determinism.py` compiles one history this way and one in a single process, and compares the

@@ -5,10 +5,11 @@ Critics are registered once, before the kernels' modules read the layout (`gpmpp
 each critic's weight (registration order), then each critic's parameters (registration order, then the order of its
 `params`).
 
-The kernels' sums are built here from the registered terms, as a chain of small compiled functions, one per term
-(`_chain`): the summed cost adds the terms in registration order, the split adds each to its own slot. numba
-resolves a chain's calls when it compiles, so they are plain calls that LLVM inlines (a tuple of functions would
-be called through pointers). CUDA gets the same chains built from the terms' device twins (`build_sums(jit, twin)`).
+The kernels' sums are built here from the registered terms, each as one function that calls every term of a task
+kind in turn (`_chain`, its source written out here): the summed cost adds the terms in registration order, the split
+adds each to its own slot. numba resolves those calls when it compiles, so they are plain calls inlined into the
+kernels (a tuple of functions would be called through pointers). CUDA gets the same functions built from the terms'
+device twins (`build_sums(jit, twin)`).
 
 Stateful critics (`base.StepState`) get their state chains here too (`build_states`): the drivers start the tuple of
 every stateful critic's value before a rollout's first step and advance it after each; a stateful term is called
