@@ -71,3 +71,37 @@ def test_no_interpreter_to_start_means_compiling_here(monkeypatch: pytest.Monkey
     monkeypatch.setattr(sys, "executable", str(tmp_path / "no-python"))
     with pytest.warns(RuntimeWarning, match="could not start a second process .* compiling it here"):
         assert compile_ahead.start(()) is None
+
+
+def test_the_empty_task_the_child_compiles_for_has_every_task_bundles_types(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The child compiles the rollout kernel for `TaskBundle.for_types` (`Planner._start_compile_ahead`), not for the
+    plan's task: a kernel of other types would be a compile wasted and the plan's own compiled after it. Lane, goal
+    among circles (geodesic and straight) and goal with a costmap: each plan's task bundle, as the kernel gets it."""
+    import numba
+
+    from gpmppi.costmap import Costmap
+    from gpmppi.mppi import backends
+    from gpmppi.mppi.bundles import TaskBundle
+    from gpmppi.scenarios import paper_obstacle_scene
+    from gpmppi.tasks import GoalTask
+
+    seen: list[tuple] = []
+    rollouts = backends.rollouts
+
+    def spy(backend: str, model: object, task: TaskBundle, *rest: object) -> object:
+        seen.append(task.args())
+        return rollouts(backend, model, task, *rest)
+
+    monkeypatch.setattr(backends, "rollouts", spy)
+    model = synthetic_model(nodes=4, n_train=20)
+    goal = paper_obstacle_scene()
+    grid = np.zeros((40, 40), dtype=np.int16)
+    grid[20:24, 20:24] = 100
+    with_grid = GoalTask(goal=goal.task.goal, tolerance=0.5, obstacles=goal.task.obstacles,
+                         costmap=Costmap(grid, 0.1, (1.0, 1.0, 0.0)))
+    for task, start, distance in ((circle_lane().task, circle_lane().start, "geodesic"),
+                                  (goal.task, goal.start, "geodesic"), (goal.task, goal.start, "euclidean"),
+                                  (with_grid, goal.start, "geodesic")):
+        Planner(PlannerConfig(samples=32, horizon=8, goal_distance=distance), model).plan(start, task)
+    want = numba.typeof(TaskBundle.for_types(8).args())
+    assert len(seen) == 4 and all(numba.typeof(args) == want for args in seen)

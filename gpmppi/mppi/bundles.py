@@ -209,6 +209,13 @@ class TaskBundle(_Bundle):
                    grid=NO_GRID[0], grid_frame=NO_GRID[1])
 
     @classmethod
+    def for_types(cls, horizon: int) -> TaskBundle:
+        """A task with every field of its type and nothing in it (a goal with no obstacles and no field, bounds
+        for `horizon` steps): the kernels compile the same code for every task bundle, and this one is built
+        without compiling anything (`compile_ahead` hands it to the process that compiles the rollout kernel)."""
+        return cls.for_goal(np.zeros(2), np.zeros((0, 3)), np.zeros((horizon + 1, 0)), None)
+
+    @classmethod
     def for_goal(
         cls, goal: np.ndarray, obstacles: np.ndarray, radii: np.ndarray, goal_field: GoalField | None,
         costmap: Costmap | None = None,

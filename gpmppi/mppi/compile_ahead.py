@@ -7,6 +7,11 @@ So a planner's first plan on a cold cache hands the rollout kernel's arguments t
 (`python -m gpmppi.mppi.compile_ahead`), which calls the kernel once (compiling it into the shared numba cache) and
 exits; meanwhile this process compiles the serial kernels, and then loads the rollout kernel from the cache.
 
+The child starts at once: its task is an empty one of the same types (`TaskBundle.for_types`), so it does not wait
+for the plan's bounds and lane lookup, which this process compiles after its model step (`propagate`, whose GP
+residual the child then loads). It first compiles the per-critic scorer's split critics (`_compile_critic_split`),
+which this process meets last, then the kernel: the two processes' shares of the compile are then about even.
+
 The results do not depend on it: a kernel loaded from the cache runs the machine code it was compiled to, and
 every function it shares with the serial kernels is either inlined in numba's IR or linked as object code in both
 histories; `tests/test_determinism.py` compiles one history this way and one in a single process, and compares the
@@ -23,6 +28,10 @@ import sys
 import warnings
 from pathlib import Path
 
+import numpy as np
+
+from gpmppi.mppi.bundles import CRITICS
+from gpmppi.mppi.costs import stage_critics, start_state, terminal_critics, weight_vector
 from gpmppi.mppi.cpu_backend import rollout_kernel, rollout_worker
 from gpmppi.mppi.critics.registry import layout
 
@@ -132,8 +141,23 @@ def _main() -> int:
     critics, kernel_args = pickle.loads(sys.stdin.buffer.read())
     if _critic_names() != critics:  # e.g. a critic registered by the parent's own script: its sums differ
         return _CRITICS_DIFFER
+    _compile_critic_split(*kernel_args[:4])
     rollout_kernel(*kernel_args)
     return 0
+
+
+def _compile_critic_split(model: tuple, task: tuple, sampling: tuple, cost: tuple) -> None:
+    """Compile the per-critic scorer's split critics (`costs.stage_critics`, `costs.terminal_critics`) into the cache,
+    called as `cpu_backend.nominal_critic_costs` calls them (the same types): the parent compiles its model step
+    first (`propagate`) and meets them ~10 s later, by when they are cached here, and this process has the time (the
+    parent's share of a cold compile was the larger)."""
+    cost_w = weight_vector(cost)
+    state = start_state(cost_w)
+    x0 = sampling.x0
+    s = (float(x0[0]), float(x0[1]), float(x0[2]), float(x0[3]), float(x0[4]))
+    out = np.zeros(len(CRITICS))
+    stage_critics(cost_w, task, task.tightened_hw[1], task.radii[1], state, s, (0.0, 0.0), (0.0, 0.0), out)
+    terminal_critics(cost_w, task, task.tightened_hw[-1], task.radii[-1], state, s, out)
 
 
 if __name__ == "__main__":

@@ -45,7 +45,7 @@ from gpmppi.mppi.lane import lane_query
 __all__ = [
     "BY_KIND", "CRITICS", "STATES", "SUMS", "ChanceQuantiles", "advance_state", "fill_weight_vector", "inflate_grid",
     "inflate_obstacles",
-    "lane_stage_cost_at", "stage_cost", "stage_reads_lane", "stage_critics", "start_state",
+    "lane_stage_cost_at", "plain_stage_cost", "stage_cost", "stage_reads_lane", "stage_critics", "start_state",
     "terminal_cost", "terminal_critics", "tighten_lane", "weight_vector", "xy_lambda_max",
 ]
 
@@ -60,6 +60,8 @@ _terminal_split = BY_KIND.terminal_split
 _lane_stage = BY_KIND.lane_stage  # whether a kind's stage critics read the lane (the step then queries it)
 stage_reads_lane = _lane_stage  # the same, for the CPU kernel's lane phase (`cpu_backend._add_costs`)
 _lane_terminal = BY_KIND.lane_terminal  # whether a kind's terminal critics read the lane at the horizon's end
+_stage_lane = BY_KIND.stage_lane  # `_stage` over the kinds whose stage critics read the lane, and over the others
+_stage_plain = BY_KIND.stage_plain
 # the stateful critics' values, carried by the drivers from step to step (`registry.build_states`)
 STATES = build_states()
 start_state = STATES.start  # start_state(cost_w): the values at a rollout's first step
@@ -102,6 +104,21 @@ def _step(
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")
+def _step_off_lane(
+    query_lane: bool, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, u: tuple,
+    var: tuple,
+) -> Step:
+    """`_step` where no kind's critics read the lane there (`query_lane` is then False for every kind): the same step
+    without a lane query compiled in (it would be dead code, but numba compiles it before LLVM drops it)."""
+    px, py, yaw, v, w = s
+    return Step(px, py, yaw, v, w, u[0], u[1], var[0], var[1], tightened_hw, radii, state, 0.0, 0.0, 0.0)
+
+
+# the terminal step: no registered kind's terminal critics read the lane (the shipped critics), so no lane query
+_terminal_step = _step if BY_KIND.any_lane_terminal else _step_off_lane
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
 def stage_cost(
     cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, u: tuple,
     var: tuple,
@@ -129,7 +146,19 @@ def lane_stage_cost_at(
     (`cpu_backend._add_costs`)."""
     px, py, yaw, v, w = s
     at = Step(px, py, yaw, v, w, u[0], u[1], var[0], var[1], tightened_hw, radii, state, lane[0], lane[1], lane[2])
-    return _stage(task.kind, 0.0, cost_w, task, at)
+    return _stage_lane(task.kind, 0.0, cost_w, task, at)
+
+
+@njit(cache=True, fastmath=FASTMATH, inline="always")
+def plain_stage_cost(
+    cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, u: tuple,
+    var: tuple,
+) -> float:
+    """`stage_cost` of a task whose stage critics do not read the lane (not `stage_reads_lane`): no lane query
+    compiled in, and only those kinds' critics (the CPU kernel's `_add_costs` branches on `stage_reads_lane` first,
+    so each kind's critics are compiled into it once)."""
+    at = _step_off_lane(False, task, tightened_hw, radii, state, s, u, var)
+    return _stage_plain(task.kind, 0.0, cost_w, task, at)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
@@ -149,7 +178,7 @@ def terminal_cost(
 ) -> float:
     """The sum of the task kind's terminal critics at the state after the last step (`s`; bounds of that step; `state`
     the stateful critics' values after it)."""
-    at = _step(_lane_terminal(task.kind), task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
+    at = _terminal_step(_lane_terminal(task.kind), task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
     return _terminal(task.kind, 0.0, cost_w, task, at)
 
 
@@ -158,7 +187,7 @@ def terminal_critics(
     cost_w: np.ndarray, task: tuple, tightened_hw: float, radii: np.ndarray, state: tuple, s: tuple, out: np.ndarray,
 ) -> None:
     """Add each terminal critic's cost to `out` (`CRITICS` order; arguments as `terminal_cost`)."""
-    at = _step(_lane_terminal(task.kind), task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
+    at = _terminal_step(_lane_terminal(task.kind), task, tightened_hw, radii, state, s, (0.0, 0.0), (0.0, 0.0))
     _terminal_split(task.kind, cost_w, task, at, out)
 
 

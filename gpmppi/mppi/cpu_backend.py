@@ -27,7 +27,7 @@ from gpmppi.mppi.bundles import CRITICS
 from gpmppi.mppi.costs import (
     advance_state,
     lane_stage_cost_at,
-    stage_cost,
+    plain_stage_cost,
     stage_critics,
     stage_reads_lane,
     start_state,
@@ -130,9 +130,9 @@ def _add_costs(
                                            (res[2, j], res[3, j]), (lane[0, j], lane[1, j], lane[2, j]))
         return
     for j in range(n_in):
-        total[j] += stage_cost(cost_w, task, tightened_hw, radii, state,
-                               (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]), (cmd[0, j], cmd[1, j]),
-                               (res[2, j], res[3, j]))
+        total[j] += plain_stage_cost(cost_w, task, tightened_hw, radii, state,
+                                     (st[0, j], st[1, j], st[2, j], st[3, j], st[4, j]), (cmd[0, j], cmd[1, j]),
+                                     (res[2, j], res[3, j]))
 
 
 @phase

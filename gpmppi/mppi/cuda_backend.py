@@ -60,7 +60,8 @@ for _kind, _sums in _device_sums.items():
         set_device_version(getattr(critic.SUMS[_kind], _field.name), getattr(_sums, _field.name))
 _by_kind = build_by_kind(_device_sums, _device_jit)
 for _field in fields(_by_kind):
-    set_device_version(getattr(critic.BY_KIND, _field.name), getattr(_by_kind, _field.name))
+    if callable(getattr(_by_kind, _field.name)):  # (not the plain flags)
+        set_device_version(getattr(critic.BY_KIND, _field.name), getattr(_by_kind, _field.name))
 _states = build_states(_device_jit, device_version)
 for _field in fields(_states):
     set_device_version(getattr(critic.STATES, _field.name), getattr(_states, _field.name))

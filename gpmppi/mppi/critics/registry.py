@@ -5,10 +5,11 @@ Critics are registered once, before the kernels' modules read the layout (`gpmpp
 each critic's weight (registration order), then each critic's parameters (registration order, then the order of its
 `params`).
 
-The kernels' sums are built here from the registered terms, as a chain of small compiled functions, one per term
-(`_chain`): the summed cost adds the terms in registration order, the split adds each to its own slot. numba
-resolves a chain's calls when it compiles, so they are plain calls that LLVM inlines (a tuple of functions would
-be called through pointers). CUDA gets the same chains built from the terms' device twins (`build_sums(jit, twin)`).
+The kernels' sums are built here from the registered terms, each as one function that calls every term of a task
+kind in turn (`_chain`, its source written out here): the summed cost adds the terms in registration order, the split
+adds each to its own slot. numba resolves those calls when it compiles, so they are plain calls inlined into the
+kernels (a tuple of functions would be called through pointers). CUDA gets the same functions built from the terms'
+device twins (`build_sums(jit, twin)`).
 
 Stateful critics (`base.StepState`) get their state chains here too (`build_states`): the drivers start the tuple of
 every stateful critic's value before a rollout's first step and advance it after each; a stateful term is called
@@ -125,42 +126,30 @@ class Sums:
     terminal_split: Callable
 
 
-def _chain(terms: tuple, jit: Callable, twin: Callable, names: tuple[str, ...], weights0: int) -> tuple:
+def _chain(terms: tuple, jit: Callable, twin: Callable, weights0: int, label: str) -> tuple:
     """The summed and the split function of `terms` ((weight index, parameter index, state slot, term), ...),
-    compiled by `jit` with each term replaced by `twin(term)`."""
-    summed = jit(lambda c, cost_w, geo, at: c)
-    split = jit(lambda cost_w, geo, at, out: None)
-    for wi, pi, si, term in reversed(terms):
-        one = _with_state(jit, twin(term), si)
-        summed = _link_sum(jit, one, wi, pi, summed)
-        split = _link_split(jit, one, wi, pi, wi - weights0, split)
-    return summed, split
+    compiled by `jit` with each term replaced by `twin(term)`.
+
+    Each is one function that calls every term in turn, written out as source (`_compiled`), not a chain of small
+    functions each calling the next: numba inlines an `inline="always"` callee by running its untyped pipeline and
+    copying its IR at every call site, so a chain of links cost one inline per link and term at every site (the
+    kernels' largest compile cost). The sums are the same: the terms are added in registration order, each
+    split term to its own slot, with the same operations."""
+    names = {f"term{n}": twin(term) for n, (_wi, _pi, _si, term) in enumerate(terms)}
+    calls = [f"term{n}(cost_w[{wi}], cost_w, {pi}, geo, at" + (f", at.state[{si}])" if si >= 0 else ")")
+             for n, (wi, pi, si, _term) in enumerate(terms)]
+    summed = ["def summed(c, cost_w, geo, at):", *[f"    c = c + {call}" for call in calls], "    return c"]
+    split = ["def split(cost_w, geo, at, out):",
+             *[f"    out[{wi - weights0}] += {call}" for (wi, _pi, _si, _t), call in zip(terms, calls, strict=True)],
+             "    return None"]
+    return (_compiled(jit, summed, names, f"{label} summed"), _compiled(jit, split, names, f"{label} split"))
 
 
-def _with_state(jit: Callable, term: Callable, slot: int) -> Callable:
-    """`term` as a stateless term: a stateful one (`slot` >= 0) called with its own value of the step."""
-    if slot < 0:
-        return term
-
-    def stateful(weight: float, cost_w, p: int, geo: tuple, at: tuple) -> float:  # noqa: ANN001 - an array
-        return term(weight, cost_w, p, geo, at, at.state[slot])
-
-    return jit(stateful)
-
-
-def _link_sum(jit: Callable, term: Callable, wi: int, pi: int, rest: Callable) -> Callable:
-    def add(c: float, cost_w, geo: tuple, at: tuple) -> float:  # noqa: ANN001 - an array, or a CUDA array
-        return rest(c + term(cost_w[wi], cost_w, pi, geo, at), cost_w, geo, at)
-
-    return jit(add)
-
-
-def _link_split(jit: Callable, term: Callable, wi: int, pi: int, slot: int, rest: Callable) -> Callable:
-    def add(cost_w, geo: tuple, at: tuple, out) -> None:  # noqa: ANN001 - arrays, or CUDA arrays
-        out[slot] += term(cost_w[wi], cost_w, pi, geo, at)
-        rest(cost_w, geo, at, out)
-
-    return jit(add)
+def _compiled(jit: Callable, lines: list[str], names: Mapping[str, Callable], label: str) -> Callable:
+    """`jit` of the one function whose source is `lines`, its global names bound to `names`."""
+    scope = dict(names)
+    exec(compile("\n".join(lines) + "\n", f"<critics: {label}>", "exec"), scope)  # noqa: S102 - our own source
+    return jit(scope[lines[0].split()[1].split("(")[0]])
 
 
 @dataclass(frozen=True)
@@ -209,8 +198,8 @@ def build_sums(jit: Callable | None = None, twin: Callable | None = None) -> dic
     w0 = lay.weight_index(lay.names[0]) if lay.names else 0
     out = {}
     for task in TASK_KINDS:
-        stage, stage_split = _chain(lay.terms(task, False), jit, twin, lay.names, w0)
-        terminal, terminal_split = _chain(lay.terms(task, True), jit, twin, lay.names, w0)
+        stage, stage_split = _chain(lay.terms(task, False), jit, twin, w0, f"{task} stage")
+        terminal, terminal_split = _chain(lay.terms(task, True), jit, twin, w0, f"{task} terminal")
         out[task] = Sums(stage, stage_split, terminal, terminal_split)
     return out
 
@@ -221,7 +210,12 @@ class ByKind:
     """The sums of whichever task kind a step's task is (`TaskBundle.kind`), so the kernels name no kind: `stage(kind,
     c, cost_w, geo, at)`, `stage_split(kind, cost_w, geo, at, out)` (and terminal alike) call that kind's `Sums`;
     `lane_stage(kind)` / `lane_terminal(kind)` say whether its stage / terminal critics read the lane at the step
-    (`Step.lane_dist`, ...; the drivers query it once for all of them)."""
+    (`Step.lane_dist`, ...; the drivers query it once for all of them); `any_lane_terminal` whether any kind's
+    terminal critics do (else the drivers build the terminal step without compiling a lane query).
+
+    `stage_lane(kind, ...)` and `stage_plain(kind, ...)` are `stage` over the kinds whose stage critics read the lane
+    and over the others: a driver that has already branched on `lane_stage` (the CPU kernel's `_add_costs`) calls
+    each kind's chain once, not twice (an inlined chain is compiled at every call site)."""
 
     stage: Callable
     stage_split: Callable
@@ -229,6 +223,9 @@ class ByKind:
     terminal_split: Callable
     lane_stage: Callable
     lane_terminal: Callable
+    stage_lane: Callable
+    stage_plain: Callable
+    any_lane_terminal: bool
 
 
 def build_by_kind(sums: Mapping[str, Sums], jit: Callable | None = None) -> ByKind:
@@ -241,11 +238,17 @@ def build_by_kind(sums: Mapping[str, Sums], jit: Callable | None = None) -> ByKi
     reads_lane = [name in LANE_TASK_KINDS for name in sums]
     reads_lane_end = [name in LANE_TASK_KINDS and bool(lay.terms(name, True)) for name in sums]
 
-    def chain(link: Callable, tail: Callable, funcs: list) -> Callable:
+    def chain(link: Callable, tail: Callable, funcs: list, kinds: list[int] = ids) -> Callable:
+        if not funcs:  # no kind of this group: never called (the drivers branch on `lane_stage` first)
+            return jit(lambda kind, c, cost_w, geo, at: c)
         pick = tail(jit, funcs[-1])
-        for kid, here in reversed(list(zip(ids[:-1], funcs[:-1], strict=True))):
+        for kid, here in reversed(list(zip(kinds[:-1], funcs[:-1], strict=True))):
             pick = link(jit, kid, here, pick)
         return pick
+
+    def group(lane: bool) -> Callable:
+        kinds = [(kid, s.stage) for kid, s, reads in zip(ids, sums.values(), reads_lane, strict=True) if reads == lane]
+        return chain(_pick_sum, _tail_sum, [f for _k, f in kinds], [k for k, _f in kinds])
 
     return ByKind(
         chain(_pick_sum, _tail_sum, [s.stage for s in sums.values()]),
@@ -254,6 +257,9 @@ def build_by_kind(sums: Mapping[str, Sums], jit: Callable | None = None) -> ByKi
         chain(_pick_split, _tail_split, [s.terminal_split for s in sums.values()]),
         chain(_pick_flag, _tail_flag, reads_lane),
         chain(_pick_flag, _tail_flag, reads_lane_end),
+        group(True),
+        group(False),
+        any(reads_lane_end),
     )
 
 
