@@ -31,12 +31,11 @@ Cost per step: one steady-map lookup (M grounds) and `horizon_steps` (M, 2) upda
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 
 from gpmppi.profile.novelty_calibration import FreeRunCalibration
 from gpmppi.profile.response import TerrainResponse
+from gpmppi.terrain.novelty import WindowedTest
 
 __all__ = ["DEFAULT_FREE_RUN", "FreeRunTest", "calibrate_free_run", "profile_free_run"]
 
@@ -50,7 +49,7 @@ DEFAULT_FREE_RUN = FreeRunCalibration(horizon_steps=10, window_steps=20, spread=
                                       width=0.95, source="default (the shipped Jackal profile's logs)")
 
 
-class FreeRunTest:
+class FreeRunTest(WindowedTest):
     """The free-run channel over M trained grounds: feed each step, read P(unknown) from this channel."""
 
     def __init__(self, response: TerrainResponse, calibration: FreeRunCalibration = DEFAULT_FREE_RUN) -> None:
@@ -61,23 +60,13 @@ class FreeRunTest:
         self.reset()
 
     def reset(self) -> None:
-        # with `recorded` a list, every completed run's error (M, 2) is kept there too (calibration from logs)
-        self.recorded: list[np.ndarray] | None = getattr(self, "recorded", None)
         # the free runs in flight: a ring of `horizon_steps` slots (K, M, 2), `_active` of them from `_head` on (the
         # oldest first); the free slots are advanced too (one vector update for all), and overwritten when a run starts
         self._runs = np.zeros((self.calibration.horizon_steps, self._m, 2))
         self._head = 0
         self._active = 0
         self._at: np.ndarray | None = None  # the measured velocity the last step ended at
-        self._window: deque[np.ndarray] = deque()
-        self._sum = np.zeros((self._m, 2))
-        self.statistic = 0.0
-        self.best = -1
-
-    @property
-    def ready(self) -> bool:
-        """Whether a whole window of errors has been scored (before: P reads 0)."""
-        return len(self._window) >= self.calibration.window_steps
+        self._reset_window(self._m)  # `recorded`, when a list, keeps every completed run's error (M, 2)
 
     def observe(self, velocity: np.ndarray, command: np.ndarray, next_velocity: np.ndarray) -> float:
         """One step from measured (v [m/s], omega [rad/s]) `velocity` under `command` (v_ref, omega_ref) to
@@ -104,20 +93,7 @@ class FreeRunTest:
         error = v1[None, :] - self._runs[self._head]
         self._head = (self._head + 1) % k
         self._active -= 1
-        self._window.append(error)
-        if self.recorded is not None:
-            self.recorded.append(error)
-        self._sum += error
-        if len(self._window) > self.calibration.window_steps:
-            self._sum -= self._window.popleft()
-        z = np.linalg.norm(self._sum / len(self._window) * self._inv_spread[None, :], axis=1)
-        self.best = int(np.argmin(z))
-        self.statistic = float(z[self.best])
-        return self.probability
-
-    @property
-    def probability(self) -> float:
-        return self.calibration.probability(self.statistic) if self.ready else 0.0
+        return self._score(error)
 
 
 def calibrate_free_run(

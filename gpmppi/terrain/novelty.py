@@ -37,7 +37,7 @@ import numpy as np
 
 from gpmppi.profile.novelty_calibration import NoveltyCalibration
 
-__all__ = ["DEFAULT_CALIBRATION", "ENTER_SPREADS", "NoveltyTest", "UnknownLatch", "calibrate",
+__all__ = ["DEFAULT_CALIBRATION", "ENTER_SPREADS", "NoveltyTest", "UnknownLatch", "WindowedTest", "calibrate",
            "profile_novelty", "window_statistics"]
 
 
@@ -70,7 +70,48 @@ DEFAULT_CALIBRATION = NoveltyCalibration(window_steps=20, spread=(0.0041, 0.0119
                                          source="default (the shipped Jackal profile's logs)")
 
 
-class NoveltyTest:
+class WindowedTest:
+    """What both channels of the novelty test share (this module's `NoveltyTest`, gpmppi.terrain.free_run's
+    `FreeRunTest`): each step's per-ground errors (M, 2) [m/s, rad/s] go into a window of the last `window_steps`;
+    their mean in units of the calibration's `spread`, the best ground's length, is the statistic; its calibration
+    turns it into P(unknown). A subclass sets `calibration` and `_inv_spread`, calls `_reset_window(M)` from its
+    `reset` and `_score(error)` once it has a step's errors."""
+
+    calibration: NoveltyCalibration  # or FreeRunCalibration: both have `window_steps` and `probability(z)`
+    _inv_spread: np.ndarray
+
+    def _reset_window(self, n_terrains: int) -> None:
+        # with `recorded` a list, every scored step's errors (M, 2) are kept there too (calibration from logs)
+        self.recorded: list[np.ndarray] | None = getattr(self, "recorded", None)
+        self._window: deque[np.ndarray] = deque()
+        self._sum = np.zeros((n_terrains, 2))
+        self.statistic = 0.0
+        self.best = -1  # the ground that explains the window best (-1: none scored yet)
+
+    def _score(self, error: np.ndarray) -> float:
+        """Add one step's errors (M, 2), an array no one changes after; P(unknown) after it."""
+        self._window.append(error)
+        if self.recorded is not None:
+            self.recorded.append(error)
+        self._sum += error
+        if len(self._window) > self.calibration.window_steps:
+            self._sum -= self._window.popleft()
+        z = np.linalg.norm(self._sum / len(self._window) * self._inv_spread[None, :], axis=1)
+        self.best = int(np.argmin(z))
+        self.statistic = float(z[self.best])
+        return self.probability
+
+    @property
+    def ready(self) -> bool:
+        """Whether a whole window has been scored (before: P(unknown) reads 0)."""
+        return len(self._window) >= self.calibration.window_steps
+
+    @property
+    def probability(self) -> float:
+        return self.calibration.probability(self.statistic) if self.ready else 0.0
+
+
+class NoveltyTest(WindowedTest):
     """The windowed test of fit over M trained grounds: feed each step's per-ground residuals, read P(unknown)."""
 
     def __init__(self, n_terrains: int, calibration: NoveltyCalibration = DEFAULT_CALIBRATION,
@@ -82,18 +123,8 @@ class NoveltyTest:
         self.reset()
 
     def reset(self) -> None:
-        # with `recorded` a list, every scored step's residuals (M, 2) are kept there too (calibration from logs)
-        self.recorded: list[np.ndarray] | None = getattr(self, "recorded", None)
-        self._window: deque[np.ndarray] = deque()
-        self._sum = np.zeros((self._m, 2))
-        self.statistic = 0.0
-        self.best = -1  # the ground that explains the window best (-1: none scored yet)
+        self._reset_window(self._m)
         self._settle = 0  # steps still to pass unscored after the last transient step
-
-    @property
-    def ready(self) -> bool:
-        """Whether a whole window has been scored (before: P(unknown) reads 0)."""
-        return len(self._window) >= self.calibration.window_steps
 
     def transient(self, v_command: float, v: float, omega: float) -> bool:
         """Whether a step from measured (v [m/s], omega [rad/s]) under the v command [m/s] is a transient the test
@@ -114,20 +145,7 @@ class NoveltyTest:
         r = np.asarray(residuals, dtype=np.float64).reshape(self._m, 2)
         if not np.all(np.isfinite(r)):
             return self.probability
-        self._window.append(r.copy())
-        if self.recorded is not None:
-            self.recorded.append(r.copy())
-        self._sum += r
-        if len(self._window) > self.calibration.window_steps:
-            self._sum -= self._window.popleft()
-        z = np.linalg.norm(self._sum / len(self._window) * self._inv_spread[None, :], axis=1)
-        self.best = int(np.argmin(z))
-        self.statistic = float(z[self.best])
-        return self.probability
-
-    @property
-    def probability(self) -> float:
-        return self.calibration.probability(self.statistic) if self.ready else 0.0
+        return self._score(r.copy())
 
 
 @dataclass
