@@ -32,11 +32,16 @@ def test_the_schedule_switches_the_ground_label_and_response(tmp_path: Path) -> 
         try:
             assert wait_for(lambda: bool(col.on("gpmppi/r1/odom/raw")), 20.0), sim.log()
             pub = matched_publisher(observer, "gpmppi/r1/base/cmd")
-            # drive straight at 1 m/s (20 Hz, as egress sends) until well after the switch
-            end = time.monotonic() + SWITCH_S + 2.5
-            while time.monotonic() < end:
+            # drive straight at 1 m/s (20 Hz, as egress sends) until 2.5 s after the switch is seen: counted from
+            # the switch's label, not from the first output (a sim slowed by load switched at least 1.5 s later than
+            # that count, and the drive ended before a second of sand)
+            deadline, end = time.monotonic() + SWITCH_S + 60.0, None
+            while time.monotonic() < (end or deadline):
                 pub.put(encode(BaseCommand(v=1.0, omega=0.0, header=Header(stamp_ns=time.time_ns()))))
                 time.sleep(0.05)
+                if end is None and any(decode(TerrainLabel, p).terrain == "sand"
+                                       for _, p, _ in col.on("gpmppi/r1/terrain/label")[-3:]):
+                    end = time.monotonic() + 2.5
         finally:
             assert sim.stop() == 0
             observer.close()
