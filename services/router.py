@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import signal
 import threading
 import time
 from pathlib import Path
@@ -17,6 +16,7 @@ from pydantic import Field
 
 from services.runtime.logs import setup_logging
 from services.runtime.node_settings import DEFAULT_ROUTER, NodeSettings
+from services.runtime.signals import StopSignals
 
 log = logging.getLogger("gpmppi.router")
 
@@ -38,8 +38,7 @@ def router_config(settings: RouterSettings) -> zenoh.Config:
 
 def run(settings: RouterSettings) -> int:
     stop = threading.Event()
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    StopSignals(lambda signum: stop.set())  # for the process's life: the router stops on SIGINT / SIGTERM
     session = zenoh.open(router_config(settings))
     log.info("router listening on %s", ", ".join(settings.listen), extra={"fields": {"zid": str(session.zid())}})
     try:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import signal
 import sys
 import threading
 import time
@@ -422,13 +423,10 @@ def register(app: typer.Typer) -> None:
                                 list(config), compare, connect, port, delay, ready_timeout,
                                 progress=not (quiet or as_json), lockstep=lockstep, foxglove=address, profile=profile)
             stop = threading.Event()
-            import signal
+            from services.runtime.signals import StopSignals
 
-            previous = signal.signal(signal.SIGINT, lambda *_: stop.set())
-            try:
+            with StopSignals(lambda signum: stop.set(), [signal.SIGINT]):
                 result = run_replay(req, stop)
-            finally:
-                signal.signal(signal.SIGINT, previous)
         except (LogError, ReplaceError, ValueError, FileNotFoundError, TimeoutError, RuntimeError) as exc:
             typer.echo(f"gpmppi replay: {exc}", err=True)
             raise typer.Exit(2) from None

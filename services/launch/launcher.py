@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import signal
 import sys
 import threading
 import time
@@ -37,6 +36,7 @@ from services.recording.output_files import resolve_output
 from services.runtime.config_file import Marks, locate, one_line, validation_problems
 from services.runtime.node_settings import ZenohSettings
 from services.runtime.session import StoppedWhileWaiting
+from services.runtime.signals import StopSignals
 from services.security.secure_check import check_launch_secrets
 
 # services that join a secured stack as another identity: the Foxglove server reads everything, as the viewer does
@@ -235,11 +235,11 @@ def run_launch(
         launcher.say("launch", note)
     interrupted = threading.Event()
 
-    def on_signal(signum: int, frame: Any) -> None:
+    def on_signal(signum: int) -> None:
         interrupted.set()
         launcher.request_stop()
 
-    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    stop_signals = StopSignals(on_signal)
     monitor: Monitor | None = None
     hook: threading.Thread | None = None
     hook_errors: list[BaseException] = []
@@ -301,8 +301,7 @@ def run_launch(
         launcher.stop_all()
         if monitor is not None:
             monitor.close()
-        for s, handler in previous.items():
-            signal.signal(s, handler)
+        stop_signals.restore()
     summary = summarize(monitor, launcher, service_names, record)
     summary.rerun_file = rerun[1] if rerun and rerun[0] == "save" else None
     summary.notes = notes

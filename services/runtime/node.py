@@ -25,7 +25,7 @@ import signal
 import threading
 import time
 from collections import deque
-from types import FrameType, TracebackType
+from types import TracebackType
 from typing import Generic, TypeVar
 
 import zenoh
@@ -38,6 +38,7 @@ from services.runtime.node_settings import NodeSettings, changed_since_loaded
 from services.runtime.role import HANDOVER, notify_systemd_ready, say_joined, standby_requested, wait_for_role
 from services.runtime.scheduling import Inbox
 from services.runtime.session import StoppedWhileWaiting, open_session
+from services.runtime.signals import StopSignals
 
 M = TypeVar("M", bound=Message)
 
@@ -138,12 +139,13 @@ class Node:
         # what a predecessor left, from the launcher's go (registered key name -> payload; `handed_over`)
         self.handover: dict[str, bytes] = {}
         self.zid = ""
+        # the node's process stops on SIGINT / SIGTERM (never set from the handler itself: `StopSignals`)
+        self._signals: StopSignals | None = None
         if install_signals and threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, self._on_signal)
-            signal.signal(signal.SIGTERM, self._on_signal)
+            self._signals = StopSignals(self._on_signal)
 
     # lifecycle
-    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+    def _on_signal(self, signum: int) -> None:
         self.log.info("signal %s: stopping", signal.Signals(signum).name)
         self.stop()
 
