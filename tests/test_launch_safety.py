@@ -31,7 +31,8 @@ from services.launch import supervisor
 from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile, LaunchFileError
 from services.launch.launcher import build, main, run_launch
 from services.launch.supervisor import wait_for_endpoint
-from services.recording.mcap_io import McapWriter, read_messages
+from services.recording.mcap_io import read_messages
+from services.recording.mcap_writer import McapWriter
 from services.recording.output_files import OutputPathError, free_name, resolve_output
 from services.run import LAUNCHER_PID_ENV
 from services.runtime.config_file import ConfigFileError, read_yaml

@@ -33,7 +33,7 @@ def synthetic_log(path: Path, duration_s: float, robot: str = "jackal", samples:
     """Write a log of `duration_s` seconds as the demo stack records it (circle lane, plans with `samples`
     rollouts of 41 steps); returns the number of messages."""
     from schemas import BaseCommand, Command, Heartbeat, Plan, State, Task, TerrainLabel, TerrainWeights
-    from services.recording.mcap_io import McapWriter
+    from services.recording.mcap_writer import McapWriter
 
     rng = np.random.default_rng(seed)
     radius, half_width, speed, dt, steps = 10.0, 1.75, 1.5, 0.1, 41
@@ -100,7 +100,8 @@ def synthetic_log(path: Path, duration_s: float, robot: str = "jackal", samples:
 
 def tiled_log(source: Path, path: Path, duration_s: float) -> int:
     """A real recording repeated (times shifted) to `duration_s` seconds; returns the number of messages."""
-    from services.recording.mcap_io import McapWriter, read_messages
+    from services.recording.mcap_io import read_messages
+    from services.recording.mcap_writer import McapWriter
 
     msgs = list(read_messages(source))
     if not msgs:
