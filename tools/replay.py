@@ -68,7 +68,8 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
     import zenoh
 
     from services.launch.launch_file import LaunchFile
-    from services.launch.supervisor import Launcher, wait_for_endpoint
+    from services.launch.processes import wait_for_endpoint
+    from services.launch.supervisor import Launcher
     from services.recording.player import Player, PlayOptions, copy_payloads, drain
     from services.recording.player_log import (
         LogError,
