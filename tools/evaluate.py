@@ -14,7 +14,7 @@ from rich.table import Table
 
 from gpmppi.evaluation.runner import MODELS, PAPER_NET_TERRAINS, EvalSettings
 from gpmppi.scenarios import Scenario
-from tools import learn_drive, terrain_cmd
+from tools import learn_drive, terrain_cmd, terrain_separability
 from tools.choices import ModelName
 from tools.cli_checks import check_output_dir, fail, only_with
 from tools.evaluate_jobs import execute_jobs, load_lanes, load_scenes, make_jobs
@@ -282,6 +282,7 @@ def register(app: typer.Typer) -> None:
     ev.command("avoidance")(make("avoidance", "Obstacle avoidance (the paper's scene or --scene-file): success."))
     ev.command("table")(make("table", "The whole grid (terrains x models x {circle, square, avoidance}) into -o DIR."))
     terrain_cmd.register(ev)
+    terrain_separability.register(ev)
     learn_drive.register(ev)
     ev.command("terrain-real-data")(real_data_cmd)
     app.add_typer(ev, name="evaluate")
