@@ -20,8 +20,8 @@ from zenoh_helpers import client, endpoint, free_port, router, wait_for, without
 from schemas import Command, State, Task, TerrainWeights, encode
 from services.recording.mcap_io import schema_name
 from services.recording.player_log import LogError, check_log, read_run_info
-from tools.replay import ReplayRequest, run_replay
 from tools.replay_live import ReplaceError, apply_overrides, finalize, live_services, resolve_path
+from tools.replay_run import ReplayRequest, run_replay
 
 ROBOT = "r1"
 

@@ -25,7 +25,8 @@ from gpmppi.plant.residual_stats import pattern_separation, residual_stats, thet
 from gpmppi.plant.terrains import TerrainFileError, load_terrains
 from schemas.keys import DEFAULT_ROBOT, key_for
 from schemas.messages import Command, Header, State, TerrainLabel
-from services.recording.mcap_io import McapWriter, read_messages
+from services.recording.mcap_io import read_messages
+from services.recording.mcap_writer import McapWriter
 from tools.cli_checks import OUT_FILE, fail
 
 DATASET_DT = 0.1
