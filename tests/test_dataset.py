@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from gpmppi.plant import load_terrains
 from gpmppi.plant.excitation import Excitation, runs_to_series, simulate_dataset
 from schemas.messages import Command, Header, State, TerrainLabel
-from services.recording.mcap_io import McapWriter
+from services.recording.mcap_writer import McapWriter
 from tools.cli import app
 from tools.dataset import read_dataset
 

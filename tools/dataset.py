@@ -25,7 +25,7 @@ from gpmppi.plant.residual_stats import pattern_separation, residual_stats, thet
 from gpmppi.plant.terrains import TerrainFileError, load_terrains
 from schemas.keys import DEFAULT_ROBOT, key_for
 from schemas.messages import Command, Header, State, TerrainLabel
-from services.recording.mcap_io import McapWriter
+from services.recording.mcap_writer import McapWriter
 from tools.cli_checks import OUT_FILE, fail
 from tools.log_reader import NS, read_log_runs, runs_by_ground
 
