@@ -136,7 +136,7 @@ SWITCH_S = 8.0  # the ground changes on the straight, 1 s before the corner's st
 DT = 0.1
 
 
-def _lane_commands() -> np.ndarray:
+def lane_commands() -> np.ndarray:
     """A start, a straight with the small steering corrections a lane controller makes, the corner, a straight."""
     t = np.arange(int(8.0 / DT)) * DT
     straight = np.column_stack([np.minimum(1.3, 0.3 + 0.5 * t), 0.08 * np.sin(1.3 * t)])
@@ -156,7 +156,7 @@ def _p_unknown(ground: str, free_run: bool, channels: list[str] | None = None) -
     est = make_estimator(load_default_model(), EstimatorConfig(novelty_free_run=free_run))
     x = plant.measure()
     p = []
-    for k, u in enumerate(_lane_commands()):
+    for k, u in enumerate(lane_commands()):
         if k == round(SWITCH_S / DT):
             plant.set_terrain(ground)
         plant.step(u, DT)
