@@ -40,7 +40,8 @@ def _drive(ground: str) -> list[tuple[int, np.ndarray, np.ndarray]]:
         steps = [np.array([min(1.3, 0.5 * t), 0.4 * np.sin(0.5 * t)]) for t in 0.1 * np.arange(int((SWITCH_S + 4.0)
                                                                                                  / 0.1))]
     else:
-        from test_novelty_grip import SWITCH_S as CORNER_AT, lane_commands
+        from test_novelty_grip import SWITCH_S as CORNER_AT
+        from test_novelty_grip import lane_commands
 
         assert CORNER_AT == SWITCH_S
         plant = PhysicsPlant(load_terrains("tests/data/new_grounds.yaml"), "asphalt", seed=4, noise=True)

@@ -110,7 +110,7 @@ class BayesTerrainEstimator:
             if free_map is None and (model.calibration is not None or config.response_file is not None):
                 free_map = profile_calibration(config.model_copy(update={"response": "steady_map"}), model)[1]
             if free_map is not None:
-                self.free_run = FreeRunTest(free_map, profile_free_run(model))
+                self.free_run = FreeRunTest(free_map, profile_free_run(model), config.novelty_grip_demand)
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:
