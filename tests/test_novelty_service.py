@@ -57,7 +57,7 @@ def _drive(ground: str) -> list[tuple[int, np.ndarray, np.ndarray]]:
     return out
 
 
-@pytest.mark.slow(seconds=20)
+@pytest.mark.slow(seconds=10)
 @pytest.mark.parametrize(("ground", "channel"), [("sand", "one-step"), ("glare_ice", "free-run")])
 def test_the_terrain_service_publishes_unknown_ground_and_its_channel_and_says_it_in_its_health(
         tmp_path: Path, ground: str, channel: str) -> None:
