@@ -78,8 +78,8 @@ class FreeRunTest(WindowedTest):
     """The free-run channel over M trained grounds: feed each step, read P(unknown) from this channel.
 
     `statistic` is the larger of the plain window's (`window_statistic`) and the window of the last informative runs'
-    (`informative_statistic`, once it holds `window_steps` of them); `informative_demand` 0 makes every run
-    informative, and the channel the plain window alone."""
+    (`informative_statistic`, once it holds `window_steps` of them), and after an alarm the alarm's peak until such a
+    window has been driven since; `informative_demand` 0: the plain window alone (no hold)."""
 
     def __init__(self, response: TerrainResponse, calibration: FreeRunCalibration = DEFAULT_FREE_RUN,
                  informative_demand: float = INFORMATIVE_DEMAND) -> None:
@@ -105,6 +105,7 @@ class FreeRunTest(WindowedTest):
         self._informative_sum = np.zeros((self._m, 2))
         self.window_statistic = 0.0  # the plain window's statistic
         self.informative_statistic = 0.0  # the informative runs' window's (0 until it is whole)
+        self._held = 0.0  # the last alarm's peak statistic, held until an informative window was driven since
 
     def observe(self, velocity: np.ndarray, command: np.ndarray, next_velocity: np.ndarray) -> float:
         """One step from measured (v [m/s], omega [rad/s]) `velocity` under `command` (v_ref, omega_ref) to
@@ -136,12 +137,22 @@ class FreeRunTest(WindowedTest):
         self._head = (self._head + 1) % k
         self._active -= 1
         self._score(error)
-        return self._hold(error, demand)
+        return self._hold(error, demand) if self.informative_demand > 0 else self.probability
 
     def _hold(self, error: np.ndarray, demand: float) -> float:
         """Keep `error` (M, 2) in the informative runs' window if its run asked for `demand` [m/s^2] >=
-        `informative_demand`; the statistic is the larger of the two windows'. P(unknown) after it."""
+        `informative_demand`; the statistic is the larger of the plain window's and the informative one's, or, after
+        an alarm until a whole informative window has been driven since, the alarm's peak. P(unknown) after it."""
         self.window_statistic = self.statistic
+        if self.statistic >= self.calibration.enter:
+            # the plain window says unknown: "known again" must come from runs driven after it (a corner's runs
+            # after its slide mix its errors with small ones of opposite sign, and the light robot's mean of them
+            # fell below the level within its corner), so the informative window starts again, and the peak holds
+            self._held = max(self._held, self.statistic)
+            self._informative.clear()
+            self._informative_sum[:] = 0.0
+            self.informative_statistic = 0.0
+            return self.probability
         if demand >= self.informative_demand:
             self._informative.append(error)
             self._informative_sum += error
@@ -150,7 +161,8 @@ class FreeRunTest(WindowedTest):
         if len(self._informative) >= self.calibration.window_steps:
             z = np.linalg.norm(self._informative_sum / len(self._informative) * self._inv_spread[None, :], axis=1)
             self.informative_statistic = float(z.min())
-            self.statistic = max(self.statistic, self.informative_statistic)
+            self._held = 0.0  # a whole window of informative runs since the alarm: it decides from now on
+        self.statistic = max(self.statistic, self.informative_statistic, self._held)
         return self.probability
 
 

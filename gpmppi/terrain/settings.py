@@ -103,9 +103,9 @@ class EstimatorConfig(BaseModel):
     novelty_grip_demand: float = Field(
         1.2, ge=0.0, description="bayes, free-run channel: the sideways acceleration |v_ref omega_ref| [m/s^2] a free "
         "run's commands must ask for (at one step at least) for its error to count towards 'known again': the "
-        "channel's P(unknown) falls only once a window of such runs is explained by a trained ground, so an alarm "
-        "raised in a corner holds through the straights, where a slide cannot show (gpmppi/terrain/free_run.py). "
-        "0: every run counts (the plain window alone)")
+        "channel's P(unknown) falls only once a window of such runs, driven after the alarm, is explained by a "
+        "trained ground, so an alarm raised in a corner holds through the straights, where a slide cannot show "
+        "(gpmppi/terrain/free_run.py). 0: no hold (the plain window alone)")
 
     @model_validator(mode="after")
     def _consistent(self) -> EstimatorConfig:
