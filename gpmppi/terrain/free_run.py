@@ -32,16 +32,20 @@ window of the straight's errors carries no evidence either way, and the alarm ra
 straight (on the square lane the caution was on for ~15 % of the run, and learning, which waits 3 s of P(unknown)
 > 0.5, rarely started). So beside the plain window the channel keeps the last `window_steps` *informative* errors,
 those of runs whose commands asked, at one step at least, for a sideways acceleration `|v_ref omega_ref|` of
-`informative_demand` (1.2 m/s^2) or more, however long ago they were, and its statistic is the larger of the two
-windows': the plain window raises the alarm as before, and it falls only once a window of informative runs is
-explained by a trained ground (a corner driven on known ground). Why sideways demand, and 1.2: in GP-MPPI's closed
+`informative_demand` (1.2 m/s^2) or more, however long ago they were. The plain window raises the alarm as before;
+while it is above the level the informative window starts again (what comes after the alarm decides), and the
+statistic holds the alarm's peak until a whole informative window has been driven since; from then on it is the
+larger of the two windows'. So the alarm falls only once a window of informative runs driven after it is explained
+by a trained ground (a corner on known ground). Starting again matters: a corner's runs after its slide leave small
+errors, of the opposite sign on the light robot, and a window that mixed them with the slide's fell below the level
+within the corner there. Why sideways demand, and 1.2: in GP-MPPI's closed
 loops on the Jackal's lanes (docs/new_ground.md, "The hold across straights") the glare-ice runs with an error above
 15 spreads asked for 1.04-3.10 m/s^2 at their largest (34 of 39 for 1.2 or more), while the circle's gentle turn
 asked for at most 0.8 and the straights' steering corrections mostly under 0.4, and neither showed it; speed changes
 (up to 2.4 m/s^2 on the circle) never showed a slide. 1.2 m/s^2 is glare ice's lateral grip (mu_lat 0.12 x g): a
-run that asks for less cannot show that ground. With 0.6-1.0 the informative window took in a corner's turn-in
-before the slide and the alarm fell again on one of three runs; 1.2-2.0 held it on all three, 1.2 with nothing added
-on trained ground.
+run that asks for less cannot show that ground, and it is above the circle's 0.8, whose runs cannot show it either.
+From 0.8 to 2.0 the alarm held on the glare-ice runs replayed (the Jackal's and the light robot's); above 1.2 the
+trained corners' informative windows reach a little higher (2.7-2.9 spreads against 2.25).
 
 Cost per step: one steady-map lookup (M grounds) and `horizon_steps` (M, 2) updates.
 """
