@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 from pydantic import Field, ValidationError
 
-from gpmppi.mppi.config import PlannerConfig  # not the planner module: run() imports it alongside the model load
+from gpmppi.mppi.config import PlannerConfig  # not the planner module: start() imports it alongside the model load
 from gpmppi.mppi.cycle import Event, Planned, PlannerCycle
 from gpmppi.mppi.cycle_config import CycleConfig
 from schemas import DecodeError, OccupancyGrid, Plan, State, decode
@@ -142,6 +142,16 @@ def log_model_fit(log: logging.Logger | logging.LoggerAdapter, model: GPModel, m
 
 
 def run(settings: Settings) -> int:
+    """Start the planner (model, kernels, a warm-up plan), then run its live loop until the node stops."""
+    node, planner, scenario, startup = start(settings)
+    with node:
+        PlannerLoop(node, settings, planner, scenario, startup).run()
+    return 0
+
+
+def start(settings: Settings) -> tuple[Node, Planner, Scenario, dict[str, float]]:
+    """Load the model and the scenario, open nothing yet, build the planner and warm its kernels up; the node, the
+    planner, the warm-up scenario and where the start spent its time [s]."""
     import gpmppi.gp.model_file  # noqa: F401 - imported here, not concurrently by both threads below
 
     # a (re)started planner keeps the robot waiting (egress sends zeros) until its first command: where the start
@@ -165,81 +175,133 @@ def run(settings: Settings) -> int:
     planner = Planner(settings.planner, model)
     warm_up(node, planner, scenario)
     startup["warmup_s"] = time.monotonic() - t
-    with node:
+    return node, planner, scenario, startup
+
+
+class PlannerLoop:
+    """The live loop, in the order of one pass: take the newest inputs, then plan and publish when a plan is due,
+    else re-publish the task and wait for input."""
+
+    def __init__(self, node: Node, settings: Settings, planner: Planner, scenario: Scenario,
+                 startup: dict[str, float]) -> None:
+        model = planner.model
+        self.node, self.settings = node, settings
         # the newest state, weights and task are taken the moment they arrive
-        state_sub = StateSubscription(node, node.key("state"), State, newest_only=True, capacity=1024)
-        weights_sub = node.subscribe("terrain_weights")
-        task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
-        costmap_sub = node.subscribe("costmap", remote_only=True)
-        model_sub = node.subscribe("model_update")
-        swap = ModelSwap(settings.planner, profile_sha256(settings.model_file), model_version(model),
-                         search_dir=settings.learned_dir)
-        pending_grid: OccupancyGrid | None = None  # a grid that came before the first state (its frame unchecked)
-        outputs = Outputs(node, settings, settings.planner.dt, startup)
-        outputs.model_version = swap.version
-        outputs.started = time.monotonic()
+        self.state_sub = StateSubscription(node, node.key("state"), State, newest_only=True, capacity=1024)
+        self.weights_sub = node.subscribe("terrain_weights")
+        self.task_sub = node.subscribe("task", remote_only=True)  # our own re-publications must not loop back
+        self.costmap_sub = node.subscribe("costmap", remote_only=True)
+        self.model_sub = node.subscribe("model_update")
+        self.swap = ModelSwap(settings.planner, profile_sha256(settings.model_file), model_version(model),
+                              search_dir=settings.learned_dir)
+        self.pending_grid: OccupancyGrid | None = None  # a grid that came before the first state (frame unchecked)
+        self.outputs = Outputs(node, settings, settings.planner.dt, startup)
+        self.outputs.model_version = self.swap.version
+        self.outputs.started = time.monotonic()
         initial_task = None if settings.scenario == NO_TASK else scenario.task
-        cycle = PlannerCycle(planner, initial_task, settings.cycle_config(), len(model.terrains), model.terrains)
+        self.cycle = PlannerCycle(planner, initial_task, settings.cycle_config(), len(model.terrains), model.terrains)
         if (last := node.handed_over("plan", Plan)) is not None:
             # a predecessor's last plan (the launcher saw it): the first plan starts from its sequence, shifted to
             # the first state, never from zero commands at speed
-            cycle.resume_from(last.controls, last.header.stamp_ns, settings.planner.dt)
+            self.cycle.resume_from(last.controls, last.header.stamp_ns, settings.planner.dt)
             if last.terrain_weights and len(last.terrain_weights) == len(model.terrains):
-                cycle.on_weights(last.terrain_weights, time.monotonic())
-        report = CycleReport(node, cycle)
-        next_task = 0.0
-        next_rate_tick = time.monotonic()
-        latest: State | None = None
-        fresh = False
-        while node.ok():
+                self.cycle.on_weights(last.terrain_weights, time.monotonic())
+        self.report = CycleReport(node, self.cycle)
+        self.next_task = 0.0  # when to re-publish the task next [s, monotonic]
+        self.next_rate_tick = time.monotonic()  # trigger 'rate': when the next plan is due [s, monotonic]
+        self.latest: State | None = None  # the newest state
+        self.fresh = False  # `latest` has not been planned from yet
+
+    def run(self) -> None:
+        """Pass after pass until the node stops: inputs, then a plan and its outputs, or the task and a wait."""
+        while self.node.ok():
             now = time.monotonic()
-            if (update := model_sub.take()) is not None and (line := swap.offer(update)) is not None:
-                node.log.info(line)
-            if (ready := swap.take()) is not None:  # between plans: the next state plans with the new model
-                take_swap(node, cycle, ready, outputs)
-            if (new_task := task_sub.take()) is not None:
-                try:
-                    cycle.set_task(task_from_message(new_task))
-                    node.log.info("new task: %s", new_task.kind)
-                except ValueError as exc:
-                    node.reject(f"task: {exc}")
-            if (grid := costmap_sub.take()) is not None:
-                pending_grid = grid
-            if pending_grid is not None and latest is not None:  # its frame is checked against the states'
-                take_costmap(node, cycle, pending_grid, latest.header.frame_id, now)
-                pending_grid = None
-            if (w := weights_sub.take()) is not None:
-                if tuple(w.names) == swap.loading:  # for the model loading: they wait for it (not refused)
-                    cycle.weights_pending(now)
-                else:
-                    cycle.on_weights(w.weights, now, names=w.names, unknown_active=w.unknown_active)
-            cycle.tick(now)
-            report(cycle.drain_events())
-            if (s := state_sub.take()) is not None:
-                latest, fresh = s, True
-            due = fresh if settings.trigger == "state" else now >= next_rate_tick
-            if not due or latest is None:
-                if now >= next_task and cycle.task is not None:
-                    # only here, between cycles: never on a state's path to its command (encoding the lane's
-                    # polyline takes milliseconds; a cycle with it on the path measured 22.9 ms, the median 5)
-                    next_task = now + settings.task_period_s
-                    outputs.task.put(task_to_message(cycle.task, time.time_ns()))
-                    if (grid_msg := outputs.grid_message(cycle.task, latest)) is not None:
-                        outputs.costmap.put(grid_msg)
-                # trigger 'state': input wakes the wait; 'rate': do not sleep past the next tick
-                node.spin_once(None if settings.trigger == "state" else min(settings.poll_s, next_rate_tick - now))
+            self.take_inputs(now)
+            if (state := self.due(now)) is None:
+                self.between_cycles(now)
                 continue
-            if settings.trigger == "rate":
-                next_rate_tick = max(next_rate_tick + 1.0 / settings.rate_hz, now - 1.0)
-            fresh = False
-            out = cycle.on_state(state_to_array(latest), latest.header.stamp_ns, now, time.time_ns(),
-                                 latest.covariance)
-            report(cycle.drain_events())
-            if isinstance(out, Planned):  # else no command this cycle: egress's watchdog stops the robot if it lasts
-                outputs.publish(out, cycle.task, latest.header.frame_id)
-                node.cycle()
-            node.spin_once(0.0)
-    return 0
+            if (out := self.plan(state, now)) is not None:
+                self.publish(out, state)
+            self.node.spin_once(0.0)
+
+    def take_inputs(self, now: float) -> None:
+        """Take what arrived since the last pass: a model update, a task, a costmap, weights, then the newest state."""
+        self.take_model()
+        self.take_task()
+        self.take_costmap(now)
+        self.take_weights(now)
+        self.cycle.tick(now)
+        self.report(self.cycle.drain_events())
+        if (s := self.state_sub.take()) is not None:
+            self.latest, self.fresh = s, True
+
+    def take_model(self) -> None:
+        """Offer an announced model update to the swap, and plan with a swapped-in model from the next state on."""
+        if (update := self.model_sub.take()) is not None and (line := self.swap.offer(update)) is not None:
+            self.node.log.info(line)
+        if (ready := self.swap.take()) is not None:  # between plans: the next state plans with the new model
+            take_swap(self.node, self.cycle, ready, self.outputs)
+
+    def take_task(self) -> None:
+        """Plan a task from another publisher from now on (refused with its reason when it is not a valid task)."""
+        if (new_task := self.task_sub.take()) is not None:
+            try:
+                self.cycle.set_task(task_from_message(new_task))
+                self.node.log.info("new task: %s", new_task.kind)
+            except ValueError as exc:
+                self.node.reject(f"task: {exc}")
+
+    def take_costmap(self, now: float) -> None:
+        """Take a new grid once a state has come, since its frame is checked against the states'."""
+        if (grid := self.costmap_sub.take()) is not None:
+            self.pending_grid = grid
+        if self.pending_grid is not None and self.latest is not None:
+            take_costmap(self.node, self.cycle, self.pending_grid, self.latest.header.frame_id, now)
+            self.pending_grid = None
+
+    def take_weights(self, now: float) -> None:
+        """Hand new terrain weights to the cycle; those for a model still loading only mark the weights pending."""
+        if (w := self.weights_sub.take()) is not None:
+            if tuple(w.names) == self.swap.loading:  # for the model loading: they wait for it (not refused)
+                self.cycle.weights_pending(now)
+            else:
+                self.cycle.on_weights(w.weights, now, names=w.names, unknown_active=w.unknown_active)
+
+    def due(self, now: float) -> State | None:
+        """The state to plan from now: the newest on a new one (trigger 'state') or at the rate's tick (trigger
+        'rate'); None when no plan is due."""
+        due = self.fresh if self.settings.trigger == "state" else now >= self.next_rate_tick
+        return self.latest if due else None
+
+    def between_cycles(self, now: float) -> None:
+        """Re-publish the task (and its grid) when its period is up, then wait for input or the next rate tick."""
+        settings, cycle = self.settings, self.cycle
+        if now >= self.next_task and cycle.task is not None:
+            # only here, between cycles: never on a state's path to its command (encoding the lane's polyline
+            # takes milliseconds; a cycle with it on the path measured 22.9 ms, the median 5)
+            self.next_task = now + settings.task_period_s
+            self.outputs.task.put(task_to_message(cycle.task, time.time_ns()))
+            if (grid_msg := self.outputs.grid_message(cycle.task, self.latest)) is not None:
+                self.outputs.costmap.put(grid_msg)
+        # trigger 'state': input wakes the wait; 'rate': do not sleep past the next tick
+        self.node.spin_once(None if settings.trigger == "state" else min(settings.poll_s, self.next_rate_tick - now))
+
+    def plan(self, latest: State, now: float) -> Planned | None:
+        """Run the cycle on the state; its plan, or None when the cycle refused the state or did not plan."""
+        if self.settings.trigger == "rate":
+            self.next_rate_tick = max(self.next_rate_tick + 1.0 / self.settings.rate_hz, now - 1.0)
+        self.fresh = False
+        out = self.cycle.on_state(state_to_array(latest), latest.header.stamp_ns, now, time.time_ns(),
+                                  latest.covariance)
+        self.report(self.cycle.drain_events())
+        # no command this cycle: egress's watchdog stops the robot if it lasts
+        return out if isinstance(out, Planned) else None
+
+    def publish(self, out: Planned, state: State) -> None:
+        """Publish the command and (every `plan_every`-th cycle) the plan in the state's frame, and count the cycle
+        in the heartbeat."""
+        self.outputs.publish(out, self.cycle.task, state.header.frame_id)
+        self.node.cycle()
 
 
 def take_costmap(node: Node, cycle: PlannerCycle, msg: OccupancyGrid, state_frame: str,

@@ -29,7 +29,8 @@ import zenoh
 from pydantic import Field
 
 from schemas import DecodeError, decode, model_for_key
-from services.recording.mcap_io import REJECTED_SUFFIX, McapWriter
+from services.recording.mcap_io import REJECTED_SUFFIX
+from services.recording.mcap_writer import McapWriter
 from services.recording.recorder_meta import (
     MODEL_UPDATE_SUFFIX,
     RunRecord,

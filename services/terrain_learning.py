@@ -59,7 +59,7 @@ def write_steps_log(path: Path, steps: np.ndarray, ground: str, robot: str, dt: 
     a segment of its own (its state and command at t, its next state at t + dt, then a gap), so no step is paired
     with another. Written to a temporary file and renamed: never half there."""
     from schemas import Command, Header, State, TerrainLabel
-    from services.recording.mcap_io import McapWriter
+    from services.recording.mcap_writer import McapWriter
 
     tick = round(dt * 1e9)
     tmp = path.with_name(f".{path.name}.tmp")

@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 from gpmppi.plant import load_terrains
 from gpmppi.plant.excitation import Excitation, runs_to_series, simulate_dataset
 from schemas.messages import Command, Header, State, TerrainLabel
-from services.recording.mcap_io import McapWriter
+from services.recording.mcap_writer import McapWriter
 from tools.cli import app
 from tools.dataset import read_dataset
 
@@ -200,3 +200,26 @@ def test_a_stack_recording_pairs_each_state_with_the_command_in_force(tmp_path: 
     # next command (3.63 s) comes after the label changed (3.5 s)
     assert len(gravel) == 1 and gravel[0].time[-1] == pytest.approx(1.8, abs=0.01) and gravel[0].command[-1, 0] == 17
     assert len(mud) == 1 and mud[0].command[0, 0] == 26.0 and mud[0].terrain == "mud"
+    # the trainer reads the same ticks (one reader, tools/log_reader.py): its series are these runs in time order,
+    # one segment each, numbered over all grounds
+    from tools.train_data import read_log_series
+
+    series = read_log_series(path, 0.1, None, None)
+    for name, rs in runs.items():
+        assert np.array_equal(series[name]["v_ref"], np.concatenate([r.command[:, 0] for r in rs]))
+        assert np.array_equal(series[name]["yaw"], np.concatenate([r.state[:, 2] for r in rs]))
+    assert list(series["gravel"]["seg"]) == [1] * len(gravel[0].time)
+    assert set(series["mud"]["seg"]) == {2}
+
+
+def test_a_log_of_another_robot_or_without_labels_is_refused_in_one_line(small_dataset: Path) -> None:
+    """Both views of the reader refuse alike: the robot asked for and the keys the log holds, or what to name."""
+    from tools.train_data import DataError, read_log_series
+
+    for read in (lambda: read_dataset(small_dataset, robot="husky"),
+                 lambda: read_log_series(small_dataset, 0.1, None, "husky")):
+        with pytest.raises(DataError) as err:
+            read()
+        message = str(err.value)
+        assert "\n" not in message and "'husky'" in message and "gpmppi/jackal/state" in message, message
+        assert "--robot" in message

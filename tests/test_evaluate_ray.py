@@ -29,7 +29,7 @@ from typer.testing import CliRunner
 from gpmppi.evaluation.runner import EvalSettings, Job, run_job_for_report, summarize
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene, square_lane
 from tools.cli import app
-from tools.evaluate import _jobs
+from tools.evaluate_jobs import make_jobs
 from tools.evaluate_ray import RayBackendError, connect, local_copy, run_jobs
 
 LOOPBACK_ENV = {
@@ -99,7 +99,7 @@ def ray_head() -> Iterator[str]:
 
 def _jobs_small() -> list[Job]:
     lanes = {"circle": circle_lane(), "square": square_lane()}
-    return _jobs(lanes, {"avoidance": paper_obstacle_scene()}, [_terrain()], MODELS, 2, 2, 0, (), False)
+    return make_jobs(lanes, {"avoidance": paper_obstacle_scene()}, [_terrain()], MODELS, 2, 2, 0, (), False)
 
 
 @pytest.fixture(scope="module")

@@ -640,8 +640,14 @@ def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
                     check(gap <= WATCHDOG_S + DEADLINE_SLACK_S,
                           f"planner takeover: zero {gap:.3f} s after the last command (router timestamps; "
                           f"{t_zero - last_old:.3f} s between their arrivals here)")
-            check(bool(out.after(t_kill, "warm start from the predecessor's last plan")),
-                  "planner takeover: it did not start from the last plan")
+            # a plan older than its horizon (40 steps of 0.1 s) has run out: the spare then starts as a restart does
+            # and says so. Only a machine loaded far past the suite's own load takes that long to take over
+            # (the gap between commands is within ~0.5 s of the one between the plans' state stamps the spare reads)
+            gap_s = timings.get("planner_takeover_gap_s", 0.0)
+            resumed = bool(out.after(t_kill, "warm start from the predecessor's last plan"))
+            ran_out = bool(out.after(t_kill, "does not fit: starting from the configured initial sequence"))
+            check(resumed if gap_s < 3.5 else ran_out if gap_s > 4.5 else resumed or ran_out,
+                  f"planner takeover after {gap_s:.2f} s without commands: warm start {resumed}, ran out {ran_out}")
             check(obs.wait_driving(t_kill, 15.0) is not None, "planner takeover: not driving again")
 
             # ---- the spare itself dies: replaced

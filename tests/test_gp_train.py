@@ -46,7 +46,7 @@ def synthetic_runs(n: int, seed: int) -> dict[str, dict[str, np.ndarray]]:
 
 def write_log(path: Path, runs: dict[str, dict[str, np.ndarray]], labels: bool) -> None:
     from schemas.messages import Command, Header, State, TerrainLabel
-    from services.recording.mcap_io import McapWriter
+    from services.recording.mcap_writer import McapWriter
 
     t0 = 0
     with McapWriter(path) as w:
@@ -204,7 +204,7 @@ def test_log_reader_restarts_its_grid_after_a_gap_of_no_whole_ticks(runs, tmp_pa
     """A stack recording's first state can come 1.37 s before the rest (the drive starts later): the ticks after
     the gap are read on a grid of their own, not lost for being 70 ms off the first state's."""
     from schemas.messages import Command, Header, State, TerrainLabel
-    from services.recording.mcap_io import McapWriter
+    from services.recording.mcap_writer import McapWriter
 
     r = runs["tile"]
     log = tmp_path / "gap.mcap"

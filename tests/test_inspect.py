@@ -18,7 +18,8 @@ from typer.testing import CliRunner
 
 from schemas import Command, Header, State
 from services.recording.mcap_inspect import inspect_recording, recover
-from services.recording.mcap_io import McapWriter, read_messages, recording_files
+from services.recording.mcap_io import read_messages, recording_files
+from services.recording.mcap_writer import McapWriter
 from tools import inspect_cmd
 
 REPO = Path(__file__).resolve().parents[1]

@@ -253,7 +253,7 @@ def test_shipped_launch_and_deploy_files_validate(monkeypatch: pytest.MonkeyPatc
 
 
 def test_monitor_summary_reads_json_logs() -> None:
-    from services.launch.supervisor import readable
+    from services.launch.processes import readable
 
     line = json.dumps({"t": 1.0, "level": "WARNING", "service": "x", "logger": "l", "msg": "hello", "n": 3})
     assert readable(line) == "WARNING hello n=3"

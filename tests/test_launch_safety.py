@@ -27,11 +27,12 @@ import yaml
 from zenoh_helpers import REPO, Collector, endpoint, free_port, router, wait_for
 
 from schemas import BaseCommand, Header, Heartbeat
-from services.launch import supervisor
+from services.launch import processes
 from services.launch.launch_file import DEFAULT_LAUNCH, LaunchFile, LaunchFileError
 from services.launch.launcher import build, main, run_launch
-from services.launch.supervisor import wait_for_endpoint
-from services.recording.mcap_io import McapWriter, read_messages
+from services.launch.processes import wait_for_endpoint
+from services.recording.mcap_io import read_messages
+from services.recording.mcap_writer import McapWriter
 from services.recording.output_files import OutputPathError, free_name, resolve_output
 from services.run import LAUNCHER_PID_ENV
 from services.runtime.config_file import ConfigFileError, read_yaml
@@ -44,7 +45,7 @@ def no_process(monkeypatch: pytest.MonkeyPatch) -> None:
     def refuse(*args: object, **kwargs: object) -> None:
         raise AssertionError(f"a process was started: {args}")
 
-    monkeypatch.setattr(supervisor._SPAWNER, "popen", refuse)
+    monkeypatch.setattr(processes.SPAWNER, "popen", refuse)
 
 
 # ---- output files ---------------------------------------------------------------------------------

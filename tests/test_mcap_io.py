@@ -11,7 +11,8 @@ import pytest
 from mcap.reader import make_reader
 
 from schemas import Command, Header, Plan, State, TerrainWeights, encode
-from services.recording.mcap_io import McapWriter, read_messages, recording_files
+from services.recording.mcap_io import read_messages, recording_files
+from services.recording.mcap_writer import McapWriter
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -74,7 +75,7 @@ def test_crash_loses_at_most_the_open_chunk(tmp_path: Path) -> None:
     code = f"""
 import os
 from schemas import State
-from services.recording.mcap_io import McapWriter
+from services.recording.mcap_writer import McapWriter
 w = McapWriter({str(path)!r}, chunk_size=2000, flush_interval_s=1000.0)
 for i in range(200):
     w.write("gpmppi/jackal/state", State(x=float(i), y=0.0, theta=0.0, v=1.0, omega=0.0), log_time_ns=i + 1)
@@ -207,7 +208,7 @@ import resource, signal, sys
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 resource.setrlimit(resource.RLIMIT_FSIZE, (40_000, 40_000))
 from schemas import Command, Header, encode
-from services.recording.mcap_io import McapWriter
+from services.recording.mcap_writer import McapWriter
 w = McapWriter({str(path)!r}, chunk_size=2000, compression="none")
 n = 0
 try:

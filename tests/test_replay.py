@@ -20,8 +20,8 @@ from zenoh_helpers import client, endpoint, free_port, router, wait_for, without
 from schemas import Command, State, Task, TerrainWeights, encode
 from services.recording.mcap_io import schema_name
 from services.recording.player_log import LogError, check_log, read_run_info
-from tools.replay import ReplayRequest, run_replay
 from tools.replay_live import ReplaceError, apply_overrides, finalize, live_services, resolve_path
+from tools.replay_run import ReplayRequest, run_replay
 
 ROBOT = "r1"
 
@@ -473,6 +473,15 @@ def test_replace_planner_reproduces_a_seeded_run_and_set_shows_a_difference(
     with ThreadPoolExecutor(2) as pool:
         same_run, changed_run = pool.submit(replay, []), pool.submit(replay, ["planner.critics.speed.weight=40"])
         same, changed = same_run.result(), changed_run.result()
+    # a state put so late that the player moved its schedule (`lockstep_shifts`, a loaded machine) reaches the live
+    # planner farther from the one before than recorded, and its warm start shifts by that: the tool reports it, and
+    # promises bit-identical commands only without it (docs/replay.md). Such a pass is replayed again, up to twice
+    for _ in range(2):
+        if same["lockstep_shifts"] == 0 and same["lockstep_misses"] == 0:
+            break
+        print(f"\nreplayed again: the schedule moved or a state went unanswered ({same})")
+        same = replay([])
+    assert same["lockstep_shifts"] == 0 and same["lockstep_misses"] == 0, f"three replays on a late schedule: {same}"
     print(f"\nreplay --replace planner --compare (seeded, no delay compensation): {same}")
     # every recorded command answered again, and the same within float noise (see docs/replay.md: measured 0)
     assert same["compared"] >= 0.9 * len(recorded), (same, len(recorded))

@@ -263,7 +263,8 @@ def _relabelled(dataset: Path, out: Path, robot: str = "jackal", zigzag: int = 0
             r.command[:, 0] += 0.002 * (-1.0) ** (np.arange(len(r.command)) // zigzag)
     write_dataset(out, runs, robot=robot)
     if not labels:
-        from services.recording.mcap_io import McapWriter, read_messages
+        from services.recording.mcap_io import read_messages
+        from services.recording.mcap_writer import McapWriter
 
         kept = [(k, m) for k, _, m in read_messages(out) if not k.endswith("terrain/label")]
         out.unlink()

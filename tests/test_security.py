@@ -31,7 +31,7 @@ P = f"gpmppi/{ROBOT}"
 
 
 def _router_process(secrets: Path, listen: list[str], tmp_path: Path) -> ServiceProcess:
-    from services.launch.supervisor import wait_for_endpoint
+    from services.launch.processes import wait_for_endpoint
 
     cfg = {"service": "router", "listen": listen, "router_config_file": str(secrets / "router.json5")}
     proc = ServiceProcess("router", cfg, tmp_path)

@@ -102,7 +102,7 @@ def test_the_timeline_reads_the_change_the_detection_the_update_and_the_rmse(tmp
     """tools.new_ground_timeline on a recording made here (10 Hz, 30 s): the numbers it reports come from it."""
     from gpmppi.scenarios import lane_scenario
     from schemas import ModelUpdate, TerrainWeights
-    from services.recording.mcap_io import McapWriter
+    from services.recording.mcap_writer import McapWriter
     from tools.new_ground_timeline import timeline
 
     centre = np.asarray(lane_scenario("circle").task.centerline)

@@ -12,7 +12,7 @@ import pytest
 from mcap.writer import Writer
 
 from schemas import BaseCommand, Heartbeat, State, TerrainWeights
-from services.recording.mcap_io import McapWriter
+from services.recording.mcap_writer import McapWriter
 from services.view import geometry as geo
 from services.viewer import Ring
 from tools.bench_view import synthetic_log

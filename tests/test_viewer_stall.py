@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from tests.zenoh_helpers import Collector, ServiceProcess, client, free_port, heartbeats, router, settings, wait_for
-from tools.bench_view import transport_stall_numbers
+from tools.bench_viewer_stall import transport_stall_numbers
 
 pytestmark = pytest.mark.slow
 

@@ -31,7 +31,8 @@ import typer
 
 from services.launch.launcher import run_launch
 from services.launch.monitor import PRIMARY_OUTPUT, Monitor, Summary
-from services.launch.supervisor import Child, Launcher
+from services.launch.processes import Child
+from services.launch.supervisor import Launcher
 from tools.bench_takeover import Takeover, first_output, kill_rounds, no_kill_reference
 from tools.cli_checks import OUT_FILE
 

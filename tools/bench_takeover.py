@@ -18,7 +18,8 @@ import numpy as np
 from gpmppi.tasks import TaskOutline
 from schemas import Task
 from services.launch.monitor import PRIMARY_OUTPUT, Monitor
-from services.launch.supervisor import Child, Launcher
+from services.launch.processes import Child
+from services.launch.supervisor import Launcher
 from tools.lane_windows import consecutive_window_ratios, ratio_summary
 
 MOVING = 0.05  # [m/s] a base command above this is driving

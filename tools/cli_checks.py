@@ -57,7 +57,7 @@ USER_ERRORS = frozenset({
     "services.recording.mcap_inspect.InspectError",
     "tools.replay_live.ReplaceError",
     "tools.evaluate_ray.RayBackendError",
-    "tools.train_data.DataError",
+    "tools.log_reader.DataError",
     "yaml.error.YAMLError",
 })
 

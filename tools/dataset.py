@@ -5,7 +5,7 @@ Per tick k (dt = 0.1 s) the file holds, with the same stamp t_k: the measured `S
 `TerrainLabel` on `gpmppi/{robot}/terrain/label`. Terrains follow one another on one timeline with a
 one-second gap between them. The file is written under a temporary name and renamed when complete,
 so an interrupted run leaves nothing half-written. `read_dataset` turns such a file (or a real robot
-log with state + cmd and no labels) back into per-terrain arrays.
+log with state + cmd and no labels) back into per-terrain arrays (`tools.log_reader`, the one log reader).
 """
 
 from __future__ import annotations
@@ -25,13 +25,13 @@ from gpmppi.plant.residual_stats import pattern_separation, residual_stats, thet
 from gpmppi.plant.terrains import TerrainFileError, load_terrains
 from schemas.keys import DEFAULT_ROBOT, key_for
 from schemas.messages import Command, Header, State, TerrainLabel
-from services.recording.mcap_io import McapWriter, read_messages
+from services.recording.mcap_writer import McapWriter
 from tools.cli_checks import OUT_FILE, fail
+from tools.log_reader import NS, read_log_runs, runs_by_ground
 
 DATASET_DT = 0.1
 TERRAIN_GAP_S = 1.0
 DEFAULT_TERRAINS = ("tile", "asphalt", "grass")
-NS = 1_000_000_000
 
 
 def write_dataset(path: Path, runs: dict[str, TerrainRun], robot: str = DEFAULT_ROBOT) -> int:
@@ -63,93 +63,14 @@ def write_dataset(path: Path, runs: dict[str, TerrainRun], robot: str = DEFAULT_
     return ticks
 
 
-COMMAND_BOUND_TICKS = 2.0  # a command older than this many dt at a state's stamp is no longer in force
-TICK_TOLERANCE = 0.25  # the next tick is the state nearest one dt on, within this fraction of dt
-
-
 def read_dataset(
     path: str | Path, robot: str = DEFAULT_ROBOT, terrain: str | None = None, dt: float = DATASET_DT
 ) -> dict[str, list[TerrainRun]]:
     """Per-terrain contiguous runs of dt ticks from a recording: a `gpmppi dataset` file or a stack recording
-    (`gpmppi calibrate drive`, `gpmppi launch --record`, a robot log with state + cmd).
-
-    The pairing rule: each state is paired with the command in force over the interval that follows it, the latest
-    command stamped at or before the state's stamp, if that command is at most COMMAND_BOUND_TICKS dt older than the
-    state; a state with no such command is left out. In a dataset file every state has its command on its own stamp;
-    in the stack a command carries the stamp of the state it was planned from (or, from another source, its own
-    later stamp: then the state pairs with the command before, the one the base still held). The label is the
-    latest at or before the state's stamp (`terrain` when the recording has none; required then).
-
-    Ticks: from a run's first state, each next tick is the state nearest one dt later, within TICK_TOLERANCE dt
-    (odometry faster than 1 / dt is thinned to dt ticks; jitter is tolerated). Where there is none (a lost or late
-    state), or a state has no command in force, or the label changes, the run ends and a new one starts at the
-    next usable state. `TerrainRun.time` holds the
-    ticks' own stamps (seconds since the run's first). A dataset file reads as it was written, tick for tick.
-    """
-    keys = {key_for(name, robot): name for name in ("state", "cmd", "terrain_label")}
-    states: dict[int, list[float]] = {}
-    commands: dict[int, list[float]] = {}
-    labels: dict[int, str] = {}
-    for key, _, msg in read_messages(path, keys=keys):
-        stamp = msg.header.stamp_ns
-        if keys[key] == "state":
-            assert isinstance(msg, State)
-            states[stamp] = msg.as_array()
-        elif keys[key] == "cmd":
-            assert isinstance(msg, Command)
-            commands[stamp] = [msg.v_ref, msg.omega_ref]
-        else:
-            assert isinstance(msg, TerrainLabel)
-            labels[stamp] = msg.terrain
-    if not states or not commands:
-        raise ValueError(f"{path}: no tick has both a state and a command on {robot!r} (wrong --robot?)")
-    if not labels and terrain is None:
-        raise ValueError(f"{path}: the recording has no terrain labels; name the terrain explicitly")
-    cmd_stamps = np.array(sorted(commands), dtype=np.int64)
-    label_stamps = np.array(sorted(labels), dtype=np.int64)
-    state_stamps = np.array(sorted(states), dtype=np.int64)
-    bound = int(round(COMMAND_BOUND_TICKS * dt * NS))
-    step, tol = int(round(dt * NS)), int(round(TICK_TOLERANCE * dt * NS))
-    # (state stamp, command stamp, label, whether a run starts here)
-    ticks: list[tuple[int, int, str, bool]] = []
-    i, fresh = 0, True
-    while i < len(state_stamps):
-        stamp = int(state_stamps[i])
-        c = int(np.searchsorted(cmd_stamps, stamp, side="right")) - 1
-        lab = int(np.searchsorted(label_stamps, stamp, side="right")) - 1
-        name = labels[int(label_stamps[lab])] if lab >= 0 else terrain
-        if c >= 0 and stamp - int(cmd_stamps[c]) <= bound and name is not None:
-            ticks.append((stamp, int(cmd_stamps[c]), name, fresh))
-            fresh = False
-        else:
-            fresh = True
-        # the next tick: the state nearest one dt on, within the tolerance; none there: a new run from the next state
-        target = stamp + step
-        lo = int(np.searchsorted(state_stamps, target - tol, side="left"))
-        hi = int(np.searchsorted(state_stamps, target + tol, side="right"))
-        if lo < hi:
-            i = lo + int(np.argmin(np.abs(state_stamps[lo:hi] - target)))
-        else:
-            i, fresh = hi, True
-    if not ticks:
-        raise ValueError(f"{path}: no state has a command in force on {robot!r} (wrong --robot?)")
-    runs: dict[str, list[TerrainRun]] = {}
-    start = 0
-    for i in range(1, len(ticks) + 1):
-        at_end = i == len(ticks)
-        if not at_end:
-            gap = (ticks[i][0] - ticks[i - 1][0]) / NS > 1.5 * dt
-            if not (gap or ticks[i][3] or ticks[i][2] != ticks[i - 1][2]):
-                continue
-        chunk = ticks[start:i]
-        name = chunk[0][2]
-        st = np.array([states[s] for s, _, _, _ in chunk])
-        t = (np.array([s for s, _, _, _ in chunk]) - chunk[0][0]) / NS
-        runs.setdefault(name, []).append(
-            TerrainRun(name, dt, t, st, np.array([commands[c] for _, c, _, _ in chunk]), st.copy())
-        )
-        start = i
-    return runs
+    (`gpmppi calibrate drive`, `gpmppi launch --record`, a robot log with state + cmd). The runs of
+    `tools.log_reader.read_log_runs` (its docstring holds the pairing rule and the labels) by ground; its errors are
+    `DataError`s (a `ValueError`)."""
+    return runs_by_ground(read_log_runs(path, dt, terrain, robot))
 
 
 def register(app: typer.Typer) -> None:

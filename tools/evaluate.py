@@ -4,40 +4,20 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing as mp
-import os
 import shlex
 import sys
-import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from gpmppi.evaluation.runner import (
-    MODELS,
-    PAPER_NET_TERRAINS,
-    EvalSettings,
-    Job,
-    init_worker,
-    run_job_for_report,
-    summarize,
-)
-from gpmppi.scenarios import (
-    Scenario,
-    ScenarioFileError,
-    circle_lane,
-    load_lane,
-    load_scene,
-    paper_obstacle_scene,
-    square_lane,
-)
-from tools import learn_drive, terrain_cmd
+from gpmppi.evaluation.runner import MODELS, PAPER_NET_TERRAINS, EvalSettings
+from gpmppi.scenarios import Scenario
+from tools import learn_drive, terrain_cmd, terrain_separability
 from tools.choices import ModelName
 from tools.cli_checks import check_output_dir, fail, only_with
+from tools.evaluate_jobs import execute_jobs, load_lanes, load_scenes, make_jobs
 from tools.evaluate_options import (
     CompensateOpt,
     DeployOpt,
@@ -194,107 +174,6 @@ def _settings(
     )
 
 
-def _lanes(lane_files: list[Path] | None) -> dict[str, Scenario]:
-    if not lane_files:
-        return {"circle": circle_lane(), "square": square_lane()}
-    try:
-        return {f.stem: load_lane(f) for f in lane_files}
-    except ScenarioFileError as e:
-        fail(str(e))
-    raise AssertionError
-
-
-def _scenes(scene_files: list[Path] | None) -> dict[str, Scenario]:
-    if not scene_files:
-        return {"avoidance": paper_obstacle_scene()}
-    try:
-        return {("avoidance" if len(scene_files) == 1 else f.stem): load_scene(f) for f in scene_files}
-    except ScenarioFileError as e:
-        fail(str(e))
-    raise AssertionError
-
-
-def _jobs(
-    lanes: dict[str, Scenario], scenes: dict[str, Scenario], terrains: list[str], models: list[str],
-    lane_trials: int, goal_trials: int, seed: int, switches: tuple, random_scenes: bool, chunk: int = 10,
-) -> list[Job]:
-    jobs: list[Job] = []
-    for label, sc in lanes.items():
-        for terrain in terrains:
-            for m in models:
-                seeds = tuple(range(seed, seed + lane_trials))
-                jobs.append(Job("tracking", sc, terrain, m, seeds, True, switches, label))  # type: ignore[arg-type]
-    for label, sc in scenes.items():
-        for terrain in terrains:
-            for m in models:
-                for i in range(0, goal_trials, chunk):
-                    seeds = tuple(range(seed + i, seed + min(goal_trials, i + chunk)))
-                    jobs.append(
-                        Job("avoidance", sc, terrain, m, seeds, i == 0, switches, label, random_scenes)  # type: ignore[arg-type]
-                    )
-    return jobs
-
-
-def _execute(
-    jobs: list[Job], settings: EvalSettings, workers: int, quiet: bool, ray_address: str | None = None,
-) -> tuple[dict, dict, float]:
-    """Run all jobs: on a Ray cluster (`ray_address`), in spawn workers (workers > 1) or here; results[task][terrain]
-    [model], figure paths, seconds."""
-    scores: dict = {}
-    paths: dict = {}
-    total = sum(len(j.seeds) for j in jobs)
-    console = Console(stderr=True, quiet=quiet)
-    t0 = time.perf_counter()
-    ray = None
-    if ray_address is not None:
-        from tools.evaluate_ray import RayBackendError, connect
-
-        try:
-            ray = connect(ray_address)
-        except RayBackendError as e:
-            fail(str(e))
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-               TimeRemainingColumn())
-    with Progress(*columns, console=console, transient=False) as progress:
-        bar = progress.add_task("closed-loop runs", total=total)
-
-        def collect(job: Job, job_scores: list, record: dict | None) -> None:
-            scores.setdefault(job.label, {}).setdefault(job.terrain, {}).setdefault(job.dynamics, []).extend(job_scores)
-            if record is not None:
-                paths.setdefault(job.label, {}).setdefault(job.terrain, {})[job.dynamics] = record
-            progress.update(bar, advance=len(job.seeds), description=f"{job.label} {job.terrain} {job.dynamics}")
-
-        if ray is not None:
-            from tools.evaluate_ray import run_jobs
-
-            try:
-                for result in run_jobs(ray, jobs, settings):
-                    collect(*result)
-            finally:
-                ray.shutdown()  # disconnects this driver; the cluster keeps running
-        elif workers == 1:
-            for job in jobs:
-                collect(*run_job_for_report(job, settings))
-        else:
-            threads = max(1, (os.cpu_count() or 2) // workers)
-            ctx = mp.get_context("spawn")
-            with ProcessPoolExecutor(workers, mp_context=ctx, initializer=init_worker, initargs=(threads,)) as pool:
-                # long lane jobs first, so the pool does not end on one long straggler
-                ordered = sorted(jobs, key=lambda j: j.kind != "tracking")
-                futures = [pool.submit(run_job_for_report, job, settings) for job in ordered]
-                for fut in as_completed(futures):
-                    collect(*fut.result())
-    # cells in the order the jobs were listed (tasks, terrains, models), not in completion order
-    order = {}
-    for j in jobs:
-        order.setdefault(j.label, {}).setdefault(j.terrain, {}).setdefault(j.dynamics, None)
-    results = {
-        task: {t: {m: summarize(scores[task][t][m]) for m in by_m} for t, by_m in by_t.items()}
-        for task, by_t in order.items()
-    }
-    return results, paths, time.perf_counter() - t0
-
-
 def _print_results(results: dict) -> None:
     table = Table(title="closed-loop evaluation")
     for col in ("task", "terrain", "model", "RMSE [mm]", "success", "time-to-goal [s]", "lane exits", "planner [ms]"):
@@ -361,15 +240,15 @@ def _run(
         terrains = terrains[:1]
     _check_terrains(settings, terrains + [name for _, name in parse_switches(switch)])
     models = [m.value for m in model] if model else list(MODELS)
-    lanes = _lanes(lane_file) if kind in ("tracking", "table") else {}
-    scenes = _scenes(scene_file) if kind in ("avoidance", "table") else {}
+    lanes = load_lanes(lane_file) if kind in ("tracking", "table") else {}
+    scenes = load_scenes(scene_file) if kind in ("avoidance", "table") else {}
     goal_trials = trials or (5 if quick else 100)
     # one lane run's RMSE moves by several mm with the seed (a corner taken a little differently): the table
     # reports the mean of three
     lane_trials = trials if (trials and kind == "tracking") else (1 if quick else 3)
-    jobs = _jobs(lanes, scenes, terrains, models, lane_trials, goal_trials, seed, parse_switches(switch),
+    jobs = make_jobs(lanes, scenes, terrains, models, lane_trials, goal_trials, seed, parse_switches(switch),
                  random_scenes)
-    results, paths, seconds = _execute(jobs, settings, workers, quiet=False, ray_address=ray_address)
+    results, paths, seconds = execute_jobs(jobs, settings, workers, quiet=False, ray_address=ray_address)
     _finish(results, paths, {**lanes, **scenes}, seconds, settings, terrains, models, out, as_json)
 
 
@@ -403,7 +282,7 @@ def register(app: typer.Typer) -> None:
     ev.command("avoidance")(make("avoidance", "Obstacle avoidance (the paper's scene or --scene-file): success."))
     ev.command("table")(make("table", "The whole grid (terrains x models x {circle, square, avoidance}) into -o DIR."))
     terrain_cmd.register(ev)
+    terrain_separability.register(ev)
     learn_drive.register(ev)
     ev.command("terrain-real-data")(real_data_cmd)
     app.add_typer(ev, name="evaluate")
-

@@ -10,13 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
+from tools.log_reader import DataError
+
+__all__ = ["DataError", "csv_inputs", "csv_residuals", "is_mcap", "read_csv_columns", "read_log_series",
+           "read_logs_series"]
+
 INPUT_COLUMNS = ("cmd_lin", "cmd_ang", "curr_lin", "curr_ang")
 PAPER_PREFIX = "gp_ip_"
 _TARGET_RE = re.compile(r"^(?P<terrain>.+)_(?P<out>Lin|Ang)_Error$", re.IGNORECASE)
-
-
-class DataError(ValueError):
-    """Training or prediction data that cannot be used; the message says what, where, and what to do."""
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -98,103 +99,14 @@ def csv_residuals(cols: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarr
     return out
 
 
-# ---- MCAP ---------------------------------------------------------------------------------------
+# ---- MCAP ----------------------------------------------------------------------------------------
 def read_log_series(path: Path, dt: float, terrain: str | None, robot: str | None) -> dict[str, dict]:
-    """terrain -> {"v", "w", "v_ref", "w_ref", "seg", "x", "y", "yaw"} series on a dt grid from a recorded log.
+    """terrain -> {"v", "w", "v_ref", "w_ref", "seg", "x", "y", "yaw"} series of dt ticks from a recorded log: the
+    runs of `tools.log_reader.read_log_runs` (its docstring holds the pairing rule and the labels), one segment
+    each, numbered in time order over all grounds (`series_of_runs`)."""
+    from tools.log_reader import read_log_runs, series_of_runs
 
-    Ticks are the state stamps resampled every dt (the grid restarts at the next state where a tick has none);
-    the command over [t_k, t_k + dt) is the last one stamped at or before t_k (+dt/4 for clock jitter) and at most
-    2 dt old; a terrain label the same. A segment ends where a tick is missing, the command is stale, or the label
-    changes.
-    """
-    from services.recording.mcap_io import read_messages
-
-    states: dict[str, list[tuple[int, float, float, float, float, float]]] = {}
-    cmds: dict[str, list[tuple[int, float, float]]] = {}
-    labels: dict[str, list[tuple[int, str]]] = {}
-    try:
-        for key, _, msg in read_messages(path):
-            parts = key.split("/")
-            if len(parts) < 3 or parts[0] != "gpmppi":
-                continue
-            rob, rest = parts[1], "/".join(parts[2:])
-            stamp = msg.header.stamp_ns
-            if rest == "state":
-                states.setdefault(rob, []).append((stamp, msg.v, msg.omega, msg.x, msg.y, msg.theta))
-            elif rest == "cmd":
-                cmds.setdefault(rob, []).append((stamp, msg.v_ref, msg.omega_ref))
-            elif rest == "terrain/label":
-                labels.setdefault(rob, []).append((stamp, msg.terrain))
-    except FileNotFoundError as e:
-        raise DataError(str(e)) from None
-    except Exception as e:  # noqa: BLE001 - any reader failure means the file is not a usable log
-        raise DataError(f"{path}: not a readable MCAP log ({type(e).__name__}: {e})") from e
-    robots = sorted(set(states) & set(cmds))
-    if robot is None:
-        if len(robots) != 1:
-            raise DataError(f"{path}: expected state and cmd of one robot, found robots {robots}; pass --robot")
-        robot = robots[0]
-    if robot not in robots:
-        found = [f"gpmppi/{r}/state" for r in sorted(states)]
-        raise DataError(f"{path}: no state + cmd messages for robot {robot!r} (gpmppi/{robot}/state); the log holds "
-                        f"{found or 'no gpmppi/<robot>/state keys'}; pass --robot NAME")
-    st = np.array(sorted(states[robot]))
-    cm = np.array(sorted(cmds[robot]))
-    lab = sorted(labels.get(robot, []))
-    if not lab and terrain is None:
-        raise DataError(f"{path}: the log has no terrain labels; name the terrain with --terrain NAME")
-    dt_ns = int(round(dt * 1e9))
-    tol = dt_ns // 4
-    t_state = st[:, 0].astype(np.int64)
-    t_cmd = cm[:, 0].astype(np.int64)
-    t_lab = np.array([s for s, _ in lab], dtype=np.int64)
-    out: dict[str, dict[str, list]] = {}
-    seg_id = 0
-    prev: tuple[int, str] | None = None  # (tick index, terrain) of the previous usable tick
-    tick = -1
-    t = int(t_state[0]) - dt_ns
-    while True:
-        tick += 1
-        t += dt_ns
-        i = int(np.searchsorted(t_state, t))
-        if i >= len(t_state) and t - int(t_state[-1]) > tol:
-            break
-        cand = [j for j in (i - 1, i) if 0 <= j < len(t_state)]
-        j = min(cand, key=lambda j: abs(int(t_state[j]) - t))
-        if abs(int(t_state[j]) - t) > tol:
-            # no state on this tick (a pause, a late start): the grid restarts at the next state, so the states
-            # after a gap that is not a whole number of ticks are still on it
-            nxt = int(np.searchsorted(t_state, t + tol, side="right"))
-            if nxt >= len(t_state):
-                break
-            prev = None
-            t = int(t_state[nxt]) - dt_ns
-            continue
-        c = int(np.searchsorted(t_cmd, t + tol, side="right")) - 1
-        name = terrain
-        if lab:
-            li = int(np.searchsorted(t_lab, t + tol, side="right")) - 1
-            name = lab[li][1] if li >= 0 else None
-        ok = abs(int(t_state[j]) - t) <= tol and c >= 0 and t - int(t_cmd[c]) <= 2 * dt_ns and name is not None
-        if not ok:
-            prev = None
-            continue
-        if prev is None or prev[0] != tick - 1 or prev[1] != name:
-            seg_id += 1
-        series = out.setdefault(name, {"v": [], "w": [], "v_ref": [], "w_ref": [], "seg": [], "x": [], "y": [],
-                                       "yaw": []})
-        series["v"].append(st[j, 1])
-        series["w"].append(st[j, 2])
-        series["x"].append(st[j, 3])
-        series["y"].append(st[j, 4])
-        series["yaw"].append(st[j, 5])
-        series["v_ref"].append(cm[c, 1])
-        series["w_ref"].append(cm[c, 2])
-        series["seg"].append(seg_id)
-        prev = (tick, name)
-    if not out:
-        raise DataError(f"{path}: no state/command pairs on a {dt} s grid (are the stamps in nanoseconds?)")
-    return {t: {k: np.asarray(v) for k, v in s.items()} for t, s in out.items()}
+    return series_of_runs(read_log_runs(path, dt, terrain, robot))
 
 
 # ---- the command --------------------------------------------------------------------------------

@@ -30,7 +30,8 @@ from services.runtime.node_settings import ZenohSettings
 from services.runtime.session import open_session
 
 if TYPE_CHECKING:
-    from services.launch.supervisor import Launcher, RestartEvent
+    from services.launch.processes import RestartEvent
+    from services.launch.supervisor import Launcher
 
 
 # the key each service's first real output appears on (start-up time is measured to it)

@@ -6,13 +6,12 @@ Warm spares (docs/faults.md): for each critical service (`SPARE_KINDS`, or the l
 process is started ahead of need. Every service process gets a role socket (`services.runtime.role`): it loads what
 it can, says "ready" and waits for the launcher's go, which a service's own process gets at once and a spare when
 its service has died, with the last payloads on the keys the service resumes from (`HANDOVER`). The service modules
-run the same code either way."""
+run the same code either way. The spares' part is `services.launch.spares`; what is kept about each service and
+process, `services.launch.processes`."""
 
 from __future__ import annotations
 
-import json
 import os
-import queue
 import signal
 import socket
 import subprocess
@@ -21,139 +20,36 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 import yaml
 
+from services.launch.processes import (
+    SPAWNER,
+    Child,
+    Proc,
+    RestartEvent,
+    exit_cause,
+    readable,
+    seconds_text,
+    wait_for_endpoint,
+)
+from services.launch.spares import WarmSpares
 from services.recording.output_files import free_name
 from services.run import LAUNCHER_PID_ENV, SERVICES
-from services.runtime.role import HANDOVER, JOINED, READY, ROLE_FD_ENV, go_message
+from services.runtime.role import HANDOVER, READY, ROLE_FD_ENV, go_message
 
 if TYPE_CHECKING:
     from services.launch.launch_file import LaunchFile
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
-# the control path, most critical first: the services that get a warm spare by default, in the order spares are made
-SPARE_KINDS = ("planner", "terrain", "ingress", "egress")
 
+class Launcher(WarmSpares):
+    """The launch's child processes: started in order, supervised (a death answered by its warm spare taking over,
+    or a restart after a backoff), stopped in reverse order; the warm spares' part is `WarmSpares`."""
 
-class _Spawner:
-    """One thread, alive as long as this process, that starts every child process of every launcher.
-
-    Each child asks the kernel for SIGTERM when its parent dies (PR_SET_PDEATHSIG, `services.run.follow_launcher`),
-    and Linux takes the *thread* that forked the child for its parent: a child started from a thread that then
-    ends (a `then` hook calling `Launcher.restart`, a test's helper thread) would be sent SIGTERM at that moment.
-    So no thread but this one, which ends only with the process, forks a child."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._requests: queue.SimpleQueue[tuple[tuple[Any, ...], dict[str, Any], dict[str, Any], threading.Event]] = (
-            queue.SimpleQueue()
-        )
-        self._thread: threading.Thread | None = None
-
-    def popen(self, *args: Any, **kwargs: Any) -> subprocess.Popen:
-        """`subprocess.Popen(*args, **kwargs)`, run on the spawner thread; its exception is raised here."""
-        with self._lock:
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._serve, name="gpmppi-spawner", daemon=True)
-                self._thread.start()
-        box: dict[str, Any] = {}
-        done = threading.Event()
-        self._requests.put((args, kwargs, box, done))
-        done.wait()
-        if "error" in box:
-            raise box["error"]
-        return box["process"]
-
-    def _serve(self) -> None:
-        while True:
-            args, kwargs, box, done = self._requests.get()
-            try:
-                box["process"] = subprocess.Popen(*args, **kwargs)
-            except BaseException as exc:  # noqa: BLE001 - raised in the caller's thread
-                box["error"] = exc
-            finally:
-                done.set()
-
-
-_SPAWNER = _Spawner()
-
-
-@dataclass
-class Proc:
-    """One process of a service: its Popen, the launcher's end of its role socket (services.runtime.role), when
-    it started and when it said it was ready (everything loaded, waiting for its go) [monotonic s]."""
-
-    process: subprocess.Popen
-    sock: socket.socket | None
-    started_at: float
-    label: str  # its log lines' prefix: the service's name, or `name*` while it is a spare
-    ready_at: float | None = None
-
-    def close(self) -> None:
-        if self.sock is not None:
-            try:
-                self.sock.close()
-            except OSError:
-                pass
-
-
-@dataclass
-class Child:
-    name: str
-    kind: str
-    config_path: Path
-    required: bool
-    process: subprocess.Popen | None = None
-    restarts: int = 0
-    failed: bool = False
-    restart_at: float | None = None
-    started_at: float = 0.0
-    first_started_at: float = 0.0
-    exit_codes: list[int] = field(default_factory=list)
-    in_a_row: int = 0  # restarts since the last run that lasted restart_reset_s
-    exited_at: float | None = None  # when the watcher saw the current process end (monotonic)
-    hold_until: float = 0.0  # a crash restart waits at least until then (see Launcher.kill)
-    proc: Proc | None = None  # the current process's role socket and ready time
-    spare: Proc | None = None  # its warm spare, if it has one now
-    spare_due: float | None = None  # when the next spare is made (monotonic; None: no spare wanted)
-    spare_deaths: int = 0  # spares that died in a row (each doubles the wait for the next)
-    takeovers: int = 0
-
-
-@dataclass
-class RestartEvent:
-    """One crash restart, for the summary."""
-
-    name: str
-    died_s: float  # since launch start [s]
-    cause: str  # 'SIGKILL', 'exit code 1', ...
-    uptime_s: float  # how long the process that died had run [s]
-    delay_s: float  # backoff before the new process [s]; for a takeover, from the death to the spare's go
-    note: str = ""
-    takeover_pid: int | None = None  # the warm spare that took over (None: a new process was started)
-
-
-def exit_cause(code: int) -> str:
-    """A process's return code in words: 'SIGKILL' (killed by a signal), 'exit code 1'."""
-    if code < 0:
-        try:
-            return signal.Signals(-code).name
-        except ValueError:
-            return f"signal {-code}"
-    return f"exit code {code}"
-
-
-def _seconds(t: float) -> str:
-    """0.1 -> '0.1', 0.25 -> '0.25', 2.0 -> '2'."""
-    return f"{t:.2f}".rstrip("0").rstrip(".")
-
-
-class Launcher:
     def __init__(self, launch: LaunchFile, out: IO[str] = sys.stdout) -> None:
         self.launch = launch
         self.out = out
@@ -171,10 +67,7 @@ class Launcher:
         # the last payload the launcher's own session saw on a key (gpmppi/{robot}/...), for a handover; set by
         # whoever holds that session (the launcher's Monitor)
         self.last_payload: Callable[[str], bytes | None] | None = None
-        self.spare_events: list[str] = []  # a spare's death, for the summary
-        self.spares_at_stop: dict[str, int] = {}  # service -> pid of its spare when the launch stopped
-        names = launch.spares
-        self._spare_names = None if names is None else set(names)
+        self._init_spares(launch.spares)
 
     def child(self, name: str) -> Child:
         child = next((c for c in self.children if c.name == name), None)
@@ -226,7 +119,7 @@ class Launcher:
             env[ROLE_FD_ENV] = str(theirs.fileno())
             pass_fds = (theirs.fileno(),)
         try:
-            process = _SPAWNER.popen(
+            process = SPAWNER.popen(
                 [sys.executable, "-m", "services.run", child.kind, "--config", str(child.config_path)],
                 stdout=subprocess.PIPE,
                 stderr=subprocess.STDOUT,
@@ -256,27 +149,6 @@ class Launcher:
         if said == READY:
             proc.ready_at = time.monotonic()
             self.wake.set()
-
-    def _await_joined(self, child: Child, proc: Proc) -> None:
-        """A spare that got its go must join (declare itself) within `takeover_timeout_s`; one that does not (frozen,
-        stuck) is killed, and supervision restarts its service with backoff like any second death in a row."""
-        assert proc.sock is not None
-        timeout = self.launch.takeover_timeout_s
-        try:
-            proc.sock.settimeout(timeout)
-            said = proc.sock.recv(len(JOINED))
-        except TimeoutError:
-            said = b""
-        except OSError:
-            return  # closed: the launch is stopping, or the process died (supervision sees that)
-        if said == JOINED or self.stop_event.is_set():
-            return
-        with self._process_lock:
-            if child.process is proc.process and proc.process.poll() is None:
-                self.say("launch", f"{child.name}: its spare (pid {proc.process.pid}) did not join within "
-                                   f"{_seconds(timeout)} s of its go; killing it")
-                proc.process.send_signal(signal.SIGCONT)
-                proc.process.kill()
 
     def _go(self, child: Child, proc: Proc) -> None:
         """Let `proc` join as `child`'s service, with the last payloads on the keys it resumes from (on a thread of
@@ -314,99 +186,12 @@ class Launcher:
             child.spare_due = child.started_at + self.launch.spare_delay_s
         self.say("launch", f"started {child.name} ({child.kind}) pid {proc.process.pid}")
 
-    # ---- warm spares ----------------------------------------------------------------------------
-    def wants_spare(self, child: Child) -> bool:
-        """Whether `child` gets a warm spare (the launch file's `spares`)."""
-        if self._spare_names is None:
-            return child.kind in SPARE_KINDS
-        return child.name in self._spare_names
-
-    def _tend_spares(self, now: float) -> None:
-        """Replace a spare that died (after a wait that doubles while they keep dying), and make the spares that
-        are due, one warming at a time, the most critical service first."""
-        for child in self.children:
-            spare = child.spare
-            if spare is None or (code := spare.process.poll()) is None:
-                continue
-            child.spare = None
-            spare.close()
-            child.spare_deaths += 1
-            wait = min(60.0, max(1.0, self.launch.spare_delay_s) * 2 ** (child.spare_deaths - 1))
-            child.spare_due = now + wait
-            event = (f"{child.name}'s spare (pid {spare.process.pid}) died ({exit_cause(code)}) at "
-                     f"{now - self.t0:.1f} s; a new one in {_seconds(wait)} s")
-            self.spare_events.append(event)
-            self.say("launch", event)
-        for child in self.children:
-            if child.spare is not None and child.spare.ready_at is not None and child.spare_deaths:
-                child.spare_deaths = 0  # it got ready: the next one that dies waits the base delay again
-        if any(c.spare is not None and c.spare.ready_at is None for c in self.children):
-            return  # one warming at a time
-        if any(c.proc is not None and c.proc.sock is not None and c.proc.ready_at is None and c.process is not None
-               and c.process.poll() is None for c in self.children):
-            return  # a service is (re)starting: it has the CPU first
-        order = {kind: i for i, kind in enumerate(SPARE_KINDS)}
-        for child in sorted(self.children, key=lambda c: order.get(c.kind, len(order))):
-            if child.spare is not None or child.spare_due is None or now < child.spare_due:
-                continue
-            if child.failed or child.restart_at is not None or child.process is None:
-                continue
-            if child.process.poll() is not None or self.stop_event.is_set():
-                continue
-            child.spare = self._start_process(child, f"{child.name}*")
-            child.spare_due = None
-            self.say("launch", f"started a warm spare for {child.name} ({child.kind}) pid {child.spare.process.pid}")
-            return
-
-    def _take_over(self, child: Child, died: float, cause: str, uptime: float, now: float) -> bool:
-        """`child` died: its ready spare, if it has one, takes over at once (its go). False: none could."""
-        spare = child.spare
-        if spare is None or spare.ready_at is None or spare.process.poll() is not None:
-            return False
-        if now < child.hold_until:
-            return False  # kept down on purpose (`kill(..., restart_after_s)`): the restart waits for it
-        child.spare = None
-        self._go(child, spare)
-        threading.Thread(target=self._await_joined, args=(child, spare), daemon=True).start()
-        spare.label = child.name
-        old = child.proc
-        if old is not None:
-            old.close()
-        child.proc = spare
-        child.process = spare.process
-        child.started_at = now
-        child.exited_at = None
-        child.restarts += 1
-        child.in_a_row += 1
-        child.takeovers += 1
-        child.spare_due = now + self.launch.spare_delay_s
-        event = RestartEvent(child.name, died - self.t0, cause, uptime, now - died,
-                             takeover_pid=spare.process.pid)
-        self.restart_events.append(event)
-        self.say("launch", f"{child.name} exited ({cause}) after {uptime:.1f} s; its warm spare pid "
-                           f"{spare.process.pid} takes over ({(now - died) * 1e3:.0f} ms after the death)")
-        return True
-
     def _watch(self, child: Child, process: subprocess.Popen) -> None:
         """Wait on one process; when it ends, note when and wake the supervision loop (no polling delay)."""
         process.wait()
         if child.process is process:
             child.exited_at = time.monotonic()
         self.wake.set()
-
-    def check_spares(self) -> None:
-        """The launch file's `spares` name services of this launch whose kind can have one: ValueError otherwise (a
-        recorder's spare would write over its predecessor's file, a sim's would start the robot from its start pose)."""
-        if self._spare_names is None:
-            return
-        kinds = {c.name: c.kind for c in self.children}
-        for name in sorted(self._spare_names):
-            if name not in kinds:
-                raise ValueError(f"spares names {name!r}, which this launch does not run; it runs "
-                                 f"{', '.join(kinds)}")
-            if kinds[name] not in SPARE_KINDS:
-                raise ValueError(f"spares names {name!r}, a {kinds[name]}: only {', '.join(SPARE_KINDS)} services "
-                                 "can have a warm spare")
 
     def start_all(self) -> None:
         self.check_spares()
@@ -463,7 +248,7 @@ class Launcher:
             self.say(
                 "launch",
                 f"{child.name} exited ({cause}) after {uptime:.1f} s; "
-                f"restart {child.restarts + 1} in {_seconds(delay)} s",
+                f"restart {child.restarts + 1} in {seconds_text(delay)} s",
             )
         return next_due
 
@@ -495,37 +280,6 @@ class Launcher:
                 self._stop(child)
                 if child.proc is not None:
                     child.proc.close()
-
-    def _stop_spares(self) -> None:
-        spares = [(c, c.spare) for c in self.children if c.spare is not None]
-        self.spares_at_stop = {c.name: sp.process.pid for c, sp in spares if sp is not None}
-        for _, spare in spares:
-            assert spare is not None
-            spare.close()  # a spare waiting for its go sees the socket close and exits
-            try:
-                spare.process.send_signal(signal.SIGCONT)
-                spare.process.send_signal(signal.SIGTERM)
-            except ProcessLookupError:
-                pass
-        for child, spare in spares:
-            assert spare is not None
-            try:
-                spare.process.wait(self.launch.stop_timeout_s)
-            except subprocess.TimeoutExpired:
-                spare.process.kill()
-                spare.process.wait()
-            child.spare = None
-            self.say("launch", f"stopped {child.name}'s spare (exit {spare.process.returncode})")
-
-    def kill_spare(self, name: str, sig: signal.Signals = signal.SIGKILL) -> int:
-        """A fault on purpose: send `sig` to the spare of `name` (its pid); supervision replaces a spare that dies."""
-        with self._process_lock:
-            spare = self.child(name).spare
-            if spare is None or spare.process.poll() is not None:
-                raise RuntimeError(f"{name} has no spare running")
-            spare.process.send_signal(sig)
-            self.say("launch", f"sent {sig.name} to {name}'s spare (pid {spare.process.pid})")
-            return spare.process.pid
 
     def _stop(self, child: Child) -> None:
         timeout = self.launch.stop_timeout_s
@@ -576,33 +330,3 @@ class Launcher:
         return [c.name for c in self.children if c.failed and c.required]
 
 
-def readable(line: str) -> str:
-    """A service's JSON log line as `LEVEL message key=value ...` (other lines unchanged)."""
-    try:
-        entry = json.loads(line)
-    except ValueError:
-        return line
-    if not isinstance(entry, dict) or "msg" not in entry:
-        return line
-    skip = {"t", "level", "service", "logger", "msg"}
-    extras = " ".join(f"{k}={v}" for k, v in entry.items() if k not in skip and k != "exc")
-    text = f"{entry.get('level', ''):<7} {entry['msg']} {extras}".rstrip()
-    return text + ("\n" + entry["exc"] if "exc" in entry else "")
-
-
-def wait_for_endpoint(endpoint: str, timeout_s: float) -> None:
-    """Wait until a tcp/<host>:<port> endpoint accepts connections."""
-    import socket
-
-    if not endpoint.startswith("tcp/"):
-        time.sleep(0.5)
-        return
-    host, port = endpoint[4:].rsplit(":", 1)
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            with socket.create_connection((host, int(port)), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.05)
-    raise TimeoutError(f"the router did not open {endpoint} within {timeout_s} s")

@@ -9,8 +9,8 @@ written, and says why when that is not the path as given:
 - a folder that does not exist, or one this process cannot write to: a one-line `OutputPathError` (a
   `ValueError`) that names the path and what to do; folders are not created behind the user's back.
 
-The writers refuse an existing file too (they create theirs exclusively: `services.recording.mcap_io.McapWriter`, the
-viewer's .rrd), so a file that appears between this check and the start is not overwritten either.
+The writers refuse an existing file too (they create theirs exclusively: `services.recording.mcap_writer.McapWriter`,
+the viewer's .rrd), so a file that appears between this check and the start is not overwritten either.
 """
 
 from __future__ import annotations

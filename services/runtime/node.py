@@ -34,10 +34,11 @@ from schemas import KEYS, DecodeError, Heartbeat, Message, decode, encode, key_f
 from schemas.codec import ENCODING
 from services.runtime.config_file import ConfigFileError
 from services.runtime.counters import Counters
+from services.runtime.liveliness import LIVELINESS_PREFIX, stand_by, wait_while_alive
 from services.runtime.node_settings import NodeSettings, changed_since_loaded
-from services.runtime.role import HANDOVER, notify_systemd_ready, say_joined, standby_requested, wait_for_role
+from services.runtime.role import notify_systemd_ready, say_joined, standby_requested, wait_for_role
 from services.runtime.scheduling import Inbox
-from services.runtime.session import StoppedWhileWaiting, open_session
+from services.runtime.session import open_session
 from services.runtime.signals import StopSignals
 
 M = TypeVar("M", bound=Message)
@@ -46,8 +47,6 @@ M = TypeVar("M", bound=Message)
 class SettingsChanged(RuntimeError):
     """A process that was started ahead of need found, when it was to take over, that its settings file says
     otherwise than what it loaded at its start."""
-
-LIVELINESS_PREFIX = "gpmppi/{robot}/alive/{service}"
 
 
 # ---- typed pub/sub ----------------------------------------------------------------------------
@@ -180,9 +179,10 @@ class Node:
         token_key = LIVELINESS_PREFIX.format(robot=robot, service=service)
         if role is not None:
             # never two of one service publishing: liveliness decides, not the launcher's view of its processes
-            self._wait_while_alive(token_key)
+            wait_while_alive(self.session, token_key, self.name, self.log, self._stop)
         elif standby_requested():
-            self._stand_by(token_key)
+            self.handover = stand_by(self.session, token_key, self.settings.robot, self.name, self.log, self._stop,
+                                     self._wake)
             self._settings_still_current()
         self._token = self.session.liveliness().declare_token(token_key)
         say_joined()
@@ -207,56 +207,6 @@ class Node:
         if changed:
             raise SettingsChanged(f"{self.name}: the settings changed since this process loaded them "
                                   f"({', '.join(changed)}): exiting, so that the service restarts with them")
-
-    def _alive(self, key: str) -> bool:
-        """Whether a liveliness token on `key` (another process of this service) is alive at the router."""
-        assert self.session is not None
-        replies = self.session.liveliness().get(key, timeout=1.0)
-        return any(reply.ok is not None for reply in replies)
-
-    def _wait_while_alive(self, key: str) -> None:
-        """Wait until no other process of this service holds its liveliness token (a predecessor whose death the
-        router has not seen yet, or one that is alive elsewhere), before declaring ours and publishing."""
-        if not self._alive(key):
-            return
-        t0 = time.monotonic()
-        self.log.warning("another %s is alive (%s); waiting until it is gone", self.name, key)
-        while self._alive(key):
-            if self._stop.wait(0.02):
-                raise StoppedWhileWaiting(f"stopped while another {self.name} was alive")
-        waited = round(time.monotonic() - t0, 3)
-        self.log.info("the other %s is gone", self.name, extra={"fields": {"waited_s": waited}})
-
-    def _stand_by(self, key: str) -> None:
-        """`GPMPPI_STANDBY` (systemd): while another process of this service is alive, keep the last payload on the
-        keys it would resume from (`handover`) and wait, woken by its liveliness token's deletion (no polling)."""
-        assert self.session is not None
-        last: dict[str, bytes] = {}
-        subs = [
-            self.session.declare_subscriber(
-                f"gpmppi/{self.settings.robot}/{suffix}",
-                lambda sample, n=name: last.__setitem__(n, sample.payload.to_bytes()),
-            )
-            for name, suffix in HANDOVER.get(self.name, {}).items()
-        ]
-        # a token's change (and a stop) ends the wait at once
-        watch = self.session.liveliness().declare_subscriber(key, lambda sample: self._wake.set())
-        try:
-            if self._alive(key):
-                t0 = time.monotonic()
-                self.log.info("standing by: another %s is alive (%s)", self.name, key)
-                while self._alive(key):
-                    self._wake.wait(5.0)
-                    self._wake.clear()
-                    if self._stop.is_set():
-                        raise StoppedWhileWaiting(f"stopped while standing by for {self.name}")
-                self.log.warning("taking over: the other %s is gone", self.name,
-                                 extra={"fields": {"stood_by_s": round(time.monotonic() - t0, 1)}})
-        finally:
-            watch.undeclare()
-            for sub in subs:
-                sub.undeclare()
-        self.handover = dict(last)
 
     def handed_over(self, name: str, model: type[M]) -> M | None:
         """The predecessor's last message on the registered key `name`, as the launcher saw it, or None."""
