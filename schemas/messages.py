@@ -17,8 +17,10 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 #    read as known ground: unknown 0, not active).
 # 4: `Plan.model_version` (the robot profile's version planned with), and the `GroundLearn` and `ModelUpdate`
 #    messages (learning a new ground online). Older plans still decode (model version 0).
-SCHEMA_VERSION = 4
-READABLE_VERSIONS = (1, 2, 3, 4)
+# 5: `TerrainWeights.unknown_channel`, which channel of the novelty test gives `unknown`. Older messages still decode
+#    (they read as not said: '').
+SCHEMA_VERSION = 5
+READABLE_VERSIONS = (1, 2, 3, 4, 5)
 
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 
@@ -106,7 +108,8 @@ class TerrainLabel(Message):
 
 
 class TerrainWeights(Message):
-    """Which mixture of the trained grounds is under the robot, and whether none of them is (schema 3)."""
+    """Which mixture of the trained grounds is under the robot, and whether none of them is (schema 3), and which
+    channel of the test says so (schema 5)."""
 
     names: list[str] = Field(min_length=1, description="terrain names, model order")
     weights: list[float] = Field(min_length=1, description="convex weights, same order as names")
@@ -119,6 +122,11 @@ class TerrainWeights(Message):
     unknown_active: bool = Field(
         False, description="the ground is taken as unknown: set once `unknown` exceeds the enter level, cleared once "
         "it falls below the exit level (hysteresis, so it does not flicker); the planner's caution follows it")
+    unknown_channel: Literal["", "one-step", "free-run"] = Field(
+        "", description="which channel of the novelty test gives `unknown` (the larger of the two): 'one-step' (the "
+        "one-step velocity residuals: a ground that drags or turns otherwise than any trained one), 'free-run' (each "
+        "trained ground's velocity response run free for a second: a loss of grip, a slide); '' where not assessed "
+        "(before a whole window is scored, no novelty test, schema 1-4 messages) (schema 5)")
 
     @model_validator(mode="after")
     def _on_simplex(self) -> TerrainWeights:
@@ -128,6 +136,9 @@ class TerrainWeights(Message):
             raise ValueError(f"weights {self.weights} are not on the simplex (each in [0, 1], sum 1)")
         if (self.unknown > 0.0 or self.unknown_active) and self.header.schema_version < 3:
             raise ValueError("unknown and unknown_active are schema_version 3 fields; this message says version "
+                             f"{self.header.schema_version}")
+        if self.unknown_channel and self.header.schema_version < 5:
+            raise ValueError("unknown_channel is a schema_version 5 field; this message says version "
                              f"{self.header.schema_version}")
         return self
 

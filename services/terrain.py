@@ -210,20 +210,23 @@ def _swapped_estimator(model: GPModel, settings: Settings, unknown: bool) -> Est
 
 class UnknownReport:
     """"None of these grounds" into the health: the heartbeat's flag `unknown_ground` (the hysteretic decision),
-    its counter `unknown_permille` (the last P(unknown) x 1000) and `unknown_entered` (how often it was set), and a
-    log line each time the decision changes."""
+    its flag `unknown_free_run` (the decision is set and the free-run channel, a loss of grip, gives P(unknown); set
+    with `unknown_ground` clear: the one-step channel), its counter `unknown_permille` (the last P(unknown) x 1000) and
+    `unknown_entered` (how often it was set), and a log line each time the decision changes."""
 
     def __init__(self, node: Node) -> None:
         self.node = node
         self.active = False
         with node.counters.lock:
             node.counters.flags["unknown_ground"] = False
+            node.counters.flags["unknown_free_run"] = False
 
     def report(self, update: WeightsUpdate, terrains: list[str]) -> None:
         c = self.node.counters
         with c.lock:
             c.counts["unknown_permille"] = round(1000 * update.unknown)
             c.flags["unknown_ground"] = update.unknown_active
+            c.flags["unknown_free_run"] = update.unknown_active and update.unknown_channel == "free-run"
         if update.unknown_active == self.active:
             return
         self.active = update.unknown_active
@@ -241,6 +244,7 @@ class UnknownReport:
 
 def _weights_message(terrains: list[str], update: WeightsUpdate) -> TerrainWeights:
     msg = TerrainWeights(names=terrains, weights=update.weights.tolist(), solver_ok=update.ok,
-                         residual=update.residual, unknown=update.unknown, unknown_active=update.unknown_active)
+                         residual=update.residual, unknown=update.unknown, unknown_active=update.unknown_active,
+                         unknown_channel=update.unknown_channel)
     msg.header.stamp_ns = update.stamp_ns
     return msg

@@ -71,7 +71,7 @@ headers = st.fixed_dictionaries(
         "stamp_ns": st.one_of(st.just(NOW), st.just(NOW), st.just(NOW), ints),
         "frame_id": st.sampled_from(["map", "odom", "", "\x00", "é" * 50]),
         "seq": ints,
-        "schema_version": st.sampled_from([1, 1, 1, 1, 0, 2, 3, 4, -1, 10**9, "1", None]),
+        "schema_version": st.sampled_from([1, 1, 1, 1, 0, 2, 3, 4, 5, -1, 10**9, "1", None]),
     }
 )
 

@@ -18,6 +18,8 @@ from gpmppi.evaluation.metrics import (
     path_length,
     top_terrain_confusion,
     true_weight_mean,
+    unknown_delay_s,
+    unknown_share,
     weight_switches_per_min,
 )
 from gpmppi.scenarios import circle_lane, square_lane
@@ -253,3 +255,16 @@ def test_top_terrain_confusion_of_hand_made_runs() -> None:
     rows, m = top_terrain_confusion([("asphalt", t, on_asphalt), ("asphalt", t[:11] * 2, on_grass[:10])], names)
     np.testing.assert_allclose(m, [[5 / 14, 7 / 14, 2 / 14]])
     assert top_terrain_confusion([], names)[0] == []
+
+
+def test_unknown_shares_on_trained_and_on_new_ground_and_the_delay() -> None:
+    # 10 steps of 0.1 s: 4 on asphalt (trained), then 6 on glare ice (new), flagged from the 2nd step on it, and once
+    # on asphalt
+    times = np.arange(11) * 0.1
+    driven = ["asphalt"] * 4 + ["glare_ice"] * 6
+    p = np.array([0.0, 0.9, 0.0, 0.0, 0.1, 0.6, 0.9, 0.2, 0.8, 0.7])
+    trained = ["asphalt", "grass", "tile"]
+    assert unknown_share(times, p, driven, trained) == pytest.approx(0.25)  # false alarms: 1 of 4 steps
+    assert unknown_share(times, p, driven, trained, new_ground=True) == pytest.approx(4 / 6)
+    assert unknown_delay_s(times, p, driven, trained) == pytest.approx(0.1)
+    assert unknown_share(times, p, ["asphalt"] * 10, trained, new_ground=True) is None  # no new ground driven

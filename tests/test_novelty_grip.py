@@ -136,15 +136,17 @@ SWITCH_S = 8.0  # the ground changes on the straight, 1 s before the corner's st
 DT = 0.1
 
 
-def _lane_commands() -> np.ndarray:
-    """A start, a straight with the small steering corrections a lane controller makes, the corner, a straight."""
+def lane_commands(after_steps: int = 30, corners: int = 1) -> np.ndarray:
+    """A start, a straight with the small steering corrections a lane controller makes, then `corners` times the
+    corner and a straight of `after_steps`."""
     t = np.arange(int(8.0 / DT)) * DT
     straight = np.column_stack([np.minimum(1.3, 0.3 + 0.5 * t), 0.08 * np.sin(1.3 * t)])
-    after = np.column_stack([np.full(30, 1.5), 0.05 * np.sin(1.3 * np.arange(30) * DT)])
-    return np.vstack([straight, CORNER, after])
+    after = np.column_stack([np.full(after_steps, 1.5), 0.05 * np.sin(1.3 * np.arange(after_steps) * DT)])
+    return np.vstack([straight] + [CORNER, after] * corners)
 
 
-def _p_unknown(ground: str, free_run: bool, channels: list[str] | None = None) -> np.ndarray:
+def _p_unknown(ground: str, free_run: bool, channels: list[str] | None = None, commands: np.ndarray | None = None,
+               back_at: int | None = None, grip_demand: float = 1.2, active: list[bool] | None = None) -> np.ndarray:
     from gpmppi.gp.model_file import load_default_model
     from gpmppi.plant.physics import PhysicsPlant
     from gpmppi.plant.terrains import load_terrains
@@ -153,12 +155,15 @@ def _p_unknown(ground: str, free_run: bool, channels: list[str] | None = None) -
 
     plant = PhysicsPlant(load_terrains("tests/data/new_grounds.yaml"), "asphalt", seed=0, noise=True)
     plant.reset(np.zeros(5))
-    est = make_estimator(load_default_model(), EstimatorConfig(novelty_free_run=free_run))
+    est = make_estimator(load_default_model(), EstimatorConfig(novelty_free_run=free_run,
+                                                               novelty_grip_demand=grip_demand))
     x = plant.measure()
     p = []
-    for k, u in enumerate(_lane_commands()):
+    for k, u in enumerate(lane_commands() if commands is None else commands):
         if k == round(SWITCH_S / DT):
             plant.set_terrain(ground)
+        if k == back_at:  # off the new ground, back on the one the drive started on
+            plant.set_terrain("asphalt")
         plant.step(u, DT)
         x1 = plant.measure()
         est.observe(x, u, x1)
@@ -166,6 +171,8 @@ def _p_unknown(ground: str, free_run: bool, channels: list[str] | None = None) -
         p.append(estimate.unknown)
         if channels is not None:
             channels.append(estimate.unknown_channel)
+        if active is not None:
+            active.append(estimate.unknown_active)
         x = x1
     return np.array(p)
 
@@ -182,3 +189,42 @@ def test_glare_ice_in_a_corner_is_flagged_by_the_free_run_and_missed_by_the_one_
     assert without.max() < 0.5, f"the one-step test alone reached {without.max():.2f}: this drive tests nothing"
     for trained in ("asphalt", "tile"):  # the same drive on trained grounds, tile the nearest to glare ice
         assert _p_unknown(trained, free_run=True).max() < 0.5, trained
+
+
+def test_the_free_run_alarm_holds_through_a_straight_and_falls_on_a_corner_driven_on_known_ground() -> None:
+    """Synthetic: a slide in a corner raises the alarm; on the straight after it the ground follows a trained
+    response (as glare ice does there), which carries no evidence of grip, and the alarm holds; a corner on a ground
+    that follows a trained response clears it. Without the hold (`informative_demand` 0) it falls on the straight."""
+    rng = np.random.default_rng(3)
+    straight = np.tile([1.0, 0.05], (60, 1))  # 0.05 m/s^2 sideways: steering corrections
+    corner = np.tile([1.0, 2.0], (25, 1))  # 2 m/s^2 sideways
+    held, plain = FreeRunTest(_response([1.0, 0.8]), CAL), FreeRunTest(_response([1.0, 0.8]), CAL, 0.0)
+    for test in (held, plain):
+        assert max(_drive(test, 1.0, 0.4, straight[:30], rng)) < 0.5  # a start and a straight on known ground
+        test._at = None  # each `_drive` starts from rest: the runs start over
+        slide = _drive(test, 0.5, 0.15, corner, rng)  # grip lost: half the commanded turn rate, slowly
+        assert max(slide) > 0.5
+        test._at = None
+    on_straight = _drive(held, 1.0, 0.4, straight, rng)
+    assert min(on_straight) > 0.5 and held.window_statistic < 1.0  # the plain window is known ground's; held
+    assert _drive(plain, 1.0, 0.4, straight, rng)[-1] < 0.01  # without the hold: "known again" on the straight
+    held._at = None
+    assert _drive(held, 1.0, 0.4, corner, rng)[-1] < 0.01  # a corner on known ground: known again
+
+
+def test_glare_ice_flagged_in_a_corner_stays_unknown_on_the_straight_and_a_trained_corner_clears_it() -> None:
+    """The physics plant through the filter: glare ice from the change on, a corner, 6 s of straight; then asphalt,
+    and the next corner. The alarm raised in the first corner holds through the straight (without the hold it falls
+    there), and falls after the corner on asphalt; asphalt throughout (a start, straights, two corners) raises none."""
+    commands = lane_commands(after_steps=60, corners=2)
+    second = round(SWITCH_S / DT) + len(CORNER) + 60  # where the second corner starts
+    active: list[bool] = []
+    held = _p_unknown("glare_ice", True, commands=commands, back_at=second - 20, active=active)
+    plain = _p_unknown("glare_ice", True, commands=commands, back_at=second - 20, grip_demand=0.0)
+    first = int(np.argmax(held > 0.5))
+    assert held[first] > 0.5 and first * DT - SWITCH_S <= 3.0
+    straight = slice(first + 25, second)  # the straight after the corner, until the next corner
+    assert held[straight].min() > 0.5 and all(active[straight]), held[straight].round(2)
+    assert plain[straight].min() < 0.2, "without the hold the alarm should fall on the straight: this tests nothing"
+    assert held[-1] < 0.2 and not active[-1]  # known again after the corner on asphalt
+    assert _p_unknown("asphalt", True, commands=commands).max() < 0.5

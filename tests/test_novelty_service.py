@@ -1,7 +1,9 @@
-"""The terrain service says when the ground is new, as a real process over loopback Zenoh: a drive recorded on the
-physics plant (grass, then sand, which the shipped profile was not trained on) is published as states and commands;
-its `TerrainWeights` carry P(unknown) above 0.5 and `unknown_active` after the change, its heartbeat the flag
-`unknown_ground` and the count `unknown_entered`, and its log one line naming the change."""
+"""The terrain service says when the ground is new, and which channel of the test says so, as a real process over
+loopback Zenoh: a drive recorded on the physics plant (grass, then sand, which the shipped profile was not trained on;
+or asphalt, then glare ice through a square lane's corner) is published as states and commands; its `TerrainWeights`
+carry P(unknown) above 0.5 and `unknown_active` after the change, and the channel that flagged it (`unknown_channel`:
+the one-step residual for sand, the free run's loss of grip for glare ice); its heartbeat the flags `unknown_ground`
+and `unknown_free_run` and the count `unknown_entered`, and its log one line naming the change."""
 
 from __future__ import annotations
 
@@ -30,24 +32,36 @@ NS = 1_000_000_000
 SWITCH_S = 8.0
 
 
-def _drive() -> list[tuple[int, np.ndarray, np.ndarray]]:
-    """(stamp, measured state, command) every 0.1 s: smooth driving on grass, then on sand."""
-    plant = PhysicsPlant(load_terrains(None), "grass", seed=4, noise=True)
+def _drive(ground: str) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(stamp, measured state, command) every 0.1 s: smooth driving on grass, then on sand; or a lane's straight on
+    asphalt and, from the switch, glare ice through GP-MPPI's commands of a square lane's corner."""
+    if ground == "sand":
+        plant = PhysicsPlant(load_terrains(None), "grass", seed=4, noise=True)
+        steps = [np.array([min(1.3, 0.5 * t), 0.4 * np.sin(0.5 * t)]) for t in 0.1 * np.arange(int((SWITCH_S + 4.0)
+                                                                                                 / 0.1))]
+    else:
+        from test_novelty_grip import SWITCH_S as CORNER_AT
+        from test_novelty_grip import lane_commands
+
+        assert CORNER_AT == SWITCH_S
+        plant = PhysicsPlant(load_terrains("tests/data/new_grounds.yaml"), "asphalt", seed=4, noise=True)
+        steps = list(lane_commands())
     plant.reset(np.zeros(5))
     out = []
-    for k in range(int((SWITCH_S + 4.0) / 0.1)):
+    for k, u in enumerate(steps):
         t = 0.1 * k
         if abs(t - SWITCH_S) < 1e-9:
-            plant.set_terrain("sand")
-        u = np.array([min(1.3, 0.5 * t), 0.4 * np.sin(0.5 * t)])
+            plant.set_terrain(ground)
         out.append((round(t * NS), plant.measure(), u))
         plant.step(u, 0.1)
     return out
 
 
 @pytest.mark.slow(seconds=10)
-def test_the_terrain_service_publishes_unknown_ground_and_says_it_in_its_health(tmp_path: Path) -> None:
-    drive = _drive()
+@pytest.mark.parametrize(("ground", "channel"), [("sand", "one-step"), ("glare_ice", "free-run")])
+def test_the_terrain_service_publishes_unknown_ground_and_its_channel_and_says_it_in_its_health(
+        tmp_path: Path, ground: str, channel: str) -> None:
+    drive = _drive(ground)
     port = free_port()
     cfg = settings("terrain", port, heartbeat_hz=10.0, command_source="cmd", pairing="stamp")
     with router(port):
@@ -65,8 +79,11 @@ def test_the_terrain_service_publishes_unknown_ground_and_says_it_in_its_health(
                 commands.put(encode(Command(v_ref=float(u[0]), omega_ref=float(u[1]), header=header)))
                 time.sleep(0.03)
 
+            def raw() -> list[bytes]:
+                return [bytes(p) for _, p, _ in col.on("gpmppi/r1/terrain/weights")]
+
             def weights() -> list[TerrainWeights]:
-                return [decode(TerrainWeights, p) for _, p, _ in col.on("gpmppi/r1/terrain/weights")]
+                return [decode(TerrainWeights, p) for p in raw()]
 
             last = base + drive[-1][0]
             assert wait_for(lambda: any(w.header.stamp_ns == last for w in weights()), 10.0), terrain.log()
@@ -74,11 +91,23 @@ def test_the_terrain_service_publishes_unknown_ground_and_says_it_in_its_health(
             before = [w for w in weights() if base + 3 * NS <= w.header.stamp_ns < switch]
             after = [w for w in weights() if w.header.stamp_ns >= switch]
             assert before and max(w.unknown for w in before) < 0.5 and not any(w.unknown_active for w in before)
-            first = next(w.header.stamp_ns for w in after if w.unknown > 0.5)
-            assert (first - switch) / NS <= 3.0 and after[-1].unknown_active
-            assert wait_for(lambda: any(h.flags.get("unknown_ground") and h.counts.get("unknown_entered") == 1
-                                        for h in heartbeats(col, "r1", "terrain")), 5.0), heartbeats(col, "r1",
-                                                                                                     "terrain")[-1]
+            first = next(w for w in after if w.unknown > 0.5)
+            assert (first.header.stamp_ns - switch) / NS <= 3.0 and any(w.unknown_active for w in after)
+            # the channel on the wire: in the JSON the recorder writes, and the same in every weights flagged after
+            # the first (sand's free run stays far below its level on this gentle drive; glare ice's one-step
+            # residual stays known ground's)
+            assert first.unknown_channel == channel and first.header.schema_version == 5
+            assert all(w.unknown_channel == channel for w in after if w.unknown > 0.5)
+            assert any(f'"unknown_channel":"{channel}"' in p.decode().replace(" ", "") for p in raw())
+            assert weights()[0].unknown_channel == ""  # the prior, before any window was scored
+
+            def flagged() -> bool:
+                return any(h.flags.get("unknown_ground") and h.counts.get("unknown_entered") == 1
+                           and h.flags.get("unknown_free_run") == (channel == "free-run")
+                           for h in heartbeats(col, "r1", "terrain"))
+
+            assert wait_for(flagged, 5.0), heartbeats(col, "r1", "terrain")[-1]
             assert "ground unknown" in terrain.log()
+            assert ("free-run channel" in terrain.log()) == (channel == "free-run")
         finally:
             assert terrain.stop() == 0

@@ -45,6 +45,8 @@ EXAMPLES = [
     TerrainLabel(terrain="grass"),
     TerrainWeights(names=["asphalt", "grass"], weights=[0.3, 0.7], solver_ok=False, residual=0.5),
     TerrainWeights(names=["asphalt", "grass"], weights=[0.6, 0.4], unknown=0.875, unknown_active=True),
+    TerrainWeights(names=["asphalt", "grass"], weights=[0.6, 0.4], unknown=0.875, unknown_active=True,
+                   unknown_channel="free-run"),
     Task(kind="lane", centerline=[[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]], half_width=1.0),
     Task(kind="goal", goal=[7.0, 5.0], obstacles=[Circle(x=1.0, y=2.0, r=0.5)]),
     Plan(
@@ -165,4 +167,27 @@ def test_plans_say_their_model_version_from_schema_version_4() -> None:
     with pytest.raises(DecodeError, match="schema_version 4"):
         decode(Plan, json.dumps({**old, "model_version": 2}).encode())
     plan = decode(Plan, encode(Plan(**{k: v for k, v in old.items() if k != "header"}, model_version=2)))
-    assert plan.model_version == 2 and plan.header.schema_version == 4
+    assert plan.model_version == 2 and plan.header.schema_version >= 4
+
+
+def test_terrain_weights_name_the_channel_from_schema_version_5_and_older_ones_read_as_not_said() -> None:
+    for version in (1, 2, 3, 4):  # as recorded or sent by the builds before the field
+        fields = '"unknown": 0.9, "unknown_active": true, ' if version >= 3 else ""
+        old = (f'{{"header": {{"schema_version": {version}}}, "names": ["a", "b"], "weights": [0.5, 0.5], '
+               f'{fields}"solver_ok": true}}').encode()
+        msg = decode(TerrainWeights, old)
+        assert msg.header.schema_version == version and msg.unknown_channel == ""
+        assert msg.unknown == (0.9 if version >= 3 else 0.0)
+        bad = json.loads(old)
+        bad["unknown_channel"] = "free-run"
+        with pytest.raises(DecodeError, match="unknown_channel is a schema_version 5 field"):
+            decode(TerrainWeights, json.dumps(bad).encode())
+    for channel in ("one-step", "free-run", ""):
+        sent = TerrainWeights(names=["a"], weights=[1.0], unknown=0.9, unknown_active=True, unknown_channel=channel)
+        back = decode(TerrainWeights, encode(sent))
+        assert back.header.schema_version == 5 and back.unknown_channel == channel
+        assert json.loads(encode(sent))["unknown_channel"] == channel
+    with pytest.raises(DecodeError, match="unknown_channel"):  # only the two channels there are
+        decode(TerrainWeights, b'{"names": ["a"], "weights": [1.0], "unknown_channel": "gut"}')
+    schema = TerrainWeights.model_json_schema()["properties"]["unknown_channel"]
+    assert schema["enum"] == ["", "one-step", "free-run"] and "grip" in schema["description"]

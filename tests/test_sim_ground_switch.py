@@ -120,12 +120,14 @@ def test_the_timeline_reads_the_change_the_detection_the_update_and_the_rmse(tmp
             names = ["asphalt", "grass", "tile", *(["new-1"] if learned else [])]
             weights = [0.0, 0.1, 0.0, 0.9] if learned else [1.0, 0.0, 0.0]
             w.write("gpmppi/jackal/terrain/weights", TerrainWeights(
-                names=names, weights=weights, unknown=0.9 if 11 <= t < 20 else 0.0), ns)
+                names=names, weights=weights, unknown=0.9 if 11 <= t < 20 else 0.0,
+                unknown_channel="one-step" if t >= 11 else ""), ns)
             if i == 200:
                 w.write("gpmppi/jackal/model", ModelUpdate(version=1, path="p.npz", sha256="0" * 64, grounds=names,
                                                            learned="new-1", samples=90), ns)
     r = timeline(path)
     assert (r["ground_changed_s"], r["new_ground"], r["first_unknown_over_half_s"]) == (10.0, "sand", 11.0), r
+    assert r["unknown_channel"] == "one-step", r
     assert (r["model_update_s"], r["learned"], r["first_weights_naming_it_s"]) == (20.0, "new-1", 20.0), r
     assert r["learned_weight_final"] == 0.9 and r["rmse_before_mm"] == pytest.approx(0.0, abs=0.5), r
     assert r["rmse_new_before_update_mm"] == pytest.approx(20.0, abs=1.0), r

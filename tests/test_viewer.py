@@ -145,13 +145,14 @@ def test_unknown_ground_is_plotted_with_the_weights_and_its_decision_changes_are
     active = [False, False, True, True, True, True, False, False]
     with McapWriter(log) as w:
         for i, (p, a) in enumerate(zip(probs, active, strict=True)):
-            msg = TerrainWeights(names=["asphalt", "grass"], weights=[0.1, 0.9], unknown=p, unknown_active=a)
+            msg = TerrainWeights(names=["asphalt", "grass"], weights=[0.1, 0.9], unknown=p, unknown_active=a,
+                                 unknown_channel="free-run" if i else "")
             msg.header.stamp_ns = t0 + i * 100_000_000
             w.write("gpmppi/r1/terrain/weights", msg, log_time_ns=msg.header.stamp_ns)
         # the terrain service's heartbeat carries the probability and the decision: no events of their own
         for i in range(3):
             hb = Heartbeat(service="terrain", counts={"unknown_permille": 300 * i, "unknown_entered": i},
-                           flags={"unknown_ground": i == 1})
+                           flags={"unknown_ground": i == 1, "unknown_free_run": i == 1})
             hb.header.stamp_ns, hb.header.seq = t0 + i * 1_000_000_000, i
             w.write("gpmppi/r1/health/terrain", hb, log_time_ns=hb.header.stamp_ns)
     out = tmp_path / "unknown.rrd"
@@ -161,8 +162,10 @@ def test_unknown_ground_is_plotted_with_the_weights_and_its_decision_changes_are
     unknown = [e for e in events if "ground" in e]
     assert len(unknown) == 2, events
     assert "ground unknown" in unknown[0] and "P(unknown) 0.70" in unknown[0] and "nearest grass" in unknown[0]
+    assert "free-run channel" in unknown[0] and "slides" in unknown[0]  # the channel that flagged it, from the message
     assert "ground known again" in unknown[1]
-    assert not any("unknown_permille" in e or "unknown_entered" in e or "unknown_ground" in e for e in events)
+    assert not any(name in e for e in events for name in ("unknown_permille", "unknown_entered", "unknown_ground",
+                                                          "unknown_free_run"))
 
 
 def test_keys_exclude_and_time_window(tmp_path: Path) -> None:

@@ -56,7 +56,8 @@ def timeline(path: str | Path, robot: str = "jackal", lane: str = "circle") -> d
 
     change = next(((t, g) for t, g in labels if g != labels[0][1]), None)
     t_change = s(change[0]) if change else None
-    unknown = next((s(t) for t, w in weights if w.unknown > 0.5 and (change is None or t >= change[0])), None)
+    flagged = next(((t, w) for t, w in weights if w.unknown > 0.5 and (change is None or t >= change[0])), None)
+    unknown = s(flagged[0]) if flagged else None
     update = updates[0] if updates else None
     learned = update[1].learned if update else None
     named = [(t, w) for t, w in weights if learned and learned in w.names]
@@ -78,6 +79,8 @@ def timeline(path: str | Path, robot: str = "jackal", lane: str = "circle") -> d
         "driving_from_s": round(t_drive, 2),
         "first_unknown_over_half_s": unknown,
         "unknown_delay_s": None if unknown is None or t_change is None else round(unknown - t_change, 2),
+        # the novelty test's channel that flagged it ('' in recordings made before the messages said it)
+        "unknown_channel": flagged[1].unknown_channel if flagged else None,
         "model_update_s": t_update,
         "learned": learned,
         "learned_samples": update[1].samples if update else None,

@@ -260,14 +260,15 @@ def top_terrain_confusion(
 
 
 def unknown_share(times: np.ndarray, unknown: np.ndarray, driven: list[str], terrain_names: list[str],
-                  level: float = 0.5) -> float | None:
+                  level: float = 0.5, new_ground: bool = False) -> float | None:
     """Share of the time on trained grounds (`driven[k]` in `terrain_names`) during which P(unknown) `unknown[k]`
-    (T,) was above `level`: the test's false alarms. None without time on a trained ground or without values."""
+    (T,) was above `level`: the test's false alarms. None without time on a trained ground or without values.
+    `new_ground`: the same share of the time on grounds *not* in `terrain_names` (how much of it was flagged)."""
     u = np.asarray(unknown, dtype=np.float64).reshape(-1)
     t = np.asarray(times, dtype=np.float64).reshape(-1)
     if u.size == 0 or t.size != u.size + 1 or len(driven) != u.size:
         return None
-    span = np.diff(t) * np.array([name in terrain_names for name in driven])
+    span = np.diff(t) * np.array([(name in terrain_names) != new_ground for name in driven])
     total = float(span.sum())
     return float(span[u > level].sum() / total) if total > 0 else None
 

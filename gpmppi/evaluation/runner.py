@@ -115,6 +115,8 @@ class RunScore:
     # seconds from reaching a ground the model was not trained on until P(unknown) > 0.5 (inf: never; None: none)
     unknown_delay_s: float | None = None
     unknown_active_share: float | None = None  # share of the run's time planned with the caution on
+    # share of the time on grounds the model was not trained on with P(unknown) > 0.5 (None: no such time)
+    unknown_new_share: float | None = None
     final_weights: list[float] = field(default_factory=list)
     message: str = ""
 
@@ -266,6 +268,7 @@ def score(
         s.weight_switches_per_min = weight_switches_per_min(traj.times, traj.weights)
         s.unknown_share = unknown_share(traj.times, traj.unknown, traj.terrains, terrain_names)
         s.unknown_delay_s = unknown_delay_s(traj.times, traj.unknown, traj.terrains, terrain_names)
+        s.unknown_new_share = unknown_share(traj.times, traj.unknown, traj.terrains, terrain_names, new_ground=True)
         if traj.unknown_active.size:
             s.unknown_active_share = float(np.mean(traj.unknown_active))
     for name, value in run_for(task).score(pos, traj.times, traj.status, cfg).items():
@@ -312,10 +315,11 @@ SMOOTHNESS_AND_WEIGHT_METRICS = (
     "v_ref_rate_mean", "v_ref_rate_p95", "omega_ref_rate_mean", "omega_ref_rate_p95", "base_v_rate_mean",
     "base_v_rate_p95", "base_omega_rate_mean", "base_omega_rate_p95", "base_limited_fraction", "true_weight_mean",
     "weight_switches_per_min", "effective_samples_p50", "effective_samples_p10", "unknown_share",
-    "unknown_active_share",
+    "unknown_active_share", "unknown_new_share",
 )
 # of those, the ones with no value (None, not nan) where no trial has one: a model without terrain weights
-OPTIONAL_CELL_METRICS = ("true_weight_mean", "weight_switches_per_min", "unknown_share", "unknown_active_share")
+OPTIONAL_CELL_METRICS = ("true_weight_mean", "weight_switches_per_min", "unknown_share", "unknown_active_share",
+                         "unknown_new_share")
 
 
 def _mean_and_std(runs: list[RunScore], names: tuple[str, ...]) -> dict:

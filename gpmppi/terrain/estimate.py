@@ -19,8 +19,9 @@ class TerrainEstimate:
     message: str
     unknown: float = 0.0  # P(the ground is none of the trained ones) (gpmppi.terrain.novelty; 0: not assessed)
     unknown_active: bool = False  # the hysteretic decision on `unknown` (planner caution, events)
-    # which channel of the test gave `unknown`: "one-step" (the residual), "free-run" (the response run free: grip)
-    unknown_channel: str = "one-step"
+    # which channel of the test gave `unknown`: "one-step" (the residual), "free-run" (the response run free: grip);
+    # "" while neither has scored a whole window, or without the test
+    unknown_channel: str = ""
 
 
 class EstimatorLike(Protocol):

@@ -110,7 +110,7 @@ class BayesTerrainEstimator:
             if free_map is None and (model.calibration is not None or config.response_file is not None):
                 free_map = profile_calibration(config.model_copy(update={"response": "steady_map"}), model)[1]
             if free_map is not None:
-                self.free_run = FreeRunTest(free_map, profile_free_run(model))
+                self.free_run = FreeRunTest(free_map, profile_free_run(model), config.novelty_grip_demand)
         self.reset()
 
     def reset(self, weights: np.ndarray | None = None) -> None:
@@ -142,7 +142,7 @@ class BayesTerrainEstimator:
         self._roughness_weight = 0.0
         self._roughness_seen = 0
         self._unknown = 0.0
-        self._channel = "one-step"  # the channel that gave `_unknown`
+        self._channel = ""  # the channel that gave `_unknown` ("one-step", "free-run"; "": neither has a window yet)
         self._latch = UnknownLatch()
         if self.novelty is not None:
             self.novelty.reset()
@@ -211,11 +211,13 @@ class BayesTerrainEstimator:
             self._since_start += 1
         if self.novelty is not None:  # the GP evidence's steps less the transients (gpmppi.terrain.novelty), on the
             # residuals the novelty test was calibrated on (without the anchor's correction)
-            self._unknown = self.novelty.observe(r + anchor, self.novelty.transient(u[0], x[3], x[4]))
+            one = self.novelty.observe(r + anchor, self.novelty.transient(u[0], x[3], x[4]))
+            free, free_ready = 0.0, False
             if self.free_run is not None:  # either channel can say "unknown": no trained ground explains it
-                free = self.free_run.observe(x[3:5], u, x1[3:5])
-                self._channel = "free-run" if free > self._unknown else "one-step"
-                self._unknown = max(self._unknown, free)
+                free, free_ready = self.free_run.observe(x[3:5], u, x1[3:5]), self.free_run.ready
+            self._unknown = max(one, free)
+            self._channel = ("" if not (self.novelty.ready or free_ready) else
+                             "free-run" if free > one or not self.novelty.ready else "one-step")
         # a held decision (`hold_unknown`) waits for a whole window of either channel
         if self.novelty is not None and (self.novelty.ready or (self.free_run is not None and self.free_run.ready)):
             self._latch.update(self._unknown)

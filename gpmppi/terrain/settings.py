@@ -100,6 +100,12 @@ class EstimatorConfig(BaseModel):
         True, description="bayes, with novelty: also test how well the best trained ground's velocity response, run "
         "free for a horizon of steps, ends where the robot is (gpmppi/terrain/free_run.py: sees a loss of grip the "
         "one-step test cannot); P(unknown) is the larger of the two channels'. Needs the profile's response map")
+    novelty_grip_demand: float = Field(
+        1.2, ge=0.0, description="bayes, free-run channel: the sideways acceleration |v_ref omega_ref| [m/s^2] a free "
+        "run's commands must ask for (at one step at least) for its error to count towards 'known again': the "
+        "channel's P(unknown) falls only once a window of such runs, driven after the alarm, is explained by a "
+        "trained ground, so an alarm raised in a corner holds through the straights, where a slide cannot show "
+        "(gpmppi/terrain/free_run.py). 0: no hold (the plain window alone)")
 
     @model_validator(mode="after")
     def _consistent(self) -> EstimatorConfig:

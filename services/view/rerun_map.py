@@ -67,8 +67,11 @@ DRAW = {name: layer.order for name, layer in geo.LAYERS.items()}
 # (the base command's reason shows it in the plots)
 # and unknown ground: the terrain service's P(unknown) (the weights plot shows it) and its decision and count (the
 # weights' own event says it), and the planner's caution counters (its `caution` flag is the event)
-ROUTINE_HEALTH = frozenset({"limited", "unknown_permille", "unknown_ground", "unknown_entered", "caution_on",
-                            "caution_off"})
+ROUTINE_HEALTH = frozenset({"limited", "unknown_permille", "unknown_ground", "unknown_free_run", "unknown_entered",
+                            "caution_on", "caution_off"})
+# what the unknown-ground event says of the channel that gives P(unknown) (`TerrainWeights.unknown_channel`)
+_CHANNEL_SAYS = {"one-step": " by its one-step response (one-step channel)",
+                 "free-run": " by its grip: the robot slides (free-run channel)"}
 
 
 @dataclass
@@ -237,7 +240,8 @@ class RerunMapper:
         if msg.unknown_active != self._unknown:
             if self._unknown is not None or msg.unknown_active:
                 nearest = msg.names[max(range(len(msg.weights)), key=msg.weights.__getitem__)]
-                text = (f"terrain: ground unknown, none of the trained grounds explains it (P(unknown) "
+                how = _CHANNEL_SAYS.get(msg.unknown_channel, "")
+                text = (f"terrain: ground unknown, none of the trained grounds explains it{how} (P(unknown) "
                         f"{msg.unknown:.2f}, nearest {nearest})" if msg.unknown_active else
                         f"terrain: ground known again ({nearest}, P(unknown) {msg.unknown:.2f})")
                 self.event(t, text, "WARN" if msg.unknown_active else "INFO")
