@@ -56,7 +56,7 @@ def launch_file(folder: Path, **top: object) -> Path:
     return path
 
 
-@pytest.mark.slow(seconds=150)  # a 1 min stack drive, the fit, a 20 s launch (its stack started twice)
+@pytest.mark.slow(seconds=115)  # a 1 min stack drive, the fit, a 20 s launch (its stack started twice)
 @pytest.mark.timeout(900)
 def test_a_new_robot_is_driven_trained_and_launched_from_its_own_logs(tmp_path: Path) -> None:
     from tools.stack_terrain import load
