@@ -4,6 +4,7 @@ robot the project has not seen (tests/data/light_fast.yaml) identified with the 
 
 from __future__ import annotations
 
+import re
 from functools import lru_cache
 from pathlib import Path
 
@@ -240,3 +241,32 @@ def test_the_cli_refuses_a_log_without_holds_in_one_line(tmp_path: Path) -> None
     assert res.exit_code == 2, res.output
     assert "ground 'asphalt': 0 usable held commands" in res.output and "Traceback" not in res.output
     assert not out.exists()  # nothing half-written
+
+
+def test_train_refuses_a_log_without_holds_before_fitting_the_gp(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """A log that cannot calibrate the terrain estimator is refused at once, not after the GP's minutes of fitting
+    (it was refused only after them: 278 s for a small log with the default grid)."""
+    from typer.testing import CliRunner
+
+    import gpmppi.gp.train
+    from tools.cli import app
+    from tools.dataset import write_dataset
+
+    def no_fit(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the GP was fitted before the log's holds were checked")
+
+    monkeypatch.setattr(gpmppi.gp.train, "train_model", no_fit)
+    rng = np.random.default_rng(4)
+    u = np.clip(np.cumsum(rng.normal(0, 0.2, (600, 2)), axis=0) + [1.0, 0.0], 0.0, 2.0)  # never held
+    vel = np.zeros_like(u)  # a first-order response (rate 0.3 a step), so the nominal model fits
+    for k in range(len(u) - 1):
+        vel[k + 1] = vel[k] + 0.3 * (u[k] - vel[k])
+    log = tmp_path / "unheld.mcap"
+    write_dataset(log, {t: _run(u, vel, t) for t in ("asphalt", "grass", "tile")})
+    out = tmp_path / "robot.npz"
+    res = CliRunner().invoke(app, ["train", str(log), "-o", str(out), "--min-samples", "1", "--min-coverage", "0"])
+    assert res.exit_code == 2, res.output
+    assert re.search(r"ground 'asphalt': \d+ usable held commands .*12 needed", res.output), res.output
+    assert "Traceback" not in res.output
+    assert not out.exists()

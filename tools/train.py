@@ -260,7 +260,7 @@ def register(app: typer.Typer) -> None:
         """Fit a robot profile from a log: the per-terrain residual GPs and the terrain calibration."""
         from gpmppi.gp.grid_table import build_grid
         from gpmppi.gp.train import train_model
-        from gpmppi.terrain.log_calibration import calibrate_from_runs, novelty_from_runs
+        from gpmppi.terrain.log_calibration import calibrate_from_runs, calibration_holds, novelty_from_runs
         from tools.profile_fit import train_command
 
         console = Console()
@@ -273,6 +273,8 @@ def register(app: typer.Typer) -> None:
             refused = [r for c in coverage if (r := c.problem(min_samples, min_coverage)) is not None]
             if refused:
                 raise DataError("; ".join(refused))
+            if runs is not None:  # before the GP's fit: a log that cannot calibrate is refused at once
+                calibration_holds(runs, list(sets))
             # given hyperparameters (the paper's procedure) condition on all the data, as the paper did
             hold = holdout if holdout is not None else (0.0 if test_sets is not None or hyperparameters else 0.2)
             model, report = train_model(

@@ -235,6 +235,21 @@ def fit_gain_runs(model: GPModel, runs: Sequence[TerrainRun], terrain: str) -> n
     return np.where(den > 1e-12, num / np.maximum(den, 1e-12), 0.0)
 
 
+def calibration_holds(runs: dict[str, list[TerrainRun]], names: Sequence[str], min_hold_s: float = MIN_HOLD_S,
+                      settle_s: float = SETTLE_S) -> dict[str, list[Hold]]:
+    """Each ground's settled held commands, the steady map's data; CalibrationDataError naming a ground the runs
+    lack, or one with too few holds (and what to drive). Cheap: `gpmppi train` asks it before the GP's minutes of
+    fitting, so a log that cannot calibrate is refused at once."""
+    missing = [t for t in names if not runs.get(t)]
+    if missing:
+        raise CalibrationDataError(f"ground(s) {missing} of the GP model have no runs in the log (it has "
+                                   f"{sorted(runs)}); calibrate from the log the model was trained on")
+    holds = {t: [h for run in runs[t] for h in settled_holds(run, min_hold_s, settle_s)] for t in names}
+    for terrain in names:
+        _check_holds(terrain, holds[terrain], min_hold_s)
+    return holds
+
+
 def calibrate_from_runs(
     model: GPModel, runs: dict[str, list[TerrainRun]], min_hold_s: float = MIN_HOLD_S, settle_s: float = SETTLE_S,
     smoothing: float = SMOOTHING, wheel_limit: tuple[float, float] | None | str = "fit",
@@ -246,16 +261,10 @@ def calibrate_from_runs(
     few settled held commands (and what to drive).
     """
     names = list(model.terrains)
-    missing = [t for t in names if not runs.get(t)]
-    if missing:
-        raise CalibrationDataError(f"ground(s) {missing} of the GP model have no runs in the log (it has "
-                                   f"{sorted(runs)}); calibrate from the log the model was trained on")
+    holds = calibration_holds(runs, names, min_hold_s, settle_s)
     gains = np.zeros((len(names), 2))
     steady = np.zeros((len(names), len(LOG_V_REF), len(LOG_OMEGA_REF), 2))
     rates = np.zeros((len(names), 2))
-    holds = {t: [h for run in runs[t] for h in settled_holds(run, min_hold_s, settle_s)] for t in names}
-    for terrain in names:
-        _check_holds(terrain, holds[terrain], min_hold_s)
     limit = fit_wheel_limit(holds, smoothing) if wheel_limit == "fit" else wheel_limit
     for m, terrain in enumerate(names):
         steady[m] = fit_steady_map(holds[terrain], smoothing=smoothing, limit=limit)
