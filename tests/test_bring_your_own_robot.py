@@ -2,7 +2,7 @@
 
 On a robot the project has not seen (tests/data/light_fast.yaml: 9 kg, stiff fast motors; carpet, dirt, ice): (a)
 `gpmppi calibrate drive` through the real stack (its own processes, Zenoh on loopback, the light robot's sim) on
-dirt, one minute; `gpmppi dataset` logs of the same robot on all three grounds (a stack drive runs in real time, and
+dirt, 12 m; `gpmppi dataset` logs of the same robot on all three grounds (a stack drive runs in real time, and
 the terrain calibration needs ~4 minutes of it a ground, 12 settled held commands: too slow for a test, so the
 drive's log is pooled with the generator's, as a user's resumed drives are); (b) `gpmppi train` on those logs alone
 -> a profile, the drive's log among them; (c) `gpmppi launch` of a launch file whose `profile:` is that file, the
@@ -24,6 +24,7 @@ import yaml
 from typer.testing import CliRunner
 from zenoh_helpers import REPO, free_port
 
+from gpmppi.plant.excitation import Area
 from schemas import BaseCommand, Command, EStop
 from services.recording.mcap_io import read_messages
 from tools.cli import app
@@ -33,7 +34,8 @@ runner = CliRunner()
 LIGHT = REPO / "tests" / "data" / "light_fast.yaml"
 ROBOT = "light"
 DRIVEN = "dirt"  # the ground the stack drives, then launches on
-DRIVE_MINUTES = 1.0  # the route, not the whole calibration: 12 settled holds a ground took 3.5-4 min of driving
+DRIVE_M = 12.0  # the route, not the whole calibration: 12 settled holds a ground took 3.5-4 min of driving
+AREA_M = 10.0
 OTHERS_M = 600.0  # metres a ground of `gpmppi dataset` (300 m held 11 settled holds on ice)
 LAUNCH_S = 20.0
 IDENTIFIED = 0.7  # dirt's mean weight from 3 s after the first command (measured: see the test's docstring)
@@ -56,7 +58,7 @@ def launch_file(folder: Path, **top: object) -> Path:
     return path
 
 
-@pytest.mark.slow(seconds=115)  # a 1 min stack drive, the fit, a 20 s launch (its stack started twice)
+@pytest.mark.slow(seconds=80)  # a 12 m stack drive, the fit, a 20 s launch (its stack started twice)
 @pytest.mark.timeout(900)
 def test_a_new_robot_is_driven_trained_and_launched_from_its_own_logs(tmp_path: Path) -> None:
     from tools.stack_terrain import load
@@ -64,15 +66,27 @@ def test_a_new_robot_is_driven_trained_and_launched_from_its_own_logs(tmp_path: 
     stack = launch_file(tmp_path)
     # (a) the calibration drive through the stack on dirt; every ground from the dataset generator too
     rec = tmp_path / "calib"
-    drove = runner.invoke(app, ["calibrate", "drive", "--ground", DRIVEN, "--minutes", str(DRIVE_MINUTES),
-                                "--area", "20", "--record", str(rec), "--launch-file", str(stack),
+    drove = runner.invoke(app, ["calibrate", "drive", "--ground", DRIVEN, "--distance", str(DRIVE_M),
+                                "--area", str(AREA_M), "--record", str(rec), "--launch-file", str(stack),
                                 "--port", str(free_port())])
     assert drove.exit_code == 0, drove.output[-3000:]
+    assert f"{DRIVEN} in {rec}: 1" in " ".join(drove.output.split())  # the total driven, said at the end
     drive_logs = sorted(rec.glob("*.mcap"))
-    # what the drive adds to the fit, read as `gpmppi train` reads it: a minute of dirt, commands paired on ticks
+    assert len(drive_logs) == 1 and drive_logs[0].name.startswith(f"calib-{DRIVEN}-"), drive_logs
+    # what the drive adds to the fit, read as `gpmppi train` reads it: dirt only, commands paired on 0.1 s ticks
     driven = read_dataset(drive_logs[0], robot=ROBOT)
-    assert len(drive_logs) == 1 and set(driven) == {DRIVEN}, (drive_logs, set(driven))
-    assert sum(len(r.time) for r in driven[DRIVEN]) > 400, [len(r.time) for r in driven[DRIVEN]]
+    assert set(driven) == {DRIVEN}, set(driven)
+    assert sum(len(r.time) for r in driven[DRIVEN]) > 100, [len(r.time) for r in driven[DRIVEN]]
+    assert DRIVE_M - 1.0 < sum(r.distance for r in driven[DRIVEN]) < DRIVE_M + 4.0
+    for r in driven[DRIVEN]:
+        assert np.all(np.abs(np.diff(r.time) - 0.1) <= 0.025)
+    states = np.concatenate([r.state for r in driven[DRIVEN]])
+    assert Area.square(states[0, :2], AREA_M).contains(states[:, :2], -0.2)  # inside the area (0.2 m: sensor noise)
+    # what the base got went through egress (its limits, watchdog and e-stop), following the drive's commands
+    keys = {f"gpmppi/{ROBOT}/base/cmd": "base", f"gpmppi/{ROBOT}/cmd": "cmd"}
+    sent = [(keys[k], m) for k, _, m in read_messages(drive_logs[0], keys=keys)]
+    assert {m.reason for k, m in sent if k == "base"} <= {"planner", "limit", "watchdog"}
+    assert any(isinstance(m, Command) and m.v_ref > 0.2 for _, m in sent)
     others = tmp_path / "others.mcap"
     made = runner.invoke(app, ["dataset", "-o", str(others), "--terrain-file", str(LIGHT), "-t", "carpet", "-t",
                                DRIVEN, "-t", "ice", "--distance", str(OTHERS_M), "--robot", ROBOT, "--seed", "1"])
