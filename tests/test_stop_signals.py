@@ -11,6 +11,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections.abc import Callable
 
 from zenoh_helpers import REPO
 
@@ -38,22 +39,32 @@ STORM_CHILD = textwrap.dedent(
 )
 
 
-def test_a_storm_of_signals_at_a_waiting_main_thread_is_delivered_and_never_hangs_it() -> None:
+def run_child(code: str, signal_it: Callable[[int], None]) -> tuple[int, str]:
+    """Run `code` in a child Python, call `signal_it(pid)` once it printed "ready", and return its exit code and the
+    rest of its output (a child that does not end within 15 s is killed, and the test fails on its code)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, "-c", STORM_CHILD], stdout=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True, env=env)
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
-        for _ in range(1000):
-            os.kill(proc.pid, signal.SIGUSR1)
-            time.sleep(0.0005)
-        time.sleep(0.2)
-        os.kill(proc.pid, signal.SIGINT)
+        signal_it(proc.pid)
         out, _ = proc.communicate(timeout=15.0)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
-    assert proc.returncode == 0, f"the child ended with {proc.returncode}: {out!r}"
+    return proc.returncode, out
+
+
+def test_a_storm_of_signals_at_a_waiting_main_thread_is_delivered_and_never_hangs_it() -> None:
+    def storm(pid: int) -> None:
+        for _ in range(1000):
+            os.kill(pid, signal.SIGUSR1)
+            time.sleep(0.0005)
+        time.sleep(0.2)
+        os.kill(pid, signal.SIGINT)
+
+    code, out = run_child(STORM_CHILD, storm)
+    assert code == 0, f"the child ended with {code}: {out!r}"
     n_received, n_interrupts = (int(x) for x in out.split())
     assert n_interrupts == 1
     # signals of one kind that arrive before Python runs the handler merge into one: most, not all, are counted
@@ -97,15 +108,6 @@ def test_a_service_node_stops_on_sigterm_through_the_lock_free_handler() -> None
         print("stopped", flush=True)
         """
     )
-    env = {**os.environ, "PYTHONPATH": str(REPO)}
-    proc = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, text=True, env=env)
-    try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
-        os.kill(proc.pid, signal.SIGTERM)
-        out, _ = proc.communicate(timeout=15.0)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 0
+    code, out = run_child(child, lambda pid: os.kill(pid, signal.SIGTERM))
+    assert code == 0, out
     assert out.strip() == "stopped"
