@@ -38,7 +38,9 @@ DRIVE_M = 12.0  # the route, not the whole calibration: 12 settled holds a groun
 AREA_M = 10.0
 OTHERS_M = 600.0  # metres a ground of `gpmppi dataset` (300 m held 11 settled holds on ice)
 LAUNCH_S = 20.0
-IDENTIFIED = 0.7  # dirt's mean weight from 3 s after the first command (measured: see the test's docstring)
+# dirt's mean weight from 3 s after the first command: 0.95 on a quiet machine, 0.66 once beside a full suite on 2
+# cores (its states then reach the terrain service late); 0.18 with the calibration zeroed (the docstring)
+IDENTIFIED = 0.5
 
 
 def launch_file(folder: Path, **top: object) -> Path:
@@ -62,6 +64,7 @@ def launch_file(folder: Path, **top: object) -> Path:
 
 
 @pytest.mark.slow(seconds=75)  # a 12 m stack drive, the fit, a 20 s launch (its stack started twice)
+@pytest.mark.exclusive  # two real-time stacks: ahead of the others for the CPU, as the other stack tests
 @pytest.mark.timeout(900)
 def test_a_new_robot_is_driven_trained_and_launched_from_its_own_logs(tmp_path: Path) -> None:
     from tools.stack_terrain import load
