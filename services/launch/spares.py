@@ -37,17 +37,15 @@ class WarmSpares:
         self.spares_at_stop: dict[str, int] = {}  # service -> pid of its spare when the launch stopped
         self._spare_names = None if names is None else set(names)
 
-    def say(self, name: str, line: str) -> None:
-        raise NotImplementedError  # the launcher's
+    if TYPE_CHECKING:  # the launcher's methods used here, declared for the type checker only
 
-    def child(self, name: str) -> Child:
-        raise NotImplementedError  # the launcher's
+        def say(self, name: str, line: str) -> None: ...
 
-    def _start_process(self, child: Child, label: str) -> Proc:
-        raise NotImplementedError  # the launcher's
+        def child(self, name: str) -> Child: ...
 
-    def _go(self, child: Child, proc: Proc) -> None:
-        raise NotImplementedError  # the launcher's
+        def _start_process(self, child: Child, label: str) -> Proc: ...
+
+        def _go(self, child: Child, proc: Proc) -> None: ...
 
     def wants_spare(self, child: Child) -> bool:
         """Whether `child` gets a warm spare (the launch file's `spares`)."""
