@@ -683,8 +683,12 @@ def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
             launcher.kill("planner", signal.SIGKILL)
             wait_for(lambda: len(launcher.restart_events) > n_events, 5.0)
             again = [e for e in launcher.restart_events[n_events:] if e.name == "planner"]
-            check(bool(again) and again[0].takeover_pid is None and again[0].delay_s >= 0.5 - 1e-3,
-                  f"planner killed twice in a row: {again}")
+            # a second death within restart_reset_s (5 s here) of the takeover doubles the backoff (0.25 -> 0.5 s);
+            # one later (a loaded machine: the spare drove only after seconds) is a first death again, restarted after
+            # 0.25 s, as the launcher's crash-loop rule says
+            in_a_row = bool(again) and again[0].uptime_s < 5.0
+            check(bool(again) and again[0].takeover_pid is None
+                  and again[0].delay_s >= (0.5 if in_a_row else 0.25) - 1e-3, f"planner killed twice in a row: {again}")
             check(obs.wait_driving(time.monotonic(), 120.0) is not None, "planner restart: not driving again")
 
             # ---- a frozen spare is no single point of failure: it gets its go, never joins, is killed; a restart
