@@ -132,19 +132,34 @@ def test_a_short_drive_through_the_stack_is_recorded_and_trains(tmp_path: Path) 
     assert "ground 'grass'" in trained.output and "held commands" in trained.output and not model.exists()
 
 
-@pytest.mark.slow(seconds=12)  # the stack launched in a child process, 4 s of driving, then stopped
+@pytest.mark.slow(seconds=12)  # the stack launched in a child process, driving for a second, then stopped
 @pytest.mark.timeout(300)
 def test_ctrl_c_stops_the_robot_and_closes_the_recording(tmp_path: Path) -> None:
     log = tmp_path / "out.log"
-    args = [sys.executable, "-m", "tools.cli", *drive_args(tmp_path, "--minutes", "10", "--ground", "asphalt")]
+    drive = drive_args(tmp_path, "--minutes", "10", "--ground", "asphalt")
+    port = int(drive[drive.index("--port") + 1])
+    args = [sys.executable, "-m", "tools.cli", *drive]
     with open(log, "wb") as out:
         proc = subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
+        session = None
         try:
             assert wait_for(lambda: "calibration drive on asphalt" in log.read_text(errors="replace"), 240.0, 0.2)
-            time.sleep(4.0)  # driving
+            # stopped once the base drives (on a loaded machine its first commands can come seconds after the
+            # service's start), so that the recording must hold motion before the e-stop
+            session = client(port)
+            col = Collector(session, "gpmppi/jackal/base/cmd")
+
+            def driving() -> bool:
+                return any(abs(m.v) > 0.05 or abs(m.omega) > 0.05
+                           for m in (decode(BaseCommand, p) for _, p, _ in col.on("gpmppi/jackal/base/cmd")))
+
+            assert wait_for(driving, 120.0, 0.1), log.read_text()[-3000:]
+            time.sleep(1.0)
             proc.send_signal(signal.SIGINT)
             assert proc.wait(90) == 0, log.read_text()[-3000:]
         finally:
+            if session is not None:
+                session.close()
             if proc.poll() is None:
                 proc.kill()
     files = list((tmp_path / "rec").iterdir())

@@ -177,7 +177,10 @@ def restart_rounds(
                 )
                 shown = "timed out" if first is None else f"{first[0] - started:.2f} s"
                 launcher.say("bench", f"restarted {name} (pid {child.process.pid}): first output after {shown}")
-                # let the stack recover (downstream services resume) before the next restart
+                # let the stack recover (downstream services resume) before the next restart; the settling time
+                # counts from when the new process publishes steadily, as at the start (a sim at a load of 5 published
+                # its second output only after the settling time: the next restart found one old output)
+                steady_output(launcher, monitor, key, started, timeout_s)
                 if launcher.stop_event.wait(settle_s):
                     return
 
