@@ -132,9 +132,12 @@ def _same(a: object, b: object) -> bool:
     return a == b
 
 
-# compiles the planner kernels where the cache is cold, in this process and in the Ray workers
-@pytest.mark.slow(seconds=35)  # the module: a Ray head, the jobs here and on Ray, then the CLI on Ray
-def test_ray_tasks_give_the_local_runs_scores_seed_by_seed(ray_head: str, local_results: list[tuple]) -> None:
+# compiles the planner kernels where the cache is cold, in this process and in the Ray workers. One test, so that one
+# Ray head serves both runs (two tests here could be split between the suite's workers, each then starting a head)
+@pytest.mark.slow(seconds=35)  # a Ray head, the jobs here and on Ray, then the CLI on Ray
+def test_ray_tasks_give_the_local_runs_scores_seed_by_seed_and_the_cli_reports_them(
+    ray_head: str, local_results: list[tuple]
+) -> None:
     ray = connect(ray_head)
     try:
         import ray.util
@@ -155,9 +158,7 @@ def test_ray_tasks_give_the_local_runs_scores_seed_by_seed(ray_head: str, local_
     # and the runs drove: a planner that failed everywhere would compare equal too
     assert any(d["distance_m"] > 3.0 for k, d in local.items() if k[0] == "circle" and k[-1] != "record")
 
-
-@pytest.mark.slow  # the CLI end to end on the Ray instance, after the per-seed test warmed its workers' kernels
-def test_cli_with_ray_reports_the_local_cells(ray_head: str, local_results: list[tuple]) -> None:
+    # the CLI end to end on the same Ray instance (its workers' kernels warm from the runs above)
     terrain = _terrain()
     args = ["evaluate", "tracking", "--json", "-t", terrain, "-m", "gp", "-m", "unicycle", "--trials", "2",
             "--distance", "5", "--samples", "128", "--ray", ray_head]
