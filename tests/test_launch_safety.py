@@ -382,7 +382,7 @@ def _sim_only(tmp_path: Path, port: int) -> Path:
     return path
 
 
-@pytest.mark.slow(seconds=60)  # three short launches (router, sim, recorder; a viewer in one)
+@pytest.mark.slow(seconds=40)  # two short launches (router, sim, recorder; a viewer in one)
 def test_recording_twice_to_one_path_keeps_the_first(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)
     port = free_port()
@@ -390,12 +390,11 @@ def test_recording_twice_to_one_path_keeps_the_first(tmp_path: Path, monkeypatch
     runs = tmp_path / "runs"
     runs.mkdir()
     record, rrd = runs / "run.mcap", runs / "view.rrd"
+    # an earlier run's files (what is in them does not matter: an existing file is never replaced, whatever it holds;
+    # recording to a new path is what every other stack test does)
+    record.write_bytes(b"an earlier recording")
     rrd.write_bytes(b"an earlier view")
-
-    code, first = run_launch(launch, duration=2.0, record=str(record), port=port, out=io.StringIO())
-    assert code == 0 and first.recording == str(record)
     before = record.read_bytes()
-    assert len(list(read_messages(record))) > 0
 
     out = io.StringIO()
     code, second = run_launch(launch, duration=2.0, record=str(record), rerun=["save", str(rrd)], port=port, out=out)
