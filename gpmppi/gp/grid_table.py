@@ -174,8 +174,8 @@ def decode_grid_table(q: np.ndarray, offset: np.ndarray, scale: np.ndarray) -> n
     if offset.shape != (q.shape[4],) or scale.shape != (q.shape[4],):
         raise ValueError(f"grid_offset/grid_scale shapes {offset.shape}/{scale.shape} do not match grid_q {q.shape}")
     # in place, slab by slab (the same wrapping uint16 sums as cumsum along each axis): cumsum's new array per axis
-    # and `offset + scale * q`'s two float64 temporaries cost a process that loads the shipped profile ~0.4 s, most of
-    # it the kernel faulting in fresh memory
+    # and `offset + scale * q`'s two float64 temporaries cost a fresh process that loads the shipped profile 0.3-0.9 s
+    # of CPU, most of it system time faulting in fresh memory (0.04 s in place)
     q = np.array(q, dtype=np.uint16, order="C")
     for axis in range(4):
         slabs = np.moveaxis(q, axis, 0)
