@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 
 __all__ = ["Costmap", "CostmapError", "NO_GRID", "lethal_radius", "load_map_yaml", "rasterise_circles", "read_pgm"]
 
@@ -109,6 +108,9 @@ class Costmap:
             grid = np.empty((*self.shape, 2), dtype=np.float32)
             grid[:, :, 0] = np.clip(self.values / self.lethal, 0.0, 1.0)
             if lethal.any():
+                # here, not at the top: scipy.ndimage costs every service ~0.2 s to import, and few ever use a grid
+                from scipy.ndimage import distance_transform_edt
+
                 grid[:, :, 1] = distance_transform_edt(~lethal) * self.resolution
             else:
                 grid[:, :, 1] = np.float32(1e9)  # no obstacle anywhere: far from everything

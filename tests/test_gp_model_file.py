@@ -56,6 +56,28 @@ def test_grid_codec_is_exact_on_quantized_values() -> None:
     assert np.array_equal(encode_grid_table(dec)["grid_q"], enc["grid_q"])
 
 
+def test_grid_decode_is_the_plain_cumsum_bit_for_bit() -> None:
+    """The in-place decode gives the bits of the plain formula (cumsum along each axis, then offset + scale * q),
+    on the shipped profile's table and on one whose sums wrap around 2^16."""
+    from gpmppi.gp.model_file import DEFAULT_MODEL_PATH
+
+    def plain(q: np.ndarray, offset: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        for axis in range(4):
+            q = np.cumsum(q, axis=axis, dtype=np.uint16)
+        return offset + scale * q
+
+    with np.load(DEFAULT_MODEL_PATH) as z:
+        shipped = (z["grid_q"], z["grid_offset"], z["grid_scale"])
+    rng = np.random.default_rng(3)
+    wrapping = (rng.integers(0, 2**16, (3, 4, 5, 6, 2), dtype=np.uint16), rng.normal(size=2), rng.uniform(0.1, 1, 2))
+    for q, offset, scale in (shipped, wrapping):
+        before = q.copy()
+        got = decode_grid_table(q, offset, scale)
+        assert got.dtype == np.float64 and got.flags.c_contiguous
+        assert got.tobytes() == plain(q, offset, scale).tobytes()
+        assert np.array_equal(q, before)  # the caller's array is left as it was
+
+
 def test_exact_predictors_agree_with_direct_formula() -> None:
     m = small_model()
     rng = np.random.default_rng(2)

@@ -36,9 +36,6 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from scipy.linalg import cho_solve, solve_triangular
-from sklearn.cluster import KMeans
-from sklearn.neighbors import NearestNeighbors
 
 from gpmppi.gp.grid_table import GridTable, grid_axes, predict_dense
 from gpmppi.gp.model_file import GPModel, task_names
@@ -167,6 +164,10 @@ def nearest_ground(model: GPModel, x: np.ndarray, y: np.ndarray) -> tuple[int, n
 def conditioning_set(x: np.ndarray, y: np.ndarray, points: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """(inputs (n, 4), targets (n, 2)): k-means centres of the samples and the mean of each one's nearest samples
     (standardized input distance), as `gpmppi train` makes a ground's targets from a log."""
+    # here, not at the top: sklearn costs the terrain service ~1 s to import, and only a ground's fit uses it
+    from sklearn.cluster import KMeans
+    from sklearn.neighbors import NearestNeighbors
+
     scale = x.std(0) + 1e-9
     n = min(points, len(x))
     centres = KMeans(n_clusters=n, random_state=seed, n_init=1).fit(x / scale).cluster_centers_
@@ -178,6 +179,8 @@ def conditioning_set(x: np.ndarray, y: np.ndarray, points: int, seed: int) -> tu
 def _block_factor(z: np.ndarray, target: np.ndarray, ls: np.ndarray, os_: float, noise: float
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Lower Cholesky factor of K + noise I at z and (K + noise I)^-1 target."""
+    from scipy.linalg import cho_solve  # here: scipy.linalg is ~0.15 s of a service's start, and only a fit uses it
+
     a = z / ls
     sq = ((a[:, None, :] - a[None, :, :]) ** 2).sum(-1)
     chol = np.linalg.cholesky(os_ * np.exp(-0.5 * sq) + noise * np.eye(len(z)))
@@ -264,6 +267,8 @@ def _extend_grid(model: GPModel, new: GPModel, near: int, kept: bool, z: np.ndar
     its variance is its block's alone (the old inputs' block adds nothing, see the module docstring)."""
     if not model.has_stored_grid():
         return
+    from scipy.linalg import solve_triangular  # here: scipy.linalg is ~0.15 s of a service's start
+
     old = model.grid()
     dims = old.dims
     pts = np.stack(np.meshgrid(*grid_axes(old.lo, old.hi, dims), indexing="ij"), axis=-1).reshape(-1, 4)

@@ -29,9 +29,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import distance_transform_edt
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from gpmppi.costmap import Costmap, lethal_radius
 from gpmppi.kernel_flags import FASTMATH
@@ -79,6 +76,12 @@ def build_goal_field(
     `circles` (K, 3) are [x, y, radius] as the path must avoid them (the caller adds any clearance); the costmap's
     lethal cells are kept `clearance` [m] (the robot radius) away from.
     """
+    # here, not at the top: scipy.ndimage and scipy.sparse.csgraph cost every planner start ~0.25 s to import, and
+    # only goal tasks build a field
+    from scipy.ndimage import distance_transform_edt
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import dijkstra
+
     goal = np.asarray(goal, dtype=np.float64)
     circles = np.asarray(circles, dtype=np.float64).reshape(-1, 3)
     pts = [goal[None, :], np.asarray(extent_points, dtype=np.float64).reshape(-1, 2)]

@@ -23,6 +23,7 @@ from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.costs import ChanceQuantiles
 from gpmppi.mppi.critics.registry import layout
 from gpmppi.mppi.dynamics import predict_ahead, propagate
+from gpmppi.mppi.savgol import savgol_matrix
 from gpmppi.mppi.task_kinds import TaskKind, kind_class_for, registered_kinds
 from gpmppi.mppi.temperature import temperature_for_effective_samples
 from gpmppi.mppi.terrain_table import TerrainTable
@@ -49,15 +50,6 @@ class PlanResult:
     # rollout decides the update, `samples` when all weigh the same; 0 when every rollout's cost was infinite
     effective_samples: float = 0.0
     temperature: float = 0.0  # the softmax temperature of this update (update=smooth: chosen for the sample size)
-
-
-def savgol_matrix(horizon: int, window: int, order: int) -> np.ndarray:
-    """The (horizon, horizon) matrix M with M @ u = scipy's `savgol_filter(u, window, order, axis=0,
-    mode="nearest")`: the filter is linear, so its matrix is the filter of the identity's columns. Built once;
-    applying it is one small product per plan (scipy.signal's import and call cost more)."""
-    from scipy.signal import savgol_filter
-
-    return np.ascontiguousarray(savgol_filter(np.eye(horizon), window, order, axis=0, mode="nearest"))
 
 
 class Planner:

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 from collections import deque
 
-import cvxpy as cp
 import numpy as np
 
 from gpmppi.gp.exact import ExactPredictor
@@ -64,6 +63,10 @@ class TerrainEstimator:
         # noise std of the v and omega residuals: the unit of the fit (floored so a noiseless model stays finite)
         self._noise_std = np.sqrt(np.maximum([noise[0::2].mean(), noise[1::2].mean()], 1e-12))
         self._rows: deque[tuple[float, float, np.ndarray, np.ndarray]] = deque(maxlen=history)
+        # here, not at the top: cvxpy (with scipy.sparse and scipy.stats) is ~1 s of the terrain service's start, and
+        # only this estimator (method 'paper', not the default) solves a convex problem
+        import cvxpy as cp
+
         m, h = self._m, history
         self._w = cp.Variable(m, name="w")
         self._f_v = cp.Parameter((h, m), name="F_v")
@@ -126,6 +129,8 @@ class TerrainEstimator:
         self._y_v.value, self._f_v.value = y_v * scale_v, f_v * scale_v
         self._y_w.value, self._f_w.value = y_w * scale_w, f_w * scale_w
         self._w_prev.value = self._weights
+        import cvxpy as cp  # imported by __init__ already
+
         try:
             self._problem.solve(solver=cp.CLARABEL)
             status = self._problem.status
