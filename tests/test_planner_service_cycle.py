@@ -168,3 +168,54 @@ def test_compile_estimate_is_the_largest_compile_not_the_last(tmp_path: Path, mo
     assert kernel_cache.compile_estimate_s(label)[0] == 21.0
     kernel_cache.record(label, use(5), 18.0)  # the next whole compile is the new measurement
     assert kernel_cache.compile_estimate_s(label)[0] == 18.0
+
+
+@pytest.mark.slow(seconds=15)
+@pytest.mark.timeout(600)
+def test_planner_service_on_trigger_rate_plans_at_its_rate_from_the_newest_state(tmp_path: Path) -> None:
+    """`trigger: rate`: states at 20 Hz, plans at `rate_hz` (4 Hz), each from a state that had arrived, never one
+    for every state (as `trigger: state` would: 20 a second)."""
+    port = free_port()
+    rate_hz, state_hz, seconds = 4.0, 20.0, 3.0
+    cfg = settings("planner", port, heartbeat_hz=5.0, compensate_delay=False, trigger="rate", rate_hz=rate_hz,
+                   planner={"samples": 64, "backend": "cpu"})
+    with router(port):
+        observer = client(port)
+        col = Collector(observer)
+        service = ServiceProcess("planner", cfg, tmp_path)
+        try:
+            assert wait_for(lambda: bool(heartbeats(col, "r1", "planner")), 300.0), service.log()
+            state_pub = matched_publisher(observer, "gpmppi/r1/state")
+            sent: list[int] = []
+
+            def commands() -> list[Command]:
+                return [decode(Command, p) for _, p, _ in col.on("gpmppi/r1/cmd")]
+
+            states = iter(_states(1000))  # 0.1 m apart: at 20 Hz as at 2 m/s, along the lane (no jump)
+
+            def put_state() -> None:
+                x, stamp = next(states), time.time_ns()
+                state_pub.put(encode(State(x=x[0], y=x[1], theta=x[2], v=x[3], omega=x[4],
+                                           header=Header(stamp_ns=stamp))))
+                sent.append(stamp)
+                time.sleep(1.0 / state_hz)
+
+            # until the first plan (the first states wake a planner still warming its caches), then a timed window
+            for _ in range(400):
+                put_state()
+                if commands():
+                    break
+            n_before, t0 = len(commands()), time.monotonic()
+            for _ in range(int(seconds * state_hz)):
+                put_state()
+            elapsed = time.monotonic() - t0
+            time.sleep(0.3)
+        finally:
+            assert service.stop(30.0) == 0
+        observer.close()
+    got = commands()
+    in_window = len(got) - n_before
+    # never faster than the rate (one tick of slack at each end), and planning throughout the window
+    assert in_window <= rate_hz * elapsed + 2, (in_window, elapsed, service.log()[-2000:])
+    assert in_window >= 0.5 * rate_hz * elapsed, (in_window, elapsed, service.log()[-2000:])
+    assert {c.header.stamp_ns for c in got} <= set(sent)  # each planned from a state that was sent
