@@ -140,6 +140,14 @@ def soak_hook(duration_s: float, data: SoakData, sample_s: float = 1.0) -> Calla
             recording.clear()
             sub.undeclare()
             data.soak_s = time.monotonic() - t0
+            # the monitor's own callback decodes each message, so on a loaded machine it may still be handling the
+            # last few commands the counter above has seen: its totals are read once it has caught up (or after 2 s)
+            caught_up_by = time.monotonic() + 2.0
+            while time.monotonic() < caught_up_by:
+                with monitor.lock, lock:
+                    if monitor.counts[cmd_key] >= data.seen_per_key[cmd_key]:
+                        break
+                time.sleep(0.01)
             with monitor.lock:
                 data.latencies_ms = list(monitor.latencies_ms)
                 data.plan_ms = list(monitor.plan_total_ms)
