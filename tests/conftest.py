@@ -158,8 +158,9 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
 @contextlib.contextmanager
 def _cpu_seconds(item: pytest.Item) -> Iterator[None]:
     """With `GPMPPI_TEST_CPU_LOG` set: appends a line per test to that file, the CPU seconds it cost (this worker's
-    and its reaped child processes', user + system) and its wall seconds. On 2 cores the suite's wall time is bound
-    by its CPU seconds, which `--durations` does not show (a test that waits on a stack costs wall time, not CPU)."""
+    and its reaped child processes', user + system), its wall seconds, its id, when it ended (Unix time) and its
+    worker. On 2 cores the suite's wall time is bound by its CPU seconds, which `--durations` does not show (a test
+    that waits on a stack costs wall time, not CPU)."""
     path = os.environ.get("GPMPPI_TEST_CPU_LOG")
     if not path:
         yield
@@ -176,7 +177,9 @@ def _cpu_seconds(item: pytest.Item) -> Iterator[None]:
         yield
     finally:
         with open(path, "a") as f:
-            f.write(f"{cpu() - c0:.2f}\t{time.monotonic() - t0:.2f}\t{item.nodeid}\n")
+            # the end's wall-clock time and the worker last: when the suite's tests ran, and where
+            f.write(f"{cpu() - c0:.2f}\t{time.monotonic() - t0:.2f}\t{item.nodeid}\t{time.time():.1f}\t"
+                    f"{os.environ.get('PYTEST_XDIST_WORKER', 'main')}\n")
 
 
 
