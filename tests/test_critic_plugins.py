@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -14,6 +15,7 @@ from pathlib import Path
 import pytest
 from cuda_mode import cuda_env
 
+from gpmppi.mppi import kernel_cache
 from gpmppi.mppi.bundles import CRITICS
 from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.critics.registry import layout
@@ -90,7 +92,7 @@ CRITIC = Critic("ramp", 0.5, ("lane", "goal"), ramp_cost, "ramp_k omega^2 per st
 
 # a critic that is one module (here: this script) and one registration line
 PLUGIN = r"""
-import json, sys
+import json, os, sys
 import numpy as np
 from gpmppi.mppi.critics import register
 from gpmppi.mppi.critics.base import Critic, critic_term
@@ -138,6 +140,7 @@ for name, scenario in (("lane", circle_lane()), ("goal", paper_obstacle_scene())
 p = Planner(PlannerConfig(backend=backend, dynamics="unicycle", samples=32, horizon=8, critics=critics), model)
 r = p.plan(circle_lane().start, circle_lane().task, np.array([0.5, 0.3, 0.2]))
 out["unicycle"] = {"ramp": r.critic_costs["ramp"], "omega_ref": r.controls[:, 1].tolist()}
+out["cache"] = os.environ["NUMBA_CACHE_DIR"]
 print("RESULT", json.dumps(out))
 """
 
@@ -148,17 +151,23 @@ STATEFUL_TEST_NAME = "test_a_new_stateful_critic_carries_its_value_along_the_hor
 
 
 class PluginRuns:
-    """PLUGIN in a fresh process per backend, with an empty numba cache (a cached kernel would not know the new
-    critic): the CPU run starts at once and compiles the CPU kernels with the plug-in (~17 s on 2 cores); the CUDA
-    run (the simulator, which also needs the CPU kernels: propagate, the per-critic split, the kernel cost it checks)
-    starts when its test asks for it, in the CPU run's cache once that run is done (the same plug-in, so the same
-    kernels: ~25 s of CPU not spent compiling them again), or in a cache of its own when the CPU run was not
-    selected."""
+    """PLUGIN in a fresh process per backend, given a copy of this process's kernel cache, which holds the kernels of
+    the package's own critics (in the suite: those `gpmppi warm` compiled): a kernel loaded from it would not know the
+    new critics, so each run must cache apart (`kernel_cache.key_cache_to_outside_critics`: a folder keyed by the
+    plug-ins' sources beside the one given). The CPU run starts at once and compiles the CPU kernels with the plug-in
+    (~17 s on 2 cores); the CUDA run (the simulator, which also needs the CPU kernels: propagate, the per-critic split,
+    the kernel cost it checks) starts when its test asks for it, in the CPU run's cache once that run is done (the
+    same plug-ins, so the same keyed folder and kernels: ~25 s of CPU not spent compiling them again), or on its own
+    when the CPU run was not selected."""
 
     def __init__(self, tmp_path_factory: pytest.TempPathFactory, wanted: set[str]) -> None:
         self._tmp = tmp_path_factory
         self.procs: dict[str, subprocess.Popen] = {}
-        self.cache = tmp_path_factory.mktemp("plugin-cache")
+        self.cache = tmp_path_factory.mktemp("plugin") / "cache"
+        if kernel_cache.cache_folder().is_dir():
+            shutil.copytree(kernel_cache.cache_folder(), self.cache)
+        else:
+            self.cache.mkdir()
         if "cpu" in wanted:
             self._start("cpu")
 
@@ -210,6 +219,8 @@ def test_a_new_critic_in_one_module_is_counted_by_the_kernels_and_reported(
     stdout, stderr = (folder / "stdout").read_text(), (folder / "stderr").read_text()
     assert proc.returncode == 0, stderr[-3000:]
     out = json.loads(stdout.split("RESULT ", 1)[1])
+    # cached apart from the package's own kernels (the copy it was given), in a folder named by the plug-ins
+    assert out["cache"].startswith(f"{plugin_runs.cache}-critics-"), out["cache"]
     for name in ("lane", "goal"):
         r = out[name]
         assert list(r["critics"])[-1] == "turning" and r["critics"]["turning"] > 0.0, (name, r["critics"])

@@ -10,6 +10,7 @@ code generator's magic tuple; its index is empty when stale). An empty cache fol
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import json
 import os
@@ -49,6 +50,47 @@ def _kernels() -> Iterator[tuple[str, Dispatcher]]:
             if isinstance(value, Dispatcher) and id(value) not in seen and hasattr(value._cache, "_cache_file"):
                 seen.add(id(value))
                 yield f"{value.py_func.__module__}:{value.py_func.__qualname__}", value
+
+
+def _disk_cached(module_names: Iterator[str]) -> Iterator[object]:
+    """Every disk-cached numba dispatcher (CPU and CUDA) of the named imported modules."""
+    seen: set[int] = set()
+    for name in module_names:
+        module = sys.modules.get(name)
+        for value in list(vars(module).values()) if module is not None else ():
+            if (id(value) not in seen and hasattr(value, "enable_caching")
+                    and hasattr(getattr(value, "_cache", None), "_cache_file")):
+                seen.add(id(value))
+                yield value
+
+
+def key_cache_to_outside_critics(functions: list[Callable]) -> Path | None:
+    """Give this process a kernel cache of its own when a critic's code (`functions`: the registered critics' terms)
+    lies outside the gpmppi package, and return that folder (None: every critic is the package's own).
+
+    The cache's folder is named by a hash of the package's sources (`gpmppi/__init__.py`): a critic module under
+    `gpmppi/mppi/critics/` changes it, one registered from elsewhere does not, and the rollout kernel cached before
+    would be loaded without that critic (numba keys a kernel on its own file only). So the folder gains a hash of
+    the outside modules' sources (the same plug-ins share it; a changed plug-in gets a new one), and every
+    disk-cached dispatcher of gpmppi imported so far is pointed at it (numba's `enable_caching` reads the setting
+    anew); modules imported later read it themselves. Called once, when the critics' layout is built, before any
+    kernel that calls a critic is compiled or loaded."""
+    outside = sorted({getattr(f, "py_func", f).__module__ for f in functions}
+                     - {name for name in sys.modules if name == "gpmppi" or name.startswith("gpmppi.")})
+    if not outside:
+        return None
+    digest = hashlib.sha1()
+    for name in outside:
+        source = getattr(sys.modules.get(name), "__file__", None)
+        digest.update(name.encode() + b"\0" + (Path(source).read_bytes() if source else b""))
+    suffix = f"-critics-{digest.hexdigest()[:16]}"
+    folder = cache_folder()
+    if not folder.name.endswith(suffix):  # a child process (compile ahead) inherits the keyed folder already
+        folder = folder.with_name(folder.name + suffix)
+    os.environ["NUMBA_CACHE_DIR"] = numba_config.CACHE_DIR = str(folder)
+    for dispatcher in _disk_cached(name for name in list(sys.modules) if name.startswith("gpmppi")):
+        dispatcher.enable_caching()  # type: ignore[attr-defined]
+    return folder
 
 
 def cache_counts() -> Counts:

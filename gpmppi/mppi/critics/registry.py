@@ -26,6 +26,7 @@ from numba import njit
 
 from gpmppi.kernel_flags import FASTMATH
 from gpmppi.mppi.critics.base import LANE_TASK_KINDS, TASK_KINDS, W_GOAL_GEODESIC, Critic
+from gpmppi.mppi.kernel_cache import key_cache_to_outside_critics
 
 __all__ = [
     "ByKind", "CriticLayout", "States", "Sums", "build_by_kind", "build_states", "build_sums", "layout", "register",
@@ -111,6 +112,9 @@ def layout() -> CriticLayout:
     global _LAYOUT
     if _LAYOUT is None:
         _LAYOUT = CriticLayout(tuple(_REGISTERED))
+        # a critic from outside the package is not in the kernel cache's key: such a process caches apart
+        key_cache_to_outside_critics([f for c in _LAYOUT.critics
+                                      for f in (c.term, *((c.state.start, c.state.advance) if c.state else ()))])
     return _LAYOUT
 
 
