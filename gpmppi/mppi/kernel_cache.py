@@ -13,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import importlib
 import json
+import marshal
 import os
 import sys
 import time
@@ -75,14 +76,18 @@ def key_cache_to_outside_critics(functions: list[Callable]) -> Path | None:
     disk-cached dispatcher of gpmppi imported so far is pointed at it (numba's `enable_caching` reads the setting
     anew); modules imported later read it themselves. Called once, when the critics' layout is built, before any
     kernel that calls a critic is compiled or loaded."""
-    outside = sorted({getattr(f, "py_func", f).__module__ for f in functions}
-                     - {name for name in sys.modules if name == "gpmppi" or name.startswith("gpmppi.")})
+    python = [getattr(f, "py_func", f) for f in functions]
+    own = {name for name in sys.modules if name == "gpmppi" or name.startswith("gpmppi.")}
+    outside = sorted({f.__module__ for f in python} - own)
     if not outside:
         return None
     digest = hashlib.sha1()
-    for name in outside:
+    for name in outside:  # the modules' sources, and the functions' code (a `python -c` script has no file)
         source = getattr(sys.modules.get(name), "__file__", None)
         digest.update(name.encode() + b"\0" + (Path(source).read_bytes() if source else b""))
+    for f in python:
+        if f.__module__ not in own:
+            digest.update(marshal.dumps(f.__code__))
     suffix = f"-critics-{digest.hexdigest()[:16]}"
     folder = cache_folder()
     if not folder.name.endswith(suffix):  # a child process (compile ahead) inherits the keyed folder already
