@@ -82,11 +82,14 @@ def key_cache_to_outside_critics(functions: list[Callable]) -> Path | None:
     if not outside:
         return None
     digest = hashlib.sha1()
-    for name in outside:  # the modules' sources, and the functions' code (a `python -c` script has no file)
+    sourceless = set()
+    for name in outside:  # the modules' sources (not their paths: the same plug-in elsewhere shares the folder)
         source = getattr(sys.modules.get(name), "__file__", None)
         digest.update(name.encode() + b"\0" + (Path(source).read_bytes() if source else b""))
-    for f in python:
-        if f.__module__ not in own:
+        if not source:
+            sourceless.add(name)
+    for f in python:  # a module without a file (a `python -c` script): the functions' code
+        if f.__module__ in sourceless:
             digest.update(marshal.dumps(f.__code__))
     suffix = f"-critics-{digest.hexdigest()[:16]}"
     folder = cache_folder()
