@@ -212,6 +212,23 @@ def test_the_free_run_alarm_holds_through_a_straight_and_falls_on_a_corner_drive
     assert _drive(held, 1.0, 0.4, corner, rng)[-1] < 0.01  # a corner on known ground: known again
 
 
+def test_an_alarm_of_runs_that_asked_for_no_grip_is_not_held() -> None:
+    """Synthetic: on a straight the robot lags every trained response (as at the stack's start, where a stalled
+    planner's zero command braked the robot harder than the response's first order): the alarm rises, but none of the
+    window's runs asked for grip, so it is not held and falls once the straight is followed again, as without the
+    hold (held, it would stay up on any drive that never asks for grip: a circle's whole run was 'unknown' so)."""
+    rng = np.random.default_rng(4)
+    straight = np.tile([1.0, 0.05], (60, 1))
+    held, plain = FreeRunTest(_response([1.0, 0.8]), CAL), FreeRunTest(_response([1.0, 0.8]), CAL, 0.0)
+    for test in (held, plain):
+        assert max(_drive(test, 1.0, 0.4, straight[:30], rng)) < 0.5
+        test._at = None
+        lag = _drive(test, 0.5, 0.15, straight[:25], rng)  # lags on the straight: no grip asked
+        assert max(lag) > 0.5
+        test._at = None
+        assert _drive(test, 1.0, 0.4, straight, rng)[-1] < 0.01  # falls on the straight, held or not
+
+
 def test_glare_ice_flagged_in_a_corner_stays_unknown_on_the_straight_and_a_trained_corner_clears_it() -> None:
     """The physics plant through the filter: glare ice from the change on, a corner, 6 s of straight; then asphalt,
     and the next corner. The alarm raised in the first corner holds through the straight (without the hold it falls

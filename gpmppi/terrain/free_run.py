@@ -110,6 +110,8 @@ class FreeRunTest(WindowedTest):
         self.window_statistic = 0.0  # the plain window's statistic
         self.informative_statistic = 0.0  # the informative runs' window's (0 until it is whole)
         self._held = 0.0  # the last alarm's peak statistic, held until an informative window was driven since
+        # the demands of the plain window's runs (an alarm is held only where one of them asked for grip)
+        self._window_demand: deque[float] = deque(maxlen=self.calibration.window_steps)
 
     def observe(self, velocity: np.ndarray, command: np.ndarray, next_velocity: np.ndarray) -> float:
         """One step from measured (v [m/s], omega [rad/s]) `velocity` under `command` (v_ref, omega_ref) to
@@ -148,14 +150,20 @@ class FreeRunTest(WindowedTest):
         `informative_demand`; the statistic is the larger of the plain window's and the informative one's, or, after
         an alarm until a whole informative window has been driven since, the alarm's peak. P(unknown) after it."""
         self.window_statistic = self.statistic
-        if self.statistic >= self.calibration.enter:
-            # the plain window says unknown: "known again" must come from runs driven after it (a corner's runs
-            # after its slide mix its errors with small ones of opposite sign, and the light robot's mean of them
-            # fell below the level within its corner), so the informative window starts again, and the peak holds
+        self._window_demand.append(demand)
+        if self.statistic >= self.calibration.enter and max(self._window_demand) >= self.informative_demand:
+            # the plain window says unknown where the commands asked for grip: "known again" must come from runs
+            # driven after it (a corner's runs after its slide mix its errors with small ones of opposite sign, and
+            # the light robot's mean of them fell below the level within its corner), so the informative window
+            # starts again, and the peak holds. An alarm of runs that asked for no grip (the stack's start: a 0.6 s
+            # planner stall, the watchdog's zero at 1.07 m/s, the robot braking harder than the response's first
+            # order) is not held: on a circle, which never asks for 1.2 m/s^2, it held for the whole run
             self._held = max(self._held, self.statistic)
             self._informative.clear()
             self._informative_sum[:] = 0.0
             self.informative_statistic = 0.0
+            return self.probability
+        if self.statistic >= self.calibration.enter:
             return self.probability
         if demand >= self.informative_demand:
             self._informative.append(error)
