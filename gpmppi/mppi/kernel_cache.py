@@ -41,28 +41,24 @@ class KernelUse:
     compiled: dict[str, list[str]] = field(default_factory=dict)
 
 
-def _kernels() -> Iterator[tuple[str, Dispatcher]]:
-    """Every disk-cached numba kernel of gpmppi's imported modules, by `module:qualname`."""
+def _disk_cached() -> Iterator[object]:
+    """Every disk-cached numba dispatcher (CPU and CUDA) of gpmppi's imported modules."""
     seen: set[int] = set()
     for module_name, module in list(sys.modules.items()):
         if not (module_name == "gpmppi" or module_name.startswith("gpmppi.")) or module is None:
             continue
         for value in list(vars(module).values()):
-            if isinstance(value, Dispatcher) and id(value) not in seen and hasattr(value._cache, "_cache_file"):
-                seen.add(id(value))
-                yield f"{value.py_func.__module__}:{value.py_func.__qualname__}", value
-
-
-def _disk_cached(module_names: Iterator[str]) -> Iterator[object]:
-    """Every disk-cached numba dispatcher (CPU and CUDA) of the named imported modules."""
-    seen: set[int] = set()
-    for name in module_names:
-        module = sys.modules.get(name)
-        for value in list(vars(module).values()) if module is not None else ():
             if (id(value) not in seen and hasattr(value, "enable_caching")
                     and hasattr(getattr(value, "_cache", None), "_cache_file")):
                 seen.add(id(value))
                 yield value
+
+
+def _kernels() -> Iterator[tuple[str, Dispatcher]]:
+    """Every disk-cached numba kernel (CPU) of gpmppi's imported modules, by `module:qualname`."""
+    for value in _disk_cached():
+        if isinstance(value, Dispatcher):
+            yield f"{value.py_func.__module__}:{value.py_func.__qualname__}", value
 
 
 def key_cache_to_outside_critics(functions: list[Callable]) -> Path | None:
@@ -96,7 +92,7 @@ def key_cache_to_outside_critics(functions: list[Callable]) -> Path | None:
     if not folder.name.endswith(suffix):  # a child process (compile ahead) inherits the keyed folder already
         folder = folder.with_name(folder.name + suffix)
     os.environ["NUMBA_CACHE_DIR"] = numba_config.CACHE_DIR = str(folder)
-    for dispatcher in _disk_cached(name for name in list(sys.modules) if name.startswith("gpmppi")):
+    for dispatcher in _disk_cached():
         dispatcher.enable_caching()  # type: ignore[attr-defined]
     return folder
 

@@ -151,19 +151,18 @@ class FreeRunTest(WindowedTest):
         an alarm until a whole informative window has been driven since, the alarm's peak. P(unknown) after it."""
         self.window_statistic = self.statistic
         self._window_demand.append(demand)
-        if self.statistic >= self.calibration.enter and max(self._window_demand) >= self.informative_demand:
-            # the plain window says unknown where the commands asked for grip: "known again" must come from runs
+        if self.statistic >= self.calibration.enter:
+            # the plain window says unknown. Where its commands asked for grip, "known again" must come from runs
             # driven after it (a corner's runs after its slide mix its errors with small ones of opposite sign, and
             # the light robot's mean of them fell below the level within its corner), so the informative window
             # starts again, and the peak holds. An alarm of runs that asked for no grip (the stack's start: a 0.6 s
             # planner stall, the watchdog's zero at 1.07 m/s, the robot braking harder than the response's first
             # order) is not held: on a circle, which never asks for 1.2 m/s^2, it held for the whole run
-            self._held = max(self._held, self.statistic)
-            self._informative.clear()
-            self._informative_sum[:] = 0.0
-            self.informative_statistic = 0.0
-            return self.probability
-        if self.statistic >= self.calibration.enter:
+            if max(self._window_demand) >= self.informative_demand:
+                self._held = max(self._held, self.statistic)
+                self._informative.clear()
+                self._informative_sum[:] = 0.0
+                self.informative_statistic = 0.0
             return self.probability
         if demand >= self.informative_demand:
             self._informative.append(error)
