@@ -76,6 +76,7 @@ def _plain_mll_fit(x: np.ndarray, y: np.ndarray, iters: int = 300) -> Hyperparam
                            m.likelihood.noise.detach().numpy().reshape(t) * scale**2)
 
 
+@pytest.mark.slow(seconds=10)  # two hyperparameter fits and a model's training
 def test_fit_resists_overfitting_few_noisy_points() -> None:
     """40 points whose noise (sd 0.03) dwarfs the signal (amplitude 0.01; none at all on the second task). Plain
     maximum likelihood explains the noise as signal (noise variance collapses to a few % of the truth); the fit keeps

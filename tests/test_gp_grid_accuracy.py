@@ -122,6 +122,7 @@ def paper_model(paper_model_file: Path) -> GPModel:
     return GPModel.load(paper_model_file)
 
 
+@pytest.mark.slow(seconds=14)  # a model fit: the paper's GP (trained once a run, ~12 CPU s, by the first to ask)
 def test_paper_grid_within_one_percent_of_gpytorch_on_every_task(jackal: Path, paper_model: GPModel) -> None:
     hp = json.loads((jackal / "gp_hyperparameters.json").read_text())
     assert min(min(r) for r in hp["lengthscale"]) < 0.4  # the short tile omega lengthscale the sizing is for
@@ -161,6 +162,7 @@ def _worst_mean_error_per_std(model: GPModel, x: np.ndarray) -> dict[str, np.nda
                             / np.sqrt(ref_var)).max(0) for interpolation in ("simplex", "multilinear")}
 
 
+@pytest.mark.slow(seconds=2)  # a model fit: the paper's GP (trained once a run, ~12 CPU s, by the first to ask)
 def test_paper_grid_mean_is_within_a_third_std_of_the_exact_gp_at_real_inputs(
     jackal: Path, paper_model: GPModel
 ) -> None:

@@ -62,6 +62,7 @@ def paper_model(paper_model_file: Path) -> Path:
     return paper_model_file
 
 
+@pytest.mark.slow(seconds=2)  # a model fit: the paper's GP (trained once a run, ~12 CPU s, by the first to ask)
 def test_exact_predict_matches_gpytorch(jackal: Path, paper_model: Path, tmp_path: Path) -> None:
     pred = tmp_path / "pred.csv"
     result = runner.invoke(app, ["gp", "predict", str(jackal / "gp_test.csv"), "--profile", str(paper_model),
@@ -88,6 +89,7 @@ def _ours(task: str) -> str:
     return f"{terrain.lower()}_{out}"
 
 
+@pytest.mark.slow(seconds=2)  # a model fit: the paper's GP (trained once a run, ~12 CPU s, by the first to ask)
 def test_gp_beats_nominal_on_paper_test_set(jackal: Path, paper_model: Path, tmp_path: Path) -> None:
     header, test = _read(jackal / "gp_test.csv")
     for mode in ("exact", "grid"):

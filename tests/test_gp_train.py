@@ -76,6 +76,7 @@ def test_log_reader_recovers_the_series(runs, tmp_path: Path) -> None:
         assert len(np.unique(series[name]["seg"])) == 1
 
 
+@pytest.mark.slow(seconds=5)  # a model's training from a log
 def test_train_from_labeled_log_learns_the_residual(runs, tmp_path: Path) -> None:
     log = tmp_path / "d.mcap"
     write_log(log, runs, labels=True)

@@ -97,6 +97,7 @@ def test_the_steady_map_from_a_small_jackal_log_recovers_the_plant_fitted_one() 
         assert d[..., 0].mean() < 0.1 and d[..., 1].mean() < 0.2, terrain
 
 
+@pytest.mark.slow(seconds=5)  # two logs driven and calibrated
 def test_lane_holds_make_the_map_right_where_the_planner_drives() -> None:
     """The estimator needs the map right to about 1 mrad/s where the planner drives. 800 m a ground of the plain
     excitation (holds at random commands) leave the Jackal's asphalt map 9.7 mrad/s off on average at lane operating

@@ -81,6 +81,7 @@ def sim_results(tmp_path_factory: pytest.TempPathFactory) -> dict:
     return results
 
 
+@pytest.mark.slow(seconds=8)  # twelve plans under numba's CUDA simulator
 def test_cuda_simulator_matches_cpu_backend(sim_results: dict) -> None:
     assert len(sim_results) == 12
     for case, runs in sim_results.items():
@@ -179,6 +180,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.slow(seconds=6)  # plans under numba's CUDA simulator, in a process of its own
 def test_cpu_and_cuda_plans_agree() -> None:
     """CPU and CUDA score the same samples alike (to float32 rounding) and make the same update. On a real GPU
     (tests/cuda_mode.py) at the deployed size, S=1024, N=40, with the shipped model's grid table; under the simulator

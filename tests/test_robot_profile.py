@@ -207,6 +207,7 @@ def dataset(tmp_path_factory) -> Path:
 FAST = ["--points", "30", "--iters", "10", "--grid-nodes", "0"]
 
 
+@pytest.mark.slow(seconds=7)  # `gpmppi train` on a log
 def test_train_writes_a_whole_profile_from_a_log(dataset: Path, tmp_path: Path) -> None:
     out = tmp_path / "p.npz"
     result = runner.invoke(app, ["train", str(dataset), "-o", str(out), *FAST])
@@ -226,6 +227,7 @@ def test_train_writes_a_whole_profile_from_a_log(dataset: Path, tmp_path: Path) 
     assert [c["terrain"] for c in coverage] == GROUNDS and all(c["held_commands"] > 0 for c in coverage)
 
 
+@pytest.mark.slow(seconds=7)  # `gpmppi train` on three logs
 def test_train_fits_one_profile_from_several_logs_one_ground_each(dataset: Path, tmp_path: Path) -> None:
     """A calibration drive records one log per ground (and per resumed run): train takes them all at once, and no
     one-step pair spans two logs (each log's series keeps its own segments)."""

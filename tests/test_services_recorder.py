@@ -208,6 +208,7 @@ def test_hostile_payloads_go_to_quarantine_and_every_channel_validates(tmp_path:
     assert not [1 for topic, _, _ in raw if topic == "gpmppi/r1/task"]
 
 
+@pytest.mark.slow(seconds=5)  # 5000 messages a second for a while
 @pytest.mark.exclusive  # alone: the publisher's rate is a claim about this machine, not about a test beside it
 def test_recorder_loses_nothing_at_5000_messages_per_second(tmp_path: Path) -> None:
     """Published vs recorded counts at >= 5000 msg/s for 2 s over loopback (numbers printed; the machine may be

@@ -62,6 +62,7 @@ def test_malformed_table_is_one_line(tmp_path: Path) -> None:
     assert result.exit_code == 2 and "Traceback" not in result.output
 
 
+@pytest.mark.slow(seconds=15)  # a model fit: the paper's GP (trained once a run, ~12 CPU s, by the first to ask)
 def test_real_jackal_windows_pick_the_true_ground_above_chance(
     jackal: Path, paper_model_file: Path, tmp_path: Path
 ) -> None:
