@@ -203,6 +203,12 @@ def _print_profile(model: GPModel, report, coverage: list[GroundCoverage], outpu
                           for t, g in zip(model.terrains, model.calibration.command_gain, strict=True))
         console.print(f"robot profile of {model.robot!r}: terrain calibration of {list(model.terrains)}; "
                       f"command-change gains (v, omega): {gains}")
+        logs = (model.fit_report or {}).get("logs", {})
+        if logs.get("calibration_only"):
+            holds = ", ".join(f"{t} {n} ({logs['calibration_only_holds'][t]} from them)"
+                              for t, n in logs["calibration_holds"].items())
+            console.print(f"terrain calibration from the training logs and {len(logs['calibration_only'])} "
+                          f"calibration-only log(s) (not in the GP's data); settled held commands: {holds}")
     if model.novelty is not None:
         n = model.novelty
         console.print(f"novelty test: P(unknown ground) = 0.5 at {n.enter:.2f} spreads of the windowed mean "
@@ -255,26 +261,41 @@ def register(app: typer.Typer) -> None:
         min_coverage: Annotated[float, typer.Option(
             min=0.0, max=1.0, help="refuse a ground whose commands cover a smaller share of the planner's range "
                                    f"(cells with {MIN_PER_CELL} samples or more)")] = MIN_COVERED,
+        calibration_log: Annotated[list[Path] | None, typer.Option(
+            "--calibration-log",
+            help="MCAP log for the terrain estimator's calibration only (steady map, command-change gains, rate), "
+                 "never the GP's or the nominal model's training data; e.g. a drive with lane holds (`gpmppi dataset "
+                 "--lane-holds`); repeat for several")] = None,
         force: Annotated[bool, typer.Option("--force", help="replace an existing --output file")] = False,
     ) -> None:
         """Fit a robot profile from a log: the per-terrain residual GPs and the terrain calibration."""
         from gpmppi.gp.grid_table import build_grid
         from gpmppi.gp.train import train_model
-        from gpmppi.terrain.log_calibration import calibrate_from_runs, calibration_holds, novelty_from_runs
-        from tools.profile_fit import train_command
+        from gpmppi.terrain.log_calibration import (
+            calibrate_from_runs,
+            calibration_holds,
+            novelty_from_runs,
+            settled_holds,
+        )
+        from tools.profile_fit import calibration_log_runs, check_calibration_data, train_command
 
         console = Console()
         try:
             if not 0.0 <= (holdout or 0.0) < 1.0:
                 raise DataError(f"--holdout must be in [0, 1), got {holdout}")
+            check_calibration_data(calibration_log or [], data)
             sets, th, ed, held, runs = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
+            calibration_only = calibration_log_runs(calibration_log or [], data, list(sets), terrain, dt, robot)
+            # the calibration's data: the training logs' runs, then the calibration logs' (the GP never sees these)
+            calibration_runs = None if runs is None else {
+                t: runs.get(t, []) + calibration_only.get(t, []) for t in sets}
             test_sets = None if test_data is None else _test_sets(test_data, sets, terrain)
             coverage = [ground_coverage(t, s.x, held[t]) for t, s in sets.items()]
             refused = [r for c in coverage if (r := c.problem(min_samples, min_coverage)) is not None]
             if refused:
                 raise DataError("; ".join(refused))
-            if runs is not None:  # before the GP's fit: a log that cannot calibrate is refused at once
-                calibration_holds(runs, list(sets))
+            if calibration_runs is not None:  # before the GP's fit: a log that cannot calibrate is refused at once
+                holds = calibration_holds(calibration_runs, list(sets))
             # given hyperparameters (the paper's procedure) condition on all the data, as the paper did
             hold = holdout if holdout is not None else (0.0 if test_sets is not None or hyperparameters else 0.2)
             model, report = train_model(
@@ -292,11 +313,16 @@ def register(app: typer.Typer) -> None:
                 {"terrain": c.terrain, "samples": c.samples, "commands_covered": c.command_covered,
                  "states_covered": c.state_covered, "held_commands": c.held} for c in coverage]}
             model.made_by = train_command([str(p) for p in data], str(output), robot, terrain, points, iters, seed,
-                                          holdout)
-            if runs is not None:
-                model.calibration = calibrate_from_runs(model, runs)
+                                          holdout, [str(p) for p in calibration_log or []])
+            if calibration_runs is not None:
+                model.fit_report["logs"] = {  # which logs fed what
+                    "training": [str(p) for p in data], "calibration_only": [str(p) for p in calibration_log or []],
+                    "calibration_holds": {t: len(h) for t, h in holds.items()},
+                    "calibration_only_holds": {t: sum(len(settled_holds(r)) for r in calibration_only.get(t, []))
+                                               for t in holds}}
+                model.calibration = calibrate_from_runs(model, calibration_runs)
                 try:
-                    model.novelty = novelty_from_runs(model, runs)
+                    model.novelty = novelty_from_runs(model, calibration_runs)
                 except ValueError as e:  # too short to calibrate: the profile works with the test's stated default
                     Console(stderr=True, soft_wrap=True).print(f"[yellow]warning:[/yellow] {e}; the profile's novelty "
                                                                "test uses its stated default", highlight=False)
