@@ -272,9 +272,11 @@ class PlannerCycle:
         if active != self.unknown_active:
             self.unknown_active = active
             if active:
+                c = self.config
+                goal = "" if c.unknown_goal_speed is None else (
+                    f", goal approached at {c.unknown_goal_speed:g} m/s braking {c.unknown_goal_decel:g} m/s^2")
                 self._event("caution_on", "warning", "ground unknown: planning with caution (lane speed x "
-                            f"{self.config.unknown_speed_scale:g}, extra residual std "
-                            f"{list(self.config.unknown_residual_std)})")
+                            f"{c.unknown_speed_scale:g}{goal}, extra residual std {list(c.unknown_residual_std)})")
             else:
                 self._event("caution_off", "info", "ground known again: planning without the caution")
         if hasattr(self.planner, "extra_variance"):
