@@ -10,9 +10,11 @@ nothing else (the robot keeps driving the task):
   ground on sand and the grounds made for the tests;
 - a lane's speed target is scaled by `unknown_speed_scale`: slower driving leaves each step's misfit less distance
   to act over;
-- a goal task's commanded speed is bounded: `unknown_goal_speed` at the goal's tolerance, rising farther out as
-  braking at `unknown_goal_decel` allows. On glare ice (grip 0.12 g) the robot came to the goal too fast to turn
-  into it, circled it and slid into an obstacle; the bound lets it turn in, and costs time only near the goal.
+- where the ground is unknown by its grip (the free-run channel: the robot slides), a goal task's commanded speed is
+  bounded: `unknown_goal_speed` at the goal's tolerance, rising farther out as braking at `unknown_goal_decel`
+  allows. On glare ice (grip 0.12 g) the robot came to the goal too fast to turn into it, circled it and slid into
+  an obstacle; the bound lets it turn in, and costs time only near the goal. A ground that drags (sand, flagged by
+  the one-step channel) still turns: there the goal keeps its speed.
 
 Pure: a task and settings in, the task to plan for and the variance out. `PlannerCycle` applies them.
 """
@@ -36,19 +38,21 @@ class CautionConfig(BaseModel):
         (0.03, 0.03), description="extra one-step residual std (v [m/s], omega [rad/s]) the chance constraints "
         "propagate while the ground is unknown (added as variance to the GP's, every step of the horizon)")
     unknown_goal_speed: float | None = Field(
-        0.6, gt=0, description="goal tasks, while the ground is unknown: the commanded speed is at most this at the "
-        "goal's tolerance [m/s], and farther out at most what braking at `unknown_goal_decel` comes down to it from "
-        "(None: no bound)")
+        0.6, gt=0, description="goal tasks, while the ground is unknown by its grip (the free-run channel): the "
+        "commanded speed is at most this at the goal's tolerance [m/s], and farther out at most what braking at "
+        "`unknown_goal_decel` comes down to it from (None: no bound)")
     unknown_goal_decel: float = Field(
-        0.5, ge=0, description="goal tasks, while the ground is unknown: the braking [m/s^2] the speed bound rises "
-        "by with the distance to the goal (0: the bound is `unknown_goal_speed` everywhere)")
+        0.5, ge=0, description="goal tasks, while the ground is unknown by its grip: the braking [m/s^2] the speed "
+        "bound rises by with the distance to the goal (0: the bound is `unknown_goal_speed` everywhere)")
 
 
-def cautious_task(task: Task, config: CautionConfig) -> Task:
+def cautious_task(task: Task, config: CautionConfig, grip: bool = False) -> Task:
     """The task to plan for while the ground is unknown, as its kind says (`cautious`): a lane at the scaled speed
-    target; a goal approached at the bounded speed (and its obstacles inflated by the extra variance)."""
+    target; a goal approached at the bounded speed where the ground is unknown by its grip (`grip`: the free-run
+    channel said so), else unchanged (its care is then the obstacles inflated by the extra variance)."""
     goal = config.unknown_goal_speed
-    return task.cautious(config.unknown_speed_scale, None if goal is None else (goal, config.unknown_goal_decel))
+    approach = None if goal is None or not grip else (goal, config.unknown_goal_decel)
+    return task.cautious(config.unknown_speed_scale, approach)
 
 
 def extra_variance(config: CautionConfig) -> tuple[float, float]:
