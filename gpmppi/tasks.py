@@ -6,7 +6,7 @@ outside the kinds asks which kind a task is:
 * `kind`: the kind's name (a task message's `kind`; the message codecs are keyed by it, `services/codec/convert.py`);
 * `outline()`: what a view draws of it (`TaskOutline`: a lane, circles, a goal, one line of text);
 * `start_problems(start, robot_radius)`: why a run cannot start at `start` (a scenario's feasibility);
-* `cautious(speed_scale)`: the task while the ground is unknown (`gpmppi.mppi.caution`);
+* `cautious(speed_scale, approach)`: the task while the ground is unknown (`gpmppi.mppi.caution`);
 * `with_costmap(costmap, replace_own)`: the task in a world with this occupancy grid (`PlannerCycle.on_costmap`).
 
 The planner's part of a kind is its `gpmppi.mppi.task_kinds.TaskKind`, the evaluation's its
@@ -75,8 +75,8 @@ class LaneTask:
             return [f"start is {d:.2f} m from the lane centre, outside the half-width {self.half_width:g} m"]
         return []
 
-    def cautious(self, speed_scale: float) -> LaneTask:
-        """The lane at the scaled speed target."""
+    def cautious(self, speed_scale: float, approach: tuple[float, float] | None = None) -> LaneTask:
+        """The lane at the scaled speed target (`approach` is a goal's)."""
         return dataclasses.replace(self, speed_target=self.speed_target * speed_scale)
 
     def with_costmap(self, costmap: Costmap | None, replace_own: bool = False) -> LaneTask:
@@ -87,12 +87,16 @@ class LaneTask:
 @dataclass(frozen=True)
 class GoalTask:
     """Reach `goal` (2,) within `tolerance` [m] avoiding circles `obstacles` (K, 3) = [x, y, r] and the lethal cells
-    of `costmap` (an occupancy grid, or None)."""
+    of `costmap` (an occupancy grid, or None). With `approach_speed` [m/s] set, the commanded speed is bounded by
+    the speed from which braking at `approach_decel` [m/s^2] comes down to `approach_speed` at the goal's tolerance
+    (`speed_bound`; the caution on unknown ground sets them: `cautious`)."""
 
     goal: np.ndarray
     tolerance: float = 0.5
     obstacles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     costmap: Costmap | None = None
+    approach_speed: float | None = None
+    approach_decel: float = 0.0
 
     kind: ClassVar[str] = "goal"
 
@@ -105,6 +109,10 @@ class GoalTask:
             raise ValueError("obstacles must be finite [x, y, r] rows with r > 0")
         if not (np.isfinite(self.tolerance) and self.tolerance > 0):
             raise ValueError(f"goal tolerance must be > 0, got {self.tolerance}")
+        if self.approach_speed is not None and not (np.isfinite(self.approach_speed) and self.approach_speed > 0):
+            raise ValueError(f"goal approach_speed must be a positive number of m/s or None, got {self.approach_speed}")
+        if not (np.isfinite(self.approach_decel) and self.approach_decel >= 0):
+            raise ValueError(f"goal approach_decel must be >= 0 m/s^2, got {self.approach_decel}")
         if self.costmap is not None and not isinstance(self.costmap, Costmap):
             raise ValueError(f"costmap must be a gpmppi.costmap.Costmap or None, got {type(self.costmap).__name__}")
         object.__setattr__(self, "goal", g)
@@ -131,9 +139,21 @@ class GoalTask:
                 problems.append(f"goal ({self.goal[0]:g}, {self.goal[1]:g}) lies wholly in the map's obstacles")
         return problems
 
-    def cautious(self, speed_scale: float) -> GoalTask:
-        """A goal unchanged: its care is the inflated obstacles."""
-        return self
+    def cautious(self, speed_scale: float, approach: tuple[float, float] | None = None) -> GoalTask:
+        """The goal approached at most at `approach` = (speed [m/s] at the tolerance, braking [m/s^2] before it)
+        (None: unchanged), so that the robot can still turn into the goal on ground whose grip no trained ground
+        tells (docs/new_ground.md)."""
+        if approach is None:
+            return self
+        return dataclasses.replace(self, approach_speed=float(approach[0]), approach_decel=float(approach[1]))
+
+    def speed_bound(self, position: np.ndarray) -> float | None:
+        """The commanded speed's bound [m/s] at `position` (2,): `sqrt(approach_speed^2 + 2 approach_decel
+        (d - tolerance))` at distance d from the goal (`approach_speed` within the tolerance); None without one."""
+        if self.approach_speed is None:
+            return None
+        d = float(np.hypot(position[0] - self.goal[0], position[1] - self.goal[1]))
+        return float(np.sqrt(self.approach_speed ** 2 + 2.0 * self.approach_decel * max(d - self.tolerance, 0.0)))
 
     def with_costmap(self, costmap: Costmap | None, replace_own: bool = False) -> GoalTask:
         """The goal among `costmap`'s obstacles (None: none but its circles). A task that brought its own grid keeps it,

@@ -265,7 +265,8 @@ class PlannerLoop:
             if tuple(w.names) == self.swap.loading:  # for the model loading: they wait for it (not refused)
                 self.cycle.weights_pending(now)
             else:
-                self.cycle.on_weights(w.weights, now, names=w.names, unknown_active=w.unknown_active)
+                self.cycle.on_weights(w.weights, now, names=w.names, unknown_active=w.unknown_active,
+                                      unknown_channel=w.unknown_channel)
 
     def due(self, now: float) -> State | None:
         """The state to plan from now: the newest on a new one (trigger 'state') or at the rate's tick (trigger

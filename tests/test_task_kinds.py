@@ -38,7 +38,7 @@ class WaypointTask:
     def start_problems(self, start: np.ndarray, robot_radius: float) -> list[str]:
         return ["start is the waypoint"] if np.allclose(start[:2], self.point) else []
 
-    def cautious(self, speed_scale: float) -> WaypointTask:
+    def cautious(self, speed_scale: float, approach: tuple[float, float] | None = None) -> WaypointTask:
         return self
 
     def with_costmap(self, costmap: object, replace_own: bool = False) -> WaypointTask:

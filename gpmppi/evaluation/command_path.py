@@ -110,7 +110,8 @@ class CommandPath:
             self.weights_ok = update.ok
             self.solves.append((now, update.stamp_ns, update.weights.copy(), update.ok))
             self.unknown.append((now, update.unknown, update.unknown_active))
-            planner.on_weights(update.weights, now, unknown_active=update.unknown_active)
+            planner.on_weights(update.weights, now, unknown_active=update.unknown_active,
+                               unknown_channel=update.unknown_channel)
 
     def _next(self, now: float, end: float) -> float:
         t = end

@@ -126,6 +126,8 @@ class PlannerCycle:
         self.weights_stale = False
         self.weights_prior = True
         self.unknown_active = False  # the terrain service says the ground is none of the trained ones
+        # ... and by its grip: the free-run channel said so while it lasts (goal tasks are approached slower)
+        self.unknown_grip = False
         self.previous: tuple[int, np.ndarray] | None = None  # the last state planned from: (stamp, array)
         self._planned_ns: int | None = None  # the stamp of the last state a plan was made from (its warm start's) [ns]
         self.last_plan_s = 0.0
@@ -234,10 +236,11 @@ class PlannerCycle:
         return task.with_costmap(self.costmap, replace_own)
 
     def on_weights(self, weights: Sequence[float], now: float, names: Sequence[str] | None = None,
-                   unknown_active: bool = False) -> bool:
+                   unknown_active: bool = False, unknown_channel: str = "") -> bool:
         """Take new terrain weights (in the model's order, or by `names`); False when refused (the previous stay).
         `unknown_active`: the ground is none of the trained ones (`TerrainWeights.unknown_active`): the plans are
-        careful while it lasts (`CautionConfig`).
+        careful while it lasts (`CautionConfig`); `unknown_channel` (`TerrainWeights.unknown_channel`): `free-run`
+        says no trained ground explains its grip, which makes the caution bound a goal task's approach speed.
 
         The table collapse for them is done now: new weights arrive between states (terrain solves after each
         command), so it stays off the next state's path to its command."""
@@ -262,19 +265,24 @@ class PlannerCycle:
             self._event("weights_back", "info",
                         f"terrain weights arrive again after {now - (self.weights_time or now):.1f} s")
         self.weights = w
-        self._set_unknown(unknown_active)
+        self._set_unknown(unknown_active, unknown_channel)
         self.weights_time, self.weights_stale = now, False
         self.weights_prior = bool(np.allclose(w, self.prior, rtol=0.0, atol=1e-9))
         return True
 
-    def _set_unknown(self, active: bool) -> None:
+    def _set_unknown(self, active: bool, channel: str = "") -> None:
         active = bool(active) and self.config.unknown_caution
+        # a loss of grip, once seen while the alarm lasts, is kept to its end: the alarm is held across the straights
+        # whose runs cannot show grip, where the larger probability may be the one-step channel's
+        self.unknown_grip = active and (self.unknown_grip or channel == "free-run")
         if active != self.unknown_active:
             self.unknown_active = active
             if active:
+                c = self.config
+                goal = "" if c.unknown_goal_speed is None or not self.unknown_grip else (
+                    f", goal approached at {c.unknown_goal_speed:g} m/s braking {c.unknown_goal_decel:g} m/s^2")
                 self._event("caution_on", "warning", "ground unknown: planning with caution (lane speed x "
-                            f"{self.config.unknown_speed_scale:g}, extra residual std "
-                            f"{list(self.config.unknown_residual_std)})")
+                            f"{c.unknown_speed_scale:g}{goal}, extra residual std {list(c.unknown_residual_std)})")
             else:
                 self._event("caution_off", "info", "ground known again: planning without the caution")
         if hasattr(self.planner, "extra_variance"):
@@ -364,7 +372,7 @@ class PlannerCycle:
         delay_s = max(0.0, age_s) + self.last_plan_s + c.actuation_delay_s if c.compensate_delay else 0.0
         try:
             t_plan = self.clock()
-            task = cautious_task(self.task, self.config) if self.unknown_active else self.task
+            task = cautious_task(self.task, self.config, self.unknown_grip) if self.unknown_active else self.task
             result = self.planner.plan(x, task, self.weights, state_cov=cov, delay_s=delay_s)
             self.last_plan_s = self.clock() - t_plan
             self._planned_ns = stamp_ns

@@ -256,7 +256,8 @@ class Planner:
 
         task_bundle = kind.task_bundle(task, bounds, x)
         n_xy = min(c.sample_output, c.samples)
-        sampling = self._sampling(x, nominal, kind.noise_std)
+        u_hi = self._task_u_hi(kind, task, x)
+        sampling = self._sampling(x, nominal, kind.noise_std, u_hi)
         cost = kind.cost
         if ahead is not None:  # the per-critic scorer compiled here while the child compiles the rollout kernel
             backends.critic_costs(model, task_bundle, sampling, cost)
@@ -274,12 +275,12 @@ class Planner:
         new_u, sample_w = backends.softmax_update(nominal, eps, costs, temperature)
         effective_samples = backends.effective_sample_size(sample_w)
         flags: dict[str, int] = {"all_costs_infinite": int(not np.any(np.isfinite(costs)))}
-        new_u = self._shape_sequence(new_u, x)
+        new_u = self._shape_sequence(new_u, x, u_hi)
         t3 = time.perf_counter()
 
         states, covs, _ = self._propagate(x, new_u, model, cov0)
         out_bounds, clamped_after = self._bounds(kind, task, states, covs)
-        nominal_sampling = self._sampling(x, new_u, np.zeros(2))
+        nominal_sampling = self._sampling(x, new_u, np.zeros(2), u_hi)
         # the nominal sequence scored once: each critic's share, whose sum is its cost (the kernels add the same
         # terms step by step; tests/test_critics.py compares the sum with the kernel's cost of this sequence)
         critic_costs = backends.critic_costs(model, task_bundle, nominal_sampling, cost)
@@ -349,9 +350,19 @@ class Planner:
                 self._sampling(x, self._nominal, kind.noise_std).args(), kind.cost.args(), out.args())
         return compile_ahead.start(args)
 
-    def _sampling(self, x: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray) -> SamplingBundle:
+    def _task_u_hi(self, kind: TaskKind, task: Task, x: np.ndarray) -> np.ndarray:
+        """The upper control limits of this task's plans from `x`: the planner's, the speed bounded by the task's
+        own there (`TaskKind.speed_limit`; never below the lower limit)."""
+        cap = kind.speed_limit(task, x)
+        if cap is None or cap >= self._u_hi[0]:
+            return self._u_hi
+        return np.array([max(float(cap), self._u_lo[0]), self._u_hi[1]])
+
+    def _sampling(self, x: np.ndarray, nominal: np.ndarray, noise_std: np.ndarray,
+                  u_hi: np.ndarray | None = None) -> SamplingBundle:
         c = self.config
-        return SamplingBundle(x0=x, nominal=nominal, noise_std=noise_std, u_lo=self._u_lo, u_hi=self._u_hi, dt=c.dt,
+        u_hi = self._u_hi if u_hi is None else u_hi
+        return SamplingBundle(x0=x, nominal=nominal, noise_std=noise_std, u_lo=self._u_lo, u_hi=u_hi, dt=c.dt,
                               seed=c.seed, iteration=self._iteration, noise_memory=c.noise_memory,
                               u_prev=np.ascontiguousarray(self._command_in_effect(x), dtype=np.float64),
                               rate_step=self._rate_step)
@@ -364,7 +375,7 @@ class Planner:
             return c.temperature
         return temperature_for_effective_samples(costs, c.effective_sample_fraction * c.samples, c.temperature)
 
-    def _shape_sequence(self, u: np.ndarray, x: np.ndarray) -> np.ndarray:
+    def _shape_sequence(self, u: np.ndarray, x: np.ndarray, u_hi: np.ndarray) -> np.ndarray:
         """Optional smoothing, then the first command within the rate limits of the command in effect, then the
         control limits.
 
@@ -376,4 +387,4 @@ class Planner:
             prev = self._command_in_effect(x)
             u = u.copy()
             u[0] = np.clip(u[0], prev - self._rate_step, prev + self._rate_step)
-        return np.ascontiguousarray(np.clip(u, self._u_lo, self._u_hi))
+        return np.ascontiguousarray(np.clip(u, self._u_lo, u_hi))

@@ -8,6 +8,7 @@ been given a task of. Each owns, for its tasks:
   obstacle radii) and the name of the flag that counts their clamps (`clamp_flag`);
 * the kernels' task input (`task_bundle`, with what it caches per task: the lane lookup, the goal field);
 * one number a step of its bounds, for a plan message (`per_step`);
+* a bound on its commanded speed below the planner's (`speed_limit`: a goal's while the ground is unknown);
 * its critic chain: the registered critics of a kernel task kind (`critics`, a key of `critics.base.TASK_KINDS`), as
   the cost bundle the kernels read (`cost`), and the sampling noise of its rollouts (`noise_std`).
 
@@ -74,6 +75,11 @@ class TaskKind(ABC):
         """One number a step (N+1,) [m] of `bounds` (`bounds`' result) for a plan message (`Plan.tightened`): here the
         bounds themselves (a lane's tightened half-widths)."""
         return np.asarray(bounds, dtype=np.float64).reshape(-1)
+
+    def speed_limit(self, task: object, x: np.ndarray) -> float | None:
+        """A bound [m/s] on the commanded speed of this task's plans from state `x` (None: the planner's
+        `v_limits` only)."""
+        return None
 
     def reach(self) -> float:
         """How far [m] one horizon can drive at the largest speed."""
@@ -204,6 +210,10 @@ class GoalKind(TaskKind):
         bounds = np.asarray(bounds, dtype=np.float64)
         radii = np.concatenate([task.obstacles[:, 2], np.zeros(bounds.shape[1] - task.obstacles.shape[0])])
         return (bounds - radii[None, :]).max(axis=1) if radii.size else np.zeros(bounds.shape[0])
+
+    def speed_limit(self, task: GoalTask, x: np.ndarray) -> float | None:
+        """The task's approach bound where `x` is (`GoalTask.speed_bound`; the caution on unknown ground sets it)."""
+        return task.speed_bound(x[:2])
 
     def prepare(self, task: GoalTask, x: np.ndarray) -> None:
         """A grid's kernel arrays (its distance transform) and the goal field of the task's scene."""
