@@ -122,6 +122,7 @@ def test_weights_held_for_a_second_plan_collapse_the_whole_table_once(model) -> 
 
 def test_new_weights_make_every_slab_stale_and_prepare_collapses_those_the_last_plan_read(model) -> None:
     planner = Planner(PlannerConfig(backend="cpu", samples=128, horizon=10), model)
+    planner.terrain.read_history = 1  # the last plan's reads alone (the history: the next test)
     sc = circle_lane()
     planner.plan(sc.start, sc.task, np.array([0.2, 0.3, 0.5]))
     lazy = planner.terrain.grid["lazy"]
