@@ -8,8 +8,9 @@
   collapsed with the weights, or the exact GP's training data;
 * the collapse of the grid table when the weights change: whole at once (`table_collapse="whole"`), or lazily
   (the default): the weights' version moves on, every slab goes stale, and the readers collapse the slabs they
-  read (`gp_table.ensure_block`); `set_weights(w, ahead=True)` collapses the slabs the last plan read at once
-  (the service's `prepare`, between states), and a second plan with the same weights collapses the rest;
+  read (`gp_table.ensure_block`); `set_weights(w, ahead=True)` collapses at once the slabs the plans of the last
+  few weight versions read (the service's `prepare`, between states), and a second plan with the same weights
+  collapses the rest;
 * the EDD5 terrain (the configured one, or the top weight) and the weighted lateral slip.
 
 `set_weights(w)` hands the kernels their `ModelBundle` for those weights. The planner calls `planned()` once a plan
@@ -122,7 +123,7 @@ class TerrainTable:
 
     def set_weights(self, w: np.ndarray, ahead: bool = False) -> ModelBundle:
         """The kernels' model for the (checked) weights `w`: collapse the grid table when they changed (lazily: mark
-        it stale, `gp_table.ensure_block`; `ahead`: collapse the slabs the last plan read now), pick the EDD5
+        it stale, `gp_table.ensure_block`; `ahead`: collapse the slabs the last plans read now), pick the EDD5
         terrain."""
         changed = self.weights is None or not np.array_equal(w, self.weights)
         if self._table_full is not None and self.lazy_collapse:
