@@ -10,12 +10,14 @@ from gpmppi.gp.model_file import load_default_model
 from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.gp_table import (
+    cell_stamps,
     collapse_into,
     collapse_table,
     collapse_weights,
     ensure_block,
     lazy_state,
     rollout_order,
+    slab_versions,
     terrain_rows,
 )
 from gpmppi.mppi.planner import Planner
@@ -64,9 +66,9 @@ def test_the_slabs_a_plan_made_current_equal_the_whole_collapse_and_the_rest_wer
     planner, _ = _closed_loop(model, steps=3)
     grid = planner.terrain.grid
     lazy, dims = grid["lazy"], grid["dims"]
-    current = np.flatnonzero(np.abs(lazy[1:]) == lazy[0])
+    current = np.flatnonzero(slab_versions(lazy) == lazy[0])
     # the rollouts reach a small part of the table: that is the saving
-    assert 0 < current.size < 0.5 * (lazy.size - 1)
+    assert 0 < current.size < 0.5 * slab_versions(lazy).size
     whole = np.empty_like(grid["table"])
     collapse_into(grid["table_src"], grid["collapse_w"], whole)
     rows = (current[:, None] * dims[3] + np.arange(dims[3])[None, :]).ravel()
@@ -120,41 +122,93 @@ def test_weights_held_for_a_second_plan_collapse_the_whole_table_once(model) -> 
     assert lazy[0] > np.max(lazy[1:]) - 1 and lazy[0] != 0  # a new version, above every slab's
 
 
+def _slabs_of_cells(cells: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """The slabs the cells `cells` (a mask over the cell stamps) read: each cell's eight, one up each outer axis."""
+    shape = tuple(int(d) for d in dims[:3])
+    m = cells.reshape(shape)
+    out = m.copy()
+    for d0 in (0, 1):
+        for d1 in (0, 1):
+            for d2 in (0, 1):
+                out[d0:, d1:, d2:] |= m[: shape[0] - d0, : shape[1] - d1, : shape[2] - d2]
+    return out.ravel()
+
+
+def _current_rows_match_the_whole_collapse(planner: Planner, slabs: np.ndarray) -> None:
+    grid = planner.terrain.grid
+    whole = np.empty_like(grid["table"])
+    collapse_into(grid["table_src"], grid["collapse_w"], whole)
+    dim3 = grid["dims"][3]
+    rows = (np.flatnonzero(slabs)[:, None] * dim3 + np.arange(dim3)).ravel()
+    np.testing.assert_array_equal(grid["table"][rows], whole[rows])
+
+
 def test_new_weights_make_every_slab_stale_and_prepare_collapses_those_the_last_plan_read(model) -> None:
     planner = Planner(PlannerConfig(backend="cpu", samples=128, horizon=10), model)
+    planner.terrain.read_history = 1  # the last plan's reads alone (the history: the next test)
     sc = circle_lane()
     planner.plan(sc.start, sc.task, np.array([0.2, 0.3, 0.5]))
-    lazy = planner.terrain.grid["lazy"]
+    lazy, dims = planner.terrain.grid["lazy"], planner.terrain.grid["dims"]
+    slabs, cells = slab_versions(lazy), cell_stamps(lazy)
+    assert slabs.size == cells.size == lazy.size // 2
     before = lazy[0]
     planner.terrain.set_weights(np.array([0.25, 0.3, 0.45]))  # as `plan` does: nothing collapsed yet
-    assert lazy[0] == before + 1 and not np.any(lazy[1:] == lazy[0])
+    assert lazy[0] == before + 1 and not np.any(slabs == lazy[0]) and not np.any(np.abs(cells) == lazy[0])
     planner.plan(sc.start, sc.task, np.array([0.25, 0.3, 0.45]))
-    read = lazy[1:] == lazy[0]
+    read_cells = cells == lazy[0]
+    read = _slabs_of_cells(read_cells, dims)
+    # the plan's lookups made current exactly the slabs of the cells they read
+    np.testing.assert_array_equal(slabs == lazy[0], read)
     before = lazy[0]
     planner.prepare(np.array([0.3, 0.3, 0.4]))  # as the planner service does when new weights arrive
     assert lazy[0] == before + 1
-    # exactly the slabs the last plan read, current and not read yet (`-version`)
-    np.testing.assert_array_equal(lazy[1:] == -lazy[0], read)
-    assert not np.any(lazy[1:] == lazy[0])
-    whole = np.empty_like(planner.terrain.grid["table"])
-    collapse_into(planner.terrain.grid["table_src"], planner.terrain.grid["collapse_w"], whole)
-    dim3 = planner.terrain.grid["dims"][3]
-    rows = (np.flatnonzero(read)[:, None] * dim3 + np.arange(dim3)).ravel()
-    np.testing.assert_array_equal(planner.terrain.grid["table"][rows], whole[rows])
+    # exactly the slabs the last plan read are current, and every cell whose eight they are: current, not read yet
+    np.testing.assert_array_equal(slabs == lazy[0], read)
+    ready = cells == -lazy[0]
+    assert not np.any(cells == lazy[0]) and np.all(ready[read_cells])
+    np.testing.assert_array_equal(read[_slabs_of_cells(ready, dims)], True)
+    _current_rows_match_the_whole_collapse(planner, read)
     planner.prepare(np.array([0.3, 0.3, 0.4]))  # the same weights: nothing to do
     assert lazy[0] == before + 1
-    # the next plan reads some of the slabs collapsed ahead (marked read) and collapses others; the next collapse
-    # ahead covers exactly what it read: the slabs collapsed ahead and not read go stale (the set does not grow)
+    # the next plan reads some of the cells made current ahead (stamped read) and makes others current; the next
+    # collapse ahead covers exactly what it read: the slabs collapsed ahead and not read go stale (no growth)
     x = kinematic_step(sc.start, np.array([1.0, 0.8]), 0.5)
     planner.plan(x, sc.task, np.array([0.3, 0.3, 0.4]))
-    read = lazy[1:] == lazy[0]
-    unread = lazy[1:] == -lazy[0]
-    assert read.any() and unread.any()
+    read_cells = cells == lazy[0]
+    read = _slabs_of_cells(read_cells, dims)
+    unread = (slabs == lazy[0]) & ~read
+    assert read.any() and unread.any() and np.any(cells == -lazy[0])
     planner.prepare(np.array([0.35, 0.3, 0.35]))
-    np.testing.assert_array_equal(lazy[1:] == -lazy[0], read)
-    assert not np.any(np.abs(lazy[1:][unread]) == lazy[0])
+    np.testing.assert_array_equal(slabs == lazy[0], read)
+    _current_rows_match_the_whole_collapse(planner, read)
     state = lazy_state(np.array([2, 3, 4, 5]))
-    assert state[0] == 1 and state.size == 1 + 2 * 3 * 4
+    assert state[0] == 1 and state.size == 1 + 2 * 2 * 3 * 4 and not state[1:].any()
+
+
+def test_prepare_collapses_the_slabs_read_by_the_plans_of_the_last_versions(model) -> None:
+    """`read_history` = 3: after each `prepare`, the slabs current are those the plans of the last three versions
+    read (each plan's: the slabs of the cells it stamped read), with their whole-collapse values."""
+    planner = Planner(PlannerConfig(backend="cpu", samples=128, horizon=10, seed=2), model)
+    planner.terrain.read_history = 3
+    lazy, dims = planner.terrain.grid["lazy"], planner.terrain.grid["dims"]
+    sc = circle_lane()
+    x = sc.start.copy()
+    rng = np.random.default_rng(4)
+    w = np.array([0.5, 0.3, 0.2])
+    reads = []
+    for _ in range(7):
+        w = np.clip(w + rng.normal(0.0, 0.05, 3), 0.01, 1.0)
+        w = w / w.sum()
+        planner.prepare(w)
+        if reads:
+            want = np.any(reads[-3:], axis=0)
+            np.testing.assert_array_equal(slab_versions(lazy) == lazy[0], want)
+            _current_rows_match_the_whole_collapse(planner, want)
+        r = planner.plan(x, sc.task, w)
+        reads.append(_slabs_of_cells(cell_stamps(lazy) == lazy[0], dims))
+        x = kinematic_step(x, r.control, 0.1)
+    # the union grew past the last plan's reads: the history is used
+    assert np.any(reads[-3:], axis=0).sum() > reads[-1].sum()
 
 
 def test_a_lookup_outside_the_cells_writes_nothing(model) -> None:

@@ -4,7 +4,7 @@ The planner runs in closed loop on the circle lane (kinematic plant) so the warm
 realistic; weights of 3 terrains are fixed (the grid table collapse then happens once), or with
 `--online-weights` move a little every iteration, as when the terrain estimator re-solves each
 cycle. Then, as in the planner service, the new weights are handed to `Planner.prepare` when
-they arrive (it collapses ahead the table slabs the last plan read, off the state -> command
+they arrive (it collapses ahead the table slabs the last plans read, off the state -> command
 path; timed apart as `prepare`) and the state then to `plan` (`--collapse-in-plan`: no
 `prepare`, the plan collapses what it reads); a planner with fixed weights runs interleaved in
 the same process and the moving / fixed ratio of the plans' p50 is reported.

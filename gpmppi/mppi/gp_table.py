@@ -109,10 +109,14 @@ def collapse_into(src: np.ndarray, collapse_w: np.ndarray, out: np.ndarray) -> N
 # Two threads may collapse one slab at once: both write the same bytes, and each publishes the slab with a
 # release store only after its own writes (`store_release`), which a reader's acquire load (`load_acquire`)
 # pairs with.
-# Read marks: `Planner.prepare` collapses ahead, for new weights, the slabs the last plan read (`collapse_slabs_at`),
-# and stamps them `-version`: current, not read yet. A reader that meets such a slab re-stamps it `version` (read)
-# without collapsing it. So the next collapse ahead covers the slabs the last plan read, not every slab ever
-# collapsed ahead (without the marks that set grew plan after plan: 3,488 slabs read a plan, 7,549 current).
+# Cell stamps: a lookup reads the eight slabs of its cell (`ensure_block`), and checking eight slab versions for each
+# cell a thread meets cost more than the stale slabs' collapse. So each cell of the three outer axes has a stamp too,
+# `lazy[1 + n + key]` (n slabs, `block_key`): `version` when its eight slabs are current and a lookup read it in this
+# version, `-version` when they were made current ahead (`collapse_slabs_at`) and no lookup read it yet; a reader
+# checks the one stamp, and the eight slabs only when it is neither. The slabs a plan read are those of the cells
+# stamped `version`, which `Planner.prepare` collapses ahead for the next weights (`collapse_slabs_at`), with those
+# of the few plans before; without the read marks (every slab ever collapsed ahead collapsed again) that set grew
+# plan after plan (3,488 slabs read a plan, 7,549 current).
 
 
 @njit(cache=True, inline="always")
@@ -138,14 +142,35 @@ def ensure_block(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, tabl
     ensure_block_at(lazy, src, collapse_w, table, dims, block_key(dims, i0, i1, i2))
 
 
+@njit(cache=True, inline="always")
+def cell_current(lazy: np.ndarray, first: int) -> bool:
+    """Whether the eight slabs of the cell whose `block_key` is `first` are current, by the cell's stamp alone (one
+    read); a cell made current ahead (`collapse_slabs_at`) is stamped read (`version`) here. (Inlined into the
+    rollouts' slab phase as well, it made the phase's loop over the lookups slower, 0.087 against 0.057 ms on one
+    thread where no cell was new, more than it saved on the cells met first: 0.108 against 0.095 ms in all.)"""
+    version = lazy[0]
+    cell = 1 + (lazy.shape[0] - 1) // 2 + first
+    held = load_acquire(lazy, cell)
+    if held == version:
+        return True
+    if held == -version:  # made current ahead, now read: mark it read
+        store_release(lazy, cell, version)
+        return True
+    return False
+
+
 @njit(cache=True, nogil=True, _nrt=False)
 def ensure_block_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
                     first: int) -> None:
     """`ensure_block` for the cell whose `block_key` is `first` (a cell of the lookups, each index within
     0 .. dims - 2): its lowest slab is slab `first`, the other seven lie one step up each outer axis.
 
-    Two passes: the first finds the stale slabs and requests their rows from memory, the second collapses them, so
-    that the slabs' memory reads overlap instead of waiting one after another (they lie far apart)."""
+    The cell's stamp first (`cell_current`). Else two passes over its slabs: the first finds the stale slabs and
+    requests their rows from memory, the second collapses them, so that the slabs' memory reads overlap instead of
+    waiting one after another (they lie far apart); then the cell is stamped read, after its slabs (a reader that
+    sees the stamp sees them)."""
+    if cell_current(lazy, first):
+        return
     version = lazy[0]
     rows = dims[3]
     s1 = dims[2]
@@ -153,39 +178,47 @@ def ensure_block_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, t
     stale = 0
     for b in range(8):
         slab = first + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)
-        held = load_acquire(lazy, 1 + slab)
-        if held != version:
-            if held == -version:  # collapsed ahead, now read: mark it read
-                store_release(lazy, 1 + slab, version)
-            else:
-                stale |= 1 << b
-                for r in range(slab * rows, (slab + 1) * rows):
-                    prefetch_row(src, r)
-    if stale == 0:
-        return
+        if load_acquire(lazy, 1 + slab) != version:
+            stale |= 1 << b
+            for r in range(slab * rows, (slab + 1) * rows):
+                prefetch_row(src, r)
     for b in range(8):
         if stale & (1 << b):
             slab = first + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)
             collapse_rows(src, collapse_w, table, slab * rows, (slab + 1) * rows)
             store_release(lazy, 1 + slab, version)
+    store_release(lazy, 1 + (lazy.shape[0] - 1) // 2 + first, version)
 
 
 @njit(cache=True, parallel=True)
 def collapse_slabs_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
-                      old: int, new: int, threads: int) -> None:
-    """Collapse every slab read with version `old` (stamped `old`) for the weights of version `new` (`collapse_w`),
-    and stamp it `-new` (current, not read yet): the slabs the last plan read, collapsed ahead of the next
-    (`Planner.prepare`), on `threads` threads. With no plan running.
+                      old: int, new: int, threads: int, last_read: np.ndarray, since: int) -> None:
+    """Collapse, for the weights of version `new` (`collapse_w`), every slab read by a plan of version `since` or later,
+    stamp it `new`, and stamp `-new` (current, not read yet) each cell whose eight slabs that made current: ahead of the
+    next plan (`Planner.prepare`), on `threads` threads. With no plan running. `last_read` (one per slab) holds the
+    last version whose plan read each slab; the slabs of the cells read with version `old` (stamped `old`) are
+    recorded in it first.
+
+    The slabs the next plan reads are mostly those the last one read, but about one in ten is new to it (the samples'
+    noise is new each plan and the cloud's fringe moves): of those, most were read by one of the few plans before
+    (`since` = `new` - 4 left 92 of 3,560 slabs for the plan to collapse, against 320 with the last plan's alone,
+    for 18 % more slabs collapsed here; docs/benchmarks.md, "Moving terrain weights").
 
     The slabs are listed first and dealt out in turn (slab i to thread i mod threads): the slabs a plan reads lie
     together (near the robot's velocities), so a split of the table in halves gave one thread nearly all of them
     and ran no faster than one thread. Each thread requests its next slab's rows while it collapses this one."""
     rows = dims[3]
-    n = lazy.shape[0] - 1
+    n = (lazy.shape[0] - 1) // 2
+    s1 = dims[2]
+    s0 = dims[1] * s1
+    for key in range(n):
+        if lazy[1 + n + key] == old:
+            for b in range(8):
+                last_read[key + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)] = old
     todo = np.empty(n, dtype=np.int64)
     count = 0
     for s in range(n):
-        if lazy[1 + s] == old:
+        if last_read[s] >= since:
             todo[count] = s
             count += 1
     for t in prange(threads):
@@ -196,12 +229,40 @@ def collapse_slabs_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray,
                     prefetch_row(src, r)
             s = todo[q]
             collapse_rows(src, collapse_w, table, s * rows, (s + 1) * rows)
-            lazy[1 + s] = -new
+            lazy[1 + s] = new
+    # a cell whose eight slabs are current has its lowest slab among them
+    top0 = dims[0] - 2
+    top1 = dims[1] - 2
+    top2 = dims[2] - 2
+    for q in range(count):
+        key = todo[q]
+        i2 = key % dims[2]
+        i1 = (key // dims[2]) % dims[1]
+        i0 = key // s0
+        if i0 > top0 or i1 > top1 or i2 > top2:
+            continue
+        current = True
+        for b in range(8):
+            if lazy[1 + key + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)] != new:
+                current = False
+        if current:
+            lazy[1 + n + key] = -new
+
+
+def slab_versions(lazy: np.ndarray) -> np.ndarray:
+    """The slabs' versions of a lazily collapsed table's `lazy` (a view)."""
+    return lazy[1 : 1 + (lazy.shape[0] - 1) // 2]
+
+
+def cell_stamps(lazy: np.ndarray) -> np.ndarray:
+    """The cells' stamps of a lazily collapsed table's `lazy` (a view; `ensure_block_at`)."""
+    return lazy[1 + (lazy.shape[0] - 1) // 2 :]
 
 
 def lazy_state(dims: np.ndarray) -> np.ndarray:
-    """A lazily collapsed table's slab versions (`lazy`): version 1 current, every slab stale (holding 0)."""
-    state = np.zeros(1 + block_keys(dims), dtype=np.int64)
+    """A lazily collapsed table's versions (`lazy`): [0] the current one (1), then each slab's, then each cell's stamp
+    (`ensure_block_at`), all 0: every slab stale."""
+    state = np.zeros(1 + 2 * block_keys(dims), dtype=np.int64)
     state[0] = 1
     return state
 
