@@ -38,7 +38,6 @@ from gpmppi.mppi.cpu_backend import (
     _unit_normals,
 )
 from gpmppi.mppi.critics.base import Step
-from gpmppi.mppi.critics.registry import _with_state
 from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, velocity_coefficients
 from gpmppi.mppi.gp_table import simplex_params
 from gpmppi.mppi.lane import lane_field_at
@@ -160,9 +159,21 @@ def _normals_only(seed: int, counter0: int, horizon: int, groups: int, normals: 
     return _cycles() - t
 
 
+def _with_state(jit: object, term: object, slot: int) -> object:
+    """`term` as the kernels' sum calls it: a stateful term (`slot` >= 0) gets its value from the step's state."""
+    compiled = term  # already jitted, as registered
+    if slot < 0:
+        return compiled
+
+    def one(w: float, cost_w: np.ndarray, pi: int, task: tuple, at: Step) -> float:
+        return compiled(w, cost_w, pi, task, at, at.state[slot])
+
+    return jit(one)
+
+
 def _term_loop(term: object, wi: int, pi: int, slot: int) -> object:
     """A compiled loop of one critic's term over `reps` passes of a group's steps (cycles): the term alone, as
-    the kernels' sum calls it (`registry._with_state` hands a stateful term its value)."""
+    the kernels' sum calls it (`_with_state` hands a stateful term its value)."""
     one = _with_state(njit(fastmath=FASTMATH, inline="always"), term, slot)
 
     @njit(fastmath=FASTMATH)
