@@ -47,6 +47,24 @@ def test_avoidance_run_is_deterministic_per_seed() -> None:
     assert a.success == b.success and a.status == b.status
 
 
+def test_warm_up_plan_leaves_the_runs_as_they_were() -> None:
+    """The untimed warm-up plan (a planner of its own, once per process) changes no run: a job run after it drives
+    to the bit what it drives when this process has warmed that planner already."""
+    from gpmppi.evaluation import runner
+
+    settings = EvalSettings(samples=256, goal_time_limit_s=1.5)
+    job = Job("avoidance", paper_obstacle_scene(), _terrain(), "gp", (3,), record=True)
+    runner._WARM.clear()
+    (a,), (ta,) = run_job(job, settings)
+    assert len(runner._WARM) == 1
+    (b,), (tb,) = run_job(job, settings)
+    assert len(runner._WARM) == 1  # once per process and settings
+    assert len(ta.commands) == 15
+    np.testing.assert_array_equal(ta.commands, tb.commands)
+    np.testing.assert_array_equal(ta.true_states, tb.true_states)
+    np.testing.assert_array_equal(ta.weights, tb.weights)
+
+
 @pytest.mark.slow  # a 40 m open lane with GP-MPPI and its estimator: ~400 planner cycles
 def test_open_lane_run_finishes_at_the_lane_end() -> None:
     lane = load_lane(next(p for p in shipped_lane_files() if p.name == "lane_chicane.yaml"))
