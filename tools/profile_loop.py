@@ -133,16 +133,22 @@ def main() -> None:
               f"{len(rows['planner_ms'])}, mean {np.mean(rows['planner_ms']):.2f} ms, mean without the first "
               f"{np.mean(rows['planner_ms'][1:]):.2f} ms ({time.perf_counter() - t0:.1f} s)")
     else:
-        for m in models:  # compile or load every model's kernels untimed
-            run_cell(Job("tracking", scenarios["square"], terrain, m, (0,), label="square"), settings)
+        for label in cells:  # compile or load every model's kernels for every task kind untimed
+            for m in models:
+                run_cell(job(label, m), settings)
     print("cell model steps | " + " ".join(f"{c:>12s}" for c in COLUMNS) + " | per-seed means")
+    means: dict[tuple[str, str], list[list[float]]] = defaultdict(list)
     for r in range(args.rounds):
         for label in cells:
             for m in models:
                 rows = run_cell(job(label, m), settings)
-                means = " ".join(f"{np.mean(rows[c]):12.3f}" for c in COLUMNS)
+                means[label, m].append([float(np.mean(rows[c])) for c in COLUMNS])
                 seeds = " ".join(f"{v:.2f}" for v in rows["seed_mean"])
-                print(f"{r} {label} {m} {len(rows['planner_ms'])} | {means} | {seeds}", flush=True)
+                print(f"{r} {label} {m} {len(rows['planner_ms'])} | "
+                      + " ".join(f"{v:12.3f}" for v in means[label, m][-1]) + f" | {seeds}", flush=True)
+    print("median over rounds of each round's mean [ms]")
+    for (label, m), values in means.items():
+        print(f"{label} {m} | " + " ".join(f"{v:12.3f}" for v in np.median(values, axis=0)))
 
 
 if __name__ == "__main__":
