@@ -12,6 +12,7 @@ is counted; `--cold` reports the first step of the first cell as the table's fir
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from collections import defaultdict
 from collections.abc import Callable
@@ -114,8 +115,10 @@ def main() -> None:
     ap.add_argument("--cells", default="square,avoidance", help="comma-separated cells (circle, square, avoidance)")
     ap.add_argument("--rounds", type=int, default=1, help="times each cell is run (interleaved by model)")
     ap.add_argument("--cold", action="store_true", help="no untimed warm-up: report the first step's time")
+    ap.add_argument("--oracle", action="store_true",
+                    help="the GP gets the true terrain's one-hot weights (fixed: no collapse in the rollouts)")
     args = ap.parse_args()
-    settings = quick_settings()
+    settings = dataclasses.replace(quick_settings(), oracle_weights=args.oracle)
     terrain = "asphalt"
     scenarios = {**load_lanes(None), **load_scenes(None)}
     models = args.models.split(",")
