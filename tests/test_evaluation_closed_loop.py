@@ -47,6 +47,48 @@ def test_avoidance_run_is_deterministic_per_seed() -> None:
     assert a.success == b.success and a.status == b.status
 
 
+def test_warm_up_plan_leaves_the_runs_as_they_were() -> None:
+    """The untimed warm-up plan (a planner of its own, once per process) changes no run: a job run after it drives
+    to the bit what it drives when this process has warmed that planner already."""
+    from gpmppi.evaluation import runner
+
+    settings = EvalSettings(samples=256, goal_time_limit_s=1.5)
+    job = Job("avoidance", paper_obstacle_scene(), _terrain(), "gp", (3,), record=True)
+    runner._WARM.clear()
+    (a,), (ta,) = run_job(job, settings)
+    assert len(runner._WARM) == 1
+    (b,), (tb,) = run_job(job, settings)
+    assert len(runner._WARM) == 1  # once per process and settings
+    assert len(ta.commands) == 15
+    np.testing.assert_array_equal(ta.commands, tb.commands)
+    np.testing.assert_array_equal(ta.true_states, tb.true_states)
+    np.testing.assert_array_equal(ta.weights, tb.weights)
+
+
+def test_task_prepared_before_the_first_state_leaves_the_plans_as_they_were() -> None:
+    """The goal field is built before the loop (off the steps' clock) from the first measured state, as the first plan
+    would build it: the run is the same to the bit as one whose first plan builds it."""
+    from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
+    from gpmppi.evaluation.runner import cached_gp_model, make_planner, make_plant
+    from gpmppi.mppi import goal_field
+
+    settings = EvalSettings(samples=256)
+    scene, model = paper_obstacle_scene(), cached_gp_model(None)
+    runs = []
+    for prepared in (True, False):
+        goal_field._FIELDS._items.clear()  # each run builds its own field
+        planner = make_planner(settings, "unicycle", _terrain(), 2)
+        if not prepared:
+            planner.prepare_task = None  # the loop finds no `prepare_task`: the first plan builds the field
+        plant = make_plant(settings, _terrain(), 2)
+        cfg = ClosedLoopConfig(time_limit_s=0.8, adapt_weights=False)
+        runs.append(run_closed_loop(planner, plant, scene.task, scene.start, model.n_terrains, cfg))
+        assert len(goal_field._FIELDS._items) == 1
+    np.testing.assert_array_equal(runs[0].commands, runs[1].commands)
+    np.testing.assert_array_equal(runs[0].true_states, runs[1].true_states)
+    assert [t.tobytes() for t in runs[0].tightened] == [t.tobytes() for t in runs[1].tightened]
+
+
 @pytest.mark.slow  # a 40 m open lane with GP-MPPI and its estimator: ~400 planner cycles
 def test_open_lane_run_finishes_at_the_lane_end() -> None:
     lane = load_lane(next(p for p in shipped_lane_files() if p.name == "lane_chicane.yaml"))

@@ -203,6 +203,14 @@ def run_closed_loop(
     plant.reset(np.asarray(start, dtype=np.float64))
     true_state = np.asarray(start, dtype=np.float64).copy()
     measured = np.asarray(plant.measure(), dtype=np.float64)
+    prepare = getattr(planner, "prepare_task", None)
+    delayed = cfg.compensate_latency and cfg.latency_s > 0.0  # the first state's own age and plan time are 0 here
+    if prepare is not None and not delayed:
+        # what the task's plans read once (a goal field, a lane lookup) is built now, off the steps' clock, as the
+        # service does when a task comes after a state: a one-off per task, which the first model of a process
+        # paid and the others found cached. Only without a delay: a delayed first plan starts from a predicted
+        # state, from where it places its goal field's grid
+        prepare(task, measured)
 
     times, trues, meas = [0.0], [true_state.copy()], [measured.copy()]
     cycles: list[_Cycle] = []

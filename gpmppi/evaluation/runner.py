@@ -276,10 +276,28 @@ def score(
     return s
 
 
+_WARM: set[str] = set()  # the planner settings and task types whose kernels this process has compiled or loaded
+
+
+def warm_up(job: Job, settings: EvalSettings) -> None:
+    """Compile or load the kernels of `job`'s planner before its runs, once per process, with an untimed plan of a
+    planner of its own (with a delay, so the delay predictor is in too), as the planner service does before it goes
+    live (`services.planner.warm_up`): a run's `planner_ms` is the deployed loop's time per step, not a compile's."""
+    key = repr((settings, job.dynamics, job.terrain, type(job.scenario.task)))
+    if key not in _WARM:
+        planner = make_planner(settings, job.dynamics, job.terrain, job.seeds[0])
+        try:
+            planner.plan(job.scenario.start, job.scenario.task, delay_s=0.01)
+        except (ValueError, FloatingPointError):
+            pass  # the runs meet the same refusal and report it
+        _WARM.add(key)
+
+
 def run_job(job: Job, settings: EvalSettings) -> tuple[list[RunScore], list[Trajectory]]:
     """Run every seed of `job`; an infeasible scenario gives 'infeasible' scores instead of runs."""
     model = cached_gp_model(settings.gp_model)
     cfg = loop_config(settings, job)
+    warm_up(job, settings)
     scores: list[RunScore] = []
     trajectories: list[Trajectory] = []
     estimator = None
