@@ -5,7 +5,8 @@ watchdog and e-stop apply to it as to the planner; the ground's name on `terrain
 It never publishes on a stale state (older than `max_state_age_s` by this host's clock): with no commands egress's
 watchdog stops the robot. At the target (distance or time) it commands zero for `stop_s`, then reports `done` in its
 heartbeat (flag) and keeps commanding zero on each state until it is stopped. Its heartbeat counts the distance
-(`distance_dm`, decimetres) and the time driven (`driven_ds`, deciseconds).
+(`distance_dm`, decimetres), the time driven (`driven_ds`, deciseconds) and the lane holds handed out
+(`lane_holds`, with `lane_holds` set).
 """
 
 from __future__ import annotations
@@ -72,10 +73,12 @@ def serve(node: Node, settings: Settings) -> int:
         node.cycle()
         c = node.counters
         with c.lock:
-            c.counts.update({"distance_dm": int(drive.distance * 10), "driven_ds": int(drive.elapsed * 10)})
+            c.counts.update({"distance_dm": int(drive.distance * 10), "driven_ds": int(drive.elapsed * 10),
+                             "lane_holds": drive.lane_holds})
             c.flags.update({"target_reached": drive.reached, "done": drive.done})
         if drive.done and not was_done:
-            node.log.info("calibration drive done: %.1f m in %.1f s", drive.distance, drive.elapsed)
+            node.log.info("calibration drive done: %.1f m in %.1f s, %d lane holds", drive.distance, drive.elapsed,
+                          drive.lane_holds)
             node.heartbeat()  # at once: the launcher ends the run on it
             was_done = True
     return 0

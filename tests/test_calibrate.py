@@ -230,6 +230,9 @@ def test_the_stack_edit_replaces_the_planner_and_sets_the_ground() -> None:
     (["--distance", "10", "--minutes", "2"], "one target"),
     ([], "one target"),
     (["--ground", "a/b", "--distance", "10"], "--ground"),
+    (["--distance", "10", "--lane-holds", "1"], "--lane-holds"),
+    (["--distance", "10", "--lane-holds", "-0.1"], "--lane-holds"),
+    (["--distance", "10", "--lane-holds", "nan"], "--lane-holds"),
 ])
 def test_bad_input_is_one_line(tmp_path: Path, extra: list[str], named: str) -> None:
     result = runner.invoke(app, drive_args(tmp_path, *extra))

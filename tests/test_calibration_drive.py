@@ -3,11 +3,13 @@ long enough for steady responses, it stops at its target."""
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import pytest
 
 from gpmppi.plant.calibration_drive import CalibrationDrive, DriveConfig
-from gpmppi.plant.excitation import Area, AreaExcitation, predict_path
+from gpmppi.plant.excitation import LANE_HOLD_S, LANE_OMEGA, LANE_V, Area, AreaExcitation, Excitation, predict_path
 from gpmppi.plant.physics import PhysicsPlant
 from gpmppi.plant.terrains import load_terrains
 
@@ -111,3 +113,71 @@ def test_bad_areas_and_targets_are_refused() -> None:
         DriveConfig()
     with pytest.raises(ValueError, match="area_m"):
         DriveConfig(area_m=3.0, distance_m=10.0)
+    for share in (-0.1, 1.0, float("nan")):
+        with pytest.raises(ValueError, match="lane_holds"):
+            DriveConfig(distance_m=10.0, lane_holds=share)
+
+
+def digest(a: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()
+
+
+def test_without_lane_holds_the_streams_are_as_before(terrains) -> None:
+    """The seeded command streams of main before lane holds came to the drive (sha256 of the float64 bytes): the
+    default drive (300 s on the plant, a 20 m and a 6 m area) and the dataset's excitation, plain and with holds."""
+    start = np.array([4.0, -3.0, 2.0, 0.0, 0.0])
+    for terrain, side, seed, want in [
+        ("asphalt", 20.0, 11, "7ca76eaac75e323cffff3d1e0ab7ddc62847ccb46f28835125d9d95a11120eb6"),
+        ("grass", 6.0, 12, "8055bfbb2bb89b7202896214fcbf653cd67f18f24101aafe968642ead106a52e"),
+    ]:
+        _, _, cmds = closed_loop(terrains, terrain, DriveConfig(area_m=side, duration_s=300.0, seed=seed), start, seed)
+        assert len(cmds) == 3011 and digest(cmds) == want, terrain
+    for share, want in [(0.0, "bcf14e2ac56cf266d8983cd325b47432528fa420c059a55a9d35f86dc5c70767"),
+                        (0.15, "e6d9cf9987147ebbb4c93acc3ef0e43ca2bf862691fbf08c33d786063ffe6d32")]:
+        exc = Excitation(seed=7, lane_holds=share)
+        assert digest(np.vstack([exc.next_segment() for _ in range(300)])) == want, share
+
+
+def lane_runs(cmds: np.ndarray, v_max: float) -> list[tuple[float, float, float]]:
+    """The held runs of a stream at the lane's commands and as long as a lane hold (a turn back's straight run,
+    omega exactly 0, is not one)."""
+    return [(v, w, s) for v, w, s in held_runs(cmds) if s >= LANE_HOLD_S[0] - 1e-9
+            and LANE_V[0] <= v <= min(LANE_V[1], v_max) and 0.0 < abs(w) <= LANE_OMEGA]
+
+
+@pytest.mark.parametrize(("terrain", "side", "share", "seed"), [("asphalt", 20.0, 0.15, 0), ("grass", 20.0, 0.3, 1),
+                                                                ("sand", 10.0, 0.3, 3)])
+def test_lane_holds_at_the_asked_share_inside_the_area(terrains, terrain: str, side: float, share: float,
+                                                       seed: int) -> None:
+    start = np.array([4.0, -3.0, 2.0, 0.0, 0.0])
+    config = DriveConfig(area_m=side, duration_s=900.0, seed=seed, lane_holds=share)
+    drive, trues, cmds = closed_loop(terrains, terrain, config, start, seed)
+    exc, area = drive.excitation, drive.area
+    assert exc is not None and area is not None
+    assert area.contains(trues[:, :2]), f"left the area: worst offset {np.abs(trues[:, :2] - start[:2]).max():.2f} m"
+    # the share of the segments drawn (binomial spread over ~170 segments: 0.03-0.035)
+    assert exc.drawn > 120 and abs(exc.lane_held / exc.drawn - share) < 0.08, (exc.lane_held, exc.drawn)
+    assert drive.lane_holds == exc.lane_held
+    # in the stream: held at the lane's commands for 5 s or more; some are cut short where the robot drifted from
+    # its prediction into the margin (the turn back comes at once): 2-4 of 40-50 in 20 m, a third on sand in 10 m
+    lane = lane_runs(cmds, config.v_max)
+    assert (0.85 if side == 20.0 else 0.6) * exc.lane_held <= len(lane) <= exc.lane_held, (len(lane), exc.lane_held)
+    w = np.array([h[1] for h in lane])
+    # both ways, and the wide arcs too (in 10 m few of them fit: the holds lean to the tight arcs)
+    assert w.min() < -0.3 and w.max() > 0.3 and np.sum(np.abs(w) < 0.3) >= (5 if side == 20.0 else 1)
+    assert len(lane_runs(closed_loop(terrains, terrain, config.model_copy(update={"lane_holds": 0.0}), start,
+                                     seed)[2], config.v_max)) <= 2  # the plain drive has (nearly) none
+
+
+def test_a_lane_hold_that_would_leave_is_cut_to_the_part_that_stays_inside() -> None:
+    area = Area.square((0.0, 0.0), 20.0)
+    exc = AreaExcitation(area, seed=0, lane_holds=0.5)
+    pose = np.array([0.0, 0.0, 0.0, 0.0, 0.0])  # at the centre, 8 m to the margin ahead
+    straight = np.tile([1.2, 0.01], (80, 1))  # 8 s at 1.2 m/s: 9.6 m
+    shortest = int(round(LANE_HOLD_S[0] / DT))
+    n = exc._inside_for(pose, straight, shortest)
+    assert shortest <= n < 80
+    assert area.contains(predict_path(pose, straight[:n], DT), exc.margin)
+    assert not area.contains(predict_path(pose, straight[:n + 1], DT), exc.margin)
+    # too fast to stay inside for a lane hold's shortest: none
+    assert exc._inside_for(pose, np.tile([1.8, 0.0], (80, 1)), shortest) == 0

@@ -121,6 +121,11 @@ def register(app: typer.Typer) -> None:
             None, "--seed", min=0, help="seed of the command stream (default: the number of earlier recordings "
             "of GROUND in the folder, so a resumed drive does not repeat the first)",
         ),
+        lane_holds: float = typer.Option(
+            0.0, "--lane-holds", min=0.0, max=0.9,
+            help="share of the segments that are long holds (5-8 s) where the planner drives (v_ref 0.8-1.8 m/s, "
+                 "|omega_ref| <= 0.8 rad/s), kept inside the area: a log for `gpmppi train --calibration-log`; 0: the "
+                 "plain drive"),
         port: int | None = typer.Option(None, "--port", min=1, max=65535, help="router port on 127.0.0.1"),
     ) -> None:
         """Drive the robot with excitation commands inside a free area on one ground and record it (the logs
@@ -148,7 +153,7 @@ def register(app: typer.Typer) -> None:
                 typer.echo("nothing left to drive")
                 raise typer.Exit(0)
         config: dict[str, Any] = {"ground": ground, "area_m": area, "v_max": speed,
-                                  "seed": earlier if seed is None else seed}
+                                  "seed": earlier if seed is None else seed, "lane_holds": lane_holds}
         config.update({"distance_m": want_m} if want_m is not None else {"duration_s": want_s})
         record.mkdir(exist_ok=True)
         out = record / f"calib-{ground}-{time.strftime('%Y%m%d-%H%M%S')}.mcap"
@@ -185,8 +190,10 @@ def calibration_drive(launcher: Any, monitor: Any) -> None:
         if hb is None:
             continue
         if hb.flags.get("done"):
+            lanes = hb.counts.get("lane_holds", 0)
             launcher.say("calibrate", f"done: {hb.counts.get('distance_dm', 0) / 10:.0f} m in "
-                                      f"{hb.counts.get('driven_ds', 0) / 10:.0f} s")
+                                      f"{hb.counts.get('driven_ds', 0) / 10:.0f} s"
+                                      + (f", {lanes} lane holds" if lanes else ""))
             return
         if time.monotonic() >= next_report:
             next_report += PROGRESS_EVERY_S

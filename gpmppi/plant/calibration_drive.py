@@ -31,6 +31,9 @@ class DriveConfig(BaseModel):
     distance_m: float | None = Field(None, gt=0, description="stop after driving this far [m] (None: no limit)")
     duration_s: float | None = Field(None, gt=0, description="stop after driving this long [s] (None: no limit)")
     seed: int = Field(0, ge=0, description="seed of the command stream")
+    lane_holds: float = Field(0.0, ge=0.0, lt=1.0, description="share of the segments that are long holds at the "
+                              "planner's lane commands (`Excitation.lane_hold`), for a calibration-only log (0: none, "
+                              "the plain drive) [1]")
     dt: float = Field(0.1, gt=0, le=1.0, description="tick of the command stream (the GP model's step) [s]")
     stop_s: float = Field(1.0, ge=0, description="zero commanded this long after the target before the drive is "
                           "done (the robot brakes to rest on the record) [s]")
@@ -64,6 +67,11 @@ class CalibrationDrive:
         return None if self.excitation is None else self.excitation.area
 
     @property
+    def lane_holds(self) -> int:
+        """Lane holds handed out so far (`DriveConfig.lane_holds`)."""
+        return 0 if self.excitation is None else self.excitation.lane_held
+
+    @property
     def reached(self) -> bool:
         return self.target_at is not None
 
@@ -81,7 +89,8 @@ class CalibrationDrive:
         c = self.config
         if self.excitation is None:
             area = Area.square(x[:2], c.area_m)
-            self.excitation = AreaExcitation(area, c.seed, c.dt, c.v_max, c.w_max, c.margin_m)
+            self.excitation = AreaExcitation(area, c.seed, c.dt, c.v_max, c.w_max, c.margin_m,
+                                             lane_holds=c.lane_holds)
             self._first = stamp_ns
         assert self._first is not None
         if self._last_xy is not None:

@@ -63,17 +63,24 @@ class Excitation:
     def _ticks(self, lo: float, hi: float) -> int:
         return max(1, int(round(self.rng.uniform(lo, hi) / self.dt)))
 
-    def _lane_hold(self) -> np.ndarray:
+    def lane_hold(self) -> np.ndarray:
+        """A lane hold: v_ref in LANE_V, omega_ref within LANE_OMEGA (both within the caps), held LANE_HOLD_S."""
         v = self.rng.uniform(min(LANE_V[0], self.v_max), min(LANE_V[1], self.v_max))
         w = self.rng.uniform(-min(LANE_OMEGA, self.w_max), min(LANE_OMEGA, self.w_max))
         seg = np.tile([v, w], (self._ticks(*LANE_HOLD_S), 1))
         self.current = seg[-1].copy()
         return seg
 
-    def next_segment(self) -> np.ndarray:
+    def lane_hold_next(self) -> bool:
+        """Whether the next segment is a lane hold (a share `lane_holds` of them)."""
         # no draw at all when off: the default stream (and the shipped GP's data) stays as it was
-        if self.lane_holds > 0.0 and self.rng.random() < self.lane_holds:
-            return self._lane_hold()
+        return self.lane_holds > 0.0 and bool(self.rng.random() < self.lane_holds)
+
+    def next_segment(self) -> np.ndarray:
+        return self.lane_hold() if self.lane_hold_next() else self.random_segment()
+
+    def random_segment(self) -> np.ndarray:
+        """A hold, ramp, chirp or jitter segment (module docstring), from the current command."""
         kind = SEGMENT_KINDS[self.rng.choice(len(SEGMENT_KINDS), p=SEGMENT_PROBS)]
         if kind == "hold":
             seg = np.tile(self._random_command(), (self._ticks(*self.hold_s), 1))
@@ -122,11 +129,15 @@ class Area:
     def square(cls, centre: np.ndarray | tuple[float, float], side: float) -> Area:
         return cls(float(centre[0]), float(centre[1]), 0.5 * side, 0.5 * side)
 
+    def inside(self, xy: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Per point of `xy` ((2,) or (n, 2)): whether it lies `margin` or more inside the edges, (n,) bool."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        return ((np.abs(xy[:, 0] - self.cx) <= self.half_x - margin)
+                & (np.abs(xy[:, 1] - self.cy) <= self.half_y - margin))
+
     def contains(self, xy: np.ndarray, margin: float = 0.0) -> bool:
         """Whether every point of `xy` ((2,) or (n, 2)) lies `margin` or more inside the edges."""
-        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        return bool(np.all(np.abs(xy[:, 0] - self.cx) <= self.half_x - margin)
-                    and np.all(np.abs(xy[:, 1] - self.cy) <= self.half_y - margin))
+        return bool(np.all(self.inside(xy, margin)))
 
 
 def predict_path(pose: np.ndarray, commands: np.ndarray, dt: float, tail_s: float = STOP_TAIL_S) -> np.ndarray:
@@ -155,11 +166,17 @@ class AreaExcitation:
     fits, or the robot is already in the margin, the segment turns back toward the centre instead: a held turn
     (a loop of radius 0.5 m or less, or on the spot where there is no room for one) until the robot faces the centre,
     then a held straight run toward it. The turns back are steady commands too, so they feed the terrain calibration.
+
+    With `lane_holds` (`Excitation`'s share, off by default: then the stream is as it was) a share of the segments
+    are `Excitation.lane_hold`s: a held (v, omega) drives an arc of radius v / omega, kept inside like every segment:
+    cut to the longest part that stays `margin` inside (braking room included) as long as that is still a lane hold
+    (LANE_HOLD_S[0] or more), else driven the other way round the arc, else drawn again (`tries` times). A lane hold
+    that fits nowhere from the robot's pose is tried once more after the turn back toward the centre.
     """
 
     def __init__(
         self, area: Area, seed: int = 0, dt: float = 0.1, v_max: float = 1.5, w_max: float = np.pi,
-        margin: float | None = None, tries: int = 8,
+        margin: float | None = None, tries: int = 8, lane_holds: float = 0.0,
     ) -> None:
         side = 2.0 * min(area.half_x, area.half_y)
         if not side >= MIN_AREA_M:
@@ -174,9 +191,12 @@ class AreaExcitation:
         # 2 m in a 20 m square; a quarter of the side in small areas, so an inner box is left to drive in
         self.margin = float(margin) if margin is not None else min(2.0, 0.25 * side)
         self.tries = tries
-        self.base = Excitation(seed=seed, dt=dt, v_max=v_max, w_max=w_max, hold_s=(2.0, 5.0))
+        self.base = Excitation(seed=seed, dt=dt, v_max=v_max, w_max=w_max, hold_s=(2.0, 5.0), lane_holds=lane_holds)
         self.rng = self.base.rng
         self.returns = 0  # segments that turned back toward the centre
+        self.drawn = 0  # segments of the excitation handed out (the turns back not counted)
+        self.lane_held = 0  # ... of which lane holds
+        self._lane_due = False  # a lane hold that did not fit: drawn again after the turn back
 
     @property
     def current(self) -> np.ndarray:
@@ -186,13 +206,51 @@ class AreaExcitation:
         """The next (n, 2) commands, from the robot's current pose [X, Y, yaw, v, omega]."""
         pose = np.asarray(pose, dtype=np.float64)
         if self.area.contains(pose[:2], self.margin):
-            for _ in range(self.tries):
-                before = self.base.current.copy()
-                seg = self.base.next_segment()
-                if self.area.contains(predict_path(pose, seg, self.dt), self.margin):
-                    return seg
-                self.base.current = before
+            lane = self._lane_due or self.base.lane_hold_next()
+            seg = self._lane_hold(pose) if lane else self._segment(pose)
+            if seg is not None:
+                self.drawn += 1
+                self.lane_held += int(lane)
+                self._lane_due = False
+                return seg
+            # once more from near the centre, so the edges do not thin out the share; then given up (a small area)
+            self._lane_due = lane and not self._lane_due
         return self.turn_back(pose)
+
+    def _segment(self, pose: np.ndarray) -> np.ndarray | None:
+        """A random segment whose predicted path stays inside, or None."""
+        for _ in range(self.tries):
+            before = self.base.current.copy()
+            seg = self.base.random_segment()
+            if self.area.contains(predict_path(pose, seg, self.dt), self.margin):
+                return seg
+            self.base.current = before
+        return None
+
+    def _lane_hold(self, pose: np.ndarray) -> np.ndarray | None:
+        """A lane hold, cut or mirrored to stay inside (class docstring), or None."""
+        shortest = max(1, int(round(LANE_HOLD_S[0] / self.dt)))
+        before = self.base.current.copy()
+        for _ in range(self.tries):
+            seg = self.base.lane_hold()
+            for held in (seg, seg * np.array([1.0, -1.0])):
+                n = self._inside_for(pose, held, shortest)
+                if n:
+                    self.base.current = held[-1].copy()
+                    return held[:n]
+        self.base.current = before
+        return None
+
+    def _inside_for(self, pose: np.ndarray, seg: np.ndarray, shortest: int) -> int:
+        """The most leading ticks of `seg`, `shortest` or more, whose path (braking room included) stays inside;
+        0 if none."""
+        inside = self.area.inside(predict_path(pose, seg, self.dt, tail_s=0.0), self.margin)
+        # tick k's command moves the robot to point k: a part of n ticks ends before the first point outside
+        n = len(seg) if inside.all() else int(np.argmin(inside))
+        for m in range(n, shortest - 1, -1):
+            if self.area.contains(predict_path(pose, seg[:m], self.dt), self.margin):
+                return m
+        return 0
 
     def heading_out(self, pose: np.ndarray) -> bool:
         """In the margin and moving away from the centre: the robot drifted from its prediction."""
