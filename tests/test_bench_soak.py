@@ -67,10 +67,12 @@ def test_short_soak_reports_real_numbers(tmp_path: Path, monkeypatch: pytest.Mon
                 time.sleep(0.2)
         else:
             return
+        # up: its first command (its heartbeat comes before it has loaded its kernels and taken states, and junk
+        # sent then was never read: `rejected` 0 once, in a suite where the services started faster)
         up = threading.Event()
-        sub = s.declare_subscriber(key_for("health", service="planner"), lambda _: up.set())
+        sub = s.declare_subscriber(key_for("cmd"), lambda _: up.set())
         if up.wait(max(0.0, deadline - time.monotonic())):
-            time.sleep(2.0)
+            time.sleep(1.0)
             for _ in range(5):
                 s.put(key_for("state"), b"{not json")
                 time.sleep(0.3)
