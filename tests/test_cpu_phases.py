@@ -1,6 +1,7 @@
 """The CPU kernel's phases that compute a group's values in loops of their own (vector code) give each sample the bits
-of the per-sample functions they stand for: the state step (`dynamics.advance`, every model) and the lane critics'
-cost (`costs.stage_cost`, whose lane query the phase splits into the grid part and the exact distances).
+of the per-sample functions they stand for: the state step (`dynamics.advance`, every model), the lane critics'
+cost (`costs.stage_cost`, whose lane query the phase splits into the grid part and the exact distances) and the GP
+table rows' weighted sum (`gp_table.interp4_simplex`'s, read a row at a time by `kernel_flags.row_axpy`).
 
 The costs are compared with the phase as it was (`_add_costs_per_sample`), compiled with the same flags: a
 `stage_cost` called on its own rounds a division differently (`arcp` lets LLVM multiply by a reciprocal it hoists
@@ -13,8 +14,9 @@ import numpy as np
 from gpmppi.kernel_flags import phase
 from gpmppi.mppi.bundles import N_COST_TERMS, TaskBundle
 from gpmppi.mppi.costs import advance_state, stage_cost, start_state
-from gpmppi.mppi.cpu_backend import GROUP, _add_costs, _advance_group
+from gpmppi.mppi.cpu_backend import GROUP, _add_costs, _advance_group, _read_rows
 from gpmppi.mppi.dynamics import DYN_EDD5, DYN_GP, DYN_UNICYCLE, advance
+from gpmppi.mppi.gp_table import interp4_simplex, simplex_nodes
 from gpmppi.mppi.lane import build_lane_lookup
 from gpmppi.scenarios import circle_lane
 
@@ -92,3 +94,32 @@ def test_lane_costs_give_each_sample_the_bits_of_stage_cost() -> None:
         assert _bits(total) == _bits(want), trial
         checked_exact += int(np.sum(lane_buf[3, :n_in] != 0.0))
     assert checked_exact > 20  # the exact-distance path ran (near the threshold and outside the grid)
+
+
+def test_read_rows_gives_each_sample_the_bits_of_the_simplex_sum() -> None:
+    """Each sample's five rows weighed and summed in float32 in vertex order, one rounding per multiply and per add,
+    as numpy's float32 scalars do and as `interp4_simplex` does at the same point (its table and grid)."""
+    rng = np.random.default_rng(3)
+    dims = np.array([5, 6, 4, 7], dtype=np.int64)
+    lo = np.array([0.0, -1.0, 0.0, -2.0])
+    inv_step = np.array([2.0, 2.5, 1.5, 1.75])
+    table = rng.normal(size=(int(np.prod(dims)), 4)).astype(np.float32)
+    table[:, 2:] = np.abs(table[:, 2:]) * np.float32(1e-3)  # variances: small and positive, as the model's
+    points = rng.uniform(lo - 0.2, lo + (dims - 1) / inv_step + 0.2, size=(GROUP, 4))  # some outside: clamped
+    nodes = np.zeros((5, GROUP), dtype=np.uint64)
+    node_w = np.zeros((5, GROUP), dtype=np.float32)
+    for j in range(GROUP):
+        n0, n1, n2, n3, n4, w0, w1, w2, w3, w4 = simplex_nodes(dims, lo, inv_step, *points[j])
+        nodes[:, j] = (n0, n1, n2, n3, n4)
+        node_w[:, j] = (w0, w1, w2, w3, w4)
+    for n_in in (GROUP, 37):
+        res = np.full((4, GROUP), -5.0)
+        _read_rows(n_in, table.reshape(-1), nodes, node_w, res)
+        for j in range(n_in):
+            want = node_w[0, j] * table[nodes[0, j]]
+            for q in range(1, 5):
+                want = want + node_w[q, j] * table[nodes[q, j]]
+            assert want.dtype == np.float32
+            assert _bits(res[:, j]) == _bits(want), (n_in, j)
+            assert _bits(res[:, j]) == _bits(np.array(interp4_simplex(table, dims, lo, inv_step, *points[j]))), j
+        assert np.all(res[:, n_in:] == -5.0)  # samples past the group's end untouched

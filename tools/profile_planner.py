@@ -58,8 +58,10 @@ def _cycles(typingctx):  # noqa: ANN001, ANN202 - numba intrinsic
 
 @njit(fastmath=FASTMATH, nogil=True)
 def _profiled_worker(model: tuple, task: tuple, sampling: tuple, cost_w: np.ndarray, out: tuple, plan_consts: tuple,
-                     work: tuple, ticks: np.ndarray) -> None:
-    """`cpu_backend.rollout_worker`'s loop with the cycle counter read around each phase (`PHASES` order)."""
+                     work: tuple, ticks: np.ndarray, record: np.ndarray) -> None:
+    """`cpu_backend.rollout_worker`'s loop with the cycle counter read around each phase (`PHASES` order); the
+    simplex nodes of every sample's lookup of every step to `record` (samples, horizon, 5) when it has a row per
+    sample (`tools.profile_lookup` counts the cache lines they touch), else (shape (0, 0, 5)) nowhere."""
     dyn_mode = model.dyn_mode
     gp_mode = model.gp_mode
     table = model.table
@@ -116,6 +118,11 @@ def _profiled_worker(model: tuple, task: tuple, sampling: tuple, cost_w: np.ndar
                 _request_rows(grid, table, n_in, st, cmd, nodes, node_w)
             t = _cycles()
             ticks[1] += t - u
+            if simplex and record.shape[0] > 0:
+                for j in range(n_in):
+                    for q in range(5):
+                        record[first + j, k, q] = nodes[q, j]
+                t = _cycles()
             if k + 1 < horizon:
                 _draw_commands(seed, counter0, horizon, k + 1, limits, first, n_in, eps_out, cmd_next, noise,
                                normals)
@@ -294,7 +301,8 @@ def profile(samples: int, horizon: int, plans: int, repeats: int) -> dict:
                        np.zeros(1, dtype=np.int64))
         ticks = np.zeros(len(PHASES), dtype=np.uint64)
         t0 = time.perf_counter()
-        _profiled_worker(model, task, sampling, cost_w, out, plan_consts, _thread_buffers(model), ticks)
+        _profiled_worker(model, task, sampling, cost_w, out, plan_consts, _thread_buffers(model), ticks,
+                         np.zeros((0, 0, 5), dtype=np.uint64))
         wall = (time.perf_counter() - t0) * 1e3
         runs.append((wall, ticks / rate))
     same = bool(np.array_equal(out.cost_out.view(np.uint64), cost_ref.view(np.uint64)))

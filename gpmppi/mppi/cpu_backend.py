@@ -22,7 +22,7 @@ import numba
 import numpy as np
 from numba import njit
 
-from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row, vector_phase
+from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row, row_axpy, vector_phase
 from gpmppi.mppi.bundles import CRITICS
 from gpmppi.mppi.costs import (
     advance_state,
@@ -186,26 +186,18 @@ def _request_rows(
 
 @phase
 def _read_rows(n_in: int, flat: np.ndarray, nodes: np.ndarray, node_w: np.ndarray, res: np.ndarray) -> None:
-    """Each sample's GP residual [mean_v, mean_w, var_v, var_w]: its five table rows, weighted."""
+    """Each sample's GP residual [mean_v, mean_w, var_v, var_w]: its five table rows, weighted, a row at a time
+    (`row_axpy`: one load and one multiply-add of four values; the same sums, in the same order, as four scalar
+    chains)."""
+    four = np.uint64(4)  # flat offsets, unsigned: no negative-index wrap-around and no multiply by the row length
     for j in range(n_in):
-        # flat offsets, unsigned: no negative-index wrap-around and no multiply by the row length
-        n = np.uint64(4) * nodes[0, j]
-        wq = node_w[0, j]
-        c0 = wq * flat[n]
-        c1 = wq * flat[n + np.uint64(1)]
-        c2 = wq * flat[n + np.uint64(2)]
-        c3 = wq * flat[n + np.uint64(3)]
+        c = row_axpy(None, node_w[0, j], flat, four * nodes[0, j])
         for q in range(1, 5):
-            n = np.uint64(4) * nodes[q, j]
-            wq = node_w[q, j]
-            c0 += wq * flat[n]
-            c1 += wq * flat[n + np.uint64(1)]
-            c2 += wq * flat[n + np.uint64(2)]
-            c3 += wq * flat[n + np.uint64(3)]
-        res[0, j] = c0
-        res[1, j] = c1
-        res[2, j] = c2
-        res[3, j] = c3
+            c = row_axpy(c, node_w[q, j], flat, four * nodes[q, j])
+        res[0, j] = c[0]
+        res[1, j] = c[1]
+        res[2, j] = c[2]
+        res[3, j] = c[3]
 
 
 @phase
