@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import gc
 import os
 import sys
 import tempfile
@@ -22,6 +23,13 @@ import pytest
 # fresh clone took 215 s with it set, 131 s with it unset and 118 s once the cache was written (docs/development.md).
 os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 sys.dont_write_bytecode = False
+
+# The cyclic garbage collector less often in the test processes (not in the services they start): a worker holds
+# ~500,000 objects once torch, numba and the services' modules are imported, and each full collection walks them all;
+# at Python's default (700, 10, 10) the collector took 3.3 of 41 CPU seconds of tests/test_robot_profile.py with
+# tests/test_train_calibration_log.py (-n 0; 2891 collections), 1.1 s at these thresholds (59 collections).
+# No test waits on a collection: every resource is closed where it is used.
+gc.set_threshold(20_000, 20, 20)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -44,22 +52,55 @@ def paper_model_file(jackal: Path, tmp_path_factory: pytest.TempPathFactory) -> 
     command for every module that uses it, so it is trained once a run (~10-17 s of CPU), not once a worker: the
     first worker to ask trains it into the run's shared temporary folder under a lock, the others wait for that
     lock and read the file; the tests only read it."""
+    out = shared_folder(tmp_path_factory, "paper") / "m.npz"
+    return once_a_run(tmp_path_factory, "paper", [
+        "train", str(jackal / "gp_train.csv"), "--hyperparameters", str(jackal / "gp_hyperparameters.json"),
+        "--theta", str(jackal / "theta.json"), "--edd5", str(jackal / "edd5.json"), "-o", str(out), "--force",
+    ], out)
+
+
+# the small two-ground log of the profile tests, and the profile `gpmppi train` fits on it with these settings (few
+# points and iterations, no grid table: the file, not the fit's quality, is what those tests check)
+PROFILE_GROUNDS = ["grass", "tile"]
+FAST_TRAIN = ["--points", "30", "--iters", "10", "--grid-nodes", "0"]
+
+
+@pytest.fixture(scope="session")
+def grounds_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """`gpmppi dataset` of 300 m on each of `PROFILE_GROUNDS` (seed 0), made once a run for every module that trains
+    on it (tests/test_robot_profile.py, tests/test_train_calibration_log.py); the tests only read it."""
+    out = shared_folder(tmp_path_factory, "grounds-log") / "ds.mcap"
+    return once_a_run(tmp_path_factory, "grounds-log", [
+        "dataset", "-o", str(out), "--distance", "300", "--seed", "0", *[a for g in PROFILE_GROUNDS for a in ("-t", g)],
+    ], out)
+
+
+@pytest.fixture(scope="session")
+def grounds_profile(grounds_log: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The profile `gpmppi train LOG -o OUT --points 30 --iters 10 --grid-nodes 0` writes from `grounds_log`, trained
+    once a run (~8 CPU s) for the tests that check it (tests/test_robot_profile.py) and compare another training with
+    it (tests/test_train_calibration_log.py); the tests only read it."""
+    out = shared_folder(tmp_path_factory, "grounds-profile") / "p.npz"
+    return once_a_run(tmp_path_factory, "grounds-profile", ["train", str(grounds_log), "-o", str(out), *FAST_TRAIN],
+                      out)
+
+
+def once_a_run(tmp_path_factory: pytest.TempPathFactory, name: str, args: list[str], out: Path) -> Path:
+    """`gpmppi ARGS` (which writes `out`, inside `shared_folder(.., name)`) once a run: the first worker to ask runs it
+    under a lock, the others wait for that lock and find it done. A command that failed fails the test that asked,
+    and the next one to ask runs it again."""
     from typer.testing import CliRunner
 
     from tools.cli import app
 
-    folder = shared_folder(tmp_path_factory, "paper")
-    out = folder / "m.npz"
-    with open(folder / "train.lock", "a") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # held while training: the other workers wait here, then find the file
-        done = folder / "trained"  # written after a training that succeeded: a failed one is tried again
+    folder = shared_folder(tmp_path_factory, name)
+    with open(folder / "run.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # held while it runs: the other workers wait here, then find the file
+        done = folder / "done"  # written after a run that succeeded
         if not done.is_file():
-            result = CliRunner().invoke(app, [
-                "train", str(jackal / "gp_train.csv"), "--hyperparameters", str(jackal / "gp_hyperparameters.json"),
-                "--theta", str(jackal / "theta.json"), "--edd5", str(jackal / "edd5.json"), "-o", str(out),
-                "--force",
-            ])
+            result = CliRunner().invoke(app, args)
             assert result.exit_code == 0, result.output
+            assert out.is_file(), f"gpmppi {' '.join(args)} wrote no {out}"
             done.touch()
     return out
 

