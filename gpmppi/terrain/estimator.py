@@ -123,6 +123,7 @@ class BayesTerrainEstimator:
         self._weights = w / w.sum()
         self._posterior = self._weights.copy()
         self._leader: int | None = None  # the terrain on top of the last published weights (None: none published)
+        self._established = False  # whether the evidence has put the leader `hysteresis_odds` ahead of all others
         self._u_prev: np.ndarray | None = None
         self._since_start = 0  # steps since the last one the start gate held (response_settle_steps)
         # exponentially forgotten sums of the calibration: du^2, du * e, and the spread beyond the GP's
@@ -329,13 +330,23 @@ class BayesTerrainEstimator:
         leader = self._leader
         challenger = int(np.argmax(p))
         w = p.copy()
-        if leader is not None and challenger != leader and p[challenger] - p[leader] <= self.config.hysteresis:
+        logp = np.log(np.maximum(p, 1e-300))
+        margin = self.config.hysteresis_odds if self._established else 0.0
+        if leader is not None and challenger != leader and (
+            p[challenger] - p[leader] <= self.config.hysteresis or logp[challenger] - logp[leader] < margin
+        ):
             above = np.flatnonzero(p > p[leader])  # the challenger and any terrain between it and the leader
             mid = (p[leader] + p[above].sum()) / (above.size + 1)
             w[above] = mid - 1e-6
             w[leader] = mid + 1e-6 * above.size
         else:
+            if leader != challenger:
+                self._established = False
             leader = challenger
+        # a leader is established once the evidence puts it `hysteresis_odds` ahead of every other terrain: before,
+        # the top was a tie's (the uniform start) or a weak lead's, and the first identification must not wait on it
+        if not self._established and self.config.hysteresis_odds > 0:
+            self._established = bool(logp[leader] - np.max(np.delete(logp, leader)) >= self.config.hysteresis_odds)
         self._leader = leader
         return w
 
