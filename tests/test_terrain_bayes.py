@@ -189,6 +189,13 @@ def test_hysteresis_odds_hold_the_top_against_a_challenger_ahead_on_weak_evidenc
     np.testing.assert_array_equal(taken, [0.15, 0.05, 0.80])
     # and is held in turn, also against the old leader come back a probability 0.3 ahead
     assert int(np.argmax(_publish(est, [0.62, 0.06, 0.32]))) == 2
+    # a leader the evidence has not yet put 1.5 nats ahead of every other (the uniform start's tie) is not held by
+    # the margin: the first identification waits on the probability rule only
+    fresh = make_estimator(_model(), BAYES.model_copy(update={"hysteresis": 0.3, "hysteresis_odds": 1.5}))
+    assert isinstance(fresh, BayesTerrainEstimator)
+    assert int(np.argmax(_publish(fresh, [1 / 3, 1 / 3, 1 / 3]))) == 0
+    assert int(np.argmax(_publish(fresh, [0.25, 0.60, 0.15]))) == 1  # 0.35 ahead, 0.9 nats
+    assert int(np.argmax(_publish(fresh, [0.62, 0.30, 0.08]))) == 0  # nor is the one that took a tie's place
     # with the margin off the probability rule alone gives the lead away on the first of those posteriors
     plain = make_estimator(_model(), BAYES.model_copy(update={"hysteresis": 0.3, "hysteresis_odds": 0.0}))
     assert isinstance(plain, BayesTerrainEstimator)
