@@ -326,6 +326,13 @@ class BayesTerrainEstimator:
         is above its own are published at their mean, the leader on top (1e-6 above each of the others; the sum and
         every weight below the leader's unchanged). Holding the leader against the posterior's top terrain alone is
         not enough: near a uniform posterior a third terrain between the two would come out above their mean.
+
+        With `hysteresis_odds` an established leader (one the evidence has put that many nats ahead of every other
+        terrain) also needs the challenger `hysteresis_odds` nats ahead (log p_c - log p_l): a margin of 0.3 in
+        probability is only 0.7 nats while a third terrain holds a third of the weight, and weak leads of that size
+        took the top for a second or two on the lanes. A leader not yet established (the uniform start's tie, or one
+        that took a tie's place on a weak lead) has only the probability margin, so the first identification does not
+        wait on the margin.
         """
         leader = self._leader
         challenger = int(np.argmax(p))
