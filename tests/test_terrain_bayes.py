@@ -174,6 +174,35 @@ def test_hysteresis_holds_the_top_through_a_three_way_tie() -> None:
     assert int(np.argmax(_publish(est, [0.30, 0.36, 0.34]))) == 2
 
 
+def test_hysteresis_odds_hold_the_top_against_a_challenger_ahead_on_weak_evidence() -> None:
+    # the scene's start flips (Jackal, asphalt): a challenger 0.3 ahead of the leader while a third terrain holds a
+    # third of the weight is only 0.7 nats of evidence ahead (twice as likely), and the lead went to it and came back
+    # a second later; the margin in nats holds the top whatever the other terrains hold
+    est = make_estimator(_model(), BAYES.model_copy(update={"hysteresis": 0.3, "hysteresis_odds": 1.5}))
+    assert isinstance(est, BayesTerrainEstimator)
+    assert int(np.argmax(_publish(est, [0.8, 0.1, 0.1]))) == 0
+    for p in ([0.33, 0.01, 0.66], [0.30, 0.05, 0.65], [0.25, 0.30, 0.45]):  # 0.2-0.35 ahead, log(p_c / p_l) < 1.5
+        w = _publish(est, p)
+        assert int(np.argmax(w)) == 0, f"the top left the leader on {p}: {w}"
+        assert w.sum() == pytest.approx(1.0)
+    taken = _publish(est, [0.15, 0.05, 0.80])  # log(0.80 / 0.15) = 1.67 nats ahead: the lead changes
+    np.testing.assert_array_equal(taken, [0.15, 0.05, 0.80])
+    # and is held in turn, also against the old leader come back a probability 0.3 ahead
+    assert int(np.argmax(_publish(est, [0.62, 0.06, 0.32]))) == 2
+    # a leader the evidence has not yet put 1.5 nats ahead of every other (the uniform start's tie) is not held by
+    # the margin: the first identification waits on the probability rule only
+    fresh = make_estimator(_model(), BAYES.model_copy(update={"hysteresis": 0.3, "hysteresis_odds": 1.5}))
+    assert isinstance(fresh, BayesTerrainEstimator)
+    assert int(np.argmax(_publish(fresh, [1 / 3, 1 / 3, 1 / 3]))) == 0
+    assert int(np.argmax(_publish(fresh, [0.25, 0.60, 0.15]))) == 1  # 0.35 ahead, 0.9 nats
+    assert int(np.argmax(_publish(fresh, [0.62, 0.30, 0.08]))) == 0  # nor is the one that took a tie's place
+    # with the margin off the probability rule alone gives the lead away on the first of those posteriors
+    plain = make_estimator(_model(), BAYES.model_copy(update={"hysteresis": 0.3, "hysteresis_odds": 0.0}))
+    assert isinstance(plain, BayesTerrainEstimator)
+    _publish(plain, [0.8, 0.1, 0.1])
+    assert int(np.argmax(_publish(plain, [0.33, 0.01, 0.66]))) == 2
+
+
 def test_same_steps_give_the_same_weights() -> None:
     model = _model()
     rows = _history(model, 1, 40, seed=6, noise=0.02)
@@ -211,7 +240,8 @@ def test_short_history_keeps_the_starting_weights() -> None:
      ({"response_max_transient": (0.0, 1.0)}, "response_max_transient"),
      ({"response_max_transient": (0.1, float("nan"))}, "response_max_transient"),
      ({"gp_max_speed_gap": 0.0}, "gp_max_speed_gap"), ({"gp_anchor": "maybe"}, "gp_anchor"),
-     ({"response_settle_steps": -1}, "response_settle_steps")],
+     ({"response_settle_steps": -1}, "response_settle_steps"), ({"hysteresis_odds": -0.5}, "hysteresis_odds"),
+     ({"hysteresis_odds": float("nan")}, "hysteresis_odds")],
 )
 def test_bad_settings_fail_naming_the_setting(fields: dict, named: str) -> None:
     with pytest.raises(ValidationError, match=named):

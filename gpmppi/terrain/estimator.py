@@ -123,6 +123,7 @@ class BayesTerrainEstimator:
         self._weights = w / w.sum()
         self._posterior = self._weights.copy()
         self._leader: int | None = None  # the terrain on top of the last published weights (None: none published)
+        self._established = False  # whether the evidence has put the leader `hysteresis_odds` ahead of all others
         self._u_prev: np.ndarray | None = None
         self._since_start = 0  # steps since the last one the start gate held (response_settle_steps)
         # exponentially forgotten sums of the calibration: du^2, du * e, and the spread beyond the GP's
@@ -325,17 +326,34 @@ class BayesTerrainEstimator:
         is above its own are published at their mean, the leader on top (1e-6 above each of the others; the sum and
         every weight below the leader's unchanged). Holding the leader against the posterior's top terrain alone is
         not enough: near a uniform posterior a third terrain between the two would come out above their mean.
+
+        With `hysteresis_odds` an established leader (one the evidence has put that many nats ahead of every other
+        terrain) also needs the challenger `hysteresis_odds` nats ahead (log p_c - log p_l): a margin of 0.3 in
+        probability is only 0.7 nats while a third terrain holds a third of the weight, and weak leads of that size
+        took the top for a second or two on the lanes. A leader not yet established (the uniform start's tie, or one
+        that took a tie's place on a weak lead) has only the probability margin, so the first identification does not
+        wait on the margin.
         """
         leader = self._leader
         challenger = int(np.argmax(p))
         w = p.copy()
-        if leader is not None and challenger != leader and p[challenger] - p[leader] <= self.config.hysteresis:
+        logp = np.log(np.maximum(p, 1e-300))
+        margin = self.config.hysteresis_odds if self._established else 0.0
+        if leader is not None and challenger != leader and (
+            p[challenger] - p[leader] <= self.config.hysteresis or logp[challenger] - logp[leader] < margin
+        ):
             above = np.flatnonzero(p > p[leader])  # the challenger and any terrain between it and the leader
             mid = (p[leader] + p[above].sum()) / (above.size + 1)
             w[above] = mid - 1e-6
             w[leader] = mid + 1e-6 * above.size
         else:
+            if leader != challenger:
+                self._established = False
             leader = challenger
+        # a leader is established once the evidence puts it `hysteresis_odds` ahead of every other terrain: before,
+        # the top was a tie's (the uniform start) or a weak lead's, and the first identification must not wait on it
+        if not self._established and self.config.hysteresis_odds > 0:
+            self._established = bool(logp[leader] - np.max(np.delete(logp, leader)) >= self.config.hysteresis_odds)
         self._leader = leader
         return w
 
