@@ -45,10 +45,15 @@ class EstimatorConfig(BaseModel):
     hysteresis: float = Field(
         0.3, ge=0, lt=1, description="bayes: another terrain takes the top weight only once its posterior exceeds "
         "the current top terrain's by this much (0: none)")
+    # 2.5 nats (odds of 12 to 1), under half the most a leader can be ahead before a step's evidence (log(M /
+    # switch_prob), 5.7 nats with three terrains), so a clearly identified ground always gets established. Measured
+    # on three robots' Table 1 (27 cells, docs/terrain_identification.md "Identification targets on three robots"):
+    # fewer top changes in three cells, no cell's weight moved beyond its runs' spread
     hysteresis_odds: float = Field(
-        0.0, ge=0, allow_inf_nan=False, description="bayes: another terrain takes the top weight only once the log of "
-        "its posterior over the top terrain's is at least this [nats]: a margin in the evidence's own units, the same "
-        "whatever the other terrains hold (0: none)")
+        2.5, ge=0, allow_inf_nan=False, description="bayes: another terrain takes the top weight only once the log of "
+        "its posterior over the top terrain's is at least this [nats], once the evidence has established the top "
+        "(that many nats ahead of every other): a margin in the evidence's own units, the same whatever the other "
+        "terrains hold (0: none)")
     adapt_noise: bool = Field(True, description="bayes: fit the extra residual spread online")
     command_change: Literal["per_terrain", "online", "none"] = Field(
         "per_terrain", description="bayes: how each terrain's prediction takes in the change of command since the "
