@@ -86,6 +86,8 @@ def test_short_soak_reports_real_numbers(tmp_path: Path, monkeypatch: pytest.Mon
     r = soak(SOAK_S, port=port, record=record, warmup_s=2.0, window_s=2.5)
     side.join(5)
     assert r["exit_code"] == 0 and r["restarts"] == {} and r["failed"] == []
+    # the soak's clock starts at the planner's first command (a start slowed by load is not a soak's window)
+    assert r["up_s"] is not None and 0.0 <= r["up_s"] < 120.0
     assert SOAK_S - 1.0 <= r["duration_s"] < SOAK_S + 15.0
     # memory: every process sampled about once a second after the warm-up, plausible sizes
     # (and the warm spares, `name*`, once made: they are measured while they wait)

@@ -9,6 +9,9 @@ recorder; optionally the viewer) for S seconds, watched from outside:
 - planner: command rate, state stamp -> command p50 / p99 and plan compute p99 per time window;
 - each service's rejected input (its last heartbeat), and every restart with its exit codes.
 
+The S seconds count from the planner's first command (`up_s` after the services' start): a stack is up when it
+commands, and how long a start takes is `gpmppi bench startup`'s measure, not the soak's.
+
 Timings and rates are those of this machine at the time: on a shared machine they move with its load (the load
 average is printed with them).
 """
@@ -38,6 +41,8 @@ from services.launch.supervisor import Launcher
 from services.recording.mcap_io import REJECTED_SUFFIX, recording_files
 from tools.cli_checks import OUT_FILE
 
+UP_TIMEOUT_S = 120.0  # the longest wait for the planner's first command before the soak's clock starts anyway
+
 
 def rss_kib(pid: int) -> int | None:
     """Resident set size of a process [KiB] (VmRSS in /proc/<pid>/status), or None when it is gone."""
@@ -63,7 +68,7 @@ def cpu_s(pid: int) -> float | None:
 class Tick:
     """One sample of the running stack, taken once a second."""
 
-    t_s: float  # since the soak began (all services up)
+    t_s: float  # since the soak began (all services up and the planner commanding)
     rss_kib: dict[str, int]  # service -> resident set [KiB] (absent when its process was down)
     pids: dict[str, int]
     cmd_count: int  # commands the monitor has seen on `cmd` so far
@@ -83,6 +88,7 @@ class SoakData:
     monitor_counts: dict[str, int] = field(default_factory=dict)  # the monitor's per-key totals, at the end
     restarts: dict[str, dict] = field(default_factory=dict)
     soak_s: float = 0.0
+    up_s: float | None = None  # from every service's start to the planner's first command [s] (None: none came)
 
 
 def _digest(payload: bytes) -> bytes:
@@ -109,6 +115,17 @@ def soak_hook(duration_s: float, data: SoakData, sample_s: float = 1.0) -> Calla
 
         sub = monitor.session.declare_subscriber("gpmppi/**", on_sample)
         cmd_key = f"gpmppi/{monitor.robot}/cmd"
+        # the soak's clock starts once the planner commands: its heartbeat (what the launch waits for) comes before
+        # it has loaded its kernels and taken states, and on a loaded machine that start took over 4 s, which the
+        # first window after the warm-up then counted as a planner sending nothing (the start: `gpmppi bench startup`)
+        started = time.monotonic()
+        up_by = started + UP_TIMEOUT_S
+        while not launcher.stop_event.is_set() and time.monotonic() < up_by:
+            with monitor.lock:
+                if monitor.counts[cmd_key] > 0:
+                    data.up_s = time.monotonic() - started
+                    break
+            time.sleep(0.02)
         t0 = time.monotonic()
         next_tick = t0
         try:
@@ -281,6 +298,7 @@ def build_report(data: SoakData, summary: Summary, record: str, warmup_s: float,
     memory = memory_report(data.ticks, warmup_s)
     return {
         "duration_s": round(data.soak_s, 1),
+        "up_s": None if data.up_s is None else round(data.up_s, 2),
         "warmup_s": warmup_s,
         "window_s": window_s,
         "memory": memory,
@@ -324,8 +342,9 @@ def build_report(data: SoakData, summary: Summary, record: str, warmup_s: float,
 
 
 def print_report(r: dict) -> None:
-    typer.echo(f"soak {r['duration_s']} s (warm-up {r['warmup_s']} s), load average (1 min) before, after: "
-               f"{r['load_avg_1min']}, exit code {r['exit_code']}")
+    up = "no command came" if r["up_s"] is None else f"from {r['up_s']} s after the services' start"
+    typer.echo(f"soak {r['duration_s']} s ({up}: the planner's first command; warm-up {r['warmup_s']} s), load "
+               f"average (1 min) before, after: {r['load_avg_1min']}, exit code {r['exit_code']}")
     typer.echo("memory after warm-up [MiB]: start / middle / end, max; growth, spread; CPU [% of one core]"
                " (name*: a warm spare)")
     for name, m in r["memory"].items():
