@@ -119,6 +119,11 @@ def run_service(kind: str, config: str | Path | None = None) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     follow_launcher()
+    # a warm spare's start (its imports first) at a lower CPU priority than the services it backs; its go takes
+    # the priority back (services.runtime.spare_priority)
+    from services.runtime.spare_priority import lower_for_standby
+
+    lower_for_standby()
     parser = argparse.ArgumentParser(prog="python -m services.run", description="Run one gpmppi service.")
     parser.add_argument("name", choices=sorted(SERVICES))
     parser.add_argument("--config", type=Path, default=None, help="YAML settings file")

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import signal
 import socket
 import threading
@@ -630,6 +631,11 @@ def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
 
             # ---- SIGKILL planner: its spare takes over from the last plan, at speed
             spare_pid = launcher.child("planner").spare.process.pid  # type: ignore[union-attr]
+            # the spare stands by `spare_nice` (10) nicer than the service, in every thread it made
+            service_nice = _thread_nices(launcher.child("planner").process.pid)  # type: ignore[union-attr]
+            check(len(service_nice) == 1, f"the planner's threads at different priorities: {service_nice}")
+            check(_thread_nices(spare_pid) == {min(service_nice) + 10},
+                  f"planner spare's threads at nice {_thread_nices(spare_pid)}, service {service_nice}")
             old_source = obs.cmds()[-1][1].source
             n_events = len(launcher.restart_events)
             t_kill = time.monotonic()
@@ -661,6 +667,9 @@ def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
             check(resumed if gap_s < 3.5 else ran_out if gap_s > 4.5 else resumed or ran_out,
                   f"planner takeover after {gap_s:.2f} s without commands: warm start {resumed}, ran out {ran_out}")
             check(obs.wait_driving(t_kill, 15.0) is not None, "planner takeover: not driving again")
+            # and takes the service's priority back at its go, in every thread (its rollout workers included)
+            check(_thread_nices(spare_pid) == service_nice,
+                  f"the spare that took over runs at nice {_thread_nices(spare_pid)}, not {service_nice}")
 
             # ---- the spare itself dies: replaced
             assert wait_for(lambda: _spare_ready(launcher, "planner"), 90.0), "no new planner spare"
@@ -766,6 +775,17 @@ def test_warm_spares_take_over_and_never_command_beside_a_live_planner(
         assert f"{name}: SIGKILL at" in lines and "took over" in lines, lines
     assert "restarted after" in lines  # the second planner death in a row
     assert summary.spare_events, lines
+
+
+def _thread_nices(pid: int) -> set[int]:
+    """The niceness of each thread of process `pid` (Linux keeps one per thread)."""
+    nices = set()
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            nices.add(os.getpriority(os.PRIO_PROCESS, int(tid)))
+        except OSError:  # the thread ended meanwhile
+            pass
+    return nices
 
 
 def test_a_launcher_started_process_waits_while_its_service_is_alive(

@@ -72,6 +72,12 @@ class LaunchFile(BaseModel):
         5.0, ge=0, le=3600, description="a spare is made this long after its service (re)started, one spare "
         "warming at a time (planner first), so spares do not compete with a start for the CPU [s]"
     )
+    spare_nice: int = Field(
+        10, ge=0, le=19, description="a spare starts this much nicer (a lower CPU priority) than its service and "
+        "takes the service's priority back when it takes over (that takes CAP_SYS_NICE or an RLIMIT_NICE allowing "
+        "it, else it keeps the lower one and says so), so its start never takes the CPU from the control path it "
+        "backs; 0: the same priority"
+    )
 
     @classmethod
     def load(cls, path: str | Path) -> LaunchFile:

@@ -43,7 +43,7 @@ class WarmSpares:
 
         def child(self, name: str) -> Child: ...
 
-        def _start_process(self, child: Child, label: str) -> Proc: ...
+        def _start_process(self, child: Child, label: str, spare: bool = False) -> Proc: ...
 
         def _go(self, child: Child, proc: Proc) -> None: ...
 
@@ -85,7 +85,7 @@ class WarmSpares:
                 continue
             if child.process.poll() is not None or self.stop_event.is_set():
                 continue
-            child.spare = self._start_process(child, f"{child.name}*")
+            child.spare = self._start_process(child, f"{child.name}*", spare=True)
             child.spare_due = None
             self.say("launch", f"started a warm spare for {child.name} ({child.kind}) pid {child.spare.process.pid}")
             return

@@ -39,6 +39,7 @@ from services.launch.spares import WarmSpares
 from services.recording.output_files import free_name
 from services.run import LAUNCHER_PID_ENV, SERVICES
 from services.runtime.role import HANDOVER, READY, ROLE_FD_ENV, go_message
+from services.runtime.spare_priority import SPARE_NICE_ENV
 
 if TYPE_CHECKING:
     from services.launch.launch_file import LaunchFile
@@ -103,10 +104,14 @@ class Launcher(WarmSpares):
             raise ValueError(f"two services are named {name!r}; names must be unique")
         self.children.append(Child(name, kind, self._write_config(name, config), required))
 
-    def _start_process(self, child: Child, label: str) -> Proc:
+    def _start_process(self, child: Child, label: str, spare: bool = False) -> Proc:
         """A new process of `child`'s service with a role socket (services.runtime.role): it loads what it can,
-        says it is ready and waits for its go (`_go`)."""
+        says it is ready and waits for its go (`_go`); `spare`: a warm spare, which starts at a lower CPU priority
+        (`LaunchFile.spare_nice`, services.runtime.spare_priority)."""
         env = dict(os.environ)
+        env.pop(SPARE_NICE_ENV, None)
+        if spare and self.launch.spare_nice:
+            env[SPARE_NICE_ENV] = str(self.launch.spare_nice)
         env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
         env["PYTHONUNBUFFERED"] = "1"
         # the child stops when this process dies, however it dies (services.run.follow_launcher)

@@ -169,6 +169,8 @@ class Node:
         if role is not None:
             self._settings_still_current()
             self.handover = dict(role.handover)
+            if role.priority_note is not None:
+                self.log.warning(role.priority_note)
             if role.waited_s > 1.0:
                 self.log.info("taking over", extra={"fields": {"waited_s": round(role.waited_s, 1),
                                                                "handover": sorted(self.handover)}})

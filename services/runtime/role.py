@@ -29,6 +29,7 @@ import time
 from dataclasses import dataclass, field
 
 from services.runtime.session import StoppedWhileWaiting
+from services.runtime.spare_priority import restore_at_go
 
 ROLE_FD_ENV = "GPMPPI_ROLE_FD"
 STANDBY_ENV = "GPMPPI_STANDBY"
@@ -65,6 +66,7 @@ class Role:
 
     handover: dict[str, bytes] = field(default_factory=dict)
     waited_s: float = 0.0
+    priority_note: str | None = None  # a spare that could not take its service's CPU priority back: why
 
 
 _taken: Role | None = None
@@ -102,7 +104,7 @@ def wait_for_role(stop: threading.Event | None = None) -> Role | None:
             buf += chunk
         go = json.loads(buf.split(b"\n", 1)[0])
         handover = {str(k): str(v).encode() for k, v in (go.get("handover") or {}).items()}
-        _taken = Role(handover, time.monotonic() - t0)
+        _taken = Role(handover, time.monotonic() - t0, restore_at_go())
         global _joined_to
         _joined_to, sock = sock, None  # kept open for `say_joined`
         return _taken
