@@ -69,7 +69,7 @@ KERNEL = "@KERNEL@"
 LOOP_S = @LOOP_S@
 
 if sys.argv[1] == "helpers_first":
-    from gpmppi.mppi.bundles import N_COST_TERMS
+    from gpmppi.mppi.bundles import CRITICS, N_COST_TERMS
     from gpmppi.mppi.costs import stage_cost, tighten_lane
     from gpmppi.mppi.critics import lane_exit, slip, variance
     from gpmppi.gp.grid_interp import grid_interp
@@ -86,7 +86,7 @@ if sys.argv[1] == "helpers_first":
     nominal_velocity_step(coef, 0.5, 0.1, 1.0, 0.2, 0.1)
     advance(2, 0.1, coef, np.ones(5), (0.0, 0.0, 0.1, 0.5, 0.1), (1.0, 0.2), 0.01, 0.02)
     nominal_step(theta, x, u, 0.1)
-    jacobian(theta, x, u, 0.1)
+    jacobian(theta, x, u, 0.1, 0.0, 0.0, 0.0, 0.0)  # as `propagate` calls it (no defaults omitted)
     table = np.ones((81, 4), dtype=np.float32)
     dims = np.array([3, 3, 3, 3])
     simplex_nodes(dims, np.zeros(4), np.ones(4), 0.5, 0.5, 0.5, 0.5)
@@ -111,16 +111,27 @@ if sys.argv[1] == "helpers_first":
     task = TaskBundle.for_lane(lane, 1.0, np.full(3, 0.8), 1.0).args()
     stage_cost(np.ones(N_COST_TERMS), task, 0.8, np.zeros(0), (1.0,), (0.5, 0.1, 0.3, 0.5, 0.1), (1.0, 0.2),
                (0.01, 0.02))
-    # the delay predictor (its own kernel over the same helpers) compiled first: with the 'contract' fastmath flag
-    # this history alone changed the rollout kernel's last bits
+    # the helpers the serial kernels call rather than inline (the GP residual, the model step, the Jacobian above, the
+    # split critics), with the kernels' own types: the kernels compiled after them link them, and the helpers-cached
+    # case links them loaded from its copy of this cache
     from gpmppi.gp.model_file import load_default_model
-    from gpmppi.mppi.dynamics import predict_ahead
+    from gpmppi.mppi.costs import stage_critics, start_state, terminal_critics, weight_vector
+    from gpmppi.mppi.dynamics import dyn_inputs, gp_inputs, gp_residual, gp_scratch, predict_ahead, step_state
     from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.scenarios import circle_lane
 
     pl = Planner(PlannerConfig(dynamics="unicycle"), load_default_model())
     tw = np.full(3, 1.0 / 3.0)
     bundle = pl.terrain.set_weights(tw)
-    predict_ahead(bundle.args(), np.zeros(5), np.eye(5), np.array([1.0, 0.5]), 0.25, 0.1)
+    model = bundle.args()
+    gp, scratch = gp_inputs(model), gp_scratch(model)
+    gp_residual(gp, scratch, 1.0, 0.2, 0.5, 0.1)
+    step_state(dyn_inputs(model, coef), gp, scratch, 0.1, (0.0, 0.0, 0.1, 0.5, 0.1), (1.0, 0.2), 1.0)
+    cost_w = weight_vector(pl.kind(circle_lane().task).cost.args())
+    split = np.zeros(len(CRITICS))
+    stage_critics(cost_w, task, 0.8, np.zeros(0), start_state(cost_w), (0.5, 0.1, 0.3, 0.5, 0.1), (1.0, 0.2),
+                  (0.01, 0.02), split)
+    terminal_critics(cost_w, task, 0.8, np.zeros(0), start_state(cost_w), (0.5, 0.1, 0.3, 0.5, 0.1), split)
     if len(sys.argv) > 2:  # a copy of the cache as it is now: the helpers compiled, no planner kernel yet
         import os
         import shutil
@@ -128,10 +139,11 @@ if sys.argv[1] == "helpers_first":
         shutil.copytree(os.environ["NUMBA_CACHE_DIR"], sys.argv[2] + ".partial")
         os.rename(sys.argv[2] + ".partial", sys.argv[2])
     print(HELPERS_CACHED, flush=True)
+    # the delay predictor (its own kernel over the same helpers) compiled first, called as the planner calls it: with
+    # the 'contract' fastmath flag this history alone changed the rollout kernel's last bits
+    predict_ahead(model, np.zeros(5), np.eye(5), np.array([1.0, 0.5]), 0.25, 0.1, 0.0, 0.0)
     # and one plan, so that the rollout kernel is compiled before the closed loop's estimator and plant: with the
     # 'reassoc' fastmath flag this history changed the closed loop from its seventh cycle
-    from gpmppi.scenarios import circle_lane
-
     pl.plan(circle_lane().start.copy(), circle_lane().task, tw)
 
 from dataclasses import replace
