@@ -13,12 +13,15 @@ folders can show it. Four histories:
 
 - empty cache: `plan` compiles the planner's kernels and everything they call fresh;
 - helpers first, in an empty cache: `helpers_first` compiles the kernels' helper functions on their own
-  (dynamics, GP lookup, noise, costs, lane, grid interpolation), the delay predictor (its own kernel over
-  the same helpers) and then the rollout kernel (one unicycle plan) before its closed loop. With the
-  'contract' fastmath flag this order alone changed the kernels' last bits;
+  (dynamics, GP lookup, noise, costs, lane, grid interpolation; among them those the kernels link rather than
+  inline, with the kernels' own types: the GP residual, the model step, the Jacobian, the split critics), the
+  delay predictor (its own kernel over the same helpers) and then the rollout kernel (one unicycle plan) before
+  its closed loop. With the 'contract' fastmath flag this order alone changed the kernels' last bits;
 - helpers cached: the same process copies its cache folder once the helpers are compiled (so that copy holds
   the helpers and no kernel); `helpers_first` in that copy loads the helpers from disk and compiles the
-  kernels against them;
+  kernels against them: they link the GP residual, the model step, the Jacobian and the split critics as
+  object code from the cache, the case of `velocity_coefficients` below (until 2026-12-07 those were compiled
+  with other types in the helpers' section, so this case compiled them again, ~12 CPU s, and linked none);
 - fully cached: `plan` in the first case's cache loads every kernel from disk.
 
 The first case compiles in one process (`GPMPPI_COMPILE_AHEAD=0`) and with numba's inliner as shipped (it copies
