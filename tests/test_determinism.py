@@ -60,6 +60,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 HELPERS_CACHED = "helpers compiled and cached"
 KERNEL = "rollout kernel:"
+LINKED = "linked helpers compiled:"
 LOOP_S = 3.0  # [s] of closed loop: 30 planner cycles
 PLAN_LINES = 30 + 30  # the closed loop's cycles, then 3 models x 10 iterations
 
@@ -69,6 +70,7 @@ import numpy as np
 
 HELPERS_CACHED = "@HELPERS_CACHED@"
 KERNEL = "@KERNEL@"
+LINKED = "@LINKED@"
 LOOP_S = @LOOP_S@
 
 if sys.argv[1] == "helpers_first":
@@ -181,9 +183,15 @@ for dyn in ("edd5", "unicycle", "gp"):
         print(dyn, r.controls.tobytes().hex(), np.float64(r.cost).tobytes().hex())
         x = r.states[1].copy()
 
+from gpmppi.models.dynamic_unicycle import jacobian
+from gpmppi.mppi.costs import stage_critics, terminal_critics
 from gpmppi.mppi.cpu_backend import rollout_worker
+from gpmppi.mppi.dynamics import gp_residual, step_state
 
-# how this process got the rollout kernel: compiled it, or loaded it from the cache
+# which of the helpers the kernels link this process compiled (the helpers-cached case: none), and how it got the
+# rollout kernel: compiled it, or loaded it from the cache
+linked = (gp_residual, step_state, jacobian, stage_critics, terminal_critics)
+print(LINKED, " ".join(sorted(f.py_func.__name__ for f in linked if f._cache_misses)))
 print(KERNEL, "compiled" if rollout_worker._cache_misses else "loaded" if rollout_worker._cache_hits else "unused")
 """
 
@@ -207,7 +215,7 @@ def start_case(mode: str, cache: Path, copy_helpers_cache_to: Path | None = None
     numba's inliner as shipped too."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), GPMPPI_COMPILE_AHEAD="1" if ahead else "0")
     script = (("" if ahead else NUMBAS_OWN_IR_COPIES) + SCRIPT.replace("@HELPERS_CACHED@", HELPERS_CACHED)
-              .replace("@KERNEL@", KERNEL).replace("@LOOP_S@", repr(LOOP_S)))
+              .replace("@KERNEL@", KERNEL).replace("@LINKED@", LINKED).replace("@LOOP_S@", repr(LOOP_S)))
     args = [sys.executable, "-c", script, mode]
     if copy_helpers_cache_to is not None:
         args.append(str(copy_helpers_cache_to))
@@ -227,13 +235,20 @@ def wait_helpers_cached(case: Case) -> None:
                              f"{case.log.read_text()[-3000:]}")
 
 
-def case_output(case: Case, kernel: str) -> str:
+ALL_LINKED = "gp_residual jacobian stage_critics step_state terminal_critics"
+
+
+def case_output(case: Case, kernel: str, linked: str) -> str:
     """The case's plans (hex lines) once it has finished; its process must have got the rollout kernel as
-    `kernel` says (compiled, loaded)."""
+    `kernel` says (compiled, loaded), and compiled the helpers the kernels link that `linked` names (all of them,
+    `ALL_LINKED`, or none: the helpers-cached case loads them, so the helpers' section must compile them with the
+    kernels' types)."""
     out, _ = case.proc.communicate(timeout=1800)  # compiling on a loaded machine takes long
     assert case.proc.returncode == 0, case.log.read_text()[-3000:]
-    plans, _, how = out.replace(HELPERS_CACHED + "\n", "").rpartition(KERNEL)
+    rest, _, how = out.replace(HELPERS_CACHED + "\n", "").rpartition(KERNEL)
+    plans, _, compiled = rest.rpartition(LINKED)
     assert how.strip() == kernel, f"the rollout kernel was {how.strip()!r} in this process, not {kernel!r}"
+    assert compiled.strip() == linked, f"this process compiled the linked helpers {compiled.strip()!r}, not {linked!r}"
     assert plans.count("\n") == PLAN_LINES, out[-500:]
     return plans
 
@@ -255,13 +270,13 @@ def test_plans_do_not_depend_on_compile_order_or_cache(tmp_path: Path) -> None:
         wait_helpers_cached(other_order)
         assert any(helpers_cached.rglob("*.nbi")), "compiling the helpers wrote no numba cache"
         cases.append(other_first := start_case("helpers_first", helpers_cached))
-        out_fresh = case_output(fresh, "compiled")
+        out_fresh = case_output(fresh, "compiled", ALL_LINKED)
         cases.append(from_cache := start_case("plan", empty))
-        same(case_output(other_order, "loaded"), out_fresh, "the helpers and delay predictor compiled first, the "
-             "rollout kernel in a second process, numba's inliner with one scope per copy")
-        same(case_output(other_first, "loaded"), out_fresh, "kernels compiled against cached helpers, the rollout "
+        same(case_output(other_order, "loaded", ALL_LINKED), out_fresh, "the helpers and delay predictor compiled "
+             "first, the rollout kernel in a second process, numba's inliner with one scope per copy")
+        same(case_output(other_first, "loaded", ""), out_fresh, "kernels compiled against cached helpers, the rollout "
              "kernel in a second process, numba's inliner with one scope per copy")
-        same(case_output(from_cache, "loaded"), out_fresh, "kernels loaded from the cache")
+        same(case_output(from_cache, "loaded", ""), out_fresh, "kernels loaded from the cache")
     finally:  # a failed or timed-out case leaves no compiling process behind
         for case in cases:
             if case.proc.poll() is None:
