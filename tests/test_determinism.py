@@ -129,9 +129,11 @@ if sys.argv[1] == "helpers_first":
     tw = np.full(3, 1.0 / 3.0)
     bundle = pl.terrain.set_weights(tw)
     model = bundle.args()
-    gp, scratch = gp_inputs(model), gp_scratch(model)
+    # their arguments as the kernels build them, by the builders' Python (compiled, they would be three more
+    # functions of this history: every case compiles them inlined)
+    gp, scratch = gp_inputs.py_func(model), gp_scratch.py_func(model)
     gp_residual(gp, scratch, 1.0, 0.2, 0.5, 0.1)
-    step_state(dyn_inputs(model, coef), gp, scratch, 0.1, (0.0, 0.0, 0.1, 0.5, 0.1), (1.0, 0.2), 1.0)
+    step_state(dyn_inputs.py_func(model, coef), gp, scratch, 0.1, (0.0, 0.0, 0.1, 0.5, 0.1), (1.0, 0.2), 1.0)
     cost_w = weight_vector(pl.kind(circle_lane().task).cost.args())
     split = np.zeros(len(CRITICS))
     stage_critics(cost_w, task, 0.8, np.zeros(0), start_state(cost_w), (0.5, 0.1, 0.3, 0.5, 0.1), (1.0, 0.2),
