@@ -13,12 +13,15 @@ folders can show it. Four histories:
 
 - empty cache: `plan` compiles the planner's kernels and everything they call fresh;
 - helpers first, in an empty cache: `helpers_first` compiles the kernels' helper functions on their own
-  (dynamics, GP lookup, noise, costs, lane, grid interpolation), the delay predictor (its own kernel over
-  the same helpers) and then the rollout kernel (one unicycle plan) before its closed loop. With the
-  'contract' fastmath flag this order alone changed the kernels' last bits;
+  (dynamics, GP lookup, noise, costs, lane, grid interpolation; among them those the kernels link rather than
+  inline, with the kernels' own types: the GP residual, the model step, the Jacobian, the split critics), the
+  delay predictor (its own kernel over the same helpers) and then the rollout kernel (one unicycle plan) before
+  its closed loop. With the 'contract' fastmath flag this order alone changed the kernels' last bits;
 - helpers cached: the same process copies its cache folder once the helpers are compiled (so that copy holds
   the helpers and no kernel); `helpers_first` in that copy loads the helpers from disk and compiles the
-  kernels against them;
+  kernels against them: they link the GP residual, the model step, the Jacobian and the split critics as
+  object code from the cache, the case of `velocity_coefficients` below (until 2026-12-07 those were compiled
+  with other types in the helpers' section, so this case compiled them again, ~12 CPU s, and linked none);
 - fully cached: `plan` in the first case's cache loads every kernel from disk.
 
 The first case compiles in one process (`GPMPPI_COMPILE_AHEAD=0`) and with numba's inliner as shipped (it copies
@@ -57,6 +60,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 HELPERS_CACHED = "helpers compiled and cached"
 KERNEL = "rollout kernel:"
+LINKED = "linked helpers compiled:"
 LOOP_S = 3.0  # [s] of closed loop: 30 planner cycles
 PLAN_LINES = 30 + 30  # the closed loop's cycles, then 3 models x 10 iterations
 
@@ -66,10 +70,11 @@ import numpy as np
 
 HELPERS_CACHED = "@HELPERS_CACHED@"
 KERNEL = "@KERNEL@"
+LINKED = "@LINKED@"
 LOOP_S = @LOOP_S@
 
 if sys.argv[1] == "helpers_first":
-    from gpmppi.mppi.bundles import N_COST_TERMS
+    from gpmppi.mppi.bundles import CRITICS, N_COST_TERMS
     from gpmppi.mppi.costs import stage_cost, tighten_lane
     from gpmppi.mppi.critics import lane_exit, slip, variance
     from gpmppi.gp.grid_interp import grid_interp
@@ -86,7 +91,7 @@ if sys.argv[1] == "helpers_first":
     nominal_velocity_step(coef, 0.5, 0.1, 1.0, 0.2, 0.1)
     advance(2, 0.1, coef, np.ones(5), (0.0, 0.0, 0.1, 0.5, 0.1), (1.0, 0.2), 0.01, 0.02)
     nominal_step(theta, x, u, 0.1)
-    jacobian(theta, x, u, 0.1)
+    jacobian(theta, x, u, 0.1, 0.0, 0.0, 0.0, 0.0)  # as `propagate` calls it (no defaults omitted)
     table = np.ones((81, 4), dtype=np.float32)
     dims = np.array([3, 3, 3, 3])
     simplex_nodes(dims, np.zeros(4), np.ones(4), 0.5, 0.5, 0.5, 0.5)
@@ -111,16 +116,29 @@ if sys.argv[1] == "helpers_first":
     task = TaskBundle.for_lane(lane, 1.0, np.full(3, 0.8), 1.0).args()
     stage_cost(np.ones(N_COST_TERMS), task, 0.8, np.zeros(0), (1.0,), (0.5, 0.1, 0.3, 0.5, 0.1), (1.0, 0.2),
                (0.01, 0.02))
-    # the delay predictor (its own kernel over the same helpers) compiled first: with the 'contract' fastmath flag
-    # this history alone changed the rollout kernel's last bits
+    # the helpers the serial kernels call rather than inline (the GP residual, the model step, the Jacobian above, the
+    # split critics), with the kernels' own types: the kernels compiled after them link them, and the helpers-cached
+    # case links them loaded from its copy of this cache
     from gpmppi.gp.model_file import load_default_model
-    from gpmppi.mppi.dynamics import predict_ahead
+    from gpmppi.mppi.costs import stage_critics, start_state, terminal_critics, weight_vector
+    from gpmppi.mppi.dynamics import dyn_inputs, gp_inputs, gp_residual, gp_scratch, predict_ahead, step_state
     from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.scenarios import circle_lane
 
     pl = Planner(PlannerConfig(dynamics="unicycle"), load_default_model())
     tw = np.full(3, 1.0 / 3.0)
     bundle = pl.terrain.set_weights(tw)
-    predict_ahead(bundle.args(), np.zeros(5), np.eye(5), np.array([1.0, 0.5]), 0.25, 0.1)
+    model = bundle.args()
+    # their arguments as the kernels build them, by the builders' Python (compiled, they would be three more
+    # functions of this history: every case compiles them inlined)
+    gp, scratch = gp_inputs.py_func(model), gp_scratch.py_func(model)
+    gp_residual(gp, scratch, 1.0, 0.2, 0.5, 0.1)
+    step_state(dyn_inputs.py_func(model, coef), gp, scratch, 0.1, (0.0, 0.0, 0.1, 0.5, 0.1), (1.0, 0.2), 1.0)
+    cost_w = weight_vector(pl.kind(circle_lane().task).cost.args())
+    split = np.zeros(len(CRITICS))
+    stage_critics(cost_w, task, 0.8, np.zeros(0), start_state(cost_w), (0.5, 0.1, 0.3, 0.5, 0.1), (1.0, 0.2),
+                  (0.01, 0.02), split)
+    terminal_critics(cost_w, task, 0.8, np.zeros(0), start_state(cost_w), (0.5, 0.1, 0.3, 0.5, 0.1), split)
     if len(sys.argv) > 2:  # a copy of the cache as it is now: the helpers compiled, no planner kernel yet
         import os
         import shutil
@@ -128,10 +146,11 @@ if sys.argv[1] == "helpers_first":
         shutil.copytree(os.environ["NUMBA_CACHE_DIR"], sys.argv[2] + ".partial")
         os.rename(sys.argv[2] + ".partial", sys.argv[2])
     print(HELPERS_CACHED, flush=True)
+    # the delay predictor (its own kernel over the same helpers) compiled first, called as the planner calls it: with
+    # the 'contract' fastmath flag this history alone changed the rollout kernel's last bits
+    predict_ahead(model, np.zeros(5), np.eye(5), np.array([1.0, 0.5]), 0.25, 0.1, 0.0, 0.0)
     # and one plan, so that the rollout kernel is compiled before the closed loop's estimator and plant: with the
     # 'reassoc' fastmath flag this history changed the closed loop from its seventh cycle
-    from gpmppi.scenarios import circle_lane
-
     pl.plan(circle_lane().start.copy(), circle_lane().task, tw)
 
 from dataclasses import replace
@@ -166,9 +185,15 @@ for dyn in ("edd5", "unicycle", "gp"):
         print(dyn, r.controls.tobytes().hex(), np.float64(r.cost).tobytes().hex())
         x = r.states[1].copy()
 
+from gpmppi.models.dynamic_unicycle import jacobian
+from gpmppi.mppi.costs import stage_critics, terminal_critics
 from gpmppi.mppi.cpu_backend import rollout_worker
+from gpmppi.mppi.dynamics import gp_residual, step_state
 
-# how this process got the rollout kernel: compiled it, or loaded it from the cache
+# which of the helpers the kernels link this process compiled (the helpers-cached case: none), and how it got the
+# rollout kernel: compiled it, or loaded it from the cache
+linked = (gp_residual, step_state, jacobian, stage_critics, terminal_critics)
+print(LINKED, " ".join(sorted(f.py_func.__name__ for f in linked if f._cache_misses)))
 print(KERNEL, "compiled" if rollout_worker._cache_misses else "loaded" if rollout_worker._cache_hits else "unused")
 """
 
@@ -192,7 +217,7 @@ def start_case(mode: str, cache: Path, copy_helpers_cache_to: Path | None = None
     numba's inliner as shipped too."""
     env = dict(os.environ, NUMBA_CACHE_DIR=str(cache), GPMPPI_COMPILE_AHEAD="1" if ahead else "0")
     script = (("" if ahead else NUMBAS_OWN_IR_COPIES) + SCRIPT.replace("@HELPERS_CACHED@", HELPERS_CACHED)
-              .replace("@KERNEL@", KERNEL).replace("@LOOP_S@", repr(LOOP_S)))
+              .replace("@KERNEL@", KERNEL).replace("@LINKED@", LINKED).replace("@LOOP_S@", repr(LOOP_S)))
     args = [sys.executable, "-c", script, mode]
     if copy_helpers_cache_to is not None:
         args.append(str(copy_helpers_cache_to))
@@ -212,13 +237,20 @@ def wait_helpers_cached(case: Case) -> None:
                              f"{case.log.read_text()[-3000:]}")
 
 
-def case_output(case: Case, kernel: str) -> str:
+ALL_LINKED = "gp_residual jacobian stage_critics step_state terminal_critics"
+
+
+def case_output(case: Case, kernel: str, linked: str) -> str:
     """The case's plans (hex lines) once it has finished; its process must have got the rollout kernel as
-    `kernel` says (compiled, loaded)."""
+    `kernel` says (compiled, loaded), and compiled the helpers the kernels link that `linked` names (all of them,
+    `ALL_LINKED`, or none: the helpers-cached case loads them, so the helpers' section must compile them with the
+    kernels' types)."""
     out, _ = case.proc.communicate(timeout=1800)  # compiling on a loaded machine takes long
     assert case.proc.returncode == 0, case.log.read_text()[-3000:]
-    plans, _, how = out.replace(HELPERS_CACHED + "\n", "").rpartition(KERNEL)
+    rest, _, how = out.replace(HELPERS_CACHED + "\n", "").rpartition(KERNEL)
+    plans, _, compiled = rest.rpartition(LINKED)
     assert how.strip() == kernel, f"the rollout kernel was {how.strip()!r} in this process, not {kernel!r}"
+    assert compiled.strip() == linked, f"this process compiled the linked helpers {compiled.strip()!r}, not {linked!r}"
     assert plans.count("\n") == PLAN_LINES, out[-500:]
     return plans
 
@@ -240,13 +272,13 @@ def test_plans_do_not_depend_on_compile_order_or_cache(tmp_path: Path) -> None:
         wait_helpers_cached(other_order)
         assert any(helpers_cached.rglob("*.nbi")), "compiling the helpers wrote no numba cache"
         cases.append(other_first := start_case("helpers_first", helpers_cached))
-        out_fresh = case_output(fresh, "compiled")
+        out_fresh = case_output(fresh, "compiled", ALL_LINKED)
         cases.append(from_cache := start_case("plan", empty))
-        same(case_output(other_order, "loaded"), out_fresh, "the helpers and delay predictor compiled first, the "
-             "rollout kernel in a second process, numba's inliner with one scope per copy")
-        same(case_output(other_first, "loaded"), out_fresh, "kernels compiled against cached helpers, the rollout "
+        same(case_output(other_order, "loaded", ALL_LINKED), out_fresh, "the helpers and delay predictor compiled "
+             "first, the rollout kernel in a second process, numba's inliner with one scope per copy")
+        same(case_output(other_first, "loaded", ""), out_fresh, "kernels compiled against cached helpers, the rollout "
              "kernel in a second process, numba's inliner with one scope per copy")
-        same(case_output(from_cache, "loaded"), out_fresh, "kernels loaded from the cache")
+        same(case_output(from_cache, "loaded", ""), out_fresh, "kernels loaded from the cache")
     finally:  # a failed or timed-out case leaves no compiling process behind
         for case in cases:
             if case.proc.poll() is None:
