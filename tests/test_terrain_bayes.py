@@ -272,6 +272,32 @@ def test_a_top_change_counts_between_rows_that_name_a_top() -> None:
         weight_switches_per_min(times, w, identified=named[:5])
 
 
+def test_an_estimator_that_names_no_top_on_its_start_says_so_to_the_closed_loop() -> None:
+    from gpmppi.evaluation.command_path import CommandPath
+    from gpmppi.terrain.cycle import TerrainCycleConfig
+
+    model = _model()
+    est = make_estimator(model, BAYES.model_copy(update={"first_top": "established"}))
+    assert isinstance(est, BayesTerrainEstimator)
+    assert not est.identified and not est.estimate().identified  # the starting weights: a tie
+    # the closed loop's rows before the first solve carry the starting weights: no top there either (counted as the
+    # tie's first ground, the first identification of another would be a change again)
+    assert not CommandPath(None, TerrainCycleConfig(), 3, est).identified
+    named = []
+    for row in _history(model, 1, 40, seed=6, noise=0.02):
+        est.observe(*row)
+        e = est.estimate()
+        named.append(e.identified)
+        if e.identified:
+            assert int(np.argmax(e.weights)) == 1
+    assert named[-1] and not named[0] and sorted(named) == named  # named once established, and from then on
+    est.reset()
+    assert not est.identified
+    tie = make_estimator(model, BAYES)
+    assert isinstance(tie, BayesTerrainEstimator) and tie.identified
+    assert CommandPath(None, TerrainCycleConfig(), 3, tie).identified
+
+
 def test_same_steps_give_the_same_weights() -> None:
     model = _model()
     rows = _history(model, 1, 40, seed=6, noise=0.02)
