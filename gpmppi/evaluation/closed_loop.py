@@ -124,6 +124,8 @@ class Trajectory:
     # (T,) the terrain service's P(unknown ground) and its hysteretic decision as the plan of cycle k had them
     unknown: np.ndarray = field(default_factory=lambda: np.zeros(0))
     unknown_active: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    # (T,) whether the weights the plan of cycle k used named a top ground (TerrainEstimate.identified; empty: all)
+    identified: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     @property
     def positions(self) -> np.ndarray:
@@ -144,6 +146,7 @@ class _Cycle:
     plan_xy: np.ndarray | None  # the nominal plan (N+1, 2), if recorded
     unknown: float = 0.0  # the last terrain solve's P(unknown ground)
     unknown_active: bool = False  # and its hysteretic decision (the planner's caution)
+    identified: bool = True  # whether the weights named a top ground (TerrainEstimate.identified)
 
 
 def _trajectory(
@@ -171,6 +174,7 @@ def _trajectory(
         terrain_solves=list(path.solves),
         unknown=np.asarray([c.unknown for c in cycles], dtype=np.float64),
         unknown_active=np.asarray([c.unknown_active for c in cycles], dtype=bool),
+        identified=np.asarray([c.identified for c in cycles], dtype=bool),
     )
 
 
@@ -244,6 +248,7 @@ def run_closed_loop(
             effective_samples=float(result.effective_samples),
             plan_xy=np.asarray(result.states)[:, :2].copy() if record_plans else None,
             unknown=path.unknown[-1][1] if path.unknown else 0.0, unknown_active=cycle.unknown_active,
+            identified=path.identified,
         )
         path.on_planned(t, t + cfg.latency_s, stamp_ns, command)
 

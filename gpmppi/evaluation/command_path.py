@@ -50,6 +50,9 @@ class CommandPath:
         self.state_time = 0.0  # the newest state's time: the base's ticks are in phase with it
         self.active = np.zeros(2)  # what the base applies now
         self.weights_ok = False  # whether the last solve succeeded (the weights the planner has now)
+        # whether the last solve's weights name a top ground (TerrainEstimate.identified); before one, the
+        # estimator's starting weights (an estimator that names no top on its uniform start says so)
+        self.identified = bool(getattr(estimator, "identified", True))
         self.base_times: list[float] = []
         self.base_commands: list[np.ndarray] = []
         self.base_reasons: list[str] = []
@@ -108,6 +111,7 @@ class CommandPath:
         if self.terrain is not None and self.terrain.pending and self.terrain.wait_s(now) <= _EPS:
             update = self.terrain.solve()
             self.weights_ok = update.ok
+            self.identified = update.identified
             self.solves.append((now, update.stamp_ns, update.weights.copy(), update.ok))
             self.unknown.append((now, update.unknown, update.unknown_active))
             planner.on_weights(update.weights, now, unknown_active=update.unknown_active,

@@ -205,7 +205,7 @@ def true_weight_mean(
 
 
 def weight_switches_per_min(
-    times: np.ndarray, weights: np.ndarray, settle_s: float = WEIGHT_SETTLE_S
+    times: np.ndarray, weights: np.ndarray, settle_s: float = WEIGHT_SETTLE_S, identified: np.ndarray | None = None
 ) -> float | None:
     """How often the terrain with the largest weight (argmax; ties go to the first) changes, per minute of run after
     the first `settle_s` (as `true_weight_mean`: the weights start uniform, so the first answer is no switch).
@@ -213,6 +213,10 @@ def weight_switches_per_min(
     `times` (T+1,) are the cycle boundaries of the weights (T, M): row k holds from times[k], so a change between
     rows k-1 and k happens at times[k] and counts when times[k] >= times[0] + settle_s; the minutes are those from
     times[0] + settle_s to times[-1]. None when there are no weights or no time after `settle_s`.
+
+    `identified` (T,) (None or empty: every row) says which rows name a top ground (`TerrainEstimate.identified`):
+    a row that names none has no top, so a change is counted between consecutive rows that name one (the first
+    identification, after rows naming none, is no change; the rows naming none are skipped, not a top of their own).
     """
     w = np.asarray(weights, dtype=np.float64)
     t = np.asarray(times, dtype=np.float64).reshape(-1)
@@ -226,8 +230,30 @@ def weight_switches_per_min(
     if minutes <= 0.0:
         return None
     top = np.argmax(w, axis=1)
+    if identified is not None and np.size(identified):
+        named = np.asarray(identified, dtype=bool).reshape(-1)
+        if named.size != w.shape[0]:
+            raise ValueError(f"weight_switches_per_min: {w.shape[0]} weight rows need as many identified flags, got "
+                             f"{named.size}")
+        rows = np.flatnonzero(named)  # the rows with a top; a change k -> j at times[j]
+        changed_at = t[rows[1:]][top[rows[1:]] != top[rows[:-1]]]
+        return float(np.count_nonzero(changed_at >= start - 1e-9)) / minutes
     changed = top[1:] != top[:-1]  # change k-1 -> k at times[k]
     return float(np.count_nonzero(changed & (t[1:-1] >= start - 1e-9))) / minutes
+
+
+def unidentified_share(
+    times: np.ndarray, identified: np.ndarray, settle_s: float = WEIGHT_SETTLE_S
+) -> float | None:
+    """The share of the run after the first `settle_s` whose weights named no top ground (`identified` (T,) False
+    on the rows of the cycle boundaries `times` (T+1,)). None when there are no rows or no time after `settle_s`."""
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    named = np.asarray(identified, dtype=bool).reshape(-1)
+    if named.size == 0 or t.size != named.size + 1:
+        return None
+    span = _settled_spans(t, settle_s)
+    total = float(span.sum())
+    return float(np.sum(span[~named]) / total) if total > 0.0 else None
 
 
 def top_terrain_confusion(

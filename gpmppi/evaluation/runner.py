@@ -20,6 +20,7 @@ from gpmppi.evaluation.metrics import (
     mean_std,
     path_length,
     true_weight_mean,
+    unidentified_share,
     unknown_delay_s,
     unknown_share,
     weight_switches_per_min,
@@ -110,6 +111,8 @@ class RunScore:
     true_weight_mean: float | None = None  # time-averaged weight of the terrain driven on, after the first 3 s
     # (None: a model without terrain weights, a terrain the model does not know, or nothing after 3 s)
     weight_switches_per_min: float | None = None  # changes of the top-weight terrain per minute (None: no weights)
+    # share of the time after the first 3 s whose weights named no top ground (TerrainEstimate.identified)
+    top_unidentified_share: float | None = None
     # share of the time on trained grounds with P(unknown ground) > 0.5 (None: no estimator or no such time)
     unknown_share: float | None = None
     # seconds from reaching a ground the model was not trained on until P(unknown) > 0.5 (inf: never; None: none)
@@ -265,7 +268,8 @@ def score(
         s.base_limited_fraction = float(np.mean([r == "limit" for r in traj.base_reasons]))
     if cfg.adapt_weights and terrain_names is not None:
         s.true_weight_mean = true_weight_mean(traj.times, traj.weights, traj.terrains, terrain_names)
-        s.weight_switches_per_min = weight_switches_per_min(traj.times, traj.weights)
+        s.weight_switches_per_min = weight_switches_per_min(traj.times, traj.weights, identified=traj.identified)
+        s.top_unidentified_share = unidentified_share(traj.times, traj.identified)
         s.unknown_share = unknown_share(traj.times, traj.unknown, traj.terrains, terrain_names)
         s.unknown_delay_s = unknown_delay_s(traj.times, traj.unknown, traj.terrains, terrain_names)
         s.unknown_new_share = unknown_share(traj.times, traj.unknown, traj.terrains, terrain_names, new_ground=True)
@@ -333,11 +337,11 @@ SMOOTHNESS_AND_WEIGHT_METRICS = (
     "v_ref_rate_mean", "v_ref_rate_p95", "omega_ref_rate_mean", "omega_ref_rate_p95", "base_v_rate_mean",
     "base_v_rate_p95", "base_omega_rate_mean", "base_omega_rate_p95", "base_limited_fraction", "true_weight_mean",
     "weight_switches_per_min", "effective_samples_p50", "effective_samples_p10", "unknown_share",
-    "unknown_active_share", "unknown_new_share",
+    "unknown_active_share", "unknown_new_share", "top_unidentified_share",
 )
 # of those, the ones with no value (None, not nan) where no trial has one: a model without terrain weights
 OPTIONAL_CELL_METRICS = ("true_weight_mean", "weight_switches_per_min", "unknown_share", "unknown_active_share",
-                         "unknown_new_share")
+                         "unknown_new_share", "top_unidentified_share")
 
 
 def _mean_and_std(runs: list[RunScore], names: tuple[str, ...]) -> dict:

@@ -98,6 +98,7 @@ class WeightsUpdate:
     unknown: float = 0.0  # P(the ground is none of the trained ones), in [0, 1] (0: not assessed)
     unknown_active: bool = False  # the hysteretic decision on `unknown` (gpmppi.terrain.novelty.UnknownLatch)
     unknown_channel: str = ""  # which of the test's channels gave `unknown` (TerrainEstimate.unknown_channel)
+    identified: bool = True  # whether the weights name a top ground (TerrainEstimate.identified)
 
 
 class TerrainCycle:
@@ -235,4 +236,4 @@ class TerrainCycle:
         unknown = float(np.clip(unknown, 0.0, 1.0)) if np.isfinite(unknown) else 0.0
         return WeightsUpdate(weights, bool(est.ok), residual, stamp, error, observed, skipped, unknown,
                              bool(getattr(est, "unknown_active", False)),
-                             str(getattr(est, "unknown_channel", "")))
+                             str(getattr(est, "unknown_channel", "")), bool(getattr(est, "identified", True)))

@@ -22,6 +22,10 @@ class TerrainEstimate:
     # which channel of the test gave `unknown`: "one-step" (the residual), "free-run" (the response run free: grip);
     # "" while neither has scored a whole window, or without the test
     unknown_channel: str = ""
+    # whether the weights name a top ground: False while the evidence has established none (the Bayesian estimator's
+    # `first_top: established` before its first identification; the weights are then the posterior as it is, and
+    # their argmax is no identification). Every other estimate's top is its weights' argmax
+    identified: bool = True
 
 
 class EstimatorLike(Protocol):

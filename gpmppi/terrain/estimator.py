@@ -161,6 +161,12 @@ class BayesTerrainEstimator:
         self._latch.active = True
 
     @property
+    def identified(self) -> bool:
+        """Whether the current weights name a top ground: always with `first_top: tie`; with `established` once the
+        evidence has established one (before, the weights are the posterior as it is, with no top)."""
+        return self.config.first_top == "tie" or self._leader is not None
+
+    @property
     def calibration(self) -> tuple[np.ndarray, np.ndarray]:
         """(online gain (2,) on the command change [s^0], extra residual std (2,) [m/s, rad/s]) fitted so far."""
         return self._gain(), np.sqrt(self._extra_var)
@@ -333,11 +339,21 @@ class BayesTerrainEstimator:
         took the top for a second or two on the lanes. A leader not yet established (the uniform start's tie, or one
         that took a tie's place on a weak lead) has only the probability margin, so the first identification does not
         wait on the margin.
+
+        With `first_top: established` there is no leader until the evidence establishes one: the uniform start is a
+        tie, and the tie's argmax (the profile's first ground) is no identification. Until a terrain is
+        `hysteresis_odds` nats ahead of every other the posterior is published as it is (the planner mixes what the
+        evidence says) and `identified` is False; the first top is then established, held as above.
         """
         leader = self._leader
         challenger = int(np.argmax(p))
         w = p.copy()
         logp = np.log(np.maximum(p, 1e-300))
+        if leader is None and self.config.first_top == "established":
+            if logp[challenger] - np.max(np.delete(logp, challenger)) < self.config.hysteresis_odds:
+                return w  # no ground established yet: no top to hold
+            self._leader, self._established = challenger, True
+            return w
         margin = self.config.hysteresis_odds if self._established else 0.0
         if leader is not None and challenger != leader and (
             p[challenger] - p[leader] <= self.config.hysteresis or logp[challenger] - logp[leader] < margin
@@ -362,11 +378,12 @@ class BayesTerrainEstimator:
         if self._seen < self.min_history:
             return TerrainEstimate(self.weights, False, float("nan"),
                                    f"history too short ({self._seen} of {self.min_history} steps); keeping previous "
-                                   "weights", 0.0, self._latch.active)
+                                   "weights", 0.0, self._latch.active, identified=self.identified)
         self._weights = self._published(self._posterior)
         fit = float(sum(np.sum((y - self._weights @ pred) ** 2) for y, pred in self._rows))
         return TerrainEstimate(self.weights, True, fit, f"posterior after {self._seen} steps", self._unknown,
-                               self._latch.active, self._channel)
+                               self._latch.active, self._channel,
+                               identified=self.identified)
 
 
 def make_estimator(model: GPModel, config: EstimatorConfig | None = None) -> EstimatorLike:

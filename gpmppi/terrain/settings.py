@@ -54,6 +54,14 @@ class EstimatorConfig(BaseModel):
         "its posterior over the top terrain's is at least this [nats], once the evidence has established the top "
         "(that many nats ahead of every other): a margin in the evidence's own units, the same whatever the other "
         "terrains hold (0: none)")
+    # the uniform start is a tie, and a tie has no top: with "tie" the first published top is the profile's first
+    # ground (the argmax of a tie), and the first identification of another ground counts as a change of the top
+    first_top: Literal["tie", "established"] = Field(
+        "tie", description="bayes: when the published weights first name a top ground. 'tie': from the first "
+        "estimate (the posterior's argmax; on the uniform start the profile's first ground); 'established': only once "
+        "the evidence puts one ground `hysteresis_odds` nats ahead of every other (needs hysteresis_odds > 0), the "
+        "same margin a switch needs; before, the weights are the posterior as it is and name no top "
+        "(`TerrainEstimate.identified` False)")
     adapt_noise: bool = Field(True, description="bayes: fit the extra residual spread online")
     command_change: Literal["per_terrain", "online", "none"] = Field(
         "per_terrain", description="bayes: how each terrain's prediction takes in the change of command since the "
@@ -118,6 +126,8 @@ class EstimatorConfig(BaseModel):
 
     @model_validator(mode="after")
     def _consistent(self) -> EstimatorConfig:
+        if self.first_top == "established" and self.hysteresis_odds <= 0:
+            raise ValueError("first_top 'established' needs hysteresis_odds > 0 (the margin that establishes a top)")
         if self.min_history > self.history:
             raise ValueError(f"min_history ({self.min_history}) must be <= history ({self.history})")
         if any(not (np.isfinite(s) and s >= 0) for s in self.extra_noise_std):
