@@ -19,8 +19,10 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 #    messages (learning a new ground online). Older plans still decode (model version 0).
 # 5: `TerrainWeights.unknown_channel`, which channel of the novelty test gives `unknown`. Older messages still decode
 #    (they read as not said: '').
-SCHEMA_VERSION = 5
-READABLE_VERSIONS = (1, 2, 3, 4, 5)
+# 6: `TerrainWeights.identified`, whether the weights name a top ground (an estimator that names none until the
+#    evidence establishes one). Older messages still decode (they read as named: their top is the weights' argmax).
+SCHEMA_VERSION = 6
+READABLE_VERSIONS = (1, 2, 3, 4, 5, 6)
 
 Vec2 = Annotated[list[float], Field(min_length=2, max_length=2)]
 
@@ -108,8 +110,8 @@ class TerrainLabel(Message):
 
 
 class TerrainWeights(Message):
-    """Which mixture of the trained grounds is under the robot, and whether none of them is (schema 3), and which
-    channel of the test says so (schema 5)."""
+    """Which mixture of the trained grounds is under the robot, and whether none of them is (schema 3), which
+    channel of the test says so (schema 5), and whether the weights name a top ground yet (schema 6)."""
 
     names: list[str] = Field(min_length=1, description="terrain names, model order")
     weights: list[float] = Field(min_length=1, description="convex weights, same order as names")
@@ -127,6 +129,11 @@ class TerrainWeights(Message):
         "one-step velocity residuals: a ground that drags or turns otherwise than any trained one), 'free-run' (each "
         "trained ground's velocity response run free for a second: a loss of grip, a slide); '' where not assessed "
         "(before a whole window is scored, no novelty test, schema 1-4 messages) (schema 5)")
+    identified: bool = Field(
+        True, description="whether the weights name a top ground (the largest weight): False while the evidence has "
+        "established none (the estimator's `first_top: established` before its first identification; the weights "
+        "are then the posterior as it is, and their largest is no identification); True in schema 1-5 messages "
+        "(schema 6)")
 
     @model_validator(mode="after")
     def _on_simplex(self) -> TerrainWeights:
@@ -139,6 +146,9 @@ class TerrainWeights(Message):
                              f"{self.header.schema_version}")
         if self.unknown_channel and self.header.schema_version < 5:
             raise ValueError("unknown_channel is a schema_version 5 field; this message says version "
+                             f"{self.header.schema_version}")
+        if not self.identified and self.header.schema_version < 6:
+            raise ValueError("identified is a schema_version 6 field; this message says version "
                              f"{self.header.schema_version}")
         return self
 

@@ -245,6 +245,6 @@ class UnknownReport:
 def _weights_message(terrains: list[str], update: WeightsUpdate) -> TerrainWeights:
     msg = TerrainWeights(names=terrains, weights=update.weights.tolist(), solver_ok=update.ok,
                          residual=update.residual, unknown=update.unknown, unknown_active=update.unknown_active,
-                         unknown_channel=update.unknown_channel)
+                         unknown_channel=update.unknown_channel, identified=update.identified)
     msg.header.stamp_ns = update.stamp_ns
     return msg

@@ -184,8 +184,9 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     log = load(record)
     names = ["asphalt", "grass", "tile"]
     stamps = [stamp for stamp, _, _ in log["states"]]
-    weights = {stamp: np.array([w[n] for n in names]) for stamp, w in log["weights"] if set(w) == set(names)}
-    identified = scores(stamps, weights, ["asphalt"] * len(stamps), names)
+    weights = {stamp: np.array([w[n] for n in names]) for stamp, w, _ in log["weights"] if set(w) == set(names)}
+    named = {stamp: top_named for stamp, _, top_named in log["weights"]}
+    identified = scores(stamps, weights, ["asphalt"] * len(stamps), names, named)
     updates = sorted((stamp, w) for stamp, w in weights.items() if stamp >= stamps[0])
     end_ns = updates[-1][0]
     last_2s = np.mean([w for stamp, w in updates if stamp > end_ns - 2e9], axis=0)

@@ -185,9 +185,27 @@ def test_terrain_weights_name_the_channel_from_schema_version_5_and_older_ones_r
     for channel in ("one-step", "free-run", ""):
         sent = TerrainWeights(names=["a"], weights=[1.0], unknown=0.9, unknown_active=True, unknown_channel=channel)
         back = decode(TerrainWeights, encode(sent))
-        assert back.header.schema_version == 5 and back.unknown_channel == channel
+        assert back.header.schema_version >= 5 and back.unknown_channel == channel
         assert json.loads(encode(sent))["unknown_channel"] == channel
     with pytest.raises(DecodeError, match="unknown_channel"):  # only the two channels there are
         decode(TerrainWeights, b'{"names": ["a"], "weights": [1.0], "unknown_channel": "gut"}')
     schema = TerrainWeights.model_json_schema()["properties"]["unknown_channel"]
     assert schema["enum"] == ["", "one-step", "free-run"] and "grip" in schema["description"]
+
+
+def test_terrain_weights_say_whether_they_name_a_top_from_schema_version_6_and_older_ones_read_as_named() -> None:
+    """`identified` (schema 6): an estimator that names no top ground until the evidence establishes one says so;
+    older messages, recorded or sent before the field, read as naming their argmax (what their builds meant)."""
+    for version in (1, 2, 3, 4, 5):
+        old = f'{{"header": {{"schema_version": {version}}}, "names": ["a", "b"], "weights": [0.5, 0.5]}}'.encode()
+        msg = decode(TerrainWeights, old)
+        assert msg.header.schema_version == version and msg.identified
+        bad = json.loads(old)
+        bad["identified"] = False
+        with pytest.raises(DecodeError, match="identified is a schema_version 6 field"):
+            decode(TerrainWeights, json.dumps(bad).encode())
+    for identified in (False, True):
+        sent = TerrainWeights(names=["a", "b"], weights=[0.6, 0.4], identified=identified)
+        back = decode(TerrainWeights, encode(sent))
+        assert back.header.schema_version == 6 and back.identified is identified
+    assert "no identification" in TerrainWeights.model_json_schema()["properties"]["identified"]["description"]

@@ -208,3 +208,24 @@ def test_gpmppi_launch_refuses_a_bad_setting_before_starting_anything(
     assert main([str(path)]) == 2
     err = capsys.readouterr().err
     assert f"{path}:" in err and says in err, err  # the file with the line of the setting
+
+
+@pytest.mark.parametrize("first_top", ["tie", "established"])
+def test_the_published_weights_say_whether_they_name_a_top(model, first_top: str) -> None:
+    """The terrain service's message carries the estimator's `identified` (TerrainWeights schema 6): with `first_top:
+    established` the uniform start names no top; with `tie` (before it, and every other estimator) it always does."""
+    from schemas.codec import decode, encode
+    from schemas.messages import TerrainWeights
+    from services.terrain import _weights_message
+
+    estimator = make_estimator(model, EstimatorConfig(first_top=first_top))
+    c = TerrainCycle(TerrainCycleConfig(pairing="stamp"), len(model.terrains), estimator)
+    updates = []
+    for k in range(4):
+        c.on_states([(k * NS // 10, _state(k))], 0.1 * k)
+        c.on_command(k * NS // 10, [1.0, 0.1])
+        updates.append(c.solve())
+    assert [u.identified for u in updates] == [first_top == "tie"] * 4
+    for u in updates:
+        back = decode(TerrainWeights, encode(_weights_message(list(model.terrains), u)))
+        assert back.identified is u.identified and np.allclose(back.weights, u.weights)

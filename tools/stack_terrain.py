@@ -12,8 +12,9 @@ arrival time), the terrain service's published weights and the sim's terrain lab
 - `cmd`: the planner's command paired by stamp (the in-process estimator's pairing before the deployed path);
 - `applied`: the time average of the base's outputs over each transition, by their arrival at the recorder.
 
-For each: the weight on the true terrain after the first 3 s (time-averaged) and top-terrain changes per minute after
-3 s; and the latency of each state's command at the base (first base output's arrival - the state's stamp).
+For each: the weight on the true terrain after the first 3 s (time-averaged), top-terrain changes per minute after
+3 s (counted between weights that name a top, `TerrainWeights.identified`) and the share of that time with no top
+named; and the latency of each state's command at the base (first base output's arrival - the state's stamp).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
+from gpmppi.evaluation.metrics import true_weight_mean, unidentified_share, weight_switches_per_min
 from gpmppi.gp.model_file import GPModel, load_default_model
 from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig
 from gpmppi.terrain.estimator import make_estimator
@@ -45,21 +46,25 @@ def load(path: Path) -> dict:
         elif name == "base/cmd":
             out["base"].append((msg.header.stamp_ns, log_ns, np.array([msg.v, msg.omega]), msg.reason))
         elif name == "terrain/weights":
-            out["weights"].append((msg.header.stamp_ns, dict(zip(msg.names, msg.weights, strict=True))))
+            out["weights"].append((msg.header.stamp_ns, dict(zip(msg.names, msg.weights, strict=True)),
+                                   msg.identified))
         elif name == "terrain/label":
             out["labels"].append((log_ns, msg.terrain))
     return out
 
 
-def replay(log: dict, config: TerrainCycleConfig, model: GPModel) -> dict[int, np.ndarray]:
-    """Weights after each state (by stamp), the inputs fed in their recorded arrival order."""
+def replay(log: dict, config: TerrainCycleConfig, model: GPModel,
+           estimator: EstimatorConfig | None = None) -> tuple[dict[int, np.ndarray], dict[int, bool]]:
+    """Weights after each state (by stamp), and whether they named a top ground, the inputs fed in their recorded
+    arrival order."""
     terrains = list(model.terrains)
-    cycle = TerrainCycle(config, len(terrains), make_estimator(model, EstimatorConfig()))
+    cycle = TerrainCycle(config, len(terrains), make_estimator(model, estimator or EstimatorConfig()))
     events = [(ns, 0, s) for s, ns, _ in log["states"]]
     source = log["base"] if config.command_source == "base_cmd" else log["cmds"]
     events += [(ns, 1, i) for i, (_, ns, *_) in enumerate(source)]
     states = {s: x for s, _, x in log["states"]}
     weights: dict[int, np.ndarray] = {}
+    identified: dict[int, bool] = {}
     for ns, kind, ref in sorted(events, key=lambda e: (e[0], e[1])):
         if kind == 1:
             stamp, _, u, *_ = source[ref]
@@ -71,15 +76,22 @@ def replay(log: dict, config: TerrainCycleConfig, model: GPModel) -> dict[int, n
         if cycle.pending and cycle.wait_s(ns / 1e9) == 0.0:
             update = cycle.solve()
             weights[update.stamp_ns] = update.weights
-    return weights
+            identified[update.stamp_ns] = update.identified
+    return weights, identified
 
 
-def scores(stamps: list[int], weights: dict[int, np.ndarray], truth: list[str], terrains: list[str]) -> dict:
+def scores(stamps: list[int], weights: dict[int, np.ndarray], truth: list[str], terrains: list[str],
+           identified: dict[int, bool]) -> dict:
+    """The weight on the true terrain after the first 3 s, the top-terrain changes a minute after 3 s (counted
+    between weights that name a top: `TerrainWeights.identified`), the share of that time with no top named, and
+    the mean weights after the first 30 states."""
     keep = [i for i, s in enumerate(stamps) if s in weights]
     w = np.array([weights[stamps[i]] for i in keep])
+    named = np.array([identified.get(stamps[i], True) for i in keep], dtype=bool)
     t = np.array([(stamps[i] - stamps[0]) / 1e9 for i in keep] + [(stamps[keep[-1]] - stamps[0]) / 1e9 + 0.1])
     return {"true_weight_mean": true_weight_mean(t, w, [truth[i] for i in keep], terrains),
-            "switches_per_min": weight_switches_per_min(t, w),
+            "switches_per_min": weight_switches_per_min(t, w, identified=named),
+            "top_unidentified_share": unidentified_share(t, named),
             "mean_weights": np.mean(w[30:], axis=0).round(3).tolist()}
 
 
@@ -98,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
     for _, ns, _ in log["states"]:
         before = [name for t, name in labels if t <= ns]
         truth.append(before[-1] if before else (labels[0][1] if labels else ""))
-    recorded = {s: np.array([w[n] for n in terrains]) for s, w in log["weights"]}
+    recorded = {s: np.array([w[n] for n in terrains]) for s, w, _ in log["weights"]}
+    recorded_named = {s: named for s, _, named in log["weights"]}
     result: dict = {"states": len(stamps), "terrain": sorted(set(truth)), "terrains": terrains}
     first: dict[int, int] = {}
     state_stamps = set(stamps)
@@ -108,12 +121,12 @@ def main(argv: list[str] | None = None) -> int:
     lat = np.array([(first[s] - s) / 1e6 for s in stamps if s in first])
     result["state_to_base_ms"] = {"p10": float(np.percentile(lat, 10)), "p50": float(np.median(lat)),
                                   "p90": float(np.percentile(lat, 90)), "n": int(lat.size)}
-    result["recorded"] = scores(stamps, recorded, truth, terrains)
+    result["recorded"] = scores(stamps, recorded, truth, terrains, recorded_named)
     configs = (("stack", TerrainCycleConfig(pairing="stamp")), ("cmd", TerrainCycleConfig(command_source="cmd")),
                ("applied", TerrainCycleConfig(pairing="applied")))
     for name, cfg in configs:
-        w = replay(log, cfg, model)
-        result[name] = scores(stamps, w, truth, terrains)
+        w, named = replay(log, cfg, model)
+        result[name] = scores(stamps, w, truth, terrains, named)
         if name == "stack":
             both = [s for s in stamps if s in w and s in recorded]
             diff = np.array([np.max(np.abs(w[s] - recorded[s])) for s in both])
