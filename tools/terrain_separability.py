@@ -66,15 +66,15 @@ def _estimator_fields(spec: str) -> tuple[tuple[str, object], ...]:
 def _replay_scores(model, rec: dict, spec: str) -> dict:
     from gpmppi.evaluation.metrics import true_weight_mean, weight_switches_per_min
     from gpmppi.terrain.estimator import make_estimator
-    from gpmppi.terrain.separability import replay, top_changes
+    from gpmppi.terrain.separability import replay_named, top_changes
     from gpmppi.terrain.settings import EstimatorConfig
 
     est = make_estimator(model, EstimatorConfig(**dict(_estimator_fields(spec))))
-    w = replay(est, rec["states"], rec["commands"])
+    w, named = replay_named(est, rec["states"], rec["commands"])
     terrains = [str(t) for t in rec["terrains"]]
     return {"true_weight_mean": true_weight_mean(rec["times"], w, terrains, list(model.terrains)),
-            "weight_switches_per_min": weight_switches_per_min(rec["times"], w),
-            "top_changes_after_3s": top_changes(rec["times"], w)}
+            "weight_switches_per_min": weight_switches_per_min(rec["times"], w, identified=named),
+            "top_changes_after_3s": top_changes(rec["times"], w, identified=named)}
 
 
 def _novelty_scores(model, rec: dict) -> dict:

@@ -191,13 +191,23 @@ def replay(estimator: EstimatorLike, states: np.ndarray, commands: np.ndarray) -
     Row k holds the weights the plan of cycle k would have used: the estimate after observing steps 0..k-1 (row 0
     the estimator's starting weights), so the rows line up with a `Trajectory`'s weights and terrains.
     """
+    return replay_named(estimator, states, commands)[0]
+
+
+def replay_named(estimator: EstimatorLike, states: np.ndarray,
+                 commands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`replay`'s weights (T, M) and, per row, whether they named a top ground (T,) (`TerrainEstimate.identified`:
+    `weight_switches_per_min` counts a change only between rows that name one)."""
     x = np.asarray(states, dtype=np.float64)
     u = np.asarray(commands, dtype=np.float64)
     rows = [estimator.weights]
+    named = [bool(getattr(estimator, "identified", True))]
     for k in range(1, u.shape[0]):
         estimator.observe(x[k - 1], u[k - 1], x[k])
-        rows.append(np.asarray(estimator.estimate().weights, dtype=np.float64))
-    return np.asarray(rows)
+        e = estimator.estimate()
+        rows.append(np.asarray(e.weights, dtype=np.float64))
+        named.append(e.identified)
+    return np.asarray(rows), np.asarray(named, dtype=bool)
 
 
 def switch_response(times: np.ndarray, weights: np.ndarray, terrains: list[str], names: list[str],
@@ -250,13 +260,16 @@ def calibrated(
     return Transitions(y, mean, var, tr.terrain, tr.segment)
 
 
-def top_changes(times: np.ndarray, weights: np.ndarray, after_s: float = 3.0) -> int:
+def top_changes(times: np.ndarray, weights: np.ndarray, after_s: float = 3.0,
+                identified: np.ndarray | None = None) -> int:
     """How many times the top-weight terrain changes at cycles starting at or after `after_s` (the settling time
     `true_weight_mean` leaves out; `weight_switches_per_min` counts from the start, so the first change from the
-    uniform start, where the tie goes to the first terrain, counts there)."""
+    uniform start, where the tie goes to the first terrain, counts there). `identified` (T,) (None: every row): a
+    change counts only between rows that name a top, as in `weight_switches_per_min`."""
     t = np.asarray(times, dtype=np.float64)[:-1]
     top = np.argmax(np.asarray(weights, dtype=np.float64), axis=1)
-    changed = np.nonzero(top[1:] != top[:-1])[0] + 1
+    rows = np.arange(top.size) if identified is None else np.flatnonzero(np.asarray(identified, dtype=bool))
+    changed = rows[1:][top[rows[1:]] != top[rows[:-1]]]
     return int(np.count_nonzero(t[changed] >= t[0] + after_s))
 
 

@@ -57,7 +57,7 @@ class EstimatorConfig(BaseModel):
     # the uniform start is a tie, and a tie has no top: with "tie" the first published top is the profile's first
     # ground (the argmax of a tie), and the first identification of another ground counts as a change of the top
     first_top: Literal["tie", "established"] = Field(
-        "tie", description="bayes: when the published weights first name a top ground. 'tie': from the first "
+        "established", description="bayes: when the published weights first name a top ground. 'tie': from the first "
         "estimate (the posterior's argmax; on the uniform start the profile's first ground); 'established': only once "
         "the evidence puts one ground `hysteresis_odds` nats ahead of every other (needs hysteresis_odds > 0), the "
         "same margin a switch needs; before, the weights are the posterior as it is and name no top "
@@ -127,7 +127,8 @@ class EstimatorConfig(BaseModel):
     @model_validator(mode="after")
     def _consistent(self) -> EstimatorConfig:
         if self.first_top == "established" and self.hysteresis_odds <= 0:
-            raise ValueError("first_top 'established' needs hysteresis_odds > 0 (the margin that establishes a top)")
+            raise ValueError("first_top 'established' (the default) needs hysteresis_odds > 0 (the margin that "
+                             "establishes a top); set first_top: tie for no margin")
         if self.min_history > self.history:
             raise ValueError(f"min_history ({self.min_history}) must be <= history ({self.history})")
         if any(not (np.isfinite(s) and s >= 0) for s in self.extra_noise_std):
