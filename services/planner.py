@@ -333,12 +333,8 @@ def warm_up(node: Node, planner: Planner, scenario: Scenario) -> None:
     c = planner.config
     start = np.asarray(scenario.start, dtype=np.float64)
 
-    def plan_once() -> None:
-        planner.plan(start, scenario.task, delay_s=0.01)  # with a delay: its predictor is compiled too
-        planner.reset()
-
-    kernel_cache.warm_up(kernel_cache.planner_label(c.dynamics, c.gp_mode, planner.backend), plan_once,
-                         node.log.info)
+    kernel_cache.warm_up(kernel_cache.planner_label(c.dynamics, c.gp_mode, planner.backend),
+                         lambda: planner.warm_up(start, scenario.task), node.log.info)
 
 
 class CycleReport:

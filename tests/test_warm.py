@@ -50,3 +50,57 @@ def test_after_warm_planner_and_sim_start_without_compiling(tmp_path: Path, monk
         assert not compiled, compiled
     # and the planner knows it: the warm-up recorded its kernels where the service looks, so no compile notice
     assert "compiling planner kernels" not in planner_log, planner_log[-3000:]
+
+
+WARMED_LIVE_PATH = r"""
+import numpy as np
+from gpmppi.mppi import kernel_cache
+from gpmppi.mppi.planner import Planner
+from services.planner import Settings, load_model, warm_up_scenario
+
+settings = Settings()
+planner = Planner(settings.planner, load_model(settings.model_file))
+scenario = warm_up_scenario(settings.scenario)
+start = np.asarray(scenario.start, dtype=np.float64)
+planner.warm_up(start, scenario.task)
+before = kernel_cache.cache_counts()
+# what the live loop does in its first seconds: the terrain service's weights, prepared between states, then held
+for w in ([0.5, 0.3, 0.2], [0.5, 0.3, 0.2], [0.2, 0.2, 0.6]):
+    planner.prepare(np.array(w))
+    planner.plan(start, scenario.task, np.array(w), delay_s=0.1)
+use = kernel_cache.kernels_used(before, kernel_cache.cache_counts())
+print("LIVE", sorted(use.loaded), sorted(use.compiled))
+"""
+
+
+@pytest.mark.slow(seconds=8)
+def test_after_the_planners_warm_up_its_first_weights_load_and_compile_nothing() -> None:
+    """The planner's warm-up (`Planner.warm_up`, the service's and `gpmppi warm`'s) plans the live loop's first seconds:
+    new terrain weights collapsed ahead and held. Before, it planned once on the uniform start only, and a fresh
+    install compiled the table's collapse at the terrain service's first weights, between two commands (1.1 and 0.4
+    s on 2 cores: egress's watchdog sent zero in the demo). In a fresh process, so no other test's kernels count."""
+    run = subprocess.run([sys.executable, "-c", WARMED_LIVE_PATH], cwd=REPO, capture_output=True, text=True,
+                         timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    live = [line for line in run.stdout.splitlines() if line.startswith("LIVE")]
+    assert live == ["LIVE [] []"], run.stdout[-2000:]
+
+
+def test_the_warm_up_leaves_the_plans_as_a_fresh_planner_makes_them() -> None:
+    """`Planner.warm_up` ends in `reset`: the plans after it are a fresh planner's, to the bit (the table collapsed
+    for the warm-up's weights is collapsed again for the live ones)."""
+    import numpy as np
+
+    from gpmppi.gp.model_file import load_default_model
+    from gpmppi.mppi.planner import Planner, PlannerConfig
+    from gpmppi.scenarios import circle_lane
+
+    model, sc = load_default_model(), circle_lane()
+    config = PlannerConfig(samples=128, seed=3)
+    warmed, fresh = Planner(config, model), Planner(config, model)
+    warmed.warm_up(sc.start, sc.task)
+    w = np.array([0.6, 0.3, 0.1])
+    for planner in (warmed, fresh):
+        planner.prepare(w)
+    a, b = warmed.plan(sc.start, sc.task, w), fresh.plan(sc.start, sc.task, w)
+    assert a.controls.tobytes() == b.controls.tobytes() and a.cost == b.cost

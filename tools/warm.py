@@ -2,8 +2,9 @@
 kernel cache, so that a later `gpmppi demo` / `gpmppi launch` (and `gpmppi evaluate`) starts in seconds.
 
 What is compiled is what each service does before it goes live, with the settings the shipped launch files give
-it: the planner (`services.planner`: build the planner, plan once from the scenario's start with a small delay,
-so the delay predictor is compiled too) for every distinct planner entry of the shipped launch files, on the lane
+it: the planner (`services.planner`: build the planner and plan its first seconds from the scenario's start,
+`Planner.warm_up`: with a small delay, so the delay predictor is compiled too, and on new terrain weights, so the
+table's collapse is) for every distinct planner entry of the shipped launch files, on the lane
 and on the goal task (a task message can switch a running planner to either); the EDD5 and unicycle baselines
 the evaluation runs; the simulated plant (`services.sim`: one step); and the terrain estimator (`services.terrain`:
 a few transitions and one solve). numba keys its cache on the source files, so this warms the cache of this
@@ -61,11 +62,11 @@ def _warm_planners(log: Callable[[str], None]) -> None:
         scenario = warm_up_scenario(scenario_name)
         planner = Planner(PlannerConfig.model_validate_json(planner_json), models[model_file])
         c = planner.config
-        # as the planner service warms up before going live (one plan, with a delay so its predictor is compiled),
-        # through the same call, which records the kernels so that the service finds them cached
+        # as the planner service warms up before going live (`Planner.warm_up`: the plans of its first seconds), through
+        # the same call, which records the kernels so that the service finds them cached
         kernel_cache.warm_up(
             kernel_cache.planner_label(c.dynamics, c.gp_mode, planner.backend),
-            lambda p=planner, s=scenario: p.plan(np.asarray(s.start, dtype=np.float64), s.task, delay_s=0.01),
+            lambda p=planner, s=scenario: p.warm_up(np.asarray(s.start, dtype=np.float64), s.task),
             lambda line: None,
         )
         log(f"  {what}: {time.perf_counter() - t:.1f} s")
