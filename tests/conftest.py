@@ -118,16 +118,15 @@ def shared_folder(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
 
 # ------------------------------------------------------------------------------------------- how many workers
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
-    """`-n auto` (pyproject.toml's `addopts`): two workers more than the cores this process may run on.
+    """`-n auto` (pyproject.toml's `addopts`): one worker more than the cores this process may run on.
 
-    The suite waits much of its time (service processes starting, sockets, timed phases): on 2 cores `-m "not
-    slow"` cost 144 CPU seconds in 110 s on three workers (each busy a third of its time), the whole suite 611 CPU
-    seconds of tests in 375 s (docs/development.md). The tests that measure time run ahead of the others at nice -20
-    (`exclusive`, below), so a fourth worker fills idle cores without loading them. `PYTEST_XDIST_AUTO_NUM_WORKERS`
-    still decides where set, and `--maxprocesses` caps either."""
+    The suite waits about a third of its time (service processes starting, sockets, timed phases): on 2 cores two
+    workers kept the CPU 62% busy in `-m "not slow"`, and three ran it in 116 s against 134 s, the whole suite in
+    285-311 s against 340-359 s (docs/development.md). `PYTEST_XDIST_AUTO_NUM_WORKERS` still decides where set,
+    and `--maxprocesses` caps either."""
     if os.environ.get("PYTEST_XDIST_AUTO_NUM_WORKERS"):
         return None  # pytest-xdist's own hook reads it
-    return len(os.sched_getaffinity(0)) + 2
+    return len(os.sched_getaffinity(0)) + 1
 
 
 # ------------------------------------------------------------------------------------- tests that run alone
