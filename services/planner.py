@@ -98,7 +98,6 @@ class StateSubscription(TypedSubscription[State]):
             counters.count("state_nonfinite" if nonfinite else "state_invalid")
             self.node.reject(f"{sample.key_expr}: {exc}")
             return None
-        self.last = msg
         return msg
 
 

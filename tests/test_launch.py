@@ -132,7 +132,8 @@ def test_whole_stack_on_loopback(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
     assert expected <= recorded, f"missing from the MCAP: {expected - recorded}"
     # the planner counted the bad input, kept running, and every command on the wire is valid and finite
     planner_hb = [m for _, _, m in read_messages(record, [key_for("health", service="planner")])]
-    assert planner_hb[-1].rejected >= sum(len(v) for v in bad_inputs.values()) - 1, planner_hb[-1]
+    # every one: a bad state replaced by a good one before the loop took it is counted on arrival (`Inbox`)
+    assert planner_hb[-1].rejected >= sum(len(v) for v in bad_inputs.values()), planner_hb[-1]
     with open(record, "rb") as f:
         raw = [
             (c.topic, m.data) for _, c, m in make_reader(f).iter_messages(topics=[key_for("cmd"), key_for("base_cmd")])

@@ -155,8 +155,8 @@ def test_egress_survives_bad_input_and_never_publishes_non_finite(tmp_path: Path
         try:
             assert wait_for(lambda: bool(heartbeats(col, "r1", "egress")), 15.0), egress.log()
             pub = matched_publisher(observer, "gpmppi/r1/cmd", congestion_control=zenoh.CongestionControl.BLOCK)
-            # one at a time: egress reads its command inbox newest-only, so a bad payload sent before the loop read
-            # the one before would replace it unread (by design), and a loaded machine once lost one that way
+            # one at a time, each logged before the next is sent, so a failure names the payload (one that replaced
+            # another in egress's newest-only inbox is counted too, on arrival: `services.runtime.scheduling.Inbox`)
             for i, (what, payload) in enumerate(_bad_payloads()):
                 pub.put(payload)
                 logged = wait_for(lambda n=i: egress.log().count("rejected input") > n, 10.0)

@@ -80,6 +80,30 @@ def test_fifo_subscription_keeps_every_message_in_order_past_its_capacity() -> N
             assert last is not None and last.v_ref == 39.0 and newest.take() is None  # newest-only: one kept
 
 
+def test_newest_only_counts_every_bad_message_a_newer_one_replaced_before_the_loop_took_it() -> None:
+    port = free_port()
+    with router(port):
+        sender, receiver = _node("a", port), _node("b", port)
+        with sender, receiver:
+            pub = sender.publisher("state")
+            sub = receiver.subscribe("state")
+            assert wait_for(lambda: (pub.put(State(x=0, y=0, theta=0, v=0, omega=0)), sub.take())[1] is not None, 5.0)
+            time.sleep(0.2)
+            sub.take()  # a late warm-up message
+            bad = [b"{bad json", b'{"x": NaN, "y": 0, "theta": 0, "v": 0, "omega": 0}',
+                   b'{"header": {"schema_version": 7}, "x": 0, "y": 0, "theta": 0, "v": 0, "omega": 0}']
+            raw = sender.session.declare_publisher(sender.key("state"))
+            # a burst while the loop takes nothing (a plan in progress): each bad one is replaced by the next
+            for payload in bad:
+                raw.put(payload)
+            pub.put(State(x=2.0, y=0, theta=0, v=0, omega=0))
+            # counted on arrival, though the loop never took them; the loop still gets the newest, and only it
+            assert wait_for(lambda: receiver.counters.rejected == len(bad), 10.0), receiver.counters.rejected
+            newest = sub.take()
+            assert newest is not None and newest.x == 2.0 and sub.take() is None
+            assert receiver.counters.received >= len(bad) + 1
+
+
 def test_process_settings_lower_priority_and_set_numba_threads() -> None:
     code = (
         "import os\n"

@@ -5,6 +5,7 @@ before the fix, on a 2-core machine."""
 
 from __future__ import annotations
 
+import ctypes
 import os
 import signal
 import subprocess
@@ -13,6 +14,7 @@ import textwrap
 import time
 from collections.abc import Callable
 
+import pytest
 from zenoh_helpers import REPO
 
 # the main thread waits on the Event the callback sets, clearing it at once: the handler lands inside Event.wait
@@ -81,6 +83,7 @@ def test_restore_puts_the_previous_handlers_back_and_ends_the_delivering_thread(
         with StopSignals(lambda signum: None) as s:
             assert signal.getsignal(signal.SIGTERM) == s._handler
         assert signal.getsignal(signal.SIGTERM) is before
+        assert signal.set_wakeup_fd(-1) == -1  # the wakeup fd put back too
         s._thread.join(5.0)
         assert not s._thread.is_alive()
         print("ok")
@@ -111,3 +114,37 @@ def test_a_service_node_stops_on_sigterm_through_the_lock_free_handler() -> None
     code, out = run_child(child, lambda pid: os.kill(pid, signal.SIGTERM))
     assert code == 0, out
     assert out.strip() == "stopped"
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="tgkill: a signal to one thread of another process")
+def test_a_stop_signal_that_lands_on_another_thread_than_the_main_one_still_stops_the_process() -> None:
+    """The kernel delivers a process-directed signal to any thread that does not block it (one that changes its mask,
+    as glibc's `pthread_create` does, can take a signal meant for a main thread about to wake): a main thread that
+    waits on an Event alone, as the router's does, is then never interrupted. A router hung on SIGINT so under load.
+    Here SIGINT goes straight to the delivering thread (`tgkill`); without the wakeup fd this child hangs."""
+    child = textwrap.dedent(
+        """
+        import threading
+        from services.runtime.signals import StopSignals
+
+        stop = threading.Event()
+        signals = StopSignals(lambda signum: stop.set())
+        print("ready", signals._thread.native_id, flush=True)
+        stop.wait()
+        print("stopped", flush=True)
+        """
+    )
+    libc = ctypes.CDLL(None, use_errno=True)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-c", child], stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        ready, tid = proc.stdout.readline().split()
+        assert ready == "ready" and int(tid) != proc.pid
+        assert libc.tgkill(proc.pid, int(tid), int(signal.SIGINT)) == 0, ctypes.get_errno()
+        out, _ = proc.communicate(timeout=15.0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and out.strip() == "stopped", (proc.returncode, out)

@@ -25,6 +25,7 @@ import signal
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from types import TracebackType
 from typing import Generic, TypeVar
 
@@ -74,7 +75,12 @@ class TypedPublisher(Generic[M]):
 
 
 class TypedSubscription(Generic[M]):
-    """Receives one message type; bad payloads are counted, logged and dropped (never raised)."""
+    """Receives one message type; bad payloads are counted, logged and dropped (never raised).
+
+    Every payload that arrives is decoded once: by the loop when it takes it, or, newest-only, on Zenoh's callback
+    thread when a newer one replaced it before the loop took it (`Inbox`), so that a bad message is counted and
+    logged whatever the loop's timing. The planner's state inbox (states at 50 Hz, a plan taking tens of ms) had
+    lost bad states that way, uncounted; the loop still plans from the newest state only."""
 
     def __init__(
         self, node: Node, key: str, model: type[M], newest_only: bool, capacity: int, remote_only: bool = False
@@ -82,20 +88,20 @@ class TypedSubscription(Generic[M]):
         self.node = node
         self.key = key
         self.model = model
-        self._inbox = node.inbox(key, newest_only, capacity, remote_only)
-        self.last: M | None = None
+        self._inbox = node.inbox(key, newest_only, capacity, remote_only,
+                                 on_displaced=self._decode if newest_only else None)
+        self.last: M | None = None  # the newest valid message the loop took
 
     def _decode(self, sample: zenoh.Sample) -> M | None:
+        """The message, or None for a bad payload (counted and logged); on the loop's thread or Zenoh's."""
         counters = self.node.counters
         with counters.lock:
             counters.received += 1
         try:
-            msg = decode(self.model, sample.payload.to_bytes(), self.node.settings.max_payload_bytes)
+            return decode(self.model, sample.payload.to_bytes(), self.node.settings.max_payload_bytes)
         except DecodeError as exc:
             self.node.reject(f"{sample.key_expr}: {exc}")
             return None
-        self.last = msg
-        return msg
 
     def take(self) -> M | None:
         """The newest valid message since the last call, or None (newest-only: at most one is queued)."""
@@ -103,6 +109,8 @@ class TypedSubscription(Generic[M]):
         while (sample := self._inbox.take()) is not None:
             msg = self._decode(sample)
             newest = msg if msg is not None else newest
+        if newest is not None:
+            self.last = newest
         return newest
 
     def drain(self, limit: int = 10_000) -> list[M]:
@@ -112,6 +120,8 @@ class TypedSubscription(Generic[M]):
             msg = self._decode(sample)
             if msg is not None:
                 out.append(msg)
+        if out:
+            self.last = out[-1]
         return out
 
 
@@ -281,11 +291,13 @@ class Node:
         model = model or KEYS[name][1]  # type: ignore[assignment]
         return TypedSubscription(self, key, model, newest_only, capacity, remote_only)  # type: ignore[arg-type]
 
-    def inbox(self, key: str, newest_only: bool = True, capacity: int = 1024, remote_only: bool = False) -> Inbox:
-        """Raw samples on `key` (any key expression), waking the loop on arrival; see `Inbox`."""
+    def inbox(self, key: str, newest_only: bool = True, capacity: int = 1024, remote_only: bool = False,
+              on_displaced: Callable[[zenoh.Sample], object] | None = None) -> Inbox:
+        """Raw samples on `key` (any key expression), waking the loop on arrival; see `Inbox` (`on_displaced`:
+        newest-only, called with each sample a newer one replaced before the loop took it)."""
         if self.session is None:
             raise RuntimeError("open the node (with node: ...) before declaring subscriptions")
-        inbox = Inbox(self.wake, lambda: self.closing, newest_only, capacity)
+        inbox = Inbox(self.wake, lambda: self.closing, newest_only, capacity, on_displaced)
         origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
         self._subscribers.append(
             self.session.declare_subscriber(key, zenoh.handlers.Callback(inbox.push), allowed_origin=origin)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import os
 import queue
 import sys
+import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -21,37 +21,47 @@ class Inbox:
     """Samples a Zenoh callback delivered, waiting for the service loop; every arrival calls `wake` (the node's
     loop waits on an event, not a fixed sleep, so input is handled at once).
 
-    Newest-only keeps one sample (a newer one replaces it). FIFO keeps up to `capacity` and then makes the
-    sender wait, as Zenoh's FifoChannel does: nothing is dropped while the node runs."""
+    Newest-only keeps one sample (a newer one replaces it) and hands each sample it replaced unread to
+    `on_displaced`, on the callback's thread, after waking the loop: the control loop takes only the newest, but
+    a bad message replaced before the loop took it is still seen (`TypedSubscription` counts and logs it). FIFO
+    keeps up to `capacity` and then makes the sender wait, as Zenoh's FifoChannel does: nothing is dropped while
+    the node runs."""
 
-    def __init__(self, wake: Callable[[], None], closing: Callable[[], bool], newest_only: bool, capacity: int) -> None:
+    def __init__(self, wake: Callable[[], None], closing: Callable[[], bool], newest_only: bool, capacity: int,
+                 on_displaced: Callable[[zenoh.Sample], object] | None = None) -> None:
         self._wake = wake
         self._closing = closing
-        self._newest: deque[zenoh.Sample] | None = deque(maxlen=1) if newest_only else None
+        self._newest_only = newest_only
+        self._waiting: zenoh.Sample | None = None  # newest-only: the sample not taken yet
+        self._swap = threading.Lock()  # newest-only: replacing the waiting sample and taking it are one step each
+        self._on_displaced = on_displaced
         self._fifo: queue.Queue[zenoh.Sample] | None = None if newest_only else queue.Queue(maxsize=capacity)
 
     def push(self, sample: zenoh.Sample) -> None:
         """Called on Zenoh's callback thread."""
-        if self._newest is not None:
-            self._newest.append(sample)
-        else:
-            assert self._fifo is not None
-            while True:
-                try:
-                    self._fifo.put(sample, timeout=0.1)
-                    break
-                except queue.Full:
-                    if self._closing():  # nobody will drain it any more
-                        return
+        if self._newest_only:
+            with self._swap:
+                displaced, self._waiting = self._waiting, sample
+            self._wake()
+            if displaced is not None and self._on_displaced is not None:
+                self._on_displaced(displaced)
+            return
+        assert self._fifo is not None
+        while True:
+            try:
+                self._fifo.put(sample, timeout=0.1)
+                break
+            except queue.Full:
+                if self._closing():  # nobody will drain it any more
+                    return
         self._wake()
 
     def take(self) -> zenoh.Sample | None:
         """The oldest waiting sample (newest-only: the one waiting), or None."""
-        if self._newest is not None:
-            try:
-                return self._newest.popleft()
-            except IndexError:
-                return None
+        if self._newest_only:
+            with self._swap:
+                sample, self._waiting = self._waiting, None
+            return sample
         assert self._fifo is not None
         try:
             return self._fifo.get_nowait()
