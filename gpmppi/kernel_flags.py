@@ -249,3 +249,33 @@ def row_axpy(typingctx, acc, weight, flat, start):  # noqa: ANN001, ANN201 - num
                                   [builder.extract_element(out, i32(i)) for i in range(4)])
 
     return sig, codegen
+
+
+def _atomic_extreme(op: str) -> Callable:
+    """An intrinsic `(array, index, value)` that atomically lowers (`min`) or raises (`max`) the int64
+    `array[index]` to `value` (a signed `atomicrmw`, no bounds check) and returns nothing."""
+
+    def typer(typingctx, array, index, value):  # noqa: ANN001, ANN202 - numba intrinsic
+        if not (_int64_vector(array) and isinstance(index, types.Integer) and isinstance(value, types.Integer)):
+            return None
+        sig = types.void(array, index, value)
+
+        def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+            aryty = signature.args[0]
+            ary = context.make_array(aryty)(context, builder, args[0])
+            idx = context.cast(builder, args[1], signature.args[1], types.intp)
+            ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+            val = context.cast(builder, args[2], signature.args[2], types.int64)
+            builder.atomic_rmw(op, ptr, val, "monotonic")
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    typer.__name__ = f"fetch_{op}"
+    return intrinsic(typer)
+
+
+# the rollout threads merge the bounds of the GP table cells they read into one shared box with these
+# (`gp_table.note_read`): once per thread and plan, so a lock-free update, no ordering needed
+fetch_min = _atomic_extreme("min")
+fetch_max = _atomic_extreme("max")

@@ -30,10 +30,14 @@ from gpmppi.mppi.dynamics import DYN_EDD5, DYN_GP, DYN_UNICYCLE, GP_EXACT, GP_GR
 from gpmppi.mppi.gp_table import (
     TABLE_AXES,
     block_keys,
+    box_hull,
     collapse_into,
     collapse_slabs_at,
     collapse_weights,
+    empty_box,
     lazy_state,
+    read_box,
+    ready_box,
     rollout_order,
     terrain_rows,
 )
@@ -95,6 +99,9 @@ class TerrainTable:
                 # the last version whose plan read each slab (0: none yet): `prepare` collapses ahead the slabs read
                 # by the plans of the last `read_history` versions (`gp_table.collapse_slabs_at`)
                 self._last_read = np.zeros(block_keys(dims), dtype=np.int64)
+        # (version, the box of the cells its plans read) of the last `read_history` versions: `prepare` collapses
+        # ahead their hull, the next version's ready box (`gp_table.collapse_slabs_at`)
+        self._read_boxes: list[tuple[int, np.ndarray]] = []
         if self.dyn == DYN_GP and self.gp_mode == GP_EXACT:
             inv_ls = 1.0 / model.lengthscale
             self._ex = {
@@ -131,10 +138,19 @@ class TerrainTable:
             if changed:  # every slab stale: the readers collapse those they read
                 self.grid["collapse_w"][:] = collapse_weights(w, self.noise_var(w))
                 self.version += 1
-                if ahead:  # `prepare`: the slabs the last lazy plan made current, now
+                since = max(1, self.version - self.read_history)
+                # the box of the cells the last version's plans read joins the history; the boxes of the versions
+                # since `since` stay
+                self._read_boxes = [(v, b) for v, b in self._read_boxes if v >= since]
+                self._read_boxes.append((self.version - 1, read_box(lazy).copy()))
+                ready = empty_box()
+                if ahead:  # `prepare`: the slabs the last plans read, now; a lookup in their hull checks nothing
+                    ready = box_hull([b for _, b in self._read_boxes])
                     collapse_slabs_at(lazy, self._table_full, self.grid["collapse_w"], self.grid["table"],
                                       self.grid["dims"], self.version - 1, self.version, numba.get_num_threads(),
-                                      self._last_read, max(1, self.version - self.read_history))
+                                      self._last_read, since, ready)
+                ready_box(lazy)[:] = ready
+                read_box(lazy)[:] = empty_box()
                 lazy[0] = self.version
             elif lazy[0] != 0 and self._planned and self.backend == "cpu":
                 # the weights held for a second plan: collapse the rest of the table now (the slabs already current
