@@ -171,7 +171,7 @@ def load_acquire(typingctx, array, index):  # noqa: ANN001, ANN201 - numba intri
     """`array[index]` of a 1-D int64 array, read with acquire ordering (no bounds check).
 
     Paired with `store_release`: a thread that reads the value another thread stored with it also sees every
-    write that thread made before the store (the lazily collapsed GP table's slabs, `gp_table.ensure_block`).
+    write that thread made before the store (the lazily collapsed GP table's slabs, `lazy_collapse.ensure_block`).
     On x86 it is a plain load that the compiler may not move later loads above.
     """
     if not (_int64_vector(array) and isinstance(index, types.Integer)):
@@ -276,6 +276,6 @@ def _atomic_extreme(op: str) -> Callable:
 
 
 # the rollout threads merge the bounds of the GP table cells they read into one shared box with these
-# (`gp_table.note_read`): once per thread and plan, so a lock-free update, no ordering needed
+# (`lazy_collapse.note_read`): once per thread and plan, so a lock-free update, no ordering needed
 fetch_min = _atomic_extreme("min")
 fetch_max = _atomic_extreme("max")

@@ -1,5 +1,6 @@
-"""The GP table collapsed lazily for moving terrain weights (`gp_table.ensure_block`): plans identical to the bit to
-those with the table collapsed whole, slabs that match the whole collapse, and a collapse that matches its formula."""
+"""The GP table collapsed lazily for moving terrain weights (`lazy_collapse`): plans identical to the bit to those with
+the table collapsed whole, slabs that match the whole collapse, the ready box and the read marks, and a collapse that
+matches its formula."""
 
 from __future__ import annotations
 
@@ -10,12 +11,10 @@ from numba import njit
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.mppi.config import PlannerConfig
-from gpmppi.mppi.gp_table import (
+from gpmppi.mppi.gp_table import collapse_into, collapse_table, collapse_weights, rollout_order, terrain_rows
+from gpmppi.mppi.lazy_collapse import (
     box_hull,
     cell_stamps,
-    collapse_into,
-    collapse_table,
-    collapse_weights,
     empty_box,
     ensure_block,
     in_ready_box,
@@ -23,9 +22,7 @@ from gpmppi.mppi.gp_table import (
     note_read,
     read_box,
     ready_box,
-    rollout_order,
     slab_versions,
-    terrain_rows,
 )
 from gpmppi.mppi.planner import Planner
 from gpmppi.scenarios import circle_lane

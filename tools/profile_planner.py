@@ -41,8 +41,9 @@ from gpmppi.mppi.cpu_backend import (
 )
 from gpmppi.mppi.critics.base import Step
 from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, velocity_coefficients
-from gpmppi.mppi.gp_table import note_read, ready_box_of, simplex_params
+from gpmppi.mppi.gp_table import simplex_params
 from gpmppi.mppi.lane import lane_field_at
+from gpmppi.mppi.lazy_collapse import note_read, ready_box_of
 from gpmppi.mppi.step import step_inputs
 
 PHASES = ("ensure_slabs", "request_rows", "draw", "add_costs", "read_rows", "advance", "setup_terminal")

@@ -36,17 +36,9 @@ from gpmppi.mppi.costs import (
     weight_vector,
 )
 from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, gp_scratch, velocity_coefficients
-from gpmppi.mppi.gp_table import (
-    block_keys,
-    cell32,
-    empty_box,
-    ensure_block_at,
-    note_read,
-    ready_box_of,
-    simplex_corner,
-    simplex_params,
-)
+from gpmppi.mppi.gp_table import cell32, simplex_corner, simplex_params
 from gpmppi.mppi.lane import lane_distance, lane_field_at
+from gpmppi.mppi.lazy_collapse import block_keys, empty_box, ensure_block_at, note_read, ready_box_of
 from gpmppi.mppi.rng import command_from_normals, normal_pair
 from gpmppi.mppi.step import sample_step, step_inputs
 
@@ -148,7 +140,7 @@ def _add_costs(
 def _ensure_cells(lazy_table: tuple, n_in: int, keys: np.ndarray, seen: np.ndarray) -> None:
     """Make current the table slabs of this step's lookups outside the ready box (a lazily collapsed table, `keys`
     from `_request_checked_rows`: each lookup's `block_key`, -1 inside the box) through their cell's stamp
-    (`gp_table.ensure_block_at`), once per cell and thread in this plan (`seen` marks the cells checked)."""
+    (`lazy_collapse.ensure_block_at`), once per cell and thread in this plan (`seen` marks the cells checked)."""
     lazy, src, collapse_w, table, dims = lazy_table
     for j in range(n_in):
         b = keys[j]
@@ -187,10 +179,11 @@ def _request_checked_rows(
     nodes: np.ndarray, node_w: np.ndarray, keys: np.ndarray, read: np.ndarray,
 ) -> int:
     """`_request_rows` on a lazily collapsed table, with the lazy collapse's box test in the same loop: whether each
-    lookup's cell lies in the ready box `ready` (lo0, hi0, lo1, hi1, lo2, hi2 as int32, `gp_table.in_ready_box`),
-    where its slabs are current. `keys` gets each lookup's `block_key` outside the box and -1 inside it, `read` (int64
-    lo0, hi0, lo1, hi1, lo2, hi2) the box of every cell the thread's lookups read (`gp_table.note_read`). Returns the
-    number of lookups outside the box (`_ensure_cells` then makes their slabs current, before the rows are read).
+    lookup's cell lies in the ready box `ready` (lo0, hi0, lo1, hi1, lo2, hi2 as int32,
+    `lazy_collapse.in_ready_box`), where its slabs are current. `keys` gets each lookup's `block_key` outside the box
+    and -1 inside it, `read` (int64 lo0, hi0, lo1, hi1, lo2, hi2) the box of every cell the thread's lookups read
+    (`lazy_collapse.note_read`). Returns the number of lookups outside the box (`_ensure_cells` then makes their slabs
+    current, before the rows are read).
 
     The test is a few compares on the cell indices the corners compute anyway (the same `cell32` calls, computed
     once), so a step whose lookups all lie in the box costs no check of its own: as a phase of its own (a call per

@@ -24,7 +24,8 @@ from gpmppi.kernel_flags import FASTMATH
 from gpmppi.models.dynamic_unicycle import jacobian_into
 from gpmppi.models.edd5 import edd5_velocity
 from gpmppi.models.lateral_slip import lateral_velocity
-from gpmppi.mppi.gp_table import cell32, ensure_block, interp4, interp4_simplex, simplex_params
+from gpmppi.mppi.gp_table import cell32, interp4, interp4_simplex, simplex_params
+from gpmppi.mppi.lazy_collapse import ensure_block
 from gpmppi.trig import cos_sin
 
 DYN_UNICYCLE = 0

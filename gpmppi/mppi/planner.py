@@ -99,8 +99,8 @@ class Planner:
     def warm_up(self, state: np.ndarray, task: Task) -> None:
         """Plan as a live service does in its first seconds, so that numba has compiled or loaded every kernel of
         that path before it goes live; then `reset`. Once on the uniform weights with a command latency (the delay
-        predictor), then on new weights collapsed ahead (`prepare`: `gp_table.collapse_slabs_at`) and once more when
-        they hold (the rest of the table, `collapse_into`). Without the last two a fresh install compiled them at
+        predictor), then on new weights collapsed ahead (`prepare`: `lazy_collapse.collapse_slabs_at`) and once more
+        when they hold (the rest of the table, `collapse_into`). Without the last two a fresh install compiled them at
         the first weights from the terrain service, between two commands: 1.1 s and 0.4 s on 2 cores."""
         x = np.asarray(state, dtype=np.float64)
         self.plan(x, task, delay_s=0.01)

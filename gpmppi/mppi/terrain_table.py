@@ -8,7 +8,7 @@
   collapsed with the weights, or the exact GP's training data;
 * the collapse of the grid table when the weights change: whole at once (`table_collapse="whole"`), or lazily
   (the default): the weights' version moves on, every slab goes stale, and the readers collapse the slabs they
-  read (`gp_table.ensure_block`); `set_weights(w, ahead=True)` collapses at once the slabs the plans of the last
+  read (`lazy_collapse.ensure_block`); `set_weights(w, ahead=True)` collapses at once the slabs the plans of the last
   few weight versions read (the service's `prepare`, between states), and a second plan with the same weights
   collapses the rest;
 * the EDD5 terrain (the configured one, or the top weight) and the weighted lateral slip.
@@ -27,19 +27,15 @@ from gpmppi.gp.model_file import GPModel
 from gpmppi.mppi.bundles import ModelBundle
 from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.dynamics import DYN_EDD5, DYN_GP, DYN_UNICYCLE, GP_EXACT, GP_GRID, GP_SIMPLEX
-from gpmppi.mppi.gp_table import (
-    TABLE_AXES,
+from gpmppi.mppi.gp_table import TABLE_AXES, collapse_into, collapse_weights, rollout_order, terrain_rows
+from gpmppi.mppi.lazy_collapse import (
     block_keys,
     box_hull,
-    collapse_into,
     collapse_slabs_at,
-    collapse_weights,
     empty_box,
     lazy_state,
     read_box,
     ready_box,
-    rollout_order,
-    terrain_rows,
 )
 
 __all__ = ["TerrainTable"]
@@ -76,7 +72,7 @@ class TerrainTable:
         self.grid = ModelBundle.no_grid()
         self.lazy_collapse = False
         self.read_history = READ_HISTORY
-        self.version = 1  # the version of the lazily collapsed table's weights (`gp_table.ensure_block`)
+        self.version = 1  # the version of the lazily collapsed table's weights (`lazy_collapse.ensure_block`)
         self._planned = False  # whether a plan has run with the weights of the table
         if self.dyn == DYN_GP and self.gp_mode != GP_EXACT:
             g = model.grid()
@@ -91,16 +87,16 @@ class TerrainTable:
             }
             if c.table_collapse == "lazy":
                 self.lazy_collapse = True
-                # collapsed lazily, slab by slab as the rollouts reach them (`gp_table.ensure_block`), into one
+                # collapsed lazily, slab by slab as the rollouts reach them (`lazy_collapse.ensure_block`), into one
                 # table kept for the planner's life; on CUDA the host reads only the nominal's slabs, and the
                 # device collapses its own table whole from the same per-terrain rows (`cuda_backend`)
                 self.grid.update(table=np.empty((int(np.prod(dims)), 4), dtype=np.float32),
                                  table_src=self._table_full, lazy=lazy_state(dims), collapse_w=np.zeros(4 + 4 * m))
                 # the last version whose plan read each slab (0: none yet): `prepare` collapses ahead the slabs read
-                # by the plans of the last `read_history` versions (`gp_table.collapse_slabs_at`)
+                # by the plans of the last `read_history` versions (`lazy_collapse.collapse_slabs_at`)
                 self._last_read = np.zeros(block_keys(dims), dtype=np.int64)
         # (version, the box of the cells its plans read) of the last `read_history` versions: `prepare` collapses
-        # ahead their hull, the next version's ready box (`gp_table.collapse_slabs_at`)
+        # ahead their hull, the next version's ready box (`lazy_collapse.collapse_slabs_at`)
         self._read_boxes: list[tuple[int, np.ndarray]] = []
         if self.dyn == DYN_GP and self.gp_mode == GP_EXACT:
             inv_ls = 1.0 / model.lengthscale
@@ -130,7 +126,7 @@ class TerrainTable:
 
     def set_weights(self, w: np.ndarray, ahead: bool = False) -> ModelBundle:
         """The kernels' model for the (checked) weights `w`: collapse the grid table when they changed (lazily: mark
-        it stale, `gp_table.ensure_block`; `ahead`: collapse the slabs the last plans read now), pick the EDD5
+        it stale, `lazy_collapse.ensure_block`; `ahead`: collapse the slabs the last plans read now), pick the EDD5
         terrain."""
         changed = self.weights is None or not np.array_equal(w, self.weights)
         if self._table_full is not None and self.lazy_collapse:
