@@ -13,36 +13,29 @@ samples the XY of the rollout.
 
 from __future__ import annotations
 
-import os
-import queue
-import threading
-from collections.abc import Callable
-
 import numba
 import numpy as np
 from numba import njit
 
 from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row, row_axpy, vector_phase
-from gpmppi.mppi.bundles import CRITICS
 from gpmppi.mppi.costs import (
     advance_state,
     lane_stage_cost_at,
     plain_stage_cost,
-    stage_critics,
     stage_reads_lane,
     start_state,
     terminal_cost,
-    terminal_critics,
     weight_vector,
 )
-from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, gp_scratch, velocity_coefficients
+from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, velocity_coefficients
 from gpmppi.mppi.gp_table import cell32, simplex_corner, simplex_params
 from gpmppi.mppi.lane import lane_distance, lane_field_at
 from gpmppi.mppi.lazy_collapse import block_keys, empty_box, ensure_block_at, note_read, ready_box_of
 from gpmppi.mppi.rng import command_from_normals, normal_pair
-from gpmppi.mppi.step import sample_step, step_inputs
+from gpmppi.mppi.step import step_inputs
+from gpmppi.mppi.worker_pool import WorkerPool
 
-__all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", "softmax_update"]
+__all__ = ["GROUP", "rollout_kernel", "rollout_worker"]
 
 # samples a thread steps in lockstep: each sample's step waits on its own GP table reads (the next
 # state needs them), so interleaving independent samples lets those memory reads overlap, and the vector loops (the
@@ -425,112 +418,5 @@ def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out:
     _POOL.run(rollout_worker, calls)
 
 
-class _WorkerPool:
-    """Threads kept between plans, each running a nogil kernel on request; the calling thread runs it too.
+_POOL = WorkerPool()  # the pool threads of every plan in this process
 
-    Started lazily, and anew in a forked child (a fork keeps the parent's threads' objects, not the threads)."""
-
-    def __init__(self) -> None:
-        self._pid = -1
-        self._inboxes: list[queue.SimpleQueue] = []
-        self._done: queue.SimpleQueue = queue.SimpleQueue()
-        self._lock = threading.Lock()
-
-    def _loop(self, inbox: queue.SimpleQueue) -> None:
-        while True:
-            fn, args = inbox.get()
-            try:
-                fn(*args)
-                self._done.put(None)
-            except BaseException as exc:  # handed to the caller, which raises it
-                self._done.put(exc)
-
-    def run(self, fn: Callable, calls: list[tuple]) -> None:
-        """`fn(*calls[0])` on this thread, `fn(*calls[i])` on pool thread i; raises what any of them raised."""
-        helpers = len(calls) - 1
-        with self._lock:  # one kernel at a time through the pool (its callers may be several threads)
-            if self._pid != os.getpid():
-                self._pid, self._inboxes, self._done = os.getpid(), [], queue.SimpleQueue()
-            while len(self._inboxes) < helpers:
-                inbox: queue.SimpleQueue = queue.SimpleQueue()
-                threading.Thread(target=self._loop, args=(inbox,), daemon=True, name="gpmppi-rollout").start()
-                self._inboxes.append(inbox)
-            for inbox, args in zip(self._inboxes[:helpers], calls[1:], strict=True):
-                inbox.put((fn, args))
-            error: BaseException | None = None
-            try:
-                fn(*calls[0])
-            except BaseException as exc:
-                error = exc
-            for _ in range(helpers):
-                result = self._done.get()
-                error = error or result
-            if error is not None:
-                raise error
-
-
-_POOL = _WorkerPool()
-
-
-@njit(cache=True, fastmath=FASTMATH)
-def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple) -> np.ndarray:
-    """Each critic's cost (`CRITICS` order) of the sampling bundle's nominal sequence, clipped to its limits (its first
-    command to the rate limits too) as the kernels clip a sampled command.
-
-    Serial, one rollout by the kernels' own step (`step.sample_step`) with zero noise, so that the nominal is
-    clipped exactly as a sample is, compiled with the kernels' flags (without them the float32 table reads and the
-    pose step round differently and the sum strayed 5e-9 from the kernel's cost): the kernels add the critics of a
-    step into one cost, this keeps them apart; their sum is the kernels' cost.
-    """
-    tightened_hw = task.tightened_hw
-    radii = task.radii
-    horizon = sampling.nominal.shape[0]
-    # the sampling bundle's own limits, but no noise: whatever its noise std, the sequence scored is the nominal
-    inputs = step_inputs(model, sampling, np.zeros(2), 0.0, velocity_coefficients(model.theta, model.lateral))
-    dt = sampling.dt
-    scratch = gp_scratch(model)
-    cost_w = weight_vector(cost)
-    x0 = sampling.x0
-    s = (x0[0], x0[1], x0[2], x0[3], x0[4])
-    d = (0.0, 0.0)
-    out = np.zeros(len(CRITICS))
-    state = start_state(cost_w)
-    for k in range(horizon):
-        u, d, s, variances = sample_step(sampling.seed, k, k, inputs, scratch, dt, s, d)
-        stage_critics(cost_w, task, tightened_hw[k + 1], radii[k + 1], state, s, u, variances, out)
-        state = advance_state(state, cost_w)
-    terminal_critics(cost_w, task, tightened_hw[horizon], radii[horizon], state, s, out)
-    return out
-
-
-@njit(cache=True)
-def softmax_update(
-    nominal: np.ndarray, eps: np.ndarray, costs: np.ndarray, temperature: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """MPPI update: weights exp(-(c - c_min) / lambda) normalised; nominal + sum_s w_s eps_s.
-
-    Serial so the sum is bit-for-bit reproducible. Samples with infinite cost get zero weight; if
-    every cost is infinite the nominal sequence is kept.
-    """
-    samples = costs.shape[0]
-    c_min = np.inf
-    for s in range(samples):
-        if costs[s] < c_min:
-            c_min = costs[s]
-    weights = np.zeros(samples)
-    if not np.isfinite(c_min):
-        return nominal.copy(), weights
-    total = 0.0
-    for s in range(samples):
-        if np.isfinite(costs[s]):
-            weights[s] = np.exp(-(costs[s] - c_min) / temperature)
-            total += weights[s]
-    out = nominal.copy()
-    for s in range(samples):
-        ws = weights[s] / total
-        weights[s] = ws
-        if ws > 0.0:
-            for k in range(nominal.shape[0]):
-                out[k, 0] += ws * eps[s, k, 0]
-                out[k, 1] += ws * eps[s, k, 1]
-    return out, weights
