@@ -171,7 +171,7 @@ def load_acquire(typingctx, array, index):  # noqa: ANN001, ANN201 - numba intri
     """`array[index]` of a 1-D int64 array, read with acquire ordering (no bounds check).
 
     Paired with `store_release`: a thread that reads the value another thread stored with it also sees every
-    write that thread made before the store (the lazily collapsed GP table's slabs, `gp_table.ensure_block`).
+    write that thread made before the store (the lazily collapsed GP table's slabs, `lazy_collapse.ensure_block`).
     On x86 it is a plain load that the compiler may not move later loads above.
     """
     if not (_int64_vector(array) and isinstance(index, types.Integer)):
@@ -249,3 +249,33 @@ def row_axpy(typingctx, acc, weight, flat, start):  # noqa: ANN001, ANN201 - num
                                   [builder.extract_element(out, i32(i)) for i in range(4)])
 
     return sig, codegen
+
+
+def _atomic_extreme(op: str) -> Callable:
+    """An intrinsic `(array, index, value)` that atomically lowers (`min`) or raises (`max`) the int64
+    `array[index]` to `value` (a signed `atomicrmw`, no bounds check) and returns nothing."""
+
+    def typer(typingctx, array, index, value):  # noqa: ANN001, ANN202 - numba intrinsic
+        if not (_int64_vector(array) and isinstance(index, types.Integer) and isinstance(value, types.Integer)):
+            return None
+        sig = types.void(array, index, value)
+
+        def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+            aryty = signature.args[0]
+            ary = context.make_array(aryty)(context, builder, args[0])
+            idx = context.cast(builder, args[1], signature.args[1], types.intp)
+            ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+            val = context.cast(builder, args[2], signature.args[2], types.int64)
+            builder.atomic_rmw(op, ptr, val, "monotonic")
+            return context.get_dummy_value()
+
+        return sig, codegen
+
+    typer.__name__ = f"fetch_{op}"
+    return intrinsic(typer)
+
+
+# the rollout threads merge the bounds of the GP table cells they read into one shared box with these
+# (`lazy_collapse.note_read`): once per thread and plan, so a lock-free update, no ordering needed
+fetch_min = _atomic_extreme("min")
+fetch_max = _atomic_extreme("max")

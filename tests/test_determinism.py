@@ -78,7 +78,7 @@ if sys.argv[1] == "helpers_first":
     from gpmppi.mppi.costs import stage_cost, tighten_lane
     from gpmppi.mppi.critics import lane_exit, slip, variance
     from gpmppi.gp.grid_interp import grid_interp
-    from gpmppi.models.dynamic_unicycle import nominal_step, jacobian
+    from gpmppi.models.dynamic_unicycle import nominal_step, jacobian_into
     from gpmppi.mppi.dynamics import advance, nominal_velocity_step, velocity_coefficients
     from gpmppi.mppi.gp_table import interp4, interp4_simplex, simplex_nodes
     from gpmppi.mppi.lane import build_lane_lookup, lane_query
@@ -91,7 +91,7 @@ if sys.argv[1] == "helpers_first":
     nominal_velocity_step(coef, 0.5, 0.1, 1.0, 0.2, 0.1)
     advance(2, 0.1, coef, np.ones(5), (0.0, 0.0, 0.1, 0.5, 0.1), (1.0, 0.2), 0.01, 0.02)
     nominal_step(theta, x, u, 0.1)
-    jacobian(theta, x, u, 0.1, 0.0, 0.0, 0.0, 0.0)  # as `propagate` calls it (no defaults omitted)
+    jacobian_into(np.eye(5), theta, x, u, 0.1, 0.0, 0.0, 0.0, 0.0)  # as `propagate` calls it
     table = np.ones((81, 4), dtype=np.float32)
     dims = np.array([3, 3, 3, 3])
     simplex_nodes(dims, np.zeros(4), np.ones(4), 0.5, 0.5, 0.5, 0.5)
@@ -185,14 +185,14 @@ for dyn in ("edd5", "unicycle", "gp"):
         print(dyn, r.controls.tobytes().hex(), np.float64(r.cost).tobytes().hex())
         x = r.states[1].copy()
 
-from gpmppi.models.dynamic_unicycle import jacobian
+from gpmppi.models.dynamic_unicycle import jacobian_into
 from gpmppi.mppi.costs import stage_critics, terminal_critics
 from gpmppi.mppi.cpu_backend import rollout_worker
 from gpmppi.mppi.dynamics import gp_residual, step_state
 
 # which of the helpers the kernels link this process compiled (the helpers-cached case: none), and how it got the
 # rollout kernel: compiled it, or loaded it from the cache
-linked = (gp_residual, step_state, jacobian, stage_critics, terminal_critics)
+linked = (gp_residual, step_state, jacobian_into, stage_critics, terminal_critics)
 print(LINKED, " ".join(sorted(f.py_func.__name__ for f in linked if f._cache_misses)))
 print(KERNEL, "compiled" if rollout_worker._cache_misses else "loaded" if rollout_worker._cache_hits else "unused")
 """
@@ -237,7 +237,7 @@ def wait_helpers_cached(case: Case) -> None:
                              f"{case.log.read_text()[-3000:]}")
 
 
-ALL_LINKED = "gp_residual jacobian stage_critics step_state terminal_critics"
+ALL_LINKED = "gp_residual jacobian_into stage_critics step_state terminal_critics"
 
 
 def case_output(case: Case, kernel: str, linked: str) -> str:

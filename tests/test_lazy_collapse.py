@@ -1,24 +1,28 @@
-"""The GP table collapsed lazily for moving terrain weights (`gp_table.ensure_block`): plans identical to the bit to
-those with the table collapsed whole, slabs that match the whole collapse, and a collapse that matches its formula."""
+"""The GP table collapsed lazily for moving terrain weights (`lazy_collapse`): plans identical to the bit to those with
+the table collapsed whole, slabs that match the whole collapse, the ready box and the read marks, and a collapse that
+matches its formula."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from numba import njit
 
 from gpmppi.gp.model_file import load_default_model
 from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.mppi.config import PlannerConfig
-from gpmppi.mppi.gp_table import (
+from gpmppi.mppi.gp_table import collapse_into, collapse_table, collapse_weights, rollout_order, terrain_rows
+from gpmppi.mppi.lazy_collapse import (
+    box_hull,
     cell_stamps,
-    collapse_into,
-    collapse_table,
-    collapse_weights,
+    empty_box,
     ensure_block,
+    in_ready_box,
     lazy_state,
-    rollout_order,
+    note_read,
+    read_box,
+    ready_box,
     slab_versions,
-    terrain_rows,
 )
 from gpmppi.mppi.planner import Planner
 from gpmppi.scenarios import circle_lane
@@ -119,7 +123,7 @@ def test_weights_held_for_a_second_plan_collapse_the_whole_table_once(model) -> 
     collapse_into(planner.terrain.grid["table_src"], planner.terrain.grid["collapse_w"], whole)
     np.testing.assert_array_equal(planner.terrain.grid["table"], whole)
     planner.plan(sc.start, sc.task, np.array([0.3, 0.3, 0.4]))
-    assert lazy[0] > np.max(lazy[1:]) - 1 and lazy[0] != 0  # a new version, above every slab's
+    assert lazy[0] >= np.max(slab_versions(lazy)) and lazy[0] != 0  # a new version: no slab holds a later one
 
 
 def _slabs_of_cells(cells: np.ndarray, dims: np.ndarray) -> np.ndarray:
@@ -143,6 +147,33 @@ def _current_rows_match_the_whole_collapse(planner: Planner, slabs: np.ndarray) 
     np.testing.assert_array_equal(grid["table"][rows], whole[rows])
 
 
+def _box_cells(box: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """A mask over the cells of the three outer axes: those of the box (lo0, hi0, lo1, hi1, lo2, hi2)."""
+    mask = np.zeros(tuple(int(d) for d in dims[:3]), dtype=bool)
+    mask[box[0] : box[1] + 1, box[2] : box[3] + 1, box[4] : box[5] + 1] = True
+    return mask.ravel()
+
+
+def _bounding_box(cells: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """The smallest box (lo0, hi0, lo1, hi1, lo2, hi2) holding the cells of the mask `cells`."""
+    idx = np.array(np.unravel_index(np.flatnonzero(cells), tuple(int(d) for d in dims[:3])))
+    return np.column_stack([idx.min(axis=1), idx.max(axis=1)]).ravel()
+
+
+def _all_eight_current(slabs_current: np.ndarray, dims: np.ndarray) -> np.ndarray:
+    """A mask over the cells: those (each index within 0 .. dims - 2) whose eight slabs are all current."""
+    shape = tuple(int(d) for d in dims[:3])
+    c = slabs_current.reshape(shape)
+    out = np.zeros(shape, dtype=bool)
+    inner = c[:-1, :-1, :-1].copy()
+    for d0 in (0, 1):
+        for d1 in (0, 1):
+            for d2 in (0, 1):
+                inner &= c[d0 : shape[0] - 1 + d0, d1 : shape[1] - 1 + d1, d2 : shape[2] - 1 + d2]
+    out[:-1, :-1, :-1] = inner
+    return out.ravel()
+
+
 def test_new_weights_make_every_slab_stale_and_prepare_collapses_those_the_last_plan_read(model) -> None:
     planner = Planner(PlannerConfig(backend="cpu", samples=128, horizon=10), model)
     planner.terrain.read_history = 1  # the last plan's reads alone (the history: the next test)
@@ -150,44 +181,58 @@ def test_new_weights_make_every_slab_stale_and_prepare_collapses_those_the_last_
     planner.plan(sc.start, sc.task, np.array([0.2, 0.3, 0.5]))
     lazy, dims = planner.terrain.grid["lazy"], planner.terrain.grid["dims"]
     slabs, cells = slab_versions(lazy), cell_stamps(lazy)
-    assert slabs.size == cells.size == lazy.size // 2
+    assert slabs.size == cells.size == (lazy.size - 13) // 2
     before = lazy[0]
     planner.terrain.set_weights(np.array([0.25, 0.3, 0.45]))  # as `plan` does: nothing collapsed yet
     assert lazy[0] == before + 1 and not np.any(slabs == lazy[0]) and not np.any(np.abs(cells) == lazy[0])
+    np.testing.assert_array_equal(ready_box(lazy), empty_box())
+    np.testing.assert_array_equal(read_box(lazy), empty_box())
     planner.plan(sc.start, sc.task, np.array([0.25, 0.3, 0.45]))
+    # no ready box (no `prepare`): every lookup went through its cell's stamp
     read_cells = cells == lazy[0]
     read = _slabs_of_cells(read_cells, dims)
-    # the plan's lookups made current exactly the slabs of the cells they read
+    # the plan's lookups made current exactly the slabs of the cells they read, and the read box holds them all
     np.testing.assert_array_equal(slabs == lazy[0], read)
+    np.testing.assert_array_equal(read_box(lazy), _bounding_box(read_cells, dims))
+    box = read_box(lazy).copy()
     before = lazy[0]
     planner.prepare(np.array([0.3, 0.3, 0.4]))  # as the planner service does when new weights arrive
     assert lazy[0] == before + 1
-    # exactly the slabs the last plan read are current, and every cell whose eight they are: current, not read yet
-    np.testing.assert_array_equal(slabs == lazy[0], read)
-    ready = cells == -lazy[0]
-    assert not np.any(cells == lazy[0]) and np.all(ready[read_cells])
-    np.testing.assert_array_equal(read[_slabs_of_cells(ready, dims)], True)
-    _current_rows_match_the_whole_collapse(planner, read)
+    # current: the slabs of the cells the last plan read and of every cell of their box, which is the ready box now;
+    # every cell whose eight slabs that made current is stamped current, not read yet
+    want = _slabs_of_cells(read_cells | _box_cells(box, dims), dims)
+    assert want.sum() > read.sum()
+    np.testing.assert_array_equal(slabs == lazy[0], want)
+    np.testing.assert_array_equal(ready_box(lazy), box)
+    np.testing.assert_array_equal(read_box(lazy), empty_box())
+    np.testing.assert_array_equal(cells == -lazy[0], _all_eight_current(slabs == lazy[0], dims))
+    assert not np.any(cells == lazy[0])
+    _current_rows_match_the_whole_collapse(planner, want)
     planner.prepare(np.array([0.3, 0.3, 0.4]))  # the same weights: nothing to do
     assert lazy[0] == before + 1
-    # the next plan reads some of the cells made current ahead (stamped read) and makes others current; the next
-    # collapse ahead covers exactly what it read: the slabs collapsed ahead and not read go stale (no growth)
+    # the next plan's lookups inside the ready box check nothing and stamp nothing; those outside it stamp their cells
+    # read (collapsing their slabs where stale); the read box holds both
     x = kinematic_step(sc.start, np.array([1.0, 0.8]), 0.5)
     planner.plan(x, sc.task, np.array([0.3, 0.3, 0.4]))
-    read_cells = cells == lazy[0]
-    read = _slabs_of_cells(read_cells, dims)
-    unread = (slabs == lazy[0]) & ~read
-    assert read.any() and unread.any() and np.any(cells == -lazy[0])
+    stamped = cells == lazy[0]
+    assert stamped.any() and not np.any(stamped & _box_cells(box, dims))
+    box2 = read_box(lazy).copy()
+    assert not np.array_equal(box2, box)
+    assert np.all(_box_cells(box2, dims)[stamped])
     planner.prepare(np.array([0.35, 0.3, 0.35]))
-    np.testing.assert_array_equal(slabs == lazy[0], read)
-    _current_rows_match_the_whole_collapse(planner, read)
+    want = _slabs_of_cells(stamped | _box_cells(box2, dims), dims)
+    np.testing.assert_array_equal(slabs == lazy[0], want)
+    np.testing.assert_array_equal(ready_box(lazy), box2)
+    _current_rows_match_the_whole_collapse(planner, want)
     state = lazy_state(np.array([2, 3, 4, 5]))
-    assert state[0] == 1 and state.size == 1 + 2 * 2 * 3 * 4 and not state[1:].any()
+    assert state[0] == 1 and state.size == 13 + 2 * 2 * 3 * 4 and not state[13:].any()
+    np.testing.assert_array_equal(ready_box(state), empty_box())
 
 
 def test_prepare_collapses_the_slabs_read_by_the_plans_of_the_last_versions(model) -> None:
-    """`read_history` = 3: after each `prepare`, the slabs current are those the plans of the last three versions
-    read (each plan's: the slabs of the cells it stamped read), with their whole-collapse values."""
+    """`read_history` = 3: after each `prepare`, the slabs current are those of the hull of the read boxes of the plans
+    of the last three versions (the ready box) and of the cells those plans stamped read, with their whole-collapse
+    values."""
     planner = Planner(PlannerConfig(backend="cpu", samples=128, horizon=10, seed=2), model)
     planner.terrain.read_history = 3
     lazy, dims = planner.terrain.grid["lazy"], planner.terrain.grid["dims"]
@@ -195,20 +240,47 @@ def test_prepare_collapses_the_slabs_read_by_the_plans_of_the_last_versions(mode
     x = sc.start.copy()
     rng = np.random.default_rng(4)
     w = np.array([0.5, 0.3, 0.2])
-    reads = []
+    stamped, boxes = [], []
     for _ in range(7):
         w = np.clip(w + rng.normal(0.0, 0.05, 3), 0.01, 1.0)
         w = w / w.sum()
         planner.prepare(w)
-        if reads:
-            want = np.any(reads[-3:], axis=0)
+        if boxes:
+            hull = box_hull(boxes[-3:])
+            np.testing.assert_array_equal(ready_box(lazy), hull)
+            want = _slabs_of_cells(np.any(stamped[-3:], axis=0) | _box_cells(hull, dims), dims)
             np.testing.assert_array_equal(slab_versions(lazy) == lazy[0], want)
             _current_rows_match_the_whole_collapse(planner, want)
         r = planner.plan(x, sc.task, w)
-        reads.append(_slabs_of_cells(cell_stamps(lazy) == lazy[0], dims))
+        stamped.append(cell_stamps(lazy) == lazy[0])
+        boxes.append(read_box(lazy).copy())
         x = kinematic_step(x, r.control, 0.1)
-    # the union grew past the last plan's reads: the history is used
-    assert np.any(reads[-3:], axis=0).sum() > reads[-1].sum()
+    # the hull grew past the last plan's box: the history is used
+    assert _box_cells(box_hull(boxes[-3:]), dims).sum() > _box_cells(boxes[-1], dims).sum()
+
+
+def test_box_hull_and_the_atomic_extremes() -> None:
+    a = np.array([2, 5, 0, 3, 7, 9])
+    b = np.array([1, 4, 2, 6, 8, 8])
+    np.testing.assert_array_equal(box_hull([a, empty_box(), b]), [1, 5, 0, 6, 7, 9])
+    np.testing.assert_array_equal(box_hull([]), empty_box())
+    lazy = lazy_state(np.array([3, 3, 3, 4]))
+    note_read_box(lazy, 1, 1, 0, 1, 0, 0)
+    note_read_box(lazy, 0, 1, 1, 1, 1, 1)
+    np.testing.assert_array_equal(read_box(lazy), [0, 1, 0, 1, 0, 1])
+    assert in_box(lazy, 0, 0, 0) is False  # the ready box is empty
+    ready_box(lazy)[:] = [0, 1, 0, 0, 1, 1]
+    assert in_box(lazy, 1, 0, 1) and not in_box(lazy, 1, 1, 1) and not in_box(lazy, 1, 0, 0)
+
+
+@njit
+def note_read_box(lazy: np.ndarray, lo0: int, hi0: int, lo1: int, hi1: int, lo2: int, hi2: int) -> None:
+    note_read(lazy, lo0, hi0, lo1, hi1, lo2, hi2)
+
+
+@njit
+def in_box(lazy: np.ndarray, i0: int, i1: int, i2: int) -> bool:
+    return in_ready_box(lazy, i0, i1, i2)
 
 
 def test_a_lookup_outside_the_cells_writes_nothing(model) -> None:

@@ -4,10 +4,11 @@ The plan's own split (`PlanResult.timings_ms`: weights, tightening, rollouts, up
 the bench's GP planner (`tools.bench_planner`: circle lane, kinematic plant, fixed weights), and inside the rollouts
 a copy of the CPU worker (`cpu_backend.rollout_worker`) with the CPU's cycle counter read around each phase, run on
 one thread over the arguments of the last plan's rollouts: draw (the normals, `_unit_normals`, and the commands
-made of them), GP rows requested (simplex corners and prefetch), GP rows read, the state advanced, the critics
-added (with the lane query alone, and each critic's term alone, measured by loops of their own), and the lazy
-collapse. The copy's phases are the kernel's own compiled functions; only the loop around them is copied, so it
-reads the same costs (checked: the copy's costs equal the kernel's bit for bit). For measuring, not for a plan.
+made of them), GP rows requested (simplex corners and prefetch; with the table collapsed lazily, the ready box's
+test too), GP rows read, the state advanced, the critics added (with the lane query alone, and each critic's term
+alone, measured by loops of their own), and the lazy collapse (`ensure_slabs`: the lookups outside the ready box).
+The copy's phases are the kernel's own compiled functions; only the loop around them is copied, so it reads the same
+costs (checked: the copy's costs equal the kernel's bit for bit). For measuring, not for a plan.
 """
 
 from __future__ import annotations
@@ -30,9 +31,10 @@ from gpmppi.mppi.cpu_backend import (
     _add_costs,
     _advance_group,
     _draw_commands,
-    _ensure_slabs,
+    _ensure_cells,
     _lane_fields,
     _read_rows,
+    _request_checked_rows,
     _request_rows,
     _thread_buffers,
     _unit_normals,
@@ -41,6 +43,7 @@ from gpmppi.mppi.critics.base import Step
 from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, velocity_coefficients
 from gpmppi.mppi.gp_table import simplex_params
 from gpmppi.mppi.lane import lane_field_at
+from gpmppi.mppi.lazy_collapse import note_read, ready_box_of
 from gpmppi.mppi.step import step_inputs
 
 PHASES = ("ensure_slabs", "request_rows", "draw", "add_costs", "read_rows", "advance", "setup_terminal")
@@ -75,7 +78,7 @@ def _profiled_worker(model: tuple, task: tuple, sampling: tuple, cost_w: np.ndar
     cost_out = out.cost_out
     xy_out = out.xy_out
     coef, flat, next_group = plan_consts
-    st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, noise, scratch, keys, seen, normals, lane = work
+    st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, noise, scratch, keys, seen, read, normals, lane = work
     samples = eps_out.shape[0]
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
@@ -88,6 +91,7 @@ def _profiled_worker(model: tuple, task: tuple, sampling: tuple, cost_w: np.ndar
     lazy = model.lazy
     lazy_collapse = simplex and lazy[0] != 0
     lazy_table = (lazy, model.table_src, model.collapse_w, table, model.dims)
+    ready = ready_box_of(lazy)
     while True:
         g = fetch_add(next_group, 1)
         if g >= n_groups:
@@ -110,14 +114,18 @@ def _profiled_worker(model: tuple, task: tuple, sampling: tuple, cost_w: np.ndar
         ticks[6] += u - t
         for k in range(horizon):
             t = _cycles()
+            outside = 0
             if lazy_collapse:
-                _ensure_slabs(grid, lazy_table, n_in, st, cmd, keys, seen)
-            u = _cycles()
-            ticks[0] += u - t
-            if simplex:
+                outside = _request_checked_rows(grid, table, model.dims, ready, n_in, st, cmd, nodes, node_w, keys,
+                                                read)
+            elif simplex:
                 _request_rows(grid, table, n_in, st, cmd, nodes, node_w)
+            u = _cycles()
+            ticks[1] += u - t
+            if outside:
+                _ensure_cells(lazy_table, n_in, keys, seen)
             t = _cycles()
-            ticks[1] += t - u
+            ticks[0] += t - u
             if simplex and record.shape[0] > 0:
                 for j in range(n_in):
                     for q in range(5):
@@ -154,6 +162,8 @@ def _profiled_worker(model: tuple, task: tuple, sampling: tuple, cost_w: np.ndar
                 c = np.inf
             cost_out[first + j] = c
         ticks[6] += _cycles() - u
+    if lazy_collapse:
+        note_read(lazy, read[0], read[1], read[2], read[3], read[4], read[5])
 
 
 @njit(nogil=True)

@@ -74,6 +74,19 @@ def jacobian(
     lat_a: float = 0.0, lat_b: float = 0.0,
 ) -> np.ndarray:
     """d nominal_step / d x at (x, u) with the residual (mv, mw) held: the 5x5 Jacobian that propagates covariance."""
+    J = np.eye(N_STATE)
+    jacobian_into(J, theta, x, u, dt, mv, mw, lat_a, lat_b)
+    return J
+
+
+@njit(cache=True)
+def jacobian_into(
+    J: np.ndarray, theta: np.ndarray, x: np.ndarray, u: np.ndarray, dt: float, mv: float, mw: float, lat_a: float,
+    lat_b: float,
+) -> None:
+    """`jacobian` into `J` (5, 5), which holds the identity's entries where a Jacobian has them (`np.eye(5)` once):
+    only the entries that depend on (x, u) are written. The covariance propagation steps through one array rather
+    than a new one per step."""
     v, w = x[3], x[4]
     vdot, wdot = accel(theta, v, w, u[0], u[1])
     dv_dv = 1.0 - (theta[3] / theta[0]) * dt
@@ -94,7 +107,6 @@ def jacobian(
     h_v, h_w = 0.5 * dt * wm_v, 0.5 * dt * wm_w
     fx = vm * c - vy * s  # world-frame velocity of the step
     fy = vm * s + vy * c
-    J = np.eye(N_STATE)
     J[0, 2] = -fy * dt
     J[0, 3] = (vm_v * c - vy_v * s - fy * h_v) * dt
     J[0, 4] = (vm_w * c - vy_w * s - fy * h_w) * dt
@@ -107,7 +119,6 @@ def jacobian(
     J[3, 4] = dv_dw
     J[4, 3] = dw_dv
     J[4, 4] = dw_dw
-    return J
 
 
 @njit(cache=True)

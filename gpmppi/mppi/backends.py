@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from gpmppi.mppi.bundles import CRITICS, CostBundle, ModelBundle, Outputs, SamplingBundle, TaskBundle
-from gpmppi.mppi.cpu_backend import nominal_critic_costs, rollout_kernel, softmax_update
+from gpmppi.mppi.cpu_backend import rollout_kernel
+from gpmppi.mppi.cpu_serial import nominal_critic_costs, softmax_update
 
 __all__ = ["critic_costs", "device_inputs", "resolve", "rollouts", "softmax_update"]
 

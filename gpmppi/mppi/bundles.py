@@ -118,7 +118,7 @@ class ModelBundle(_Bundle):
     ex_alpha: np.ndarray  # (2M, n) exact GP: K^-1 y
     ex_chol: np.ndarray  # (2M, n, n) exact GP: Cholesky factors of K
     terrain_w: np.ndarray  # (M,) terrain weights
-    # a table collapsed lazily on the CPU (`gp_table.ensure_block`): the per-terrain rows (nodes, 4M) float32, the
+    # a table collapsed lazily on the CPU (`lazy_collapse.ensure_block`): the per-terrain rows (nodes, 4M) float32, the
     # slab versions (int64; [0] = the weights' version, 0 when `table` is collapsed whole) and the factors to
     # collapse with (4 + 4M, `gp_table.collapse_weights`); a table collapsed whole carries a one-row `table_src`
     # and `lazy` = [0] (and `collapse_w` is not read). The CPU kernels write `table` and `lazy`.

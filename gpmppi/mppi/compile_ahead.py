@@ -148,7 +148,7 @@ def _main() -> int:
 
 def _compile_critic_split(model: tuple, task: tuple, sampling: tuple, cost: tuple) -> None:
     """Compile the per-critic scorer's split critics (`costs.stage_critics`, `costs.terminal_critics`) into the cache,
-    called as `cpu_backend.nominal_critic_costs` calls them (the same types): the parent compiles its model step
+    called as `cpu_serial.nominal_critic_costs` calls them (the same types): the parent compiles its model step
     first (`propagate`) and meets them ~10 s later, by when they are cached here, and this process has the time (the
     parent's share of a cold compile was the larger)."""
     cost_w = weight_vector(cost)

@@ -13,35 +13,29 @@ samples the XY of the rollout.
 
 from __future__ import annotations
 
-import os
-import queue
-import threading
-from collections.abc import Callable
-
 import numba
 import numpy as np
 from numba import njit
 
 from gpmppi.kernel_flags import FASTMATH, fetch_add, phase, prefetch_row, row_axpy, vector_phase
-from gpmppi.mppi.bundles import CRITICS
 from gpmppi.mppi.costs import (
     advance_state,
     lane_stage_cost_at,
     plain_stage_cost,
-    stage_critics,
     stage_reads_lane,
     start_state,
     terminal_cost,
-    terminal_critics,
     weight_vector,
 )
-from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, gp_scratch, velocity_coefficients
-from gpmppi.mppi.gp_table import block_keys, cell32, ensure_block_at, simplex_corner, simplex_params
+from gpmppi.mppi.dynamics import DYN_GP, GP_SIMPLEX, advance, gp_residual, velocity_coefficients
+from gpmppi.mppi.gp_table import cell32, simplex_corner, simplex_params
 from gpmppi.mppi.lane import lane_distance, lane_field_at
+from gpmppi.mppi.lazy_collapse import block_keys, empty_box, ensure_block_at, note_read, ready_box_of
 from gpmppi.mppi.rng import command_from_normals, normal_pair
-from gpmppi.mppi.step import sample_step, step_inputs
+from gpmppi.mppi.step import step_inputs
+from gpmppi.mppi.worker_pool import WorkerPool
 
-__all__ = ["GROUP", "nominal_critic_costs", "rollout_kernel", "rollout_worker", "softmax_update"]
+__all__ = ["GROUP", "rollout_kernel", "rollout_worker"]
 
 # samples a thread steps in lockstep: each sample's step waits on its own GP table reads (the next
 # state needs them), so interleaving independent samples lets those memory reads overlap, and the vector loops (the
@@ -136,26 +130,14 @@ def _add_costs(
 
 
 @phase
-def _ensure_slabs(
-    grid: tuple, lazy_table: tuple, n_in: int, st: np.ndarray, cmd: np.ndarray, keys: np.ndarray, seen: np.ndarray,
-) -> None:
-    """Collapse the table slabs this step's lookups read (a lazily collapsed table, `gp_table.ensure_block_at`) that
-    no earlier lookup of this thread made current in this plan: `keys` gets each lookup's `block_key` (in int32),
-    `seen` marks each key this thread checked."""
+def _ensure_cells(lazy_table: tuple, n_in: int, keys: np.ndarray, seen: np.ndarray) -> None:
+    """Make current the table slabs of this step's lookups outside the ready box (a lazily collapsed table, `keys`
+    from `_request_checked_rows`: each lookup's `block_key`, -1 inside the box) through their cell's stamp
+    (`lazy_collapse.ensure_block_at`), once per cell and thread in this plan (`seen` marks the cells checked)."""
     lazy, src, collapse_w, table, dims = lazy_table
-    lo0, lo1, lo2, _l3, inv0, inv1, inv2, _i3, top0, top1, top2, _t3, last0, last1, last2, _a3, _s0, _s1, _s2 = grid
-    d1 = np.int32(dims[1])
-    d2 = np.int32(dims[2])
-    # each lookup's cell key first, in a loop of its own free of branches (vector code): the cells of the lookup's
-    # own float32 cell computation (`simplex_corner`)
-    for j in range(n_in):
-        i0, _f0 = cell32(st[3, j], lo0, inv0, top0, last0)
-        i1, _f1 = cell32(st[4, j], lo1, inv1, top1, last1)
-        i2, _f2 = cell32(cmd[0, j], lo2, inv2, top2, last2)
-        keys[j] = (i0 * d1 + i1) * d2 + i2
     for j in range(n_in):
         b = keys[j]
-        if seen[b] == 0:  # a call, not `cell_current` inlined: inlined, it slowed this loop more than it saved
+        if b >= 0 and seen[b] == 0:
             ensure_block_at(lazy, src, collapse_w, table, dims, b)
             seen[b] = 1
 
@@ -182,6 +164,70 @@ def _request_rows(
     for j in range(n_in):
         for q in range(5):
             prefetch_row(table, nodes[q, j])
+
+
+@phase
+def _request_checked_rows(
+    grid: tuple, table: np.ndarray, dims: np.ndarray, ready: tuple, n_in: int, st: np.ndarray, cmd: np.ndarray,
+    nodes: np.ndarray, node_w: np.ndarray, keys: np.ndarray, read: np.ndarray,
+) -> int:
+    """`_request_rows` on a lazily collapsed table, with the lazy collapse's box test in the same loop: whether each
+    lookup's cell lies in the ready box `ready` (lo0, hi0, lo1, hi1, lo2, hi2 as int32,
+    `lazy_collapse.in_ready_box`), where its slabs are current. `keys` gets each lookup's `block_key` outside the box
+    and -1 inside it, `read` (int64 lo0, hi0, lo1, hi1, lo2, hi2) the box of every cell the thread's lookups read
+    (`lazy_collapse.note_read`). Returns the number of lookups outside the box (`_ensure_cells` then makes their slabs
+    current, before the rows are read).
+
+    The test is a few compares on the cell indices the corners compute anyway (the same `cell32` calls, computed
+    once), so a step whose lookups all lie in the box costs no check of its own: as a phase of its own (a call per
+    step, its loop computing the cells again, and its constants set up per call) it took 0.08 ms a plan on one
+    thread."""
+    lo0, lo1, lo2, _l3, inv0, inv1, inv2, _i3, top0, top1, top2, _t3, last0, last1, last2, _a3, _s0, _s1, _s2 = grid
+    in0, ix0, in1, ix1, in2, ix2 = ready
+    d1 = np.int32(dims[1])
+    d2 = np.int32(dims[2])
+    r0 = np.int32(read[0])
+    x0 = np.int32(read[1])
+    r1 = np.int32(read[2])
+    x1 = np.int32(read[3])
+    r2 = np.int32(read[4])
+    x2 = np.int32(read[5])
+    outside = np.int32(0)
+    # a loop of its own, free of the noise's library calls and of branches, so that it is vectorised
+    for j in range(n_in):
+        n0, t0, t1, t2, t3, w0, w1, w2, w3, w4 = simplex_corner(grid, st[3, j], st[4, j], cmd[0, j], cmd[1, j])
+        nodes[0, j] = n0
+        nodes[1, j] = n0 + t0
+        nodes[2, j] = n0 + t0 + t1
+        nodes[3, j] = n0 + t0 + t1 + t2
+        nodes[4, j] = n0 + t0 + t1 + t2 + t3
+        node_w[0, j] = w0
+        node_w[1, j] = w1
+        node_w[2, j] = w2
+        node_w[3, j] = w3
+        node_w[4, j] = w4
+        i0, _f0 = cell32(st[3, j], lo0, inv0, top0, last0)
+        i1, _f1 = cell32(st[4, j], lo1, inv1, top1, last1)
+        i2, _f2 = cell32(cmd[0, j], lo2, inv2, top2, last2)
+        out = (i0 < in0) | (i0 > ix0) | (i1 < in1) | (i1 > ix1) | (i2 < in2) | (i2 > ix2)
+        keys[j] = (i0 * d1 + i1) * d2 + i2 if out else np.int32(-1)
+        outside += np.int32(out)
+        r0 = i0 if i0 < r0 else r0
+        x0 = i0 if i0 > x0 else x0
+        r1 = i1 if i1 < r1 else r1
+        x1 = i1 if i1 > x1 else x1
+        r2 = i2 if i2 < r2 else r2
+        x2 = i2 if i2 > x2 else x2
+    read[0] = r0
+    read[1] = x0
+    read[2] = r1
+    read[3] = x1
+    read[4] = r2
+    read[5] = x2
+    for j in range(n_in):
+        for q in range(5):
+            prefetch_row(table, nodes[q, j])
+    return outside
 
 
 @phase
@@ -273,7 +319,7 @@ def rollout_worker(
     cost_out = out.cost_out
     xy_out = out.xy_out
     coef, flat, next_group = plan_consts
-    st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, noise, scratch, keys, seen, normals, lane = work
+    st, total, cmd_prev, cmd, cmd_next, res, nodes, node_w, noise, scratch, keys, seen, read, normals, lane = work
     samples = eps_out.shape[0]
     horizon = nominal.shape[0]
     n_xy = xy_out.shape[0]
@@ -281,11 +327,13 @@ def rollout_worker(
     counter0 = sampling.iteration * samples
     inputs = step_inputs(model, sampling, sampling.noise_std, sampling.noise_memory, coef)
     dyn, limits, gp = inputs.dyn, inputs.limits, inputs.gp
-    grid = simplex_params(model.dims, model.lo, model.inv_step)
+    dims = model.dims
+    grid = simplex_params(dims, model.lo, model.inv_step)
     simplex = dyn_mode == DYN_GP and gp_mode == GP_SIMPLEX
     lazy = model.lazy
     lazy_collapse = simplex and lazy[0] != 0
-    lazy_table = (lazy, model.table_src, model.collapse_w, table, model.dims)
+    lazy_table = (lazy, model.table_src, model.collapse_w, table, dims)
+    ready = ready_box_of(lazy)
     while True:
         g = fetch_add(next_group, 1)
         if g >= n_groups:
@@ -308,9 +356,10 @@ def rollout_worker(
         # drawn and (3) the previous step's cost is added, both needing no table, while the rows arrive from
         # memory, (4) the rows are read, (5) the states advance. Costs are added in step order.
         for k in range(horizon):
-            if lazy_collapse:
-                _ensure_slabs(grid, lazy_table, n_in, st, cmd, keys, seen)
-            if simplex:
+            if lazy_collapse:  # the rows requested and the lookups outside the ready box made current
+                if _request_checked_rows(grid, table, dims, ready, n_in, st, cmd, nodes, node_w, keys, read):
+                    _ensure_cells(lazy_table, n_in, keys, seen)
+            elif simplex:
                 _request_rows(grid, table, n_in, st, cmd, nodes, node_w)
             if k + 1 < horizon:
                 _draw_commands(seed, counter0, horizon, k + 1, limits, first, n_in, eps_out, cmd_next, noise,
@@ -333,22 +382,24 @@ def rollout_worker(
             if not np.isfinite(t):
                 t = np.inf
             cost_out[first + j] = t
+    if lazy_collapse:
+        note_read(lazy, read[0], read[1], read[2], read[3], read[4], read[5])
 
 
 def _thread_buffers(model: tuple) -> tuple:
     """One thread's buffers for `rollout_worker`: a group's states, totals, the commands of the previous, this and
     the next step (rotated every step), GP residuals, simplex node indices and weights (one row per vertex:
     unit-stride rows let the loop that fills them run as vector code), the unit noise of the last step drawn, and
-    the exact GP's work arrays, (`_ensure_slabs`) the lookups' cell keys and the cells whose table slabs this
-    thread made current, (`_unit_normals`) the standard normals of the step being drawn, and (`_add_costs`) a
-    lane task's lane queries."""
+    the exact GP's work arrays, (`_request_checked_rows`, `_ensure_cells`) the lookups' cell keys, the cells whose
+    table slabs this thread made current and the box of the cells it read, (`_unit_normals`) the standard normals of
+    the step being drawn, and (`_add_costs`) a lane task's lane queries."""
     n_tasks, n_train = model.ex_alpha.shape
     dims = model.dims
     return (np.empty((5, GROUP)), np.empty(GROUP), np.empty((2, GROUP)), np.empty((2, GROUP)), np.empty((2, GROUP)),
             np.zeros((4, GROUP)), np.zeros((5, GROUP), dtype=np.uint64), np.zeros((5, GROUP), dtype=np.float32),
             np.zeros((2, GROUP)), (np.empty(n_train), np.empty(n_tasks), np.empty(n_tasks)),
-            np.zeros(GROUP, dtype=np.int32), np.zeros(block_keys(dims), dtype=np.uint8), np.empty((2, GROUP)),
-            np.empty((4, GROUP)))
+            np.zeros(GROUP, dtype=np.int32), np.zeros(block_keys(dims), dtype=np.uint8), empty_box(),
+            np.empty((2, GROUP)), np.empty((4, GROUP)))
 
 
 def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out: tuple) -> None:
@@ -367,112 +418,5 @@ def rollout_kernel(model: tuple, task: tuple, sampling: tuple, cost: tuple, out:
     _POOL.run(rollout_worker, calls)
 
 
-class _WorkerPool:
-    """Threads kept between plans, each running a nogil kernel on request; the calling thread runs it too.
+_POOL = WorkerPool()  # the pool threads of every plan in this process
 
-    Started lazily, and anew in a forked child (a fork keeps the parent's threads' objects, not the threads)."""
-
-    def __init__(self) -> None:
-        self._pid = -1
-        self._inboxes: list[queue.SimpleQueue] = []
-        self._done: queue.SimpleQueue = queue.SimpleQueue()
-        self._lock = threading.Lock()
-
-    def _loop(self, inbox: queue.SimpleQueue) -> None:
-        while True:
-            fn, args = inbox.get()
-            try:
-                fn(*args)
-                self._done.put(None)
-            except BaseException as exc:  # handed to the caller, which raises it
-                self._done.put(exc)
-
-    def run(self, fn: Callable, calls: list[tuple]) -> None:
-        """`fn(*calls[0])` on this thread, `fn(*calls[i])` on pool thread i; raises what any of them raised."""
-        helpers = len(calls) - 1
-        with self._lock:  # one kernel at a time through the pool (its callers may be several threads)
-            if self._pid != os.getpid():
-                self._pid, self._inboxes, self._done = os.getpid(), [], queue.SimpleQueue()
-            while len(self._inboxes) < helpers:
-                inbox: queue.SimpleQueue = queue.SimpleQueue()
-                threading.Thread(target=self._loop, args=(inbox,), daemon=True, name="gpmppi-rollout").start()
-                self._inboxes.append(inbox)
-            for inbox, args in zip(self._inboxes[:helpers], calls[1:], strict=True):
-                inbox.put((fn, args))
-            error: BaseException | None = None
-            try:
-                fn(*calls[0])
-            except BaseException as exc:
-                error = exc
-            for _ in range(helpers):
-                result = self._done.get()
-                error = error or result
-            if error is not None:
-                raise error
-
-
-_POOL = _WorkerPool()
-
-
-@njit(cache=True, fastmath=FASTMATH)
-def nominal_critic_costs(model: tuple, task: tuple, sampling: tuple, cost: tuple) -> np.ndarray:
-    """Each critic's cost (`CRITICS` order) of the sampling bundle's nominal sequence, clipped to its limits (its first
-    command to the rate limits too) as the kernels clip a sampled command.
-
-    Serial, one rollout by the kernels' own step (`step.sample_step`) with zero noise, so that the nominal is
-    clipped exactly as a sample is, compiled with the kernels' flags (without them the float32 table reads and the
-    pose step round differently and the sum strayed 5e-9 from the kernel's cost): the kernels add the critics of a
-    step into one cost, this keeps them apart; their sum is the kernels' cost.
-    """
-    tightened_hw = task.tightened_hw
-    radii = task.radii
-    horizon = sampling.nominal.shape[0]
-    # the sampling bundle's own limits, but no noise: whatever its noise std, the sequence scored is the nominal
-    inputs = step_inputs(model, sampling, np.zeros(2), 0.0, velocity_coefficients(model.theta, model.lateral))
-    dt = sampling.dt
-    scratch = gp_scratch(model)
-    cost_w = weight_vector(cost)
-    x0 = sampling.x0
-    s = (x0[0], x0[1], x0[2], x0[3], x0[4])
-    d = (0.0, 0.0)
-    out = np.zeros(len(CRITICS))
-    state = start_state(cost_w)
-    for k in range(horizon):
-        u, d, s, variances = sample_step(sampling.seed, k, k, inputs, scratch, dt, s, d)
-        stage_critics(cost_w, task, tightened_hw[k + 1], radii[k + 1], state, s, u, variances, out)
-        state = advance_state(state, cost_w)
-    terminal_critics(cost_w, task, tightened_hw[horizon], radii[horizon], state, s, out)
-    return out
-
-
-@njit(cache=True)
-def softmax_update(
-    nominal: np.ndarray, eps: np.ndarray, costs: np.ndarray, temperature: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """MPPI update: weights exp(-(c - c_min) / lambda) normalised; nominal + sum_s w_s eps_s.
-
-    Serial so the sum is bit-for-bit reproducible. Samples with infinite cost get zero weight; if
-    every cost is infinite the nominal sequence is kept.
-    """
-    samples = costs.shape[0]
-    c_min = np.inf
-    for s in range(samples):
-        if costs[s] < c_min:
-            c_min = costs[s]
-    weights = np.zeros(samples)
-    if not np.isfinite(c_min):
-        return nominal.copy(), weights
-    total = 0.0
-    for s in range(samples):
-        if np.isfinite(costs[s]):
-            weights[s] = np.exp(-(costs[s] - c_min) / temperature)
-            total += weights[s]
-    out = nominal.copy()
-    for s in range(samples):
-        ws = weights[s] / total
-        weights[s] = ws
-        if ws > 0.0:
-            for k in range(nominal.shape[0]):
-                out[k, 0] += ws * eps[s, k, 0]
-                out[k, 1] += ws * eps[s, k, 1]
-    return out, weights

@@ -21,10 +21,11 @@ from numba import njit
 from gpmppi.gp.exact import exact_tasks
 from gpmppi.gp.grid_interp import grid_cell
 from gpmppi.kernel_flags import FASTMATH
-from gpmppi.models.dynamic_unicycle import jacobian
+from gpmppi.models.dynamic_unicycle import jacobian_into
 from gpmppi.models.edd5 import edd5_velocity
 from gpmppi.models.lateral_slip import lateral_velocity
-from gpmppi.mppi.gp_table import cell32, ensure_block, interp4, interp4_simplex, simplex_params
+from gpmppi.mppi.gp_table import cell32, interp4, interp4_simplex, simplex_params
+from gpmppi.mppi.lazy_collapse import ensure_block
 from gpmppi.trig import cos_sin
 
 DYN_UNICYCLE = 0
@@ -240,6 +241,7 @@ def propagate(
             for j in range(5):
                 covs[0, i, j] = cov0[i, j]
     tmp = np.empty((5, 5))
+    jac = np.eye(5)  # one Jacobian, rewritten each step (`jacobian_into`)
     for k in range(n):
         x = states[k]
         r = step_state(dyn, gp, scratch, dt, (x[0], x[1], x[2], x[3], x[4]), (controls[k, 0], controls[k, 1]), 1.0)
@@ -248,7 +250,7 @@ def propagate(
         if dyn_mode == DYN_GP:
             step_var[k, 0] = r[7] + noise_v
             step_var[k, 1] = r[8] + noise_w
-            jac = jacobian(theta, x, controls[k], dt, r[5], r[6], lateral[0], lateral[1])
+            jacobian_into(jac, theta, x, controls[k], dt, r[5], r[6], lateral[0], lateral[1])
             _sandwich(jac, covs[k], tmp, covs[k + 1])
             covs[k + 1, 3, 3] += step_var[k, 0]
             covs[k + 1, 4, 4] += step_var[k, 1]
@@ -280,11 +282,12 @@ def predict_ahead(
     cov = cov0.copy()
     tmp = np.empty((5, 5))
     nxt = np.empty((5, 5))
+    jac = np.eye(5)
     u = (control[0], control[1])
     for _ in range(n):
         r = step_state(dyn, gp, scratch, h, (x[0], x[1], x[2], x[3], x[4]), u, frac)
         if dyn_mode == DYN_GP:
-            jac = jacobian(theta, x, control, h, r[5], r[6], lateral[0], lateral[1])
+            jacobian_into(jac, theta, x, control, h, r[5], r[6], lateral[0], lateral[1])
             _sandwich(jac, cov, tmp, nxt)
             for i in range(5):  # element by element, as in `propagate`
                 for j in range(5):

@@ -2,7 +2,7 @@
 
 `collapse_table` re-weights the model's (G, G, G, G, 4M) grid table with the current terrain weights
 into a (G, G, G, G, 4) float32 table [mean_v, mean_w, var_v, var_w]; the planner collapses it lazily
-instead, slab by slab as the rollouts reach them ("lazy collapse" below; on CUDA the host's copy, for the
+instead, slab by slab as the rollouts reach them (`gpmppi.mppi.lazy_collapse`; on CUDA the host's copy, for the
 nominal, while the device collapses its own whole). `interp4` / `interp4_simplex` read it at a GP input.
 The rollout kernels inline these.
 """
@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit, prange
 
 from gpmppi.gp.grid_interp import grid_cell
-from gpmppi.kernel_flags import FASTMATH, fmax, fmin, load_acquire, prefetch_row, store_release
+from gpmppi.kernel_flags import FASTMATH, fmax, fmin
 
 TABLE_AXES = np.array([2, 3, 0, 1])  # collapsed table axes in terms of the GP input [v_ref, omega_ref, v, omega]
 
@@ -95,176 +95,6 @@ def collapse_into(src: np.ndarray, collapse_w: np.ndarray, out: np.ndarray) -> N
     n = src.shape[0]
     for c in prange((n + _CHUNK - 1) // _CHUNK):
         collapse_rows(src, collapse_w, out, c * _CHUNK, min(n, (c + 1) * _CHUNK))
-
-
-# ------------------------------------------------------------------------------------------- lazy collapse
-# New terrain weights arrive every cycle, and collapsing the whole table for them cost about as much as the plan
-# itself (it reads every node of every terrain). A plan reads only the nodes near the velocities and commands its
-# rollouts reach. So the planner only marks the table stale (`lazy[0]`, the weights' version, goes up)
-# and the readers collapse the slabs they are about to read. A slab is the nodes that share the three outer indices
-# (v, omega, v_ref in `TABLE_AXES` order): `dims[3]` consecutive rows, slab s holding rows s * dims[3] on, and
-# `lazy[1 + s]` is the version it holds. (Slabs of 8 or 16 rows measured slower: the checks cost more than the
-# rows they spared.) A slab is collapsed by the same function as the whole table (`collapse_rows`), so its values
-# are the same to the bit whoever collapses it, and a plan is identical to one with the whole table collapsed.
-# Two threads may collapse one slab at once: both write the same bytes, and each publishes the slab with a
-# release store only after its own writes (`store_release`), which a reader's acquire load (`load_acquire`)
-# pairs with.
-# Cell stamps: a lookup reads the eight slabs of its cell (`ensure_block`), and checking eight slab versions for each
-# cell a thread meets cost more than the stale slabs' collapse. So each cell of the three outer axes has a stamp too,
-# `lazy[1 + n + key]` (n slabs, `block_key`): `version` when its eight slabs are current and a lookup read it in this
-# version, `-version` when they were made current ahead (`collapse_slabs_at`) and no lookup read it yet; a reader
-# checks the one stamp, and the eight slabs only when it is neither. The slabs a plan read are those of the cells
-# stamped `version`, which `Planner.prepare` collapses ahead for the next weights (`collapse_slabs_at`), with those
-# of the few plans before; without the read marks (every slab ever collapsed ahead collapsed again) that set grew
-# plan after plan (3,488 slabs read a plan, 7,549 current).
-
-
-@njit(cache=True, inline="always")
-def block_key(dims: np.ndarray, i0: int, i1: int, i2: int) -> int:
-    """The cell (i0, i1, i2) of the three outer axes as one index below `block_keys` (`ensure_block`'s unit)."""
-    return (i0 * dims[1] + i1) * dims[2] + i2
-
-
-def block_keys(dims: np.ndarray) -> int:
-    """The number of cells of the three outer axes (as many as slabs)."""
-    return int(dims[0]) * int(dims[1]) * int(dims[2])
-
-
-@njit(cache=True, nogil=True, _nrt=False)
-def ensure_block(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
-                 i0: int, i1: int, i2: int) -> None:
-    """Make current the eight slabs an interpolation in the cell (i0, i1, i2) of the three outer axes reads
-    (nodes i..i+1 on each axis; each index at most dims - 2, as the cell lookups clamp them)."""
-    if lazy[0] == 0:  # the whole table is collapsed
-        return
-    if not (0 <= i0 <= dims[0] - 2 and 0 <= i1 <= dims[1] - 2 and 0 <= i2 <= dims[2] - 2):
-        return  # not a cell (a NaN state through `grid_cell`): write nothing; the reader's lookup is garbage anyway
-    ensure_block_at(lazy, src, collapse_w, table, dims, block_key(dims, i0, i1, i2))
-
-
-@njit(cache=True, inline="always")
-def cell_current(lazy: np.ndarray, first: int) -> bool:
-    """Whether the eight slabs of the cell whose `block_key` is `first` are current, by the cell's stamp alone (one
-    read); a cell made current ahead (`collapse_slabs_at`) is stamped read (`version`) here. (Inlined into the
-    rollouts' slab phase as well, it made the phase's loop over the lookups slower, 0.087 against 0.057 ms on one
-    thread where no cell was new, more than it saved on the cells met first: 0.108 against 0.095 ms in all.)"""
-    version = lazy[0]
-    cell = 1 + (lazy.shape[0] - 1) // 2 + first
-    held = load_acquire(lazy, cell)
-    if held == version:
-        return True
-    if held == -version:  # made current ahead, now read: mark it read
-        store_release(lazy, cell, version)
-        return True
-    return False
-
-
-@njit(cache=True, nogil=True, _nrt=False)
-def ensure_block_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
-                    first: int) -> None:
-    """`ensure_block` for the cell whose `block_key` is `first` (a cell of the lookups, each index within
-    0 .. dims - 2): its lowest slab is slab `first`, the other seven lie one step up each outer axis.
-
-    The cell's stamp first (`cell_current`). Else two passes over its slabs: the first finds the stale slabs and
-    requests their rows from memory, the second collapses them, so that the slabs' memory reads overlap instead of
-    waiting one after another (they lie far apart); then the cell is stamped read, after its slabs (a reader that
-    sees the stamp sees them)."""
-    if cell_current(lazy, first):
-        return
-    version = lazy[0]
-    rows = dims[3]
-    s1 = dims[2]
-    s0 = dims[1] * s1
-    stale = 0
-    for b in range(8):
-        slab = first + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)
-        if load_acquire(lazy, 1 + slab) != version:
-            stale |= 1 << b
-            for r in range(slab * rows, (slab + 1) * rows):
-                prefetch_row(src, r)
-    for b in range(8):
-        if stale & (1 << b):
-            slab = first + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)
-            collapse_rows(src, collapse_w, table, slab * rows, (slab + 1) * rows)
-            store_release(lazy, 1 + slab, version)
-    store_release(lazy, 1 + (lazy.shape[0] - 1) // 2 + first, version)
-
-
-@njit(cache=True, parallel=True)
-def collapse_slabs_at(lazy: np.ndarray, src: np.ndarray, collapse_w: np.ndarray, table: np.ndarray, dims: np.ndarray,
-                      old: int, new: int, threads: int, last_read: np.ndarray, since: int) -> None:
-    """Collapse, for the weights of version `new` (`collapse_w`), every slab read by a plan of version `since` or later,
-    stamp it `new`, and stamp `-new` (current, not read yet) each cell whose eight slabs that made current: ahead of the
-    next plan (`Planner.prepare`), on `threads` threads. With no plan running. `last_read` (one per slab) holds the
-    last version whose plan read each slab; the slabs of the cells read with version `old` (stamped `old`) are
-    recorded in it first.
-
-    The slabs the next plan reads are mostly those the last one read, but about one in ten is new to it (the samples'
-    noise is new each plan and the cloud's fringe moves): of those, most were read by one of the few plans before
-    (`since` = `new` - 4 left 92 of 3,560 slabs for the plan to collapse, against 320 with the last plan's alone,
-    for 18 % more slabs collapsed here; docs/benchmarks.md, "Moving terrain weights").
-
-    The slabs are listed first and dealt out in turn (slab i to thread i mod threads): the slabs a plan reads lie
-    together (near the robot's velocities), so a split of the table in halves gave one thread nearly all of them
-    and ran no faster than one thread. Each thread requests its next slab's rows while it collapses this one."""
-    rows = dims[3]
-    n = (lazy.shape[0] - 1) // 2
-    s1 = dims[2]
-    s0 = dims[1] * s1
-    for key in range(n):
-        if lazy[1 + n + key] == old:
-            for b in range(8):
-                last_read[key + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)] = old
-    todo = np.empty(n, dtype=np.int64)
-    count = 0
-    for s in range(n):
-        if last_read[s] >= since:
-            todo[count] = s
-            count += 1
-    for t in prange(threads):
-        for q in range(t, count, threads):
-            if q + threads < count:
-                ahead = todo[q + threads]
-                for r in range(ahead * rows, (ahead + 1) * rows):
-                    prefetch_row(src, r)
-            s = todo[q]
-            collapse_rows(src, collapse_w, table, s * rows, (s + 1) * rows)
-            lazy[1 + s] = new
-    # a cell whose eight slabs are current has its lowest slab among them
-    top0 = dims[0] - 2
-    top1 = dims[1] - 2
-    top2 = dims[2] - 2
-    for q in range(count):
-        key = todo[q]
-        i2 = key % dims[2]
-        i1 = (key // dims[2]) % dims[1]
-        i0 = key // s0
-        if i0 > top0 or i1 > top1 or i2 > top2:
-            continue
-        current = True
-        for b in range(8):
-            if lazy[1 + key + (b >> 2) * s0 + ((b >> 1) & 1) * s1 + (b & 1)] != new:
-                current = False
-        if current:
-            lazy[1 + n + key] = -new
-
-
-def slab_versions(lazy: np.ndarray) -> np.ndarray:
-    """The slabs' versions of a lazily collapsed table's `lazy` (a view)."""
-    return lazy[1 : 1 + (lazy.shape[0] - 1) // 2]
-
-
-def cell_stamps(lazy: np.ndarray) -> np.ndarray:
-    """The cells' stamps of a lazily collapsed table's `lazy` (a view; `ensure_block_at`)."""
-    return lazy[1 + (lazy.shape[0] - 1) // 2 :]
-
-
-def lazy_state(dims: np.ndarray) -> np.ndarray:
-    """A lazily collapsed table's versions (`lazy`): [0] the current one (1), then each slab's, then each cell's stamp
-    (`ensure_block_at`), all 0: every slab stale."""
-    state = np.zeros(1 + 2 * block_keys(dims), dtype=np.int64)
-    state[0] = 1
-    return state
 
 
 @njit(cache=True, fastmath=FASTMATH, inline="always")

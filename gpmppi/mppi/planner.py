@@ -99,8 +99,8 @@ class Planner:
     def warm_up(self, state: np.ndarray, task: Task) -> None:
         """Plan as a live service does in its first seconds, so that numba has compiled or loaded every kernel of
         that path before it goes live; then `reset`. Once on the uniform weights with a command latency (the delay
-        predictor), then on new weights collapsed ahead (`prepare`: `gp_table.collapse_slabs_at`) and once more when
-        they hold (the rest of the table, `collapse_into`). Without the last two a fresh install compiled them at
+        predictor), then on new weights collapsed ahead (`prepare`: `lazy_collapse.collapse_slabs_at`) and once more
+        when they hold (the rest of the table, `collapse_into`). Without the last two a fresh install compiled them at
         the first weights from the terrain service, between two commands: 1.1 s and 0.4 s on 2 cores."""
         x = np.asarray(state, dtype=np.float64)
         self.plan(x, task, delay_s=0.01)
@@ -180,9 +180,10 @@ class Planner:
         """Get ready to plan with these terrain weights: collapse the GP table now rather than in the next `plan`.
 
         A service calls this when new weights arrive, between states, which takes the collapse off the state ->
-        command path. Collapsed lazily (the default), it collapses the slabs the plans of the last few weights read,
-        which the next plan will mostly read again (on CUDA only the nominal's: the device collapses its own table in
-        the plan, ~0.1 ms); collapsed whole, all of it (28.5 MB of per-terrain table for the shipped model).
+        command path. Collapsed lazily (the default), it collapses every slab of the box of cells the plans of the last
+        few weights read (`lazy_collapse`: the next plan's lookups inside it check nothing) and of the cells they read
+        outside it (on CUDA only the nominal's: the device collapses its own table in the plan, ~0.1 ms); collapsed
+        whole, all of it (28.5 MB of per-terrain table for the shipped model).
         Not while a plan runs (the lazily collapsed table is rewritten in place): call both from one thread.
         """
         self.terrain.set_weights(self.terrain.check_weights(weights), ahead=True)

@@ -1,7 +1,7 @@
 """One sample's rollout step, written once: noise -> command -> model with its GP residual -> next state.
 
 `sample_step` is the step of the CUDA kernel (one thread per sample, `cuda_backend`) and of the per-critic nominal
-scorer (`cpu_backend.nominal_critic_costs`, which scores the nominal sequence as a sample with zero noise). Each adds
+scorer (`cpu_serial.nominal_critic_costs`, which scores the nominal sequence as a sample with zero noise). Each adds
 the step's stage cost its own way: the kernels the critics' sum (`costs.stage_cost`), the scorer each critic apart
 (`costs.stage_critics`); the critics' registry builds both from the same terms.
 

@@ -8,9 +8,10 @@
   collapsed with the weights, or the exact GP's training data;
 * the collapse of the grid table when the weights change: whole at once (`table_collapse="whole"`), or lazily
   (the default): the weights' version moves on, every slab goes stale, and the readers collapse the slabs they
-  read (`gp_table.ensure_block`); `set_weights(w, ahead=True)` collapses at once the slabs the plans of the last
-  few weight versions read (the service's `prepare`, between states), and a second plan with the same weights
-  collapses the rest;
+  read (`lazy_collapse.ensure_block`); `set_weights(w, ahead=True)` collapses at once the slabs of the box of cells
+  the plans of the last few weight versions read, and of the cells they read outside it (the service's `prepare`,
+  between states; lookups inside the box then check nothing), and a second plan with the same weights collapses the
+  rest;
 * the EDD5 terrain (the configured one, or the top weight) and the weighted lateral slip.
 
 `set_weights(w)` hands the kernels their `ModelBundle` for those weights. The planner calls `planned()` once a plan
@@ -27,15 +28,15 @@ from gpmppi.gp.model_file import GPModel
 from gpmppi.mppi.bundles import ModelBundle
 from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.dynamics import DYN_EDD5, DYN_GP, DYN_UNICYCLE, GP_EXACT, GP_GRID, GP_SIMPLEX
-from gpmppi.mppi.gp_table import (
-    TABLE_AXES,
+from gpmppi.mppi.gp_table import TABLE_AXES, collapse_into, collapse_weights, rollout_order, terrain_rows
+from gpmppi.mppi.lazy_collapse import (
     block_keys,
-    collapse_into,
+    box_hull,
     collapse_slabs_at,
-    collapse_weights,
+    empty_box,
     lazy_state,
-    rollout_order,
-    terrain_rows,
+    read_box,
+    ready_box,
 )
 
 __all__ = ["TerrainTable"]
@@ -72,7 +73,7 @@ class TerrainTable:
         self.grid = ModelBundle.no_grid()
         self.lazy_collapse = False
         self.read_history = READ_HISTORY
-        self.version = 1  # the version of the lazily collapsed table's weights (`gp_table.ensure_block`)
+        self.version = 1  # the version of the lazily collapsed table's weights (`lazy_collapse.ensure_block`)
         self._planned = False  # whether a plan has run with the weights of the table
         if self.dyn == DYN_GP and self.gp_mode != GP_EXACT:
             g = model.grid()
@@ -87,14 +88,17 @@ class TerrainTable:
             }
             if c.table_collapse == "lazy":
                 self.lazy_collapse = True
-                # collapsed lazily, slab by slab as the rollouts reach them (`gp_table.ensure_block`), into one
+                # collapsed lazily, slab by slab as the rollouts reach them (`lazy_collapse.ensure_block`), into one
                 # table kept for the planner's life; on CUDA the host reads only the nominal's slabs, and the
                 # device collapses its own table whole from the same per-terrain rows (`cuda_backend`)
                 self.grid.update(table=np.empty((int(np.prod(dims)), 4), dtype=np.float32),
                                  table_src=self._table_full, lazy=lazy_state(dims), collapse_w=np.zeros(4 + 4 * m))
                 # the last version whose plan read each slab (0: none yet): `prepare` collapses ahead the slabs read
-                # by the plans of the last `read_history` versions (`gp_table.collapse_slabs_at`)
+                # by the plans of the last `read_history` versions (`lazy_collapse.collapse_slabs_at`)
                 self._last_read = np.zeros(block_keys(dims), dtype=np.int64)
+        # (version, the box of the cells its plans read) of the last `read_history` versions: `prepare` collapses
+        # ahead their hull, the next version's ready box (`lazy_collapse.collapse_slabs_at`)
+        self._read_boxes: list[tuple[int, np.ndarray]] = []
         if self.dyn == DYN_GP and self.gp_mode == GP_EXACT:
             inv_ls = 1.0 / model.lengthscale
             self._ex = {
@@ -123,7 +127,7 @@ class TerrainTable:
 
     def set_weights(self, w: np.ndarray, ahead: bool = False) -> ModelBundle:
         """The kernels' model for the (checked) weights `w`: collapse the grid table when they changed (lazily: mark
-        it stale, `gp_table.ensure_block`; `ahead`: collapse the slabs the last plans read now), pick the EDD5
+        it stale, `lazy_collapse.ensure_block`; `ahead`: collapse the slabs the last plans read now), pick the EDD5
         terrain."""
         changed = self.weights is None or not np.array_equal(w, self.weights)
         if self._table_full is not None and self.lazy_collapse:
@@ -131,10 +135,19 @@ class TerrainTable:
             if changed:  # every slab stale: the readers collapse those they read
                 self.grid["collapse_w"][:] = collapse_weights(w, self.noise_var(w))
                 self.version += 1
-                if ahead:  # `prepare`: the slabs the last lazy plan made current, now
+                since = max(1, self.version - self.read_history)
+                # the box of the cells the last version's plans read joins the history; the boxes of the versions
+                # since `since` stay
+                self._read_boxes = [(v, b) for v, b in self._read_boxes if v >= since]
+                self._read_boxes.append((self.version - 1, read_box(lazy).copy()))
+                ready = empty_box()
+                if ahead:  # `prepare`: the slabs the last plans read, now; a lookup in their hull checks nothing
+                    ready = box_hull([b for _, b in self._read_boxes])
                     collapse_slabs_at(lazy, self._table_full, self.grid["collapse_w"], self.grid["table"],
                                       self.grid["dims"], self.version - 1, self.version, numba.get_num_threads(),
-                                      self._last_read, max(1, self.version - self.read_history))
+                                      self._last_read, since, ready)
+                ready_box(lazy)[:] = ready
+                read_box(lazy)[:] = empty_box()
                 lazy[0] = self.version
             elif lazy[0] != 0 and self._planned and self.backend == "cpu":
                 # the weights held for a second plan: collapse the rest of the table now (the slabs already current
