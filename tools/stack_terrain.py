@@ -14,7 +14,9 @@ arrival time), the terrain service's published weights and the sim's terrain lab
 
 For each: the weight on the true terrain after the first 3 s (time-averaged), top-terrain changes per minute after
 3 s (counted between weights that name a top, `TerrainWeights.identified`) and the share of that time with no top
-named; and the latency of each state's command at the base (first base output's arrival - the state's stamp).
+named; for the recorded weights also the novelty test's false alarms (the share of the time on trained ground with
+P(unknown) > 0.5, the evaluation's `unknown_share`, and with `unknown_active`, the planner's caution on); and the
+latency of each state's command at the base (first base output's arrival - the state's stamp).
 """
 
 from __future__ import annotations
