@@ -151,7 +151,7 @@ def _serve_once(node: Node, settings: Settings, model: GPModel, cycle: TerrainCy
         # and what a short history gives), then the slow part of the start: cvxpy and the problem (the paper's
         # method) or the GP predictor
         first = cycle.prior_update(settings.estimator.names_top_at_start)
-        if resumed is not None:  # the estimator starts from them, with no top established either
+        if resumed is not None:  # the estimator restarts from them with no leader: they name a top as the prior does
             first = WeightsUpdate(resumed, False, 0.0, first.stamp_ns, identified=first.identified)
         out.put(_weights_message(terrains, first))
         node.cycle()

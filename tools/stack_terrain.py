@@ -42,7 +42,8 @@ from services.recording.mcap_io import read_messages
 
 
 def load(path: Path) -> dict:
-    """The log's states, commands, base outputs, weights and terrain labels, in log order."""
+    """The log's states, commands, base outputs, weights (and their P(unknown) and `unknown_active`) and terrain
+    labels, in log order."""
     out: dict = {"states": [], "cmds": [], "base": [], "weights": [], "unknown": [], "labels": []}
     for key, log_ns, msg in read_messages(path):
         name = key.split("/", 2)[2]
