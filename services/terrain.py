@@ -150,9 +150,9 @@ def _serve_once(node: Node, settings: Settings, model: GPModel, cycle: TerrainCy
         # up at once with the prior (uniform weights, solver_ok False: what the planner uses without us,
         # and what a short history gives), then the slow part of the start: cvxpy and the problem (the paper's
         # method) or the GP predictor
-        first = cycle.prior_update()
-        if resumed is not None:
-            first = WeightsUpdate(resumed, False, 0.0, first.stamp_ns)
+        first = cycle.prior_update(settings.estimator.names_top_at_start)
+        if resumed is not None:  # the estimator restarts from them with no leader: they name a top as the prior does
+            first = WeightsUpdate(resumed, False, 0.0, first.stamp_ns, identified=first.identified)
         out.put(_weights_message(terrains, first))
         node.cycle()
         cycle.estimator = TeeEstimator(_estimator(model, settings), learning)

@@ -181,6 +181,38 @@ def test_hysteresis_holds_the_top_through_a_three_way_tie() -> None:
     assert int(np.argmax(_publish(est, [0.30, 0.36, 0.34]))) == 2
 
 
+def test_an_established_top_does_not_flip_through_a_three_way_tie_with_the_default_settings() -> None:
+    # issue 41: "the three-way tie no longer flips the top", with the defaults the stack runs (first_top: established,
+    # hysteresis_odds 2.5, hysteresis 0.3): a ground the evidence established, then a posterior that falls back to a
+    # three-way tie whose order wanders (the other two above the leader, either of them on top, a lead of 0.35 in
+    # probability but ~1 nat): the published top must stay the established ground, named all along
+    est = make_estimator(_model(), BAYES.model_copy(update={"first_top": "established"}))
+    assert isinstance(est, BayesTerrainEstimator)
+    assert est.config.hysteresis == pytest.approx(0.3) and est.config.hysteresis_odds == pytest.approx(2.5)
+    _publish(est, [1 / 3, 1 / 3, 1 / 3])
+    assert not est.estimate().identified  # the start's tie names no top
+    first = _publish(est, [0.90, 0.05, 0.05])  # log(0.90 / 0.05) = 2.9 nats ahead of each: established
+    assert int(np.argmax(first)) == 0 and est.estimate().identified
+    wander = [[0.30, 0.36, 0.34], [0.30, 0.34, 0.36], [0.31, 0.35, 0.34], [0.29, 0.35, 0.36], [0.20, 0.55, 0.25],
+              [0.33, 0.32, 0.35], [0.30, 0.37, 0.33], [0.20, 0.25, 0.55], [0.28, 0.36, 0.36]]
+    tops = []
+    for p in wander:
+        w = _publish(est, p)
+        assert w.sum() == pytest.approx(1.0)
+        assert est.estimate().identified
+        tops.append(int(np.argmax(w)))
+    assert tops == [0] * len(wander), f"the established top flipped in a three-way tie: {tops}"
+    # the same wander with the tie's rule alone (no margin in nats) gives the top away on the 0.35 leads
+    plain = make_estimator(_model(), BAYES.model_copy(update={"first_top": "tie", "hysteresis_odds": 0.0}))
+    assert isinstance(plain, BayesTerrainEstimator)
+    _publish(plain, [0.90, 0.05, 0.05])
+    plain_tops = [int(np.argmax(_publish(plain, p))) for p in wander]
+    assert plain_tops != [0] * len(wander)
+    # evidence that is clearly ahead still takes the top from the established ground
+    taken = _publish(est, [0.03, 0.04, 0.93])
+    assert int(np.argmax(taken)) == 2
+
+
 def test_hysteresis_odds_hold_the_top_against_a_challenger_ahead_on_weak_evidence() -> None:
     # the scene's start flips (Jackal, asphalt): a challenger 0.3 ahead of the leader while a third terrain holds a
     # third of the weight is only 0.7 nats of evidence ahead (twice as likely), and the lead went to it and came back

@@ -14,7 +14,9 @@ arrival time), the terrain service's published weights and the sim's terrain lab
 
 For each: the weight on the true terrain after the first 3 s (time-averaged), top-terrain changes per minute after
 3 s (counted between weights that name a top, `TerrainWeights.identified`) and the share of that time with no top
-named; and the latency of each state's command at the base (first base output's arrival - the state's stamp).
+named; for the recorded weights also the novelty test's false alarms (the share of the time on trained ground with
+P(unknown) > 0.5, the evaluation's `unknown_share`, and with `unknown_active`, the planner's caution on); and the
+latency of each state's command at the base (first base output's arrival - the state's stamp).
 """
 
 from __future__ import annotations
@@ -26,7 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from gpmppi.evaluation.metrics import true_weight_mean, unidentified_share, weight_switches_per_min
+from gpmppi.evaluation.metrics import (
+    true_weight_mean,
+    unidentified_share,
+    unknown_share,
+    weight_switches_per_min,
+)
 from gpmppi.gp.model_file import GPModel, load_default_model
 from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig
 from gpmppi.terrain.estimator import make_estimator
@@ -35,8 +42,9 @@ from services.recording.mcap_io import read_messages
 
 
 def load(path: Path) -> dict:
-    """The log's states, commands, base outputs, weights and terrain labels, in log order."""
-    out: dict = {"states": [], "cmds": [], "base": [], "weights": [], "labels": []}
+    """The log's states, commands, base outputs, weights (and their P(unknown) and `unknown_active`) and terrain
+    labels, in log order."""
+    out: dict = {"states": [], "cmds": [], "base": [], "weights": [], "unknown": [], "labels": []}
     for key, log_ns, msg in read_messages(path):
         name = key.split("/", 2)[2]
         if name == "state":
@@ -48,6 +56,7 @@ def load(path: Path) -> dict:
         elif name == "terrain/weights":
             out["weights"].append((msg.header.stamp_ns, dict(zip(msg.names, msg.weights, strict=True)),
                                    msg.identified))
+            out["unknown"].append((msg.header.stamp_ns, msg.unknown, msg.unknown_active))
         elif name == "terrain/label":
             out["labels"].append((log_ns, msg.terrain))
     return out
@@ -95,6 +104,23 @@ def scores(stamps: list[int], weights: dict[int, np.ndarray], truth: list[str], 
             "mean_weights": np.mean(w[30:], axis=0).round(3).tolist()}
 
 
+def novelty_scores(stamps: list[int], unknown: list[tuple[int, float, bool]], truth: list[str],
+                   terrains: list[str]) -> dict:
+    """The novelty test's false alarms in the recorded weights, over the whole launch (the evaluation's
+    `unknown_share`: the share of the time on trained grounds with P(unknown) > 0.5), and the share with the ground
+    taken as unknown (`unknown_active`: the planner's caution on)."""
+    by_stamp = {s: (u, active) for s, u, active in unknown}
+    keep = [i for i, s in enumerate(stamps) if s in by_stamp]
+    if not keep:
+        return {"unknown_share": None, "unknown_active_share": None}
+    u = np.array([by_stamp[stamps[i]][0] for i in keep])
+    active = np.array([by_stamp[stamps[i]][1] for i in keep], dtype=np.float64)
+    t = np.array([(stamps[i] - stamps[0]) / 1e9 for i in keep] + [(stamps[keep[-1]] - stamps[0]) / 1e9 + 0.1])
+    driven = [truth[i] for i in keep]
+    return {"unknown_share": unknown_share(t, u, driven, terrains),
+            "unknown_active_share": unknown_share(t, active, driven, terrains)}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m tools.stack_terrain", description=__doc__.split("\n")[0])
     parser.add_argument("log", type=Path)
@@ -122,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     result["state_to_base_ms"] = {"p10": float(np.percentile(lat, 10)), "p50": float(np.median(lat)),
                                   "p90": float(np.percentile(lat, 90)), "n": int(lat.size)}
     result["recorded"] = scores(stamps, recorded, truth, terrains, recorded_named)
+    result["recorded"].update(novelty_scores(stamps, log["unknown"], truth, terrains))
     configs = (("stack", TerrainCycleConfig(pairing="stamp")), ("cmd", TerrainCycleConfig(command_source="cmd")),
                ("applied", TerrainCycleConfig(pairing="applied")))
     for name, cfg in configs:

@@ -181,11 +181,13 @@ class TerrainCycle:
             return 0.0
         return max(0.0, self.config.command_wait_s - (now - self.pending_since))
 
-    def prior_update(self) -> WeightsUpdate:
+    def prior_update(self, identified: bool) -> WeightsUpdate:
         """The prior (uniform, not solved), stamped with the newest pending state: what the service publishes while
-        it builds its estimator."""
+        it builds its estimator. `identified`: whether the estimator it builds names a top on its start
+        (`EstimatorConfig.names_top_at_start`): a uniform prior is a tie, whose argmax (the profile's first ground) is
+        no identification, and a change from it counted as one would be the start's tie again."""
         stamp = self.pending[-1][0] if self.pending else 0
-        return WeightsUpdate(self.prior, False, 0.0, stamp)
+        return WeightsUpdate(self.prior, False, 0.0, stamp, identified=identified)
 
     def solve(self) -> WeightsUpdate:
         """Observe the pending states' transitions with their commands, estimate, clean up."""

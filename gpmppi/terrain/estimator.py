@@ -217,8 +217,9 @@ class BayesTerrainEstimator:
         else:
             self._since_start += 1
         if self.novelty is not None:  # the GP evidence's steps less the transients (gpmppi.terrain.novelty), on the
-            # residuals the novelty test was calibrated on (without the anchor's correction)
-            one = self.novelty.observe(r + anchor, self.novelty.transient(u[0], x[3], x[4]))
+            # residuals the novelty test was calibrated on (without the anchor's correction: `mean` had the anchor
+            # taken out, so r is the unanchored residual plus the anchor)
+            one = self.novelty.observe(r - anchor, self.novelty.transient(u[0], x[3], x[4]))
             free, free_ready = 0.0, False
             if self.free_run is not None:  # either channel can say "unknown": no trained ground explains it
                 free, free_ready = self.free_run.observe(x[3:5], u, x1[3:5]), self.free_run.ready

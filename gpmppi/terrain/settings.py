@@ -124,6 +124,13 @@ class EstimatorConfig(BaseModel):
         "trained ground, so an alarm raised in a corner holds through the straights, where a slide cannot show "
         "(gpmppi/terrain/free_run.py). 0: no hold (the plain window alone)")
 
+    @property
+    def names_top_at_start(self) -> bool:
+        """Whether the starting weights (the uniform prior, or weights resumed after a restart) name a top ground: the
+        paper's method always names its weights' argmax; the Bayesian filter with `first_top: established` names none
+        until the evidence establishes one (`BayesTerrainEstimator.identified`)."""
+        return self.method == "paper" or self.first_top == "tie"
+
     @model_validator(mode="after")
     def _consistent(self) -> EstimatorConfig:
         if self.first_top == "established" and self.hysteresis_odds <= 0:
