@@ -166,6 +166,15 @@ def _int64_vector(array: types.Type) -> bool:
     return isinstance(array, types.Array) and array.ndim == 1 and array.dtype == types.int64
 
 
+def _element_pointer(context, builder, signature, args):  # noqa: ANN001, ANN202 - numba codegen arguments
+    """The pointer to `array[index]` of an intrinsic whose first two arguments are a 1-D array and an index (no
+    bounds check): what the atomic loads, stores and read-modify-writes below act on."""
+    aryty = signature.args[0]
+    ary = context.make_array(aryty)(context, builder, args[0])
+    idx = context.cast(builder, args[1], signature.args[1], types.intp)
+    return cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+
+
 @intrinsic
 def load_acquire(typingctx, array, index):  # noqa: ANN001, ANN201 - numba intrinsic: typing context and numba types
     """`array[index]` of a 1-D int64 array, read with acquire ordering (no bounds check).
@@ -179,10 +188,7 @@ def load_acquire(typingctx, array, index):  # noqa: ANN001, ANN201 - numba intri
     sig = types.int64(array, index)
 
     def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
-        aryty = signature.args[0]
-        ary = context.make_array(aryty)(context, builder, args[0])
-        idx = context.cast(builder, args[1], signature.args[1], types.intp)
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+        ptr = _element_pointer(context, builder, signature, args)
         return builder.load_atomic(ptr, "acquire", 8)
 
     return sig, codegen
@@ -197,10 +203,7 @@ def store_release(typingctx, array, index, value):  # noqa: ANN001, ANN201 - num
     sig = types.void(array, index, value)
 
     def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
-        aryty = signature.args[0]
-        ary = context.make_array(aryty)(context, builder, args[0])
-        idx = context.cast(builder, args[1], signature.args[1], types.intp)
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+        ptr = _element_pointer(context, builder, signature, args)
         val = context.cast(builder, args[2], signature.args[2], types.int64)
         builder.store_atomic(val, ptr, "release", 8)
         return context.get_dummy_value()
@@ -261,10 +264,7 @@ def _atomic_extreme(op: str) -> Callable:
         sig = types.void(array, index, value)
 
         def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
-            aryty = signature.args[0]
-            ary = context.make_array(aryty)(context, builder, args[0])
-            idx = context.cast(builder, args[1], signature.args[1], types.intp)
-            ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+            ptr = _element_pointer(context, builder, signature, args)
             val = context.cast(builder, args[2], signature.args[2], types.int64)
             builder.atomic_rmw(op, ptr, val, "monotonic")
             return context.get_dummy_value()
