@@ -9,9 +9,9 @@
 * the collapse of the grid table when the weights change: whole at once (`table_collapse="whole"`), or lazily
   (the default): the weights' version moves on, every slab goes stale, and the readers collapse the slabs they
   read (`lazy_collapse.ensure_block`); `set_weights(w, ahead=True)` collapses at once the slabs of the box of cells
-  the plans of the last few weight versions read, and of the cells they read outside it (the service's `prepare`,
-  between states; lookups inside the box then check nothing), and a second plan with the same weights collapses the
-  rest;
+  the plans of the last weight version read, and of the cells the last few versions read outside their boxes (the
+  service's `prepare`, between states; lookups inside the box then check nothing), and a second plan with the same
+  weights collapses the rest;
 * the EDD5 terrain (the configured one, or the top weight) and the weighted lateral slip.
 
 `set_weights(w)` hands the kernels their `ModelBundle` for those weights. The planner calls `planned()` once a plan
