@@ -229,12 +229,14 @@ def test_new_weights_make_every_slab_stale_and_prepare_collapses_those_the_last_
     np.testing.assert_array_equal(ready_box(state), empty_box())
 
 
-def test_prepare_collapses_the_slabs_read_by_the_plans_of_the_last_versions(model) -> None:
+@pytest.mark.parametrize("ready_history", [3, 1])
+def test_prepare_collapses_the_slabs_read_by_the_plans_of_the_last_versions(model, ready_history: int) -> None:
     """`read_history` = 3: after each `prepare`, the slabs current are those of the hull of the read boxes of the plans
-    of the last three versions (the ready box) and of the cells those plans stamped read, with their whole-collapse
-    values."""
+    of the last `ready_history` versions (the ready box) and of the cells the plans of the last three versions stamped
+    read, with their whole-collapse values."""
     planner = Planner(PlannerConfig(backend="cpu", samples=128, horizon=10, seed=2), model)
     planner.terrain.read_history = 3
+    planner.terrain.ready_history = ready_history
     lazy, dims = planner.terrain.grid["lazy"], planner.terrain.grid["dims"]
     sc = circle_lane()
     x = sc.start.copy()
@@ -246,7 +248,7 @@ def test_prepare_collapses_the_slabs_read_by_the_plans_of_the_last_versions(mode
         w = w / w.sum()
         planner.prepare(w)
         if boxes:
-            hull = box_hull(boxes[-3:])
+            hull = box_hull(boxes[-ready_history:])
             np.testing.assert_array_equal(ready_box(lazy), hull)
             want = _slabs_of_cells(np.any(stamped[-3:], axis=0) | _box_cells(hull, dims), dims)
             np.testing.assert_array_equal(slab_versions(lazy) == lazy[0], want)
@@ -255,8 +257,10 @@ def test_prepare_collapses_the_slabs_read_by_the_plans_of_the_last_versions(mode
         stamped.append(cell_stamps(lazy) == lazy[0])
         boxes.append(read_box(lazy).copy())
         x = kinematic_step(x, r.control, 0.1)
-    # the hull grew past the last plan's box: the history is used
+    # the hull of three boxes grew past the last plan's box: the history is used
     assert _box_cells(box_hull(boxes[-3:]), dims).sum() > _box_cells(boxes[-1], dims).sum()
+    if ready_history == 1:  # with a ready box (plans 2-7), some lookups outside it went through their stamps
+        assert any(s.any() for s in stamped[1:])
 
 
 def test_box_hull_and_the_atomic_extremes() -> None:

@@ -27,7 +27,8 @@ from gpmppi.mppi.gp_table import collapse_rows
 # pairs with.
 # The ready box: `Planner.prepare` collapses ahead, for the next weights, every slab of a box of cells (the three
 # outer axes' cell indices, `lazy[LAZY_READY:LAZY_READY + 6]` = lo0, hi0, lo1, hi1, lo2, hi2, inclusive): the hull of
-# the boxes the plans of the last few versions read (`lazy[LAZY_READ:LAZY_READ + 6]`, each lookup's cell folded in).
+# the boxes the plans of the last `TerrainTable.ready_history` versions read (`lazy[LAZY_READ:LAZY_READ + 6]`, each
+# lookup's cell folded in; the last version's box alone by default).
 # A lookup inside the ready box reads current slabs and checks nothing else: a test of its three indices, which the
 # rollouts run in the loop that computes the lookups' simplex corners (vector code), so a step with every lookup
 # inside it costs no scalar check at all. (Before, each lookup's cell was checked against the thread's seen marks and

@@ -9,9 +9,9 @@
 * the collapse of the grid table when the weights change: whole at once (`table_collapse="whole"`), or lazily
   (the default): the weights' version moves on, every slab goes stale, and the readers collapse the slabs they
   read (`lazy_collapse.ensure_block`); `set_weights(w, ahead=True)` collapses at once the slabs of the box of cells
-  the plans of the last few weight versions read, and of the cells they read outside it (the service's `prepare`,
-  between states; lookups inside the box then check nothing), and a second plan with the same weights collapses the
-  rest;
+  the plans of the last weight version read, and of the cells the last few versions read outside their boxes (the
+  service's `prepare`, between states; lookups inside the box then check nothing), and a second plan with the same
+  weights collapses the rest;
 * the EDD5 terrain (the configured one, or the top weight) and the weighted lateral slip.
 
 `set_weights(w)` hands the kernels their `ModelBundle` for those weights. The planner calls `planned()` once a plan
@@ -44,6 +44,10 @@ __all__ = ["TerrainTable"]
 # `prepare` collapses ahead the slabs read by the plans of this many weight versions: the last plan's alone left ~320 of
 # ~3,560 slabs a plan reads for it to collapse, the last four's 92 (for 18 % more slabs collapsed ahead)
 READ_HISTORY = 4
+# and the ready box is the box of the cells the last version's plans read alone: the hull of the last four versions'
+# boxes held 6,720 slabs (p50, the bench's moving weights) for 0-2 cells of the next plan outside it, the last box
+# 5,892 for 0-8 (those go through their stamps, and their slabs are collapsed ahead by the read history above)
+READY_HISTORY = 1
 
 _DYN = {"unicycle": DYN_UNICYCLE, "edd5": DYN_EDD5, "gp": DYN_GP}
 
@@ -73,6 +77,7 @@ class TerrainTable:
         self.grid = ModelBundle.no_grid()
         self.lazy_collapse = False
         self.read_history = READ_HISTORY
+        self.ready_history = READY_HISTORY
         self.version = 1  # the version of the lazily collapsed table's weights (`lazy_collapse.ensure_block`)
         self._planned = False  # whether a plan has run with the weights of the table
         if self.dyn == DYN_GP and self.gp_mode != GP_EXACT:
@@ -97,7 +102,8 @@ class TerrainTable:
                 # by the plans of the last `read_history` versions (`lazy_collapse.collapse_slabs_at`)
                 self._last_read = np.zeros(block_keys(dims), dtype=np.int64)
         # (version, the box of the cells its plans read) of the last `read_history` versions: `prepare` collapses
-        # ahead their hull, the next version's ready box (`lazy_collapse.collapse_slabs_at`)
+        # ahead the hull of the last `ready_history` ones, the next version's ready box
+        # (`lazy_collapse.collapse_slabs_at`)
         self._read_boxes: list[tuple[int, np.ndarray]] = []
         if self.dyn == DYN_GP and self.gp_mode == GP_EXACT:
             inv_ls = 1.0 / model.lengthscale
@@ -142,7 +148,7 @@ class TerrainTable:
                 self._read_boxes.append((self.version - 1, read_box(lazy).copy()))
                 ready = empty_box()
                 if ahead:  # `prepare`: the slabs the last plans read, now; a lookup in their hull checks nothing
-                    ready = box_hull([b for _, b in self._read_boxes])
+                    ready = box_hull([b for v, b in self._read_boxes if v >= self.version - self.ready_history])
                     collapse_slabs_at(lazy, self._table_full, self.grid["collapse_w"], self.grid["table"],
                                       self.grid["dims"], self.version - 1, self.version, numba.get_num_threads(),
                                       self._last_read, since, ready)
