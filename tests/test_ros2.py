@@ -159,3 +159,34 @@ def test_ingress_turns_ros2_odometry_into_state(tmp_path: Path) -> None:
     assert cov[0, 1] == pytest.approx(0.004) and cov[1, 0] == pytest.approx(0.004)
     log = ingress.log()
     assert "stale" in log and "not a nav_msgs/msg/Odometry" in log
+
+
+def test_ingress_counts_bad_odometry_that_a_newer_message_replaced_before_its_loop_took_it() -> None:
+    from services.ingress import Settings as IngressSettings
+    from services.ingress import ros2_odometry_inbox
+    from services.runtime.node import Node
+
+    key = "0/odom/nav_msgs::msg::dds_::Odometry_/" + TYPESTORE.hash_rihs01("nav_msgs/msg/Odometry")
+    port = free_port()
+    with router(port):
+        node = Node(IngressSettings(**settings("ingress", port, source="ros2")), install_signals=False)
+        observer = client(port)
+        try:
+            with node:
+                inbox = ros2_odometry_inbox(node, node.settings)
+                pub = matched_publisher(observer, key)
+                good = _odometry(3.0, -4.0, 2.5, 1.25, -0.5, time.time_ns())
+                assert wait_for(lambda: (pub.put(good), inbox.take())[1] is not None, 5.0)
+                time.sleep(0.2)
+                inbox.take()  # a late warm-up message
+                bad = [b"\x00\x01\x00\x00garbage", b"", b"\x00\x01\x00\x00" + bytes(7)]
+                # a burst while the loop takes nothing: each bad one is replaced by the next before it is taken
+                for payload in bad:
+                    pub.put(payload)
+                pub.put(good)
+                assert wait_for(lambda: node.counters.rejected == len(bad), 10.0), node.counters.rejected
+                newest = inbox.take()
+                assert newest is not None and newest.payload.to_bytes() == good and inbox.take() is None
+                assert "not a nav_msgs/msg/Odometry" in node.counters.last_error
+        finally:
+            observer.close()
