@@ -53,25 +53,34 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[str, Any]:
-    """Replay `req.log`; returns {"play": stats, "compare": {...} (with --compare), "services": [...]}.
-    Raises LogError / ReplaceError / ValueError for bad input, before anything is started."""
-    import zenoh
+@dataclass
+class _ReplayPlan:
+    """What one replay does, worked out and checked from the request and the log before anything starts."""
 
-    from services.launch.launch_file import LaunchFile
-    from services.launch.processes import wait_for_endpoint
-    from services.launch.supervisor import Launcher
-    from services.recording.player import Player, PlayOptions, copy_payloads, drain
+    parts: Any  # the log's checked parts (`services.recording.player_log.check_log`)
+    keys: list[str]  # the recorded channels
+    span: tuple[int, int] | None  # the log's first and last log time [ns]
+    robot: str  # the robot the replay publishes as
+    live: list[Any]  # the live services that replace recorded ones (`tools.replay_live.LiveService`)
+    planners: list[Any]  # the live planners among them
+    endpoint: str  # the router the replay publishes to
+    start_router: bool  # whether the replay starts that router
+    options: Any  # the player's options (`services.recording.player.PlayOptions`)
+    recorded_cmds: dict[int, tuple[float, float]]  # with --compare: the recorded commands by state stamp [ns]
+
+
+def _plan_replay(req: ReplayRequest) -> _ReplayPlan:
+    """The replay's plan; raises LogError / ReplaceError / ValueError for bad input, before anything is started."""
+    from services.recording.player import PlayOptions
     from services.recording.player_log import (
         LogError,
         check_log,
-        iter_records,
         keys_and_services,
         log_span_ns,
         read_run_info,
         robots_in,
     )
-    from services.runtime.node_settings import DEFAULT_ROUTER, ZenohSettings
+    from services.runtime.node_settings import DEFAULT_ROUTER
     from tools import replay_live as rl
 
     parts = check_log(req.log)
@@ -103,37 +112,20 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         endpoint = f"tcp/127.0.0.1:{req.port or _free_port()}"
     else:
         endpoint = DEFAULT_ROUTER  # where `gpmppi launch` and the services look by default
-    tmp = rl.temp_dir()
-    rl.finalize(live, info, robot, endpoint, tmp, req.profile)
+    rl.finalize(live, info, robot, endpoint, rl.temp_dir(), req.profile)
 
-    def rkey(rel: str, r: str = recorded_robot) -> str:
-        return f"gpmppi/{r}/{rel}"
+    def rkey(rel: str) -> str:
+        return f"gpmppi/{recorded_robot}/{rel}"
 
     suppress: set[str] = set()
     for s in live:
         suppress |= {rkey(k) for k in rl.OUTPUTS[s.kind]} | {rkey(f"health/{s.name}")}
     start_s = req.start_s
-    span = log_span_ns(parts)
     recorded_cmds: dict[int, tuple[float, float]] = {}
     if req.compare:
-        for rec in iter_records(parts):
-            if rec.key == rkey("cmd"):
-                m = json.loads(rec.data)
-                recorded_cmds[int(m["header"]["stamp_ns"])] = (float(m["v_ref"]), float(m["omega_ref"]))
-        if not recorded_cmds:
-            raise ReplaceError(f"--compare: the recording has no commands on {rkey('cmd')} to compare with")
+        recorded_cmds = _recorded_commands(parts, rkey("cmd"))
         if start_s is None:
-            # the recorded planner's first command answers one state: the live one starts from that state (and
-            # the newest weights before it), so both plan the same states from the same start
-            first_cmd = min(recorded_cmds)
-            log_t0 = None
-            for rec in iter_records(parts):
-                log_t0 = rec.log_time_ns if log_t0 is None else log_t0
-                if rec.key == rkey("state") and json.loads(rec.data)["header"]["stamp_ns"] == first_cmd:
-                    start_s = max(0.0, (rec.log_time_ns - log_t0 - 1000) / 1e9)
-                    _say(f"replay: comparing from the state of the recorded planner's first command, {start_s:.3f} s "
-                         "into the log (give --start to choose)")
-                    break
+            start_s = _first_answered_state_s(parts, rkey("state"), min(recorded_cmds))
     options = PlayOptions(
         speed=req.speed, start_s=start_s, end_s=req.end_s, keys=req.keys, exclude=req.exclude, loop=req.loop,
         robot=req.robot, keep_stamps=req.keep_stamps, suppress=suppress,
@@ -143,74 +135,145 @@ def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[
         only_stamps=set(recorded_cmds) if req.compare else None,
         lockstep_timeout_s=2.0 if req.lockstep else None,
     )
-    launcher: Launcher | None = None
+    return _ReplayPlan(parts, keys, log_span_ns(parts), robot, live, planners, endpoint, start_router, options,
+                       recorded_cmds)
+
+
+def _recorded_commands(parts: Any, cmd_key: str) -> dict[int, tuple[float, float]]:
+    """The recorded planner's commands (v_ref, omega_ref) by the stamp of the state each answered [ns]."""
+    from services.recording.player_log import iter_records
+
+    cmds: dict[int, tuple[float, float]] = {}
+    for rec in iter_records(parts):
+        if rec.key == cmd_key:
+            m = json.loads(rec.data)
+            cmds[int(m["header"]["stamp_ns"])] = (float(m["v_ref"]), float(m["omega_ref"]))
+    if not cmds:
+        raise ReplaceError(f"--compare: the recording has no commands on {cmd_key} to compare with")
+    return cmds
+
+
+def _first_answered_state_s(parts: Any, state_key: str, first_cmd: int) -> float | None:
+    """Where in the log [s] the state the recorded planner's first command answered was logged (None: not found).
+    The live planner starts from that state (and the newest weights before it), so both plan the same states from
+    the same start."""
+    from services.recording.player_log import iter_records
+
+    log_t0 = None
+    for rec in iter_records(parts):
+        log_t0 = rec.log_time_ns if log_t0 is None else log_t0
+        if rec.key == state_key and json.loads(rec.data)["header"]["stamp_ns"] == first_cmd:
+            start_s = max(0.0, (rec.log_time_ns - log_t0 - 1000) / 1e9)
+            _say(f"replay: comparing from the state of the recorded planner's first command, {start_s:.3f} s "
+                 "into the log (give --start to choose)")
+            return start_s
+    return None
+
+
+def _start_services(req: ReplayRequest, plan: _ReplayPlan) -> Any:
+    """The router and live services the replay needs, started (a `Launcher`, or None where it needs neither: then a
+    router must already listen at the plan's endpoint)."""
+    from services.launch.launch_file import LaunchFile
+    from services.launch.processes import wait_for_endpoint
+    from services.launch.supervisor import Launcher
+
+    if not (plan.start_router or plan.live or req.foxglove is not None):
+        try:
+            wait_for_endpoint(plan.endpoint, timeout_s=3.0)
+        except TimeoutError:
+            raise TimeoutError(f"no router at {plan.endpoint}: start the stack (gpmppi launch), pass --connect "
+                               "ENDPOINT, or --port N to start a router for the replay") from None
+        return None
+    launch = LaunchFile(robot=plan.robot)
+    launch.router.listen = [plan.endpoint]
+    launcher = Launcher(launch, out=sys.stderr)
+    try:
+        if plan.start_router:
+            launcher.add("router", "router", {"listen": [plan.endpoint]}, required=True)
+        for s in plan.live:
+            launcher.add(s.name, s.kind, s.config, required=True)
+            _say(f"replay: live {s.name} ({s.kind}) from the "
+                 f"{'recorded settings' if s.from_metadata else 'defaults'}; its recorded outputs are not replayed")
+        if req.foxglove is not None:  # served to Foxglove as it plays, like `gpmppi launch --foxglove`
+            zenoh_cfg = {"mode": "client", "connect": [plan.endpoint]}
+            launcher.add("foxglove", "foxglove", {"robot": plan.robot, "zenoh": zenoh_cfg, "host": req.foxglove[0],
+                                                  "port": req.foxglove[1], "nice": 10}, required=False)
+        launcher.start_all()
+    except BaseException:
+        launcher.stop_all()
+        raise
+    return launcher
+
+
+class _LiveCommands:
+    """The live planners' commands as they arrive on Zenoh's thread: (state stamp [ns], v_ref, omega_ref)."""
+
+    def __init__(self) -> None:
+        self.got: list[tuple[int, float, float]] = []
+        self._lock = threading.Condition()
+
+    def on_cmd(self, sample: Any) -> None:
+        try:
+            m = json.loads(sample.payload.to_bytes())
+            with self._lock:
+                self.got.append((int(m["header"]["stamp_ns"]), float(m["v_ref"]), float(m["omega_ref"])))
+                self._lock.notify_all()
+        except (ValueError, KeyError, TypeError):
+            pass
+
+    def answered(self, stamp: int, timeout_s: float) -> bool:
+        """Whether a live planner answered the state stamped `stamp` within `timeout_s` (the lockstep's pacing)."""
+        with self._lock:
+            return self._lock.wait_for(lambda: any(c[0] == stamp for c in self.got[-8:]), timeout_s)
+
+    def snapshot(self) -> list[tuple[int, float, float]]:
+        with self._lock:
+            return list(self.got)
+
+
+def run_replay(req: ReplayRequest, stop: threading.Event | None = None) -> dict[str, Any]:
+    """Replay `req.log`; returns {"play": stats, "compare": {...} (with --compare), "services": [...]}.
+    Raises LogError / ReplaceError / ValueError for bad input, before anything is started."""
+    import zenoh
+
+    from services.recording.player import Player, copy_payloads, drain
+    from services.recording.player_log import iter_records
+    from services.runtime.node_settings import ZenohSettings
+    from tools import replay_live as rl
+
+    plan = _plan_replay(req)
+    stop = stop or threading.Event()
+    result: dict[str, Any] = {"services": [s.name for s in plan.live]}
+    launcher = _start_services(req, plan)
     session: zenoh.Session | None = None
     helper: zenoh.Session | None = None
-    stop = stop or threading.Event()
-    result: dict[str, Any] = {"services": [s.name for s in live]}
     try:
-        if start_router or live or req.foxglove is not None:
-            launch = LaunchFile(robot=robot)
-            launch.router.listen = [endpoint]
-            launcher = Launcher(launch, out=sys.stderr)
-            if start_router:
-                launcher.add("router", "router", {"listen": [endpoint]}, required=True)
-            for s in live:
-                launcher.add(s.name, s.kind, s.config, required=True)
-                _say(f"replay: live {s.name} ({s.kind}) from the "
-                     f"{'recorded settings' if s.from_metadata else 'defaults'}; its recorded outputs are not replayed")
-            if req.foxglove is not None:  # served to Foxglove as it plays, like `gpmppi launch --foxglove`
-                zenoh_cfg = {"mode": "client", "connect": [endpoint]}
-                launcher.add("foxglove", "foxglove", {"robot": robot, "zenoh": zenoh_cfg, "host": req.foxglove[0],
-                                                      "port": req.foxglove[1], "nice": 10}, required=False)
-            launcher.start_all()
-        else:
-            try:
-                wait_for_endpoint(endpoint, timeout_s=3.0)
-            except TimeoutError:
-                raise TimeoutError(f"no router at {endpoint}: start the stack (gpmppi launch), pass --connect "
-                                   "ENDPOINT, or --port N to start a router for the replay") from None
-        session = zenoh.open(copy_payloads(ZenohSettings(mode="client", connect=[endpoint]).to_config()))
-        helper = zenoh.open(ZenohSettings(mode="client", connect=[endpoint]).to_config())
-        live_cmds: list[tuple[int, float, float]] = []
-        lock = threading.Condition()
-
-        def on_cmd(sample: zenoh.Sample) -> None:
-            try:
-                m = json.loads(sample.payload.to_bytes())
-                with lock:
-                    live_cmds.append((int(m["header"]["stamp_ns"]), float(m["v_ref"]), float(m["omega_ref"])))
-                    lock.notify_all()
-            except (ValueError, KeyError, TypeError):
-                pass
-
-        def answered(stamp: int, timeout_s: float) -> bool:
-            with lock:
-                return lock.wait_for(lambda: any(c[0] == stamp for c in live_cmds[-8:]), timeout_s)
-
-        subs = [session.declare_subscriber(f"gpmppi/{robot}/cmd", on_cmd)] if planners else []
-        waiting = [*live, *([rl.LiveService("foxglove", "foxglove", {}, False)] if req.foxglove is not None else [])]
+        session = zenoh.open(copy_payloads(ZenohSettings(mode="client", connect=[plan.endpoint]).to_config()))
+        helper = zenoh.open(ZenohSettings(mode="client", connect=[plan.endpoint]).to_config())
+        live_cmds = _LiveCommands()
+        subs = [session.declare_subscriber(f"gpmppi/{plan.robot}/cmd", live_cmds.on_cmd)] if plan.planners else []
+        waiting = [*plan.live,
+                   *([rl.LiveService("foxglove", "foxglove", {}, False)] if req.foxglove is not None else [])]
         if waiting:
-            _wait_ready(session, robot, waiting, launcher, req.ready_timeout_s, stop)
+            _wait_ready(session, plan.robot, waiting, launcher, req.ready_timeout_s, stop)
         time.sleep(req.delay_s)  # subscriptions of listeners that just joined reach the router
-        player = Player(session, lambda: iter_records(parts), options, stop=stop)
-        player.declare(keys)
-        player.answered = answered
-        total_s = None if span is None else (span[1] - span[0]) / 1e9
+        player = Player(session, lambda: iter_records(plan.parts), plan.options, stop=stop)
+        player.declare(plan.keys)
+        player.answered = live_cmds.answered
+        total_s = None if plan.span is None else (plan.span[1] - plan.span[0]) / 1e9
         if req.end_s is not None:
             total_s = req.end_s if total_s is None else min(total_s, req.end_s)
         stats = _play_with_progress(player, total_s, req.progress)
         if not drain(session, helper):
             _say("replay: warning: the router did not confirm it took every message within 60 s; some may be lost")
         result["play"] = stats
-        if live and not stop.is_set():
+        if plan.live and not stop.is_set():
             time.sleep(req.settle_s)  # the live services' answers to the last inputs
         for sub in subs:
             sub.undeclare()
         if req.compare:
-            with lock:
-                got = list(live_cmds)
-            result["compare"] = rl.compare(got, recorded_cmds, None if req.keep_stamps else player.stamp_map)
+            got = live_cmds.snapshot()
+            result["compare"] = rl.compare(got, plan.recorded_cmds, None if req.keep_stamps else player.stamp_map)
             result["compare"]["live_commands"] = len(got)
             if req.lockstep:
                 result["compare"]["lockstep_misses"] = player.lockstep_misses
