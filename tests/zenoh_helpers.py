@@ -59,6 +59,9 @@ def router(port: int) -> Iterator[zenoh.Session]:
     config.insert_json5("mode", '"router"')
     config.insert_json5("listen/endpoints", json.dumps([endpoint(port)]))
     config.insert_json5("scouting/multicast/enabled", "false")
+    # a router's open waits `scouting/delay` (500 ms by default) for peers to scout; with multicast off there are
+    # none, so that wait was half a second of wall time for every test that opens a router (38 in `-m "not slow"`)
+    config.insert_json5("scouting/delay", "0")
     session = zenoh.open(config)
     try:
         yield session
