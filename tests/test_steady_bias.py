@@ -46,3 +46,36 @@ def test_the_drive_counts_the_plain_segments_distance_and_adds_the_top_holds() -
         return int(np.sum((cmd[:, 0] >= 1.4) & (cmd[:, 1] == 0.0) & (np.abs(v - cmd[:, 0]) < 0.03)))
 
     assert settled_straight(top) >= 50 + 3 * settled_straight(plain)
+
+
+def test_held_seconds_counts_from_each_command_change_within_a_segment() -> None:
+    from gpmppi.gp.train import held_seconds
+
+    v_ref = np.array([1.0, 1.0, 1.0, 0.5, 0.5, 0.5, 0.5, 0.5])
+    w_ref = np.zeros(8)
+    seg = np.array([0, 0, 0, 0, 0, 1, 1, 1])  # a new segment restarts the count
+    np.testing.assert_allclose(held_seconds(v_ref, w_ref, seg, 0.1), [0, 0.1, 0.2, 0, 0.1, 0, 0.1, 0.2])
+
+
+def test_steady_points_sit_at_settled_rows_with_the_settled_rows_targets() -> None:
+    """Rows whose command was held 2 s or more carry another residual than the transients at the same inputs (the
+    hidden integrator): with steady points, that many inputs are settled-row centres whose targets are the settled
+    residual, where the plain selection's local averages mix both."""
+    from gpmppi.gp.train import STEADY_HELD_S, Transitions, select_training_data
+
+    rng = np.random.default_rng(1)
+    sets = {}
+    for name, offset in (("a", 0.02), ("b", -0.01)):
+        x = rng.uniform(0, 1, (3000, 4))
+        held = rng.uniform(0, 4, 3000)
+        settled = held >= STEADY_HELD_S
+        residual = np.column_stack([np.where(settled, offset, -0.05), np.zeros(3000)])
+        sets[name] = Transitions(x, residual, held_s=held)
+    x0, y0 = select_training_data(sets, 60, seed=0)
+    x1, y1 = select_training_data(sets, 60, seed=0, steady_points=20)
+    assert x0.shape == x1.shape == (60, 4) and y1.shape == (4, 60)
+    np.testing.assert_allclose(y1[0, 40:], 0.02, atol=1e-12)  # ground a's settled residual, exactly
+    np.testing.assert_allclose(y1[2, 40:], -0.01, atol=1e-12)
+    assert np.mean(np.abs(y0[0] - 0.02) < 1e-9) < 0.5  # without: mostly mixed with the transients
+    with pytest.raises(ValueError, match="steady points"):
+        select_training_data(sets, 60, seed=0, steady_points=60)
