@@ -34,7 +34,7 @@ class SteadyBias:
     """The settled one-step residual of each ground's GP on each driven ground, per held straight command."""
 
     terrains: tuple[str, ...]  # the model's grounds: both the driven ones and the GPs, in this order
-    v_ref: np.ndarray  # (K,) the held v commands [m/s] (omega_ref 0)
+    v_ref: np.ndarray  # (K,) the held v commands [m/s]
     mean: np.ndarray  # (K, M driven, M GP, 2) mean of y - m_i over the settled tail [m/s, rad/s]
     speed: np.ndarray  # (K, M driven) the mean measured speed over the tail [m/s]
     spread: tuple[float, float]  # the novelty test's spread of the windowed mean (v, omega)
@@ -72,11 +72,12 @@ def top_speed_commands(terrains: TerrainSet, shares: Sequence[float] = TOP_SPEED
 
 def steady_bias(
     model: GPModel, terrains: TerrainSet, v_ref: Sequence[float] | np.ndarray, hold_s: float = HOLD_S,
-    settle_s: float = SETTLE_S, noise: bool = False, seed: int = 0,
+    settle_s: float = SETTLE_S, noise: bool = False, seed: int = 0, omega_ref: float = 0.0,
 ) -> SteadyBias:
-    """Drive the physics plant from rest on each of `model`'s grounds under each held straight command `v_ref` for
-    `hold_s`, and average every ground's GP one-step residual error over the steps after `settle_s` (module
-    docstring). `noise`: the plant's sensor noise on the states the residuals are read from (seeded)."""
+    """Drive the physics plant from rest on each of `model`'s grounds under each held command (`v_ref`, `omega_ref`:
+    straight by default) for `hold_s`, and average every ground's GP one-step residual error over the steps after
+    `settle_s` (module docstring). `noise`: the plant's sensor noise on the states the residuals are read from
+    (seeded)."""
     names = tuple(model.terrains)
     missing = [t for t in names if t not in terrains.names]
     if missing:
@@ -96,10 +97,10 @@ def steady_bias(
             plant.reset(np.zeros(5))
             states = [plant.measure()]
             for _ in range(n):
-                plant.step(np.array([v, 0.0]), dt)
+                plant.step(np.array([v, omega_ref]), dt)
                 states.append(plant.measure())
             x = np.array(states[first:])  # the settled tail: x[i] -> x[i + 1] under the held command
-            u = np.column_stack([np.full(len(x) - 1, v), np.zeros(len(x) - 1)])
+            u = np.column_stack([np.full(len(x) - 1, v), np.full(len(x) - 1, omega_ref)])
             v_nom, w_nom = velocity_step_exact(model.theta, x[:-1, 3].copy(), x[:-1, 4].copy(), u[:, 0].copy(),
                                                u[:, 1].copy(), dt)
             y = np.column_stack([x[1:, 3] - v_nom, x[1:, 4] - w_nom])  # (T, 2)
