@@ -3,6 +3,7 @@ excitation's added top holds (`Excitation(top_holds=...)`, `gpmppi dataset --top
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -107,3 +108,45 @@ def test_the_shipped_gp_is_off_by_spreads_in_steady_driving_at_the_top_speed() -
     with pytest.raises(ValueError, match="lacks the model's grounds"):
         steady_bias(load_default_model(), load_terrains(Path(__file__).parents[1] / "docs/robots/heavy_wide.yaml"),
                     [1.0])
+
+
+@pytest.mark.slow
+def test_gpmppi_dataset_top_holds_and_train_steady_points_from_the_command_line(tmp_path: Path) -> None:
+    """`gpmppi dataset --top-holds` records the held straights near the top speed (the 45 kg robot's 1.6 m/s) and
+    `gpmppi train --steady-points` puts that many inputs at settled rows and names the option in `made_by`; a residual
+    CSV (no time series) is refused in one line."""
+    from typer.testing import CliRunner
+
+    from gpmppi.gp.model_file import GPModel
+    from tools.cli import app
+    from tools.dataset import read_dataset
+
+    root = Path(__file__).parents[1]
+    log = tmp_path / "top.mcap"
+    heavy = str(root / "docs/robots/heavy_wide.yaml")
+    result = CliRunner().invoke(app, [
+        "dataset", "-o", str(log), "--terrain-file", heavy, "-t", "gravel", "-t", "mulch", "--distance", "120",
+        "--seed", "1", "--top-holds", "0.5", "--robot", "heavy"])
+    assert result.exit_code == 0, result.output
+    runs = read_dataset(log, robot="heavy")
+    for run in (r for rs in runs.values() for r in (rs if isinstance(rs, list) else [rs])):
+        cmd = run.command
+        top = (cmd[:, 1] == 0.0) & (cmd[:, 0] >= 0.7 * 1.6 - 1e-9) & (cmd[:, 0] <= 1.6 + 1e-9)
+        assert top.sum() >= 100  # several 5-8 s holds at 1.12-1.6 m/s
+    profile = tmp_path / "p.npz"
+    result = CliRunner().invoke(app, ["train", str(log), "-o", str(profile), "--robot", "heavy", "--points", "40",
+                                      "--iters", "5", "--grid-nodes", "0", "--steady-points", "10"])
+    assert result.exit_code == 0, result.output
+    model = GPModel.load(profile)
+    assert model.train_x.shape == (40, 4) and "--steady-points 10" in model.made_by
+    held = model.train_x[-10:]  # the steady inputs come last: settled rows, so the speed is near its command's
+    assert np.median(np.abs(held[:, 2] - np.minimum(held[:, 0], 1.6))) < 0.1
+    csv = tmp_path / "r.csv"
+    csv.write_text("cmd_lin,cmd_ang,curr_lin,curr_ang,Gravel_Lin_Error,Gravel_Ang_Error\n"
+                   + "".join(f"{0.1 * i},0,{0.1 * i},0,0.01,0\n" for i in range(20)))
+    theta = tmp_path / "theta.json"
+    theta.write_text(json.dumps({"theta": [0.3, 0.4, 0.0, 1.0, 0.2, 1.0]}))
+    result = CliRunner().invoke(app, ["train", str(csv), "-o", str(tmp_path / "c.npz"), "--theta", str(theta),
+                                      "--steady-points", "5", "--points", "10", "--iters", "2"])
+    assert result.exit_code == 2 and "--steady-points needs logs with time series" in result.output
+    assert not (tmp_path / "c.npz").exists()

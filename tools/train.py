@@ -289,6 +289,9 @@ def register(app: typer.Typer) -> None:
                 raise DataError(f"--holdout must be in [0, 1), got {holdout}")
             check_calibration_data(calibration_log or [], data)
             sets, th, ed, held, runs = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
+            if steady_points and runs is None:
+                raise DataError("--steady-points needs logs with time series (how long each command was held); a "
+                                "residual CSV has none")
             calibration_only = calibration_log_runs(calibration_log or [], data, list(sets), terrain, dt, robot)
             # the calibration's data: the training logs' runs, then the calibration logs' (the GP never sees these)
             calibration_runs = None if runs is None else {
