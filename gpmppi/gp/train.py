@@ -15,11 +15,12 @@ that terrain's `LOCAL_NEIGHBOURS` nearest samples (standardized input distance):
 that exists for every terrain at every centre and also averages out measurement noise.
 
 Steady inputs (`steady_points`, 0 by default: then nothing changes). The GP's inputs lack the plant's hidden states
-(the motors' integrators), so a settled held command and a transient through the same (command, velocity) have
+(the motors' integrators), so a settled held command and a transient through the same (command, velocity) can have
 different residuals, and the excitation's rows are mostly transient: in steady driving near the top speed the GP is
 off by several novelty spreads (gpmppi/terrain/steady_bias.py). With `steady_points` K, K of the inputs are the
 k-means centres of the pooled settled rows (the command held `STEADY_HELD_S` or longer), each terrain's target there
-the mean of its `STEADY_NEIGHBOURS` nearest settled rows; the other inputs are chosen as before.
+the mean of its `STEADY_NEIGHBOURS` nearest settled rows; the other inputs are chosen as before. Measured, it does not
+remove that bias (docs/terrain_identification.md, "Steady driving near the top speed"): an option to try per robot.
 """
 
 from __future__ import annotations
