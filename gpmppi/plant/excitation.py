@@ -355,8 +355,9 @@ def drive(
     limit = max_time if max_time is not None else 20.0 * distance + 600.0
     plant.set_terrain(terrain)
     plant.reset(np.zeros(5))
+    # the top speed is only read when top holds are asked for: other plants (the residual net) have no `robot`
     exc = Excitation(seed=seed, dt=dt, lane_holds=lane_holds, top_holds=top_holds,
-                     top_speed=float(plant.robot.max_speed))
+                     top_speed=float(plant.robot.max_speed) if top_holds > 0.0 else None)
     states, trues, cmds = [], [], []
     travelled = 0.0
     true = plant.state()
