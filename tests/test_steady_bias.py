@@ -125,7 +125,7 @@ def test_gpmppi_dataset_top_holds_and_train_steady_points_from_the_command_line(
     log = tmp_path / "top.mcap"
     heavy = str(root / "docs/robots/heavy_wide.yaml")
     result = CliRunner().invoke(app, [
-        "dataset", "-o", str(log), "--terrain-file", heavy, "-t", "gravel", "-t", "mulch", "--distance", "120",
+        "dataset", "-o", str(log), "--terrain-file", heavy, "-t", "gravel", "-t", "mulch", "--distance", "300",
         "--seed", "1", "--top-holds", "0.5", "--robot", "heavy"])
     assert result.exit_code == 0, result.output
     runs = read_dataset(log, robot="heavy")
