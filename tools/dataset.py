@@ -92,6 +92,10 @@ def register(app: typer.Typer) -> None:
             0.0, "--lane-holds", min=0.0, max=0.9,
             help="share of the segments that are long holds (5-8 s) where the planner drives (v_ref 0.8-1.8 m/s, "
                  "|omega_ref| <= 0.8 rad/s), for the terrain calibration's steady map; 0: the plain excitation"),
+        top_holds: float = typer.Option(
+            0.0, "--top-holds", min=0.0, max=1.0,
+            help="chance of a straight hold near the robot's top speed (0.7-1.0 x max_speed, 5-8 s) added after each "
+                 "segment, its metres on top of --distance (the plain segments stay as they are); 0: none"),
         force: bool = typer.Option(False, "--force", help="replace an existing --output file"),
     ) -> None:
         """Drive the physics plant with random excitation over terrains; record state, cmd and labels."""
@@ -110,7 +114,7 @@ def register(app: typer.Typer) -> None:
             tasks = {name: progress.add_task(name, total=int(distance)) for name in terrain}
             runs = simulate_dataset(
                 terrains, list(terrain), distance=distance, seed=seed, dt=DATASET_DT, lane_holds=lane_holds,
-                progress=lambda name, d: progress.update(tasks[name], completed=int(d)),
+                top_holds=top_holds, progress=lambda name, d: progress.update(tasks[name], completed=int(d)),
             )
         simulated = time.perf_counter() - started
         ticks = write_dataset(output, runs, robot)

@@ -243,6 +243,10 @@ def register(app: typer.Typer) -> None:
                  "(default: 0.2; 0 with --test-data, which is then the held-out set, and with --hyperparameters)")
         ] = None,
         points: Annotated[int, typer.Option(min=1, help="number of shared GP training inputs")] = 300,
+        steady_points: Annotated[int, typer.Option(
+            min=0, help="of the --points inputs, this many at rows whose command was held 2 s or more (k-means of "
+                        "those rows; targets their local mean): the GP's steady states (0: inputs chosen over all "
+                        "rows alike)")] = 0,
         iters: Annotated[int, typer.Option(min=0, help="Adam iterations of the hyperparameter fit")] = 200,
         seed: Annotated[int, typer.Option(min=0, help="seed of k-means, the holdout split and the fit")] = 0,
         dt: Annotated[float, typer.Option(min=0.001, max=10.0, help="sampling step of the data [s]")] = 0.1,
@@ -285,6 +289,9 @@ def register(app: typer.Typer) -> None:
                 raise DataError(f"--holdout must be in [0, 1), got {holdout}")
             check_calibration_data(calibration_log or [], data)
             sets, th, ed, held, runs = build_training_sets(data, terrain, theta, edd5, dt, robot, seed)
+            if steady_points and runs is None:
+                raise DataError("--steady-points needs logs with time series (how long each command was held); a "
+                                "residual CSV has none")
             calibration_only = calibration_log_runs(calibration_log or [], data, list(sets), terrain, dt, robot)
             # the calibration's data: the training logs' runs, then the calibration logs' (the GP never sees these)
             calibration_runs = None if runs is None else {
@@ -301,6 +308,7 @@ def register(app: typer.Typer) -> None:
             model, report = train_model(
                 sets, th, ed, dt=dt, points=points, iters=iters, seed=seed,
                 hyperparameters=_load_json(hyperparameters, "hyperparameter"), holdout=hold, test_sets=test_sets,
+                steady_points=steady_points,
             )
             if grid_nodes is not None and (grid_nodes == 1 or grid_nodes < 0):
                 raise DataError(f"--grid-nodes must be 0 (no stored grid) or at least 2, got {grid_nodes}")
@@ -313,7 +321,7 @@ def register(app: typer.Typer) -> None:
                 {"terrain": c.terrain, "samples": c.samples, "commands_covered": c.command_covered,
                  "states_covered": c.state_covered, "held_commands": c.held} for c in coverage]}
             model.made_by = train_command([str(p) for p in data], str(output), robot, terrain, points, iters, seed,
-                                          holdout, [str(p) for p in calibration_log or []])
+                                          holdout, [str(p) for p in calibration_log or []], steady_points)
             if calibration_runs is not None:
                 model.fit_report["logs"] = {  # which logs fed what
                     "training": [str(p) for p in data], "calibration_only": [str(p) for p in calibration_log or []],

@@ -13,6 +13,14 @@ centre), so targets are measured values. Otherwise (terrain logs driven separate
 are the k-means centres of the pooled data and each terrain's target at a centre is the mean of
 that terrain's `LOCAL_NEIGHBOURS` nearest samples (standardized input distance): a local average
 that exists for every terrain at every centre and also averages out measurement noise.
+
+Steady inputs (`steady_points`, 0 by default: then nothing changes). The GP's inputs lack the plant's hidden states
+(the motors' integrators), so a settled held command and a transient through the same (command, velocity) can have
+different residuals, and the excitation's rows are mostly transient: in steady driving near the top speed the GP is
+off by several novelty spreads (gpmppi/terrain/steady_bias.py). With `steady_points` K, K of the inputs are the
+k-means centres of the pooled settled rows (the command held `STEADY_HELD_S` or longer), each terrain's target there
+the mean of its `STEADY_NEIGHBOURS` nearest settled rows; the other inputs are chosen as before. Measured, it does not
+remove that bias (docs/terrain_identification.md, "Steady driving near the top speed"): an option to try per robot.
 """
 
 from __future__ import annotations
@@ -31,6 +39,8 @@ from gpmppi.models.dynamic_unicycle import velocity_step_exact
 from gpmppi.models.lateral_slip import N_LATERAL, body_lateral_velocity, fit_lateral_slip
 
 LOCAL_NEIGHBOURS = 3
+STEADY_HELD_S = 2.0  # a row counts as settled once its command has been held this long [s]
+STEADY_NEIGHBOURS = 5  # settled rows averaged into a steady input's target
 
 
 @dataclass
@@ -41,6 +51,24 @@ class Transitions:
     residual: np.ndarray
     next_vw: np.ndarray | None = None  # measured next (v, omega), when known
     lateral_slip: np.ndarray | None = None  # (a, b) of `gpmppi.models.lateral_slip`, when poses were logged
+    held_s: np.ndarray | None = None  # (N,) how long each row's command had been held [s], when a time series
+
+    def rows(self, mask: np.ndarray) -> Transitions:
+        """The rows of `mask` (inputs, residuals and, when known, how long each command had been held)."""
+        return Transitions(self.x[mask], self.residual[mask],
+                           held_s=None if self.held_s is None else self.held_s[mask])
+
+
+def held_seconds(v_ref: np.ndarray, w_ref: np.ndarray, seg: np.ndarray, dt: float) -> np.ndarray:
+    """(n,) per tick, how long its command had been held (unchanged within 1e-4 in the same segment) [s]: 0 at a
+    change."""
+    vr, wr, sg = (np.asarray(a) for a in (v_ref, w_ref, seg))
+    same = np.zeros(len(vr), dtype=bool)
+    same[1:] = (sg[1:] == sg[:-1]) & (np.abs(np.diff(vr)) < 1e-4) & (np.abs(np.diff(wr)) < 1e-4)
+    # ticks since the last change: a running count reset where `same` is False
+    idx = np.arange(len(vr))
+    last_change = np.maximum.accumulate(np.where(same, 0, idx))
+    return (idx - last_change) * dt
 
 
 @dataclass
@@ -147,7 +175,9 @@ def prepare_from_series(
         v, w, vr, wr, vn, wn = one_step_pairs(s["v"], s["w"], s["v_ref"], s["w_ref"], segment_ids=np.asarray(s["seg"]))
         x = np.column_stack([vr, wr, v, w])
         nxt = np.column_stack([vn, wn])
-        sets[t] = Transitions(x, residual_targets(theta, x, nxt, dt), nxt, fit_lateral_from_series(s, dt))
+        held = held_seconds(s["v_ref"], s["w_ref"], s["seg"], dt)
+        held_k = one_step_pairs(held, held, s["v_ref"], s["w_ref"], segment_ids=np.asarray(s["seg"]))[0]
+        sets[t] = Transitions(x, residual_targets(theta, x, nxt, dt), nxt, fit_lateral_from_series(s, dt), held_k)
     if edd5 is None:
         edd5 = {t: identify_edd5(s.x[:, 0], s.x[:, 1], s.next_vw[:, 0], s.next_vw[:, 1], seed=seed)
                 for t, s in sets.items()}
@@ -185,12 +215,40 @@ def _shared_inputs(sets: dict[str, Transitions]) -> bool:
     return all(x.shape == xs[0].shape and np.array_equal(x, xs[0]) for x in xs[1:])
 
 
+def steady_inputs(sets: dict[str, Transitions], points: int, seed: int,
+                  scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x (k, 4), y (2M, k)): `points` k-means centres of the pooled settled rows (module docstring), each terrain's
+    target the mean residual of its `STEADY_NEIGHBOURS` nearest settled rows (`scale`: the inputs' scale)."""
+    missing = [t for t, s in sets.items() if s.held_s is None]
+    if missing:
+        raise ValueError(f"steady inputs need time series (how long each command was held); {missing} have none")
+    settled = {t: s.x[s.held_s >= STEADY_HELD_S] for t, s in sets.items()}
+    short = [t for t, x in settled.items() if len(x) < STEADY_NEIGHBOURS]
+    if short:
+        raise ValueError(f"steady inputs: terrains {short} have fewer than {STEADY_NEIGHBOURS} rows with the command "
+                         f"held {STEADY_HELD_S:g} s or longer")
+    pooled = np.concatenate(list(settled.values()))
+    km = KMeans(n_clusters=min(points, len(pooled)), random_state=seed, n_init=1).fit(pooled / scale)
+    ys = []
+    for t, s in sets.items():
+        res = s.residual[s.held_s >= STEADY_HELD_S]
+        nbr = NearestNeighbors(n_neighbors=STEADY_NEIGHBOURS).fit(settled[t] / scale).kneighbors(
+            km.cluster_centers_, return_distance=False)
+        ys.append(res[nbr].mean(axis=1).T)
+    return km.cluster_centers_ * scale, np.concatenate(ys, axis=0)
+
+
 def select_training_data(
-    sets: dict[str, Transitions], points: int, seed: int
+    sets: dict[str, Transitions], points: int, seed: int, steady_points: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(train_x (n, 4), train_y (2M, n)) with shared inputs (see the module docstring)."""
+    """(train_x (n, 4), train_y (2M, n)) with shared inputs (see the module docstring); `steady_points` of them at
+    settled rows (0: none)."""
+    if not 0 <= steady_points < points:
+        raise ValueError(f"steady points {steady_points} must be in [0, {points})")
     terrains = list(sets)
     if _shared_inputs(sets):
+        if steady_points:
+            raise ValueError("steady inputs need time series (how long each command was held); the data has none")
         x = sets[terrains[0]].x
         if len(x) <= points:
             idx = np.arange(len(x))
@@ -203,7 +261,7 @@ def select_training_data(
         return x[idx].copy(), np.concatenate(ys, axis=0)
     pooled = np.concatenate([s.x for s in sets.values()])
     scale = pooled.std(0) + 1e-9
-    n_clusters = min(points, len(pooled))
+    n_clusters = min(points - steady_points, len(pooled))
     km = KMeans(n_clusters=n_clusters, random_state=seed, n_init=1).fit(pooled / scale)
     centres = km.cluster_centers_
     ys = []
@@ -212,6 +270,9 @@ def select_training_data(
         k = min(LOCAL_NEIGHBOURS, len(s.x))
         nbr = NearestNeighbors(n_neighbors=k).fit(s.x / scale).kneighbors(centres, return_distance=False)
         ys.append(s.residual[nbr].mean(axis=1).T)  # (2, n)
+    if steady_points:
+        sx, sy = steady_inputs(sets, steady_points, seed, scale)
+        return np.concatenate([centres * scale, sx]), np.concatenate([np.concatenate(ys, axis=0), sy], axis=1)
     return centres * scale, np.concatenate(ys, axis=0)
 
 
@@ -274,8 +335,8 @@ def split_holdout(
         else:
             mask = rng.random(len(s.x)) < fraction
             first_mask = mask
-        train[t] = Transitions(s.x[~mask], s.residual[~mask])
-        held[t] = Transitions(s.x[mask], s.residual[mask])
+        train[t] = s.rows(~mask)
+        held[t] = s.rows(mask)
         if len(train[t].x) == 0:
             raise ValueError(f"terrain {t!r}: no training data left after holding out {fraction:.0%}")
     return train, held
@@ -292,8 +353,10 @@ def train_model(
     hyperparameters: dict | None = None,
     holdout: float = 0.2,
     test_sets: dict[str, Transitions] | None = None,
+    steady_points: int = 0,
 ) -> tuple[GPModel, FitReport]:
-    """Fit the GP batch to per-terrain residual transitions; return the model and its fit report."""
+    """Fit the GP batch to per-terrain residual transitions; return the model and its fit report. `steady_points`:
+    of the `points` inputs, this many at settled rows (module docstring; 0: none)."""
     if not sets:
         raise ValueError("no terrain data to train on")
     for t, s in sets.items():
@@ -311,7 +374,7 @@ def train_model(
     terrains = list(sets)
     tasks = task_names(terrains)
     train_sets, held = split_holdout(sets, 0.0 if test_sets is not None else holdout, seed)
-    train_x, train_y = select_training_data(train_sets, points, seed)
+    train_x, train_y = select_training_data(train_sets, points, seed, steady_points)
     loss, clipped = None, 0
     if hyperparameters is not None:  # the paper's procedure: its hyperparameters, its targets as they are
         hp = hyperparameters_from_json(hyperparameters, tasks)

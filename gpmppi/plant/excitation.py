@@ -12,6 +12,11 @@ driving with moderate turning), and the jumpy commands MPPI produces:
 Optionally (`lane_holds`, off by default so the default stream is unchanged) a share of the segments are long holds
 where the planner drives (`LANE_V` x `LANE_OMEGA`): the terrain estimator's steady map must be right to about
 1 mrad/s there, and the holds at random commands leave 2-6 (docs/terrain_identification.md, "Calibration from logs").
+Optionally too (`top_holds`, off by default) straight holds near the robot's top speed are added between the segments
+(`TOP_HOLD_SHARES` of `top_speed`, held `TOP_HOLD_S`): the GP's one-step error where the lanes drive steadily near
+the top speed is what the terrain filter and the novelty test read there (gpmppi/terrain/steady_bias.py). They are
+drawn from a random stream of their own and leave the command the next segment starts from as it was, so the other
+segments are the plain stream's, and `drive` counts the distance of those alone.
 
 Array form of a run (agreed with the trainer): per tick k at t_k = k dt, `state[k]` is the measured
 `[X, Y, yaw, v, omega]` at t_k and `command[k]` the `[v_ref, omega_ref]` applied over [t_k, t_k + dt).
@@ -33,6 +38,8 @@ SEGMENT_PROBS = (0.35, 0.2, 0.15, 0.3)
 LANE_V = (0.8, 1.8)  # forward-speed commands of the planner's lanes [m/s]
 LANE_OMEGA = 0.8  # ... and their largest |yaw-rate command| [rad/s]
 LANE_HOLD_S = (5.0, 8.0)  # (shortest, longest) lane hold [s]: settled, then averaged for 3.4-6.4 s
+TOP_HOLD_SHARES = (0.7, 1.0)  # a top hold's v command, as shares of the top speed (omega_ref 0)
+TOP_HOLD_S = (5.0, 8.0)  # (shortest, longest) top hold [s]: the motors settle in 1-3 s
 
 
 class Excitation:
@@ -40,10 +47,13 @@ class Excitation:
 
     def __init__(
         self, seed: int = 0, dt: float = 0.1, v_max: float = 2.0, w_max: float = np.pi,
-        hold_s: tuple[float, float] = (0.5, 4.0), lane_holds: float = 0.0,
+        hold_s: tuple[float, float] = (0.5, 4.0), lane_holds: float = 0.0, top_holds: float = 0.0,
+        top_speed: float | None = None,
     ) -> None:
         if not 0.0 <= lane_holds < 1.0:
             raise ValueError(f"lane_holds {lane_holds}: the share of lane holds must be in [0, 1)")
+        if not 0.0 <= top_holds <= 1.0:
+            raise ValueError(f"top_holds {top_holds}: the chance of a top hold after a segment must be in [0, 1]")
         self.rng = np.random.default_rng(seed)
         self.dt = dt
         self.v_max = v_max
@@ -51,6 +61,11 @@ class Excitation:
         self.hold_s = hold_s  # (shortest, longest) held command [s]
         self.lane_holds = lane_holds  # share of the segments that are lane holds (LANE_V, LANE_OMEGA, LANE_HOLD_S)
         self.current = np.zeros(2)
+        self.top_holds = top_holds  # chance of a top hold added after each segment (TOP_HOLD_SHARES, TOP_HOLD_S)
+        self.top_speed = float(top_speed) if top_speed is not None else v_max  # the robot's top speed [m/s]
+        # a stream of their own: the other segments' draws are the plain stream's whatever top_holds is
+        self._top_rng = np.random.default_rng([seed, 1]) if top_holds > 0.0 else None
+        self.extra = False  # whether the last segment handed out was an added top hold
 
     def _random_command(self) -> np.ndarray:
         if self.rng.random() < 0.5:  # uniform over the box
@@ -76,7 +91,21 @@ class Excitation:
         # no draw at all when off: the default stream (and the shipped GP's data) stays as it was
         return self.lane_holds > 0.0 and bool(self.rng.random() < self.lane_holds)
 
+    def top_hold(self) -> np.ndarray:
+        """A straight hold near the top speed (TOP_HOLD_SHARES of `top_speed`, within v_max) for TOP_HOLD_S, from
+        the top holds' own stream. `current` is left as it was: the next segment starts from the command before."""
+        assert self._top_rng is not None
+        lo, hi = (min(s * self.top_speed, self.v_max) for s in TOP_HOLD_SHARES)
+        v = self._top_rng.uniform(lo, hi)
+        n = max(1, int(round(self._top_rng.uniform(*TOP_HOLD_S) / self.dt)))
+        return np.tile([v, 0.0], (n, 1))
+
     def next_segment(self) -> np.ndarray:
+        # a top hold after a plain segment, never two in a row
+        if self._top_rng is not None and not self.extra and self._top_rng.random() < self.top_holds:
+            self.extra = True
+            return self.top_hold()
+        self.extra = False
         return self.lane_hold() if self.lane_hold_next() else self.random_segment()
 
     def random_segment(self) -> np.ndarray:
@@ -316,15 +345,19 @@ def drive(
     max_time: float | None = None,
     progress: Callable[[float], None] | None = None,
     lane_holds: float = 0.0,
+    top_holds: float = 0.0,
 ) -> TerrainRun:
-    """Drive `plant` on `terrain` with excitation commands (`lane_holds`: `Excitation`'s) until `distance` metres are
-    covered."""
+    """Drive `plant` on `terrain` with excitation commands (`lane_holds`, `top_holds`: `Excitation`'s, the top speed
+    the plant's `max_speed`) until the plain segments have covered `distance` metres (the added top holds' metres
+    come on top)."""
     if not distance > 0:
         raise ValueError(f"distance must be positive, got {distance}")
     limit = max_time if max_time is not None else 20.0 * distance + 600.0
     plant.set_terrain(terrain)
     plant.reset(np.zeros(5))
-    exc = Excitation(seed=seed, dt=dt, lane_holds=lane_holds)
+    # the top speed is only read when top holds are asked for: other plants (the residual net) have no `robot`
+    exc = Excitation(seed=seed, dt=dt, lane_holds=lane_holds, top_holds=top_holds,
+                     top_speed=float(plant.robot.max_speed) if top_holds > 0.0 else None)
     states, trues, cmds = [], [], []
     travelled = 0.0
     true = plant.state()
@@ -336,7 +369,8 @@ def drive(
             trues.append(true)
             cmds.append(cmd)
             nxt = plant.step(cmd, dt)
-            travelled += float(np.hypot(nxt[0] - true[0], nxt[1] - true[1]))
+            if not exc.extra:
+                travelled += float(np.hypot(nxt[0] - true[0], nxt[1] - true[1]))
             true = nxt
             if progress is not None:
                 progress(min(travelled, distance))
@@ -355,12 +389,14 @@ def simulate_dataset(
     noise: bool = True,
     progress: Callable[[str, float], None] | None = None,
     lane_holds: float = 0.0,
+    top_holds: float = 0.0,
 ) -> dict[str, TerrainRun]:
     """One run per terrain (default: every terrain but sand).
 
     Every terrain gets the same excitation command stream (seeded by `seed`; matched commands, as in
     the paper's data, so terrain differences are not confounded with different inputs) and its own
-    sensor-noise seed. `lane_holds`: `Excitation`'s share of long holds where the planner drives (0: none).
+    sensor-noise seed. `lane_holds`: `Excitation`'s share of long holds where the planner drives (0: none);
+    `top_holds`: its chance of a straight hold near the top speed added after a segment (0: none).
     """
     names = names if names is not None else [n for n in terrains.names if n != "sand"]
     runs: dict[str, TerrainRun] = {}
@@ -368,7 +404,8 @@ def simulate_dataset(
         terrains.get(name)
         plant = PhysicsPlant(terrains, name, seed=seed * 1000 + i, noise=noise)
         cb = (lambda d, _n=name: progress(_n, d)) if progress is not None else None
-        runs[name] = drive(plant, name, distance, seed=seed, dt=dt, progress=cb, lane_holds=lane_holds)
+        runs[name] = drive(plant, name, distance, seed=seed, dt=dt, progress=cb, lane_holds=lane_holds,
+                           top_holds=top_holds)
     return runs
 
 
