@@ -27,7 +27,8 @@ from zenoh_helpers import (
     wait_for,
 )
 
-from gpmppi.plant.excitation import MIN_AREA_M, Area, TerrainRun
+from gpmppi.plant.area_excitation import MIN_AREA_M, Area
+from gpmppi.plant.excitation import TerrainRun
 from schemas import BaseCommand, Command, EStop, Header, State, TerrainLabel, decode, encode
 from services.launch.launch_file import DEFAULT_LAUNCH
 from services.recording.mcap_io import read_messages

@@ -8,8 +8,9 @@ import hashlib
 import numpy as np
 import pytest
 
+from gpmppi.plant.area_excitation import Area, AreaExcitation, predict_path
 from gpmppi.plant.calibration_drive import CalibrationDrive, DriveConfig
-from gpmppi.plant.excitation import LANE_HOLD_S, LANE_OMEGA, LANE_V, Area, AreaExcitation, Excitation, predict_path
+from gpmppi.plant.excitation import LANE_HOLD_S, LANE_OMEGA, LANE_V, Excitation
 from gpmppi.plant.physics import PhysicsPlant
 from gpmppi.plant.terrains import load_terrains
 

@@ -21,7 +21,8 @@ from tools.cli_checks import OUT_DIR, fail
 
 GROUND_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")  # it names files and keys
 PROGRESS_EVERY_S = 10.0
-# gpmppi.plant.excitation.MIN_AREA_M, not imported: the command tree is built without numba (tests check they agree)
+# gpmppi.plant.area_excitation.MIN_AREA_M, not imported: the command tree is built without numba (tests check they
+# agree)
 MIN_AREA_M = 6.0
 ESTOP_HOLD_S = 0.6  # after Ctrl-C: egress's zero reaches the base and the recorder before the stack stops
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import BaseModel, Field, model_validator
 
-from gpmppi.plant.excitation import MIN_AREA_M, Area, AreaExcitation
+from gpmppi.plant.area_excitation import MIN_AREA_M, Area, AreaExcitation
 
 NS = 1_000_000_000
 
