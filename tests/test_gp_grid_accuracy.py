@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cached_models import shipped_model
+from torch_threads import one_torch_thread
 
 from gpmppi.gp.grid import GridPredictor
 from gpmppi.gp.grid_interp import simplex_interp_point
@@ -50,7 +51,8 @@ def gpytorch_predict(model: GPModel, x: np.ndarray) -> tuple[np.ndarray, np.ndar
     m.likelihood.noise = torch.as_tensor(model.noise).reshape(t, 1)
     m.eval()
     means, variances = [], []
-    with torch.no_grad(), gpytorch.settings.fast_pred_var(False), gpytorch.settings.max_cholesky_size(10_000):
+    with (torch.no_grad(), gpytorch.settings.fast_pred_var(False), gpytorch.settings.max_cholesky_size(10_000),
+          one_torch_thread()):
         for start in range(0, len(x), 500):
             f = m(torch.as_tensor(x[start : start + 500]).expand(t, -1, 4).contiguous())
             means.append(f.mean.numpy().T)
