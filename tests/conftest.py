@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import threadpoolctl
 
 # Python's byte-code cache on, for this run and every process it starts: where the environment sets
 # PYTHONDONTWRITEBYTECODE (some images do), no .pyc is written, and each of the suite's hundreds of processes (its
@@ -30,6 +31,15 @@ sys.dont_write_bytecode = False
 # tests/test_train_calibration_log.py (-n 0; 2891 collections), 1.1 s at these thresholds (59 collections).
 # No test waits on a collection: every resource is closed where it is used.
 gc.set_threshold(20_000, 20, 20)
+
+# One BLAS thread in each test process and in every process it starts. numpy's and scipy's OpenBLAS start a thread per
+# core for a large enough product or solve, and those threads spin while they wait for each other; with three workers
+# and their services on two cores they mostly wait: under that load a 120 x 120 solve cost 4.7 ms of CPU with two
+# threads against 0.09 ms with one, and `synthetic_model()` 0.62 against 0.09 CPU s (docs/development.md). The
+# environment variable is read when a process loads OpenBLAS (the services, the CLI runs and the compiles in processes
+# of their own); this process loaded it before this file (a pytest plugin imports numpy), so it is set here as well.
+os.environ["OPENBLAS_NUM_THREADS"] = "1"
+threadpoolctl.threadpool_limits(limits=1, user_api="blas")
 
 REPO = Path(__file__).resolve().parents[1]
 

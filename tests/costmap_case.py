@@ -8,11 +8,11 @@ import json
 import sys
 
 import numpy as np
+from cached_models import synthetic_model
 
 from gpmppi.costmap import Costmap
 from gpmppi.mppi import backends
 from gpmppi.mppi.planner import Planner, PlannerConfig
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.tasks import GoalTask
 
 ONLY_COSTMAP = {name: {"enabled": False} for name in ("variance", "collision", "goal", "terminal")}

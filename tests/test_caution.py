@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import shipped_model
 
-from gpmppi.gp.model_file import load_default_model
 from gpmppi.mppi.caution import cautious_task
 from gpmppi.mppi.cycle import Planned, PlannerCycle
 from gpmppi.mppi.cycle_config import CycleConfig
@@ -64,7 +64,7 @@ def test_caution_applies_only_while_the_ground_is_unknown() -> None:
 
 def test_the_extra_variance_tightens_a_real_plans_lane() -> None:
     sc = circle_lane()
-    planner = Planner(PlannerConfig(samples=64, horizon=20, seed=0), load_default_model())
+    planner = Planner(PlannerConfig(samples=64, horizon=20, seed=0), shipped_model())
     w = np.array([0.0, 1.0, 0.0])
     plain = planner.plan(sc.start, sc.task, w).tightened
     planner.reset()
@@ -81,7 +81,7 @@ def test_a_goal_is_approached_slower_while_the_ground_is_unknown() -> None:
     itself is unchanged."""
     sc = paper_obstacle_scene()
     cfg = CycleConfig()
-    planner = Planner(PlannerConfig(samples=64, horizon=20, seed=0), load_default_model())
+    planner = Planner(PlannerConfig(samples=64, horizon=20, seed=0), shipped_model())
     cycle = PlannerCycle(planner, sc.task, cfg, 3, clock=lambda: 0.0)
     x = np.array([6.9, 3.6, 1.0, 1.3, 0.4])  # 1.4 m before the goal at 1.3 m/s: where a colliding trial turned in
     speeds = {}
@@ -127,7 +127,7 @@ def test_the_goal_bound_rises_with_the_distance_and_leaves_plans_below_it_unchan
     far = GoalTask(sc.task.goal, sc.task.tolerance, sc.task.obstacles, approach_speed=1.0, approach_decel=2.0)
     plans = []
     for task in (sc.task, far):
-        planner = Planner(PlannerConfig(samples=64, horizon=20, seed=0), load_default_model())
+        planner = Planner(PlannerConfig(samples=64, horizon=20, seed=0), shipped_model())
         plans.append(planner.plan(sc.start, task, np.full(3, 1 / 3)))
     assert far.speed_bound(sc.start[:2]) > 2.0
     assert plans[0].controls.tobytes() == plans[1].controls.tobytes() and plans[0].cost == plans[1].cost

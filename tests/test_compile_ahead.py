@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 
 from gpmppi.mppi import compile_ahead
 from gpmppi.mppi.planner import Planner, PlannerConfig
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane
 
 

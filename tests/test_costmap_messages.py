@@ -116,10 +116,11 @@ def test_the_planner_service_plans_among_a_grid_and_refuses_bad_ones(tmp_path: P
 
 
 def test_a_new_grid_keeps_the_warm_start_and_is_prepared_between_states() -> None:
+    from cached_models import synthetic_model
+
     from gpmppi.mppi.cycle import Planned, PlannerCycle
     from gpmppi.mppi.cycle_config import CycleConfig
     from gpmppi.mppi.planner import Planner, PlannerConfig
-    from gpmppi.mppi.synthetic import synthetic_model
     from gpmppi.scenarios import paper_obstacle_scene
 
     scene = paper_obstacle_scene()

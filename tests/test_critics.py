@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 from nominal_scoring import kernel_cost, record_nominal_scoring
 
 from gpmppi.mppi import backends
 from gpmppi.mppi.bundles import CRITICS, TaskBundle
 from gpmppi.mppi.planner import Planner, PlannerConfig
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene
 
 W = np.array([0.5, 0.3, 0.2])

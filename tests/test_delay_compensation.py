@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import shipped_model
 
 from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
 from gpmppi.evaluation.metrics import lane_rmse_mm
-from gpmppi.gp.model_file import load_default_model
 from gpmppi.mppi.dynamics import predict_ahead, propagate
 from gpmppi.mppi.planner import Planner, PlannerConfig
 from gpmppi.plant.physics import PhysicsPlant
@@ -24,7 +24,7 @@ def _model(planner: Planner, w: np.ndarray) -> tuple:
 
 
 def test_unicycle_prediction_follows_the_arc_of_the_held_command() -> None:
-    planner = Planner(PlannerConfig(dynamics="unicycle"), load_default_model())
+    planner = Planner(PlannerConfig(dynamics="unicycle"), shipped_model())
     w = np.full(3, 1 / 3)
     v, om, d = 1.2, 0.8, 0.25
     x0 = np.array([1.0, -2.0, 0.3, 0.0, 0.0])
@@ -38,7 +38,7 @@ def test_unicycle_prediction_follows_the_arc_of_the_held_command() -> None:
 
 
 def test_gp_prediction_of_one_substep_is_one_propagation_step() -> None:
-    planner = Planner(PlannerConfig(), load_default_model())
+    planner = Planner(PlannerConfig(), shipped_model())
     w = np.array([0.6, 0.3, 0.1])
     model = _model(planner, w)
     x0 = np.array([0.5, 0.2, -0.4, 0.9, 0.3])
@@ -52,7 +52,7 @@ def test_gp_prediction_of_one_substep_is_one_propagation_step() -> None:
 
 
 def test_gp_prediction_spreads_the_step_residual_over_the_delay() -> None:
-    planner = Planner(PlannerConfig(), load_default_model())
+    planner = Planner(PlannerConfig(), shipped_model())
     w = np.array([0.0, 1.0, 0.0])
     model = _model(planner, w)
     x0 = np.array([0.0, 0.0, 0.0, 1.0, 0.5])
@@ -72,7 +72,7 @@ def test_gp_prediction_spreads_the_step_residual_over_the_delay() -> None:
 
 
 def test_planner_plans_from_the_predicted_state_with_the_last_command() -> None:
-    model = load_default_model()
+    model = shipped_model()
     task = circle_lane().task
     x0 = np.array([8.25, 0.0, np.pi / 2, 0.8, 0.1])
     p = Planner(PlannerConfig(samples=256, seed=3), model)
@@ -94,7 +94,7 @@ def test_planner_plans_from_the_predicted_state_with_the_last_command() -> None:
 
 @pytest.mark.parametrize("bad", [-0.01, float("nan"), float("inf"), 100.0])
 def test_an_impossible_delay_is_refused_naming_it(bad: float) -> None:
-    p = Planner(PlannerConfig(samples=64), load_default_model())
+    p = Planner(PlannerConfig(samples=64), shipped_model())
     with pytest.raises(ValueError, match="delay_s"):
         p.plan(np.array([8.25, 0.0, np.pi / 2, 0.0, 0.0]), circle_lane().task, delay_s=bad)
 
@@ -103,7 +103,7 @@ def test_an_impossible_delay_is_refused_naming_it(bad: float) -> None:
 def test_compensation_recovers_tracking_under_command_latency() -> None:
     """150 ms of command latency on the circle (physics plant, asphalt): planning for the state the command meets
     tracks markedly better than planning from the measured one (measured: 30.6 against 46.6 mm, 4 seeds)."""
-    model = load_default_model()
+    model = shipped_model()
     sc = circle_lane()
 
     def rmse(compensate: bool, seed: int) -> float:

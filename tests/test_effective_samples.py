@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 from scipy.special import softmax
 
 from gpmppi.mppi.backends import effective_sample_size
 from gpmppi.mppi.planner import Planner, PlannerConfig
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane
 from schemas.messages import Plan
 from services.planner_outputs import plan_message

@@ -53,9 +53,9 @@ TIMING = ("planner_ms_mean", "planner_ms_p95")
 
 
 def _terrain() -> str:
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
 
-    return load_default_model().terrains[0]
+    return shipped_model().terrains[0]
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -17,9 +17,9 @@ SHORT = EvalSettings(lane_distance_m=15.0, samples=512)
 
 
 def _terrain() -> str:
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
 
-    return load_default_model().terrains[0]
+    return shipped_model().terrains[0]
 
 
 def test_gp_beats_unicycle_on_a_short_circle() -> None:

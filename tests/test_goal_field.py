@@ -101,10 +101,11 @@ def test_goal_term_selects_straight_line_or_field() -> None:
 def test_a_planners_plans_do_not_depend_on_fields_other_planners_built() -> None:
     """A fresh planner plans the same whatever another planner of the process planned the same scene from before
     (the shared field cache once kept the first caller's extent, so plans depended on the process's history)."""
+    from cached_models import synthetic_model
+
     from gpmppi.mppi import goal_field
     from gpmppi.mppi.planner import Planner, PlannerConfig
     from gpmppi.mppi.recent import Recent
-    from gpmppi.mppi.synthetic import synthetic_model
     from gpmppi.scenarios import paper_obstacle_scene
 
     sc = paper_obstacle_scene()

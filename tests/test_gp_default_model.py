@@ -5,16 +5,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import shipped_model
 
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.grid import GridPredictor
-from gpmppi.gp.model_file import DEFAULT_MODEL_PATH, load_default_model
+from gpmppi.gp.model_file import DEFAULT_MODEL_PATH
 from gpmppi.gp.train import residual_targets
 
 
 @pytest.fixture(scope="module")
 def model():
-    return load_default_model()
+    return shipped_model()
 
 
 def test_default_model_is_shipped_small_and_complete(model) -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from torch_threads import one_torch_thread
 from typer.testing import CliRunner
 
 from gpmppi.gp.fit import Hyperparameters, clip_outliers, fit_hyperparameters, nn_noise_variance
@@ -67,10 +68,11 @@ def _plain_mll_fit(x: np.ndarray, y: np.ndarray, iters: int = 300) -> Hyperparam
     m.train()
     opt = torch.optim.Adam(m.parameters(), lr=0.05)
     mll = gpytorch.mlls.ExactMarginalLogLikelihood(m.likelihood, m)
-    for _ in range(iters):
-        opt.zero_grad()
-        (-mll(m(xt), yt)).sum().backward()
-        opt.step()
+    with one_torch_thread():  # as `fit_hyperparameters` fits (tests/torch_threads.py)
+        for _ in range(iters):
+            opt.zero_grad()
+            (-mll(m(xt), yt)).sum().backward()
+            opt.step()
     return Hyperparameters(m.covar_module.base_kernel.lengthscale.detach().numpy().reshape(t, 4).copy(),
                            m.covar_module.outputscale.detach().numpy() * scale**2,
                            m.likelihood.noise.detach().numpy().reshape(t) * scale**2)

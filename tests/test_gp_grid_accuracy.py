@@ -11,11 +11,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cached_models import shipped_model
+from torch_threads import one_torch_thread
 
 from gpmppi.gp.grid import GridPredictor
 from gpmppi.gp.grid_interp import simplex_interp_point
 from gpmppi.gp.grid_table import DEFAULT_SPACING, build_grid, grid_dims, model_grid_dims
-from gpmppi.gp.model_file import GPModel, load_default_model
+from gpmppi.gp.model_file import GPModel
 
 
 def gpytorch_predict(model: GPModel, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,7 +51,8 @@ def gpytorch_predict(model: GPModel, x: np.ndarray) -> tuple[np.ndarray, np.ndar
     m.likelihood.noise = torch.as_tensor(model.noise).reshape(t, 1)
     m.eval()
     means, variances = [], []
-    with torch.no_grad(), gpytorch.settings.fast_pred_var(False), gpytorch.settings.max_cholesky_size(10_000):
+    with (torch.no_grad(), gpytorch.settings.fast_pred_var(False), gpytorch.settings.max_cholesky_size(10_000),
+          one_torch_thread()):
         for start in range(0, len(x), 500):
             f = m(torch.as_tensor(x[start : start + 500]).expand(t, -1, 4).contiguous())
             means.append(f.mean.numpy().T)
@@ -91,7 +94,7 @@ def test_node_counts_follow_the_smallest_lengthscale_per_axis() -> None:
 
 
 def test_built_grid_is_sized_by_the_rule() -> None:
-    model = load_default_model()
+    model = shipped_model()
     dims = model_grid_dims(model, 0.5)
     g = build_grid(model, spacing=0.5)
     assert g.dims == dims and g.table.shape == (*dims, 2 * model.n_tasks)
@@ -107,12 +110,12 @@ def test_built_grid_is_sized_by_the_rule() -> None:
 
 
 def test_shipped_model_stores_a_grid_sized_by_the_rule() -> None:
-    model = load_default_model()
+    model = shipped_model()
     assert model.has_stored_grid() and model.grid().dims == model_grid_dims(model)
 
 
 def test_shipped_grid_within_one_percent_of_gpytorch_on_every_task() -> None:
-    _check_grid_accuracy(load_default_model(), seed=21)
+    _check_grid_accuracy(shipped_model(), seed=21)
 
 
 @pytest.fixture(scope="module")
@@ -182,7 +185,7 @@ def test_shipped_grid_mean_is_within_a_third_std_of_the_exact_gp_at_closed_loop_
     from gpmppi.evaluation.runner import EvalSettings, Job, run_job
     from gpmppi.scenarios import circle_lane, square_lane
 
-    model = load_default_model()
+    model = shipped_model()
     inputs = []
     for lane in (circle_lane(), square_lane()):
         _, trajs = run_job(Job("tracking", lane, "tile", "gp", (3,), record=True, label="lane"),

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from torch_threads import one_torch_thread
 from typer.testing import CliRunner
 
 from tools.cli import app
@@ -47,7 +48,7 @@ def _gpytorch_reference(train_x, train_y, hp: dict, test_x) -> tuple[np.ndarray,
     m.likelihood.noise = torch.as_tensor(noise).reshape(t, 1)
     m.eval()
     means, variances = [], []
-    with torch.no_grad(), gpytorch.settings.fast_pred_var(False):
+    with torch.no_grad(), gpytorch.settings.fast_pred_var(False), one_torch_thread():
         for start in range(0, len(test_x), 100):  # chunks: large batched predictions are memory hungry
             xc = torch.as_tensor(test_x[start : start + 100]).expand(t, -1, 4).contiguous()
             f = m(xc)

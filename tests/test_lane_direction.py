@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 
 from gpmppi.mppi.bundles import N_COST_TERMS, TaskBundle
 from gpmppi.mppi.costs import stage_cost
 from gpmppi.mppi.critics.registry import layout
 from gpmppi.mppi.lane import LaneLookup, build_lane_lookup, lane_query
 from gpmppi.mppi.planner import Planner, PlannerConfig
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene, square_lane
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 
 from gpmppi.gp.model_file import GPModel, ModelFileError
 from gpmppi.gp.train import fit_lateral_from_series
@@ -11,7 +12,6 @@ from gpmppi.models.dynamic_unicycle import nominal_step
 from gpmppi.models.lateral_slip import body_lateral_velocity, fit_lateral_slip, lateral_features, lateral_velocity
 from gpmppi.mppi.dynamics import DYN_GP, advance, velocity_coefficients
 from gpmppi.mppi.planner import Planner, PlannerConfig
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.plant.physics import PhysicsPlant
 from gpmppi.plant.terrains import load_terrains
 

@@ -39,8 +39,10 @@ def _in_process_rmse(duration_s: float, latency_s: float) -> float:
     the stack's median state -> command latency, so the comparison isolates what Zenoh and the
     process split add.
     """
+    from cached_models import shipped_model
+
     from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
-    from gpmppi.gp.model_file import GPModel, load_default_model
+    from gpmppi.gp.model_file import GPModel
     from gpmppi.mppi.planner import Planner, PlannerConfig
     from gpmppi.plant.physics import PhysicsPlant
     from gpmppi.plant.terrains import load_terrains
@@ -48,7 +50,7 @@ def _in_process_rmse(duration_s: float, latency_s: float) -> float:
 
     # the services take GPMPPI_MODEL_FILE from the environment (settings override), so the reference does too
     path = os.environ.get("GPMPPI_MODEL_FILE")
-    model = GPModel.load(path) if path else load_default_model()
+    model = GPModel.load(path) if path else shipped_model()
     scenario = circle_lane()
     rmse = []
     for seed in range(5):

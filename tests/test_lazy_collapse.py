@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import shipped_model
 from numba import njit
 
-from gpmppi.gp.model_file import load_default_model
 from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.mppi.config import PlannerConfig
 from gpmppi.mppi.gp_table import collapse_into, collapse_table, collapse_weights, rollout_order, terrain_rows
@@ -30,7 +30,7 @@ from gpmppi.scenarios import circle_lane
 
 @pytest.fixture(scope="module")
 def model():
-    return load_default_model()
+    return shipped_model()
 
 
 def _closed_loop(model, steps: int = 12, prepare: bool = False, **config) -> tuple[Planner, np.ndarray]:

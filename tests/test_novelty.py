@@ -97,11 +97,13 @@ def test_bad_calibrations_are_refused_and_a_profile_without_one_takes_the_stated
 
 
 def test_a_profile_keeps_its_novelty_calibration_and_one_without_loads_with_the_default(tmp_path) -> None:  # noqa: ANN001
-    from gpmppi.gp.model_file import GPModel, load_default_model
+    from cached_models import shipped_model
+
+    from gpmppi.gp.model_file import GPModel
     from gpmppi.terrain.estimator import make_estimator
     from gpmppi.terrain.settings import EstimatorConfig
 
-    shipped = load_default_model()  # made before the test: no calibration of its own
+    shipped = shipped_model()  # made before the test: no calibration of its own
     assert shipped.novelty is None
     est = make_estimator(shipped, EstimatorConfig())
     assert est.novelty.calibration is DEFAULT_CALIBRATION  # type: ignore[union-attr]

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import shipped_model
 
-from gpmppi.gp.model_file import load_default_model
 from gpmppi.plant.physics import PhysicsPlant
 from gpmppi.plant.terrains import load_terrains
 from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig
@@ -26,7 +26,7 @@ def _command(t: float) -> np.ndarray:
 
 @pytest.mark.parametrize("new_ground", ["sand"])
 def test_cycle_flags_a_switch_to_a_ground_the_profile_was_not_trained_on(new_ground: str) -> None:
-    model = load_default_model()
+    model = shipped_model()
     plant = PhysicsPlant(load_terrains(None), "grass", seed=4, noise=True)
     plant.reset(np.zeros(5))
     cycle = TerrainCycle(TerrainCycleConfig(pairing="stamp"), model.n_terrains,
@@ -58,7 +58,7 @@ def test_a_model_swapped_in_while_unknown_says_known_again_with_the_ground_it_id
     new model has explained a whole window, and the ground then on top is the one under the robot (grass here)."""
     from services.terrain import Settings, _swapped_estimator
 
-    model = load_default_model()
+    model = shipped_model()
     plant = PhysicsPlant(load_terrains(None), "grass", seed=5, noise=True)
     plant.reset(np.array([0.0, 0.0, 0.0, 1.0, 0.0]))
     est = _swapped_estimator(model, Settings(), unknown=True)
@@ -86,7 +86,7 @@ def test_starts_from_rest_and_watchdog_stops_are_not_taken_for_new_ground() -> N
     a tick late (the estimator sees 0 while the robot already moves), and under load egress's watchdog stops the
     robot and the planner starts it again. Those steps' residuals are 10-15 spreads; the test holds off over them
     (`NoveltyTest.transient`, `SETTLE_STEPS`) and P(unknown) stays below 0.5 on the trained ground."""
-    model = load_default_model()
+    model = shipped_model()
     plant = PhysicsPlant(load_terrains(None), "asphalt", seed=6, noise=True)
     plant.reset(np.zeros(5))
     est = make_estimator(model, EstimatorConfig())

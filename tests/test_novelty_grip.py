@@ -93,7 +93,9 @@ def test_calibration_puts_the_enter_level_at_the_logs_quantile() -> None:
 
 
 def test_the_profile_record_is_versioned_and_one_made_before_takes_the_stated_default(tmp_path) -> None:  # noqa: ANN001
-    from gpmppi.gp.model_file import GPModel, load_default_model
+    from cached_models import shipped_model
+
+    from gpmppi.gp.model_file import GPModel
     from gpmppi.terrain.estimator import make_estimator
     from gpmppi.terrain.settings import EstimatorConfig
 
@@ -114,7 +116,7 @@ def test_the_profile_record_is_versioned_and_one_made_before_takes_the_stated_de
     with pytest.raises(ValueError, match="horizon_steps"):
         FreeRunCalibration(0, 20, (0.03, 0.02), 6.0, 0.8)
 
-    model = load_default_model()
+    model = shipped_model()
     assert make_estimator(model, EstimatorConfig()).free_run.calibration is DEFAULT_FREE_RUN  # type: ignore[union-attr]
     model.novelty = new
     model.save(tmp_path / "p.npz")
@@ -147,7 +149,8 @@ def lane_commands(after_steps: int = 30, corners: int = 1) -> np.ndarray:
 
 def _p_unknown(ground: str, free_run: bool, channels: list[str] | None = None, commands: np.ndarray | None = None,
                back_at: int | None = None, grip_demand: float = 1.2, active: list[bool] | None = None) -> np.ndarray:
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
+
     from gpmppi.plant.physics import PhysicsPlant
     from gpmppi.plant.terrains import load_terrains
     from gpmppi.terrain.estimator import make_estimator
@@ -155,7 +158,7 @@ def _p_unknown(ground: str, free_run: bool, channels: list[str] | None = None, c
 
     plant = PhysicsPlant(load_terrains("tests/data/new_grounds.yaml"), "asphalt", seed=0, noise=True)
     plant.reset(np.zeros(5))
-    est = make_estimator(load_default_model(), EstimatorConfig(novelty_free_run=free_run,
+    est = make_estimator(shipped_model(), EstimatorConfig(novelty_free_run=free_run,
                                                                novelty_grip_demand=grip_demand))
     x = plant.measure()
     p = []

@@ -7,6 +7,7 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 
 from gpmppi.gp.grid_table import grid_axes, predict_dense
 from gpmppi.gp.model_file import GPModel
@@ -20,7 +21,6 @@ from gpmppi.gp.online_ground import (
     next_name,
 )
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.profile.response import TerrainResponse
 from gpmppi.profile.terrain_calibration import TerrainCalibration
 from gpmppi.terrain.estimator import make_estimator

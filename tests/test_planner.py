@@ -6,12 +6,12 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 from scipy.stats import chi2
 
 from gpmppi.gp.model_file import GPModel, GridTable
 from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.mppi.planner import Planner, PlannerConfig
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import circle_lane, paper_obstacle_scene
 from gpmppi.tasks import GoalTask, LaneTask
 
@@ -252,9 +252,9 @@ def test_acceleration_limits_and_smoothing_shape_the_sequence() -> None:
 def test_prepare_collapses_ahead_and_plans_are_unchanged() -> None:
     """`prepare` (what the service calls when weights arrive) does the table collapse before the state comes;
     the plan that follows is bit-identical to one that collapsed for itself."""
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
 
-    model = load_default_model()
+    model = shipped_model()
     task = circle_lane().task
     x = np.array([8.25, 0.0, np.pi / 2, 0.5, 0.0])
     w = np.array([0.2, 0.7, 0.1])

@@ -193,15 +193,16 @@ def test_silent_weights_are_flagged_stale_then_replaced_by_the_prior() -> None:
 def test_the_closed_loop_runs_this_cycle() -> None:
     """A seeded closed loop (physics plant, terrain estimator, command latency) and the same cycle driven by hand
     from its measured states give identical commands and weights, bit for bit."""
+    from cached_models import shipped_model
+
     from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
-    from gpmppi.gp.model_file import load_default_model
     from gpmppi.mppi.planner import Planner, PlannerConfig
     from gpmppi.plant.physics import PhysicsPlant
     from gpmppi.plant.terrains import load_terrains
     from gpmppi.scenarios import circle_lane
     from gpmppi.terrain.least_squares import TerrainEstimator
 
-    model = load_default_model()
+    model = shipped_model()
     sc = circle_lane()
     from gpmppi.terrain.cycle import TerrainCycleConfig
 
@@ -331,10 +332,11 @@ def test_the_warm_start_follows_the_states_stamps_across_a_lost_state() -> None:
     """States lost between two plans (an ingress that took over, a state dropped under load): the next plan starts
     from the last plan's sequence shifted by the steps its stamps say have gone by, not by one step per plan, so it
     is not a step behind the robot; a state one dt later (with jitter) shifts one step, as always."""
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
+
     from gpmppi.mppi.planner import Planner, PlannerConfig
 
-    model = load_default_model()
+    model = shipped_model()
     planner = Planner(PlannerConfig(samples=32, horizon=8, seed=5), model)
     spy = WarmStartSpy(planner)
     cycle = PlannerCycle(spy, LANE, CycleConfig(compensate_delay=False), len(model.terrains), clock=lambda: 0.0)
@@ -360,10 +362,11 @@ def test_the_warm_start_follows_the_states_stamps_across_a_lost_state() -> None:
 
 
 def test_catch_up_drops_the_steps_gone_by_beyond_one() -> None:
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
+
     from gpmppi.mppi.planner import Planner, PlannerConfig
 
-    planner = Planner(PlannerConfig(samples=32, horizon=6, seed=5), load_default_model())
+    planner = Planner(PlannerConfig(samples=32, horizon=6, seed=5), shipped_model())
     u = np.column_stack([np.linspace(0.5, 1.0, 6), np.linspace(-0.5, 0.0, 6)])
     planner._nominal = u.copy()
     for elapsed in (0.0, 0.05, 0.1, 0.149, float("nan")):  # one dt or less (or unknown): the plan's own shift only

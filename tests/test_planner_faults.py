@@ -67,9 +67,9 @@ def _state(
 # their arrivals here (now on the planner's own clock)
 @pytest.mark.exclusive
 def test_planner_refuses_bad_states_flags_silent_terrain_and_resets_on_jumps(tmp_path: Path) -> None:
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
 
-    terrains = list(load_default_model().terrains)
+    terrains = list(shipped_model().terrains)
     port = free_port()
     cfg = settings(
         "planner", port, heartbeat_hz=10.0, weights_stale_after_s=0.6, weights_fallback_after_s=1.6,

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 
 from gpmppi.mppi.bundles import ModelBundle
 from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, propagate
 from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table
 from gpmppi.mppi.planner import Planner, PlannerConfig
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.scenarios import paper_obstacle_scene
 
 

@@ -126,7 +126,8 @@ def test_planner_service_announces_a_cold_compile_and_plans_as_the_cycle(
 def test_cache_check_needs_the_manifest_and_every_kernel_it_lists(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
+
     from gpmppi.mppi.planner import Planner, PlannerConfig
     from gpmppi.scenarios import circle_lane
 
@@ -136,7 +137,7 @@ def test_cache_check_needs_the_manifest_and_every_kernel_it_lists(
     estimate, source = kernel_cache.compile_estimate_s(label)
     assert estimate == kernel_cache.REFERENCE_COMPILE_S and "2 cores" in source
     sc = circle_lane()
-    Planner(PlannerConfig(samples=64, backend="cpu"), load_default_model()).plan(sc.start, sc.task, delay_s=0.01)
+    Planner(PlannerConfig(samples=64, backend="cpu"), shipped_model()).plan(sc.start, sc.task, delay_s=0.01)
     use = kernel_cache.kernels_used({}, kernel_cache.cache_counts())  # everything this process loaded or compiled
     names = {**use.loaded, **use.compiled}
     assert any(name.endswith(":rollout_worker") for name in names), names

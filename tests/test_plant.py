@@ -271,9 +271,10 @@ def test_residual_net_reproduces_the_paper_residuals_in_csv_order(jackal: Path) 
 def test_residual_net_plant_runs_the_deployed_command_path(tmp_path: Path) -> None:
     """Egress sends at 20 Hz, the network steps at 0.1 s: the plant holds, per step, the command active at its start
     (a base sampling its input at its own rate), and every egress output is still scored as the base's command."""
+    from cached_models import synthetic_model
+
     from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
     from gpmppi.mppi.planner import Planner, PlannerConfig
-    from gpmppi.mppi.synthetic import synthetic_model
     from gpmppi.safety import SafetyConfig
     from gpmppi.scenarios import circle_lane
 

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cached_models import shipped_model, synthetic_model
 from conftest import FAST_TRAIN, PROFILE_GROUNDS
 from test_terrain_bayes import _history
 from typer.testing import CliRunner
 
-from gpmppi.gp.model_file import DEFAULT_MODEL_PATH, GPModel, ModelFileError, load_default_model
-from gpmppi.mppi.synthetic import synthetic_model
+from gpmppi.gp.model_file import DEFAULT_MODEL_PATH, GPModel, ModelFileError
 from gpmppi.profile.response import SHIPPED_RESPONSE
 from gpmppi.profile.terrain_calibration import TerrainCalibration
 from gpmppi.terrain.estimator import make_estimator
@@ -124,7 +124,7 @@ def test_an_incomplete_calibration_is_refused(tmp_path: Path) -> None:
 
 
 def test_the_shipped_profile_carries_a_calibration_of_its_grounds_and_names_what_made_it() -> None:
-    m = load_default_model()
+    m = shipped_model()
     assert m.file_version == 2 and m.robot == "jackal" and sorted(m.terrains) == ["asphalt", "grass", "tile"]
     assert m.calibration is not None and m.calibration.terrains == tuple(m.terrains)
     assert np.all(np.isfinite(m.calibration.command_gain)) and np.any(m.calibration.command_gain != 0)

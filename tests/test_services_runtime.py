@@ -126,10 +126,11 @@ def test_process_settings_lower_priority_and_set_numba_threads() -> None:
 
 
 def test_terrain_comes_up_with_the_prior_then_solves_from_stamp_paired_commands(tmp_path: Path) -> None:
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
+
     from gpmppi.models.dynamic_unicycle import velocity_step_exact
 
-    model = load_default_model()
+    model = shipped_model()
     port = free_port()
     with router(port):
         observer = client(port)

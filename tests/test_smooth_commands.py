@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 from pydantic import ValidationError
 from scipy.signal import savgol_filter
 from scipy.special import softmax
@@ -16,7 +17,6 @@ from gpmppi.models.kinematic_unicycle import kinematic_step
 from gpmppi.mppi import backends
 from gpmppi.mppi.planner import Planner, PlannerConfig, savgol_matrix
 from gpmppi.mppi.rng import noise_memory, sampled_noise, standard_noise
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.mppi.temperature import temperature_for_effective_samples
 from gpmppi.scenarios import circle_lane
 

@@ -90,13 +90,14 @@ def test_the_shipped_gp_is_off_by_spreads_in_steady_driving_at_the_top_speed() -
     under-predicts the steady speed by 2-3 novelty spreads (docs/terrain_identification.md, "Steady driving near the
     top speed"), at 1.8 m/s by less than one; and steady asphalt and tile read alike (within 0.5 spreads of each
     other under either GP), so a straight cannot tell them apart."""
-    from gpmppi.gp.model_file import load_default_model
+    from cached_models import shipped_model
+
     from gpmppi.plant.terrains import load_terrains
     from gpmppi.terrain.steady_bias import steady_bias, top_speed_commands
 
     terrains = load_terrains()
     np.testing.assert_allclose(top_speed_commands(terrains, (0.9, 1.0)), [1.8, 2.0])
-    bias = steady_bias(load_default_model(), terrains, [1.8, 2.0])
+    bias = steady_bias(shipped_model(), terrains, [1.8, 2.0])
     assert bias.terrains == ("asphalt", "grass", "tile")
     own_v = bias.own[:, :, 0]
     assert np.all(own_v[1] > 2.0) and np.all(own_v[1] < 3.5)
@@ -106,7 +107,7 @@ def test_the_shipped_gp_is_off_by_spreads_in_steady_driving_at_the_top_speed() -
     assert np.all(np.abs(bias.in_spreads[:, asphalt, :, 0] - bias.in_spreads[:, tile, :, 0]) < 0.5)
     np.testing.assert_allclose(bias.speed[1], [1.999, 1.958, 1.997], atol=0.002)
     with pytest.raises(ValueError, match="lacks the model's grounds"):
-        steady_bias(load_default_model(), load_terrains(Path(__file__).parents[1] / "docs/robots/heavy_wide.yaml"),
+        steady_bias(shipped_model(), load_terrains(Path(__file__).parents[1] / "docs/robots/heavy_wide.yaml"),
                     [1.0])
 
 

@@ -8,11 +8,11 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from cached_models import shipped_model
 
 from gpmppi.evaluation import task_runs
 from gpmppi.evaluation.closed_loop import ClosedLoopConfig, run_closed_loop
 from gpmppi.evaluation.task_runs import TaskRun, run_for
-from gpmppi.gp.model_file import load_default_model
 from gpmppi.mppi import task_kinds
 from gpmppi.mppi.bundles import TaskBundle
 from gpmppi.mppi.caution import CautionConfig, cautious_task
@@ -88,7 +88,7 @@ def waypoint_kind(monkeypatch):  # noqa: ANN001, ANN201
 
 @pytest.fixture(scope="module")
 def model():  # noqa: ANN201
-    return load_default_model()
+    return shipped_model()
 
 
 def test_a_new_task_kind_plugs_in(model, waypoint_kind) -> None:  # noqa: ANN001

@@ -6,11 +6,11 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 
 from gpmppi.gp.exact import ExactPredictor
 from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.terrain.least_squares import TerrainEstimator
 
 

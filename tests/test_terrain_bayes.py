@@ -9,13 +9,13 @@ from functools import lru_cache
 
 import numpy as np
 import pytest
+from cached_models import shipped_model, synthetic_model
 from pydantic import ValidationError
 
 from gpmppi.evaluation.metrics import true_weight_mean, unidentified_share, weight_switches_per_min
 from gpmppi.gp.exact import ExactPredictor
-from gpmppi.gp.model_file import GPModel, load_default_model
+from gpmppi.gp.model_file import GPModel
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
-from gpmppi.mppi.synthetic import synthetic_model
 from gpmppi.terrain.estimator import BayesTerrainEstimator, make_estimator
 from gpmppi.terrain.least_squares import TerrainEstimator
 from gpmppi.terrain.separability import replay, replay_named
@@ -419,7 +419,7 @@ def _closed_loop_steps(terrain: str, update: str) -> tuple[np.ndarray, np.ndarra
 @pytest.mark.parametrize("update", ["smooth", "paper"])
 @pytest.mark.parametrize("terrain", ["tile", "asphalt", "grass"])
 def test_recorded_physics_plant_transitions_identify_the_training_terrain(terrain: str, update: str) -> None:
-    model = load_default_model()
+    model = shipped_model()
     times, states, cmds, driven = _closed_loop_steps(terrain, update)
     config = EstimatorConfig() if update == "smooth" else EstimatorConfig(gp_max_speed_gap=float("inf"))
     weights, named = replay_named(make_estimator(model, config), states, cmds)

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from cached_models import shipped_model
 from pydantic import ValidationError
 
 from gpmppi.evaluation.deployed import DeployFileError, deployed_path
-from gpmppi.gp.model_file import load_default_model
 from gpmppi.safety import SafetyConfig
 from gpmppi.terrain.cycle import TerrainCycle, TerrainCycleConfig
 from gpmppi.terrain.estimator import make_estimator
@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def model():
-    return load_default_model()
+    return shipped_model()
 
 
 def _cycle(model, **config: object) -> TerrainCycle:

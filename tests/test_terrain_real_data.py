@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cached_models import shipped_model
 from typer.testing import CliRunner
 
 from gpmppi.gp.exact import ExactPredictor
-from gpmppi.gp.model_file import load_default_model
 from gpmppi.terrain.real_data import ONE_STEP_ONLY, ResidualTable, read_residual_table, window_scores
 from gpmppi.terrain.settings import EstimatorConfig
 from tools.cli import app
@@ -20,7 +20,7 @@ runner = CliRunner()
 
 def _table_of_gp_means(n: int = 120, seed: int = 3) -> ResidualTable:
     """Rows whose every ground's residual is exactly that ground's GP mean (plus a little noise)."""
-    model = load_default_model()
+    model = shipped_model()
     rng = np.random.default_rng(seed)
     inputs = np.column_stack([rng.uniform(0.5, 1.8, n), rng.uniform(-1.5, 1.5, n), rng.uniform(0.4, 1.8, n),
                               rng.uniform(-1.5, 1.5, n)])
@@ -30,7 +30,7 @@ def _table_of_gp_means(n: int = 120, seed: int = 3) -> ResidualTable:
 
 
 def test_windows_of_a_grounds_own_predictions_pick_that_ground() -> None:
-    model = load_default_model()
+    model = shipped_model()
     table = _table_of_gp_means()
     scores = window_scores(model, table, window=30, trials=8, seed=0, config=EstimatorConfig(**ONE_STEP_ONLY))
     assert set(scores) == set(model.terrains)
@@ -41,7 +41,7 @@ def test_windows_of_a_grounds_own_predictions_pick_that_ground() -> None:
 
 def test_a_table_with_another_grounds_residuals_does_not_pick_the_label() -> None:
     """Swap two grounds' residuals: the labels now point at the wrong rows, so the 'true' weight collapses."""
-    model = load_default_model()
+    model = shipped_model()
     table = _table_of_gp_means()
     a, b = model.terrains[0], model.terrains[1]
     swapped = ResidualTable(table.inputs, {**table.residuals, a: table.residuals[b], b: table.residuals[a]})

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from cached_models import shipped_model
 from scipy.interpolate import RegularGridInterpolator
 from typer.testing import CliRunner
 
-from gpmppi.gp.model_file import load_default_model
 from gpmppi.plant.physics import PhysicsPlant
 from gpmppi.plant.terrains import load_terrains
 from gpmppi.profile.response import SHIPPED_RESPONSE, TerrainResponse, load_response
@@ -76,7 +76,7 @@ def test_the_shipped_response_is_what_the_fit_command_writes(tmp_path: Path) -> 
     result = CliRunner().invoke(app, ["evaluate", "terrain-response", "-o", str(out)])
     assert result.exit_code == 0, result.output
     shipped, fitted = load_response(SHIPPED_RESPONSE), load_response(out)
-    assert fitted.terrains == shipped.terrains == tuple(load_default_model().terrains)
+    assert fitted.terrains == shipped.terrains == tuple(shipped_model().terrains)
     np.testing.assert_array_equal(fitted.steady, shipped.steady)
     np.testing.assert_array_equal(fitted.rate, shipped.rate)
     # what makes it useful: at a held turn the terrains settle apart (asphalt's skid moment resists turning, tile
@@ -102,7 +102,7 @@ def _held_drive(terrain: str, command: tuple[float, float], seconds: float, seed
 
 @pytest.mark.parametrize("terrain", ["asphalt", "grass", "tile"])
 def test_a_held_command_is_identified_by_its_response(terrain: str) -> None:
-    model = load_default_model()
+    model = shipped_model()
     rows = _held_drive(terrain, (1.3, 0.6), 12.0, seed=4)
     with_response = make_estimator(model)
     for row in rows:
@@ -113,7 +113,7 @@ def test_a_held_command_is_identified_by_its_response(terrain: str) -> None:
 
 def test_the_gp_alone_misreads_steady_asphalt() -> None:
     # why the response is there: at a held command the GP's one-step residuals point away from asphalt
-    model = load_default_model()
+    model = shipped_model()
     gp_only = make_estimator(model, EstimatorConfig(response="none"))
     for row in _held_drive("asphalt", (1.3, 0.6), 12.0, seed=4):
         gp_only.observe(*row)
@@ -125,7 +125,7 @@ def test_anchored_to_the_steady_map_the_gp_alone_reads_a_held_command_right(terr
     # `gp_anchor` takes out of each terrain's GP mean its bias at that terrain's measured steady state: the GP evidence
     # alone (no response scored) then leads with the terrain driven on where, unanchored, it all but rules it out
     # (measured: asphalt 0.07 -> 0.66, tile 0.04 -> 0.58)
-    model = load_default_model()
+    model = shipped_model()
     i = list(model.terrains).index(terrain)
     rows = _held_drive(terrain, (1.3, 0.6), 12.0, seed=4)
     weights = {}
@@ -143,7 +143,7 @@ def test_the_anchor_leaves_the_novelty_test_its_unanchored_residuals() -> None:
     # without it (the anchor's correction taken back out), not the correction twice over, which read a held command
     # on a trained ground as unknown ground (a 45 kg mulch launch replayed with the anchor: P(unknown) > 0.5 for 29 %
     # of the time, none without it)
-    model = load_default_model()
+    model = shipped_model()
     rows = _held_drive("asphalt", (1.3, 0.6), 6.0, seed=4)
     tests = {}
     for anchor in (False, True):
@@ -160,7 +160,7 @@ def test_the_anchor_leaves_the_novelty_test_its_unanchored_residuals() -> None:
 
 
 def test_a_skipped_transition_re_anchors_the_response() -> None:
-    model = load_default_model()
+    model = shipped_model()
     est = make_estimator(model)
     assert isinstance(est, BayesTerrainEstimator)
     rows = _held_drive("tile", (1.0, 0.3), 2.0, seed=5)
@@ -186,13 +186,13 @@ def test_bad_response_files_fail_naming_the_file_and_the_fix(tmp_path: Path) -> 
     only.write_text(r.select(["asphalt"]).to_yaml())
     with pytest.raises(ValueError, match=r"response_file .*only_asphalt.yaml: no response for terrain\(s\) "
                                          r"\['grass', 'tile'\].*gpmppi evaluate terrain-response"):
-        make_estimator(load_default_model(), EstimatorConfig(response_file=str(only)))
+        make_estimator(shipped_model(), EstimatorConfig(response_file=str(only)))
 
 
 def test_jittery_commands_leave_the_response_unscored() -> None:
     # under commands that jump every step (the paper's update) a first-order response's average is biased: the filter
     # scores the GP evidence alone, exactly as with response: none
-    model = load_default_model()
+    model = shipped_model()
     plant = PhysicsPlant(load_terrains(), "grass", seed=6)
     plant.reset(np.zeros(5))
     rng = np.random.default_rng(6)
@@ -237,7 +237,7 @@ def test_a_command_off_the_grid_adds_no_response_evidence(tmp_path: Path) -> Non
                              shipped.rate)
     path = tmp_path / "narrow.yaml"
     path.write_text(narrow.to_yaml())
-    model = load_default_model()
+    model = shipped_model()
     est = make_estimator(model, EstimatorConfig(response_file=str(path)))
     assert isinstance(est, BayesTerrainEstimator)
     for row in _held_drive("tile", (1.0, 0.6), 5.0, seed=7):
@@ -280,7 +280,7 @@ def test_a_start_from_rest_is_not_read_as_asphalt(terrain: str, accel: float) ->
     # while the robot accelerates from rest its PI integrators and torque limit are far from where the GP and the
     # response were fitted: scored anyway, the first 1.5 s read as asphalt on every terrain (ungated below); gated
     # (the default), they add little evidence and none of it points away from the terrain driven on
-    model = load_default_model()
+    model = shipped_model()
     i_true, i_asphalt = list(model.terrains).index(terrain), list(model.terrains).index("asphalt")
     posteriors = {}
     for name, fields in (("default", {}), ("ungated", UNGATED)):
@@ -299,7 +299,7 @@ def test_a_start_from_rest_is_not_read_as_asphalt(terrain: str, accel: float) ->
 
 
 def test_the_start_gates_score_nothing_until_the_robot_is_up_to_speed() -> None:
-    model = load_default_model()
+    model = shipped_model()
     est = make_estimator(model)
     ungated = make_estimator(model, EstimatorConfig(**UNGATED))
     assert isinstance(est, BayesTerrainEstimator) and isinstance(ungated, BayesTerrainEstimator)
@@ -327,7 +327,7 @@ def test_the_response_settles_after_a_start_before_it_is_scored() -> None:
     # response_settle_steps: after the last step the start gate held, the response's free run and average go on but
     # add no evidence for that many steps (the swerves right after a start, which its first-order omega misreads);
     # until then the posterior is the GP evidence's alone, after it the response speaks
-    model = load_default_model()
+    model = shipped_model()
     rows = _start_from_rest("asphalt", 100.0, seed=2)  # a step command: the gate holds the first steps
     rows += _held_drive_from(rows[-1][2], "asphalt", (1.5, -0.8), 3.0, seed=2)
     settled = make_estimator(model, EstimatorConfig(response_settle_steps=12))

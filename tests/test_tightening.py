@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from cached_models import synthetic_model
 from scipy.stats import chi2, norm
 
 from gpmppi.models.dynamic_unicycle import jacobian, nominal_step
@@ -11,7 +12,6 @@ from gpmppi.mppi.bundles import ModelBundle
 from gpmppi.mppi.costs import ChanceQuantiles, inflate_obstacles, tighten_lane
 from gpmppi.mppi.dynamics import DYN_GP, GP_GRID, propagate
 from gpmppi.mppi.gp_table import TABLE_AXES, collapse_table
-from gpmppi.mppi.synthetic import synthetic_model
 
 
 def _random_covs(n: int, seed: int, scale: float = 0.05) -> np.ndarray:

@@ -90,12 +90,12 @@ def test_the_warm_up_leaves_the_plans_as_a_fresh_planner_makes_them() -> None:
     """`Planner.warm_up` ends in `reset`: the plans after it are a fresh planner's, to the bit (the table collapsed
     for the warm-up's weights is collapsed again for the live ones)."""
     import numpy as np
+    from cached_models import shipped_model
 
-    from gpmppi.gp.model_file import load_default_model
     from gpmppi.mppi.planner import Planner, PlannerConfig
     from gpmppi.scenarios import circle_lane
 
-    model, sc = load_default_model(), circle_lane()
+    model, sc = shipped_model(), circle_lane()
     config = PlannerConfig(samples=128, seed=3)
     warmed, fresh = Planner(config, model), Planner(config, model)
     warmed.warm_up(sc.start, sc.task)
