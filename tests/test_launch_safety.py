@@ -414,3 +414,17 @@ def test_recording_twice_to_one_path_keeps_the_first(tmp_path: Path, monkeypatch
     assert made.parent == runs and re.fullmatch(r"run-\d{8}-\d{6}\.mcap", made.name)
     assert len(list(read_messages(made))) > 0
     assert record.read_bytes() == before
+
+
+def test_wait_for_endpoint_probes_tcp_and_tls_ports_and_times_out_on_a_closed_one() -> None:
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+        for kind in ("tcp", "tls"):
+            wait_for_endpoint(f"{kind}/127.0.0.1:{port}", timeout_s=2.0)  # returns: the port accepts
+    for kind in ("tcp", "tls"):  # nothing listens there now
+        start = time.monotonic()
+        with pytest.raises(TimeoutError, match=f"{kind}/127.0.0.1:{port}"):
+            wait_for_endpoint(f"{kind}/127.0.0.1:{port}", timeout_s=0.3)
+        assert time.monotonic() - start >= 0.3

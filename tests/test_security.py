@@ -36,10 +36,10 @@ def _router_process(secrets: Path, listen: list[str], tmp_path: Path) -> Service
     cfg = {"service": "router", "listen": listen, "router_config_file": str(secrets / "router.json5")}
     proc = ServiceProcess("router", cfg, tmp_path)
     try:
-        # Every listener, the TLS one too (a TCP probe of its port): a client that connects over TLS before the router
-        # has bound that port fails, which the tcp listener's readiness alone does not rule out under load.
+        # Every listener, the TLS one too: a client that connects over TLS before the router has bound that port
+        # fails, which the tcp listener's readiness alone does not rule out under load.
         for listener in listen:
-            wait_for_endpoint("tcp/" + listener.split("/", 1)[1], timeout_s=20.0)
+            wait_for_endpoint(listener, timeout_s=20.0)
     except TimeoutError:
         proc.stop()
         raise AssertionError(proc.log()[-2000:]) from None

@@ -145,13 +145,15 @@ def readable(line: str) -> str:
 
 
 def wait_for_endpoint(endpoint: str, timeout_s: float) -> None:
-    """Wait until a tcp/<host>:<port> endpoint accepts connections."""
+    """Wait until a tcp/<host>:<port> or tls/<host>:<port> endpoint accepts connections (TLS runs over TCP, so its
+    port is probed the same way); any other kind of endpoint is given 0.5 s."""
     import socket
 
-    if not endpoint.startswith("tcp/"):
+    kind, _, address = endpoint.partition("/")
+    if kind not in ("tcp", "tls"):
         time.sleep(0.5)
         return
-    host, port = endpoint[4:].rsplit(":", 1)
+    host, port = address.rsplit(":", 1)
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         try:

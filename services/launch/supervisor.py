@@ -203,7 +203,8 @@ class Launcher(WarmSpares):
         for child in self.children:
             self._spawn(child)
             if child.kind == "router":
-                wait_for_endpoint(self.launch.router.listen[0], timeout_s=10.0)
+                for listener in self.launch.router.listen:  # each one: a client may connect over any of them
+                    wait_for_endpoint(listener, timeout_s=10.0)
 
     def supervise(self) -> float:
         """Restart crashed services with backoff; mark them failed after max_restarts in a row. Returns how
