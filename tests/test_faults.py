@@ -361,8 +361,18 @@ def test_faults_on_a_running_stack(tmp_path: Path, monkeypatch: pytest.MonkeyPat
             check(bool(watchdog_lines) and watchdog_lines[0] - t_kill < 1.0,
                   "router stop: egress's watchdog did not stop the output")
             # the first state after the outage: the sim stood (its own timeout) before new commands reached it
-            first = [abs(m.v) for _, m in obs.states(t_gone + 1.0)[:1]]
-            check(bool(first) and max(first) < STOPPED, f"router stop: speed right after the outage {first}")
+            after_outage = obs.states(t_gone + 1.0)[:1]
+            first = [abs(m.v) for _, m in after_outage]
+            # on a loaded machine this observer's session can rejoin after the sim's got commands again: its first
+            # state is then one of a robot pulling away from its stand, and the check is that the sim did not keep
+            # the pre-outage command (half the speed it drove at), not that the stand itself was seen
+            speed_before = ([abs(m.v) for t, m in obs.states() if t < t_kill] or [0.0])[-1]
+            rejoined_late = bool(after_outage) and any(
+                m.v > MOVING for t, m in obs.base(t_gone + 1.0) if t <= after_outage[0][0])
+            bound = max(STOPPED, 0.5 * speed_before) if rejoined_late else STOPPED
+            check(bool(first) and max(first) < bound,
+                  f"router stop: speed right after the outage {first} (bound {bound:.2f} m/s, before it "
+                  f"{speed_before:.2f}, commands already flowing when this observer rejoined: {rejoined_late})")
             restarts_after = {c.name: c.restarts for c in launcher.children if c.kind != "router"}
             check(restarts_after == restarts_before, f"router stop: services restarted {restarts_after}")
             check(bool(t_state) and t_drive is not None, f"router stop: state at {t_state}, driving at {t_drive}")
