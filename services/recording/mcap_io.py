@@ -78,7 +78,8 @@ def _in_log_time_order(
     (the writer's) leave nothing pending, so memory stays a chunk or two, as with the heap.
     """
     channels = summary.channels
-    wanted = None if keys is None else {cid for cid, c in channels.items() if c.topic in keys}
+    # no keys (None, or none given) reads every topic, as mcap's `iter_messages(topics=None)` did here
+    wanted = None if not keys else {cid for cid, c in channels.items() if c.topic in keys}
     chunks = sorted(
         (c for c in summary.chunk_indexes if _may_hold(c, wanted)), key=lambda c: c.chunk_start_offset
     )
@@ -89,7 +90,8 @@ def _in_log_time_order(
         start = chunks[k].message_start_time
         earliest = start if earliest is None else min(earliest, start)
         later_start[k] = earliest
-    schema_names = {cid: (summary.schemas[c.schema_id].name if c.schema_id else None) for cid, c in channels.items()}
+    schemas = summary.schemas
+    schema_names = {cid: (schemas[c.schema_id].name if c.schema_id in schemas else None) for cid, c in channels.items()}
     pending: list[tuple[str, str | None, McapMessage]] = []
     for k, index in enumerate(chunks):
         stream.seek(index.chunk_start_offset + 1 + 8, io.SEEK_SET)  # past the record's opcode and length
