@@ -90,14 +90,17 @@ def _in_log_time_order(
         start = chunks[k].message_start_time
         earliest = start if earliest is None else min(earliest, start)
         later_start[k] = earliest
-    schemas = summary.schemas
-    schema_names = {cid: (schemas[c.schema_id].name if c.schema_id in schemas else None) for cid, c in channels.items()}
+    schema_names: dict[int, str | None] = {}  # a channel's, at its first message (a missing one fails as in mcap's)
     pending: list[tuple[str, str | None, McapMessage]] = []
     for k, index in enumerate(chunks):
         stream.seek(index.chunk_start_offset + 1 + 8, io.SEEK_SET)  # past the record's opcode and length
         for record in breakup_chunk(Chunk.read(ReadDataStream(stream))):
             if isinstance(record, McapMessage) and (wanted is None or record.channel_id in wanted):
-                pending.append((channels[record.channel_id].topic, schema_names[record.channel_id], record))
+                cid = record.channel_id
+                channel = channels[cid]
+                if cid not in schema_names:
+                    schema_names[cid] = summary.schemas[channel.schema_id].name if channel.schema_id else None
+                pending.append((channel.topic, schema_names[cid], record))
         pending.sort(key=_log_time)  # stable: ties keep file order, the earlier chunks' first
         if k + 1 == len(chunks):
             yield from pending
