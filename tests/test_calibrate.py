@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import time
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -113,8 +114,12 @@ def test_a_short_drive_through_the_stack_is_recorded_and_trains(tmp_path: Path) 
     runs = read_dataset(files[0])
     assert list(runs) == ["grass"]
     ticks = sum(len(r.command) for r in runs["grass"])
-    metres = sum(r.distance for r in runs["grass"])
-    assert ticks > 100 and 11.0 < metres < 16.0
+    # the path over every recorded tick, a lost or late state bridged by the chord across it: on a loaded machine a
+    # tick the recorder missed ends a run, and the runs' own distances leave out the metres across the gap
+    paired = sum(r.distance for r in runs["grass"])
+    bridged = paired + sum(float(np.hypot(*(b.state[0, :2] - a.state[-1, :2])))
+                           for a, b in pairwise(runs["grass"]))
+    assert ticks > 100 and 11.0 < bridged < 16.0 and paired > 0.8 * bridged, (ticks, paired, bridged)
     for r in runs["grass"]:
         assert np.all(np.abs(np.diff(r.time) - 0.1) <= 0.025)  # 0.1 s ticks
     states = np.concatenate([r.state for r in runs["grass"]])
