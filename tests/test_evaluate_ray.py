@@ -134,11 +134,7 @@ def _same(a: object, b: object) -> bool:
 
 # compiles the planner kernels where the cache is cold, in this process and in the Ray workers. One test, so that one
 # Ray head serves both runs (two tests here could be split between the suite's workers, each then starting a head)
-# seconds=60: ~30 s of wall, but little of the worker's CPU (the head's start and the jobs run in Ray's processes):
-# dealt right after the determinism test (tests/conftest.py), it opens the other share and waits beside that
-# test's compiles; at 35 it came after the plug-in test, together with the replays and the exclusive timing tests,
-# all three waiting (the cores ~60 % busy for 40 s, docs/development.md)
-@pytest.mark.slow(seconds=60)  # a Ray head, the jobs here and on Ray, then the CLI on Ray
+@pytest.mark.slow(seconds=35)  # a Ray head, the jobs here and on Ray, then the CLI on Ray
 def test_ray_tasks_give_the_local_runs_scores_seed_by_seed_and_the_cli_reports_them(
     ray_head: str, local_results: list[tuple]
 ) -> None:
