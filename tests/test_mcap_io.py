@@ -7,8 +7,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from mcap.data_stream import ReadDataStream
 from mcap.reader import make_reader
+from mcap.records import Chunk
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import breakup_chunk
 
 from schemas import Command, Header, Plan, State, TerrainWeights, encode
 from services.recording.mcap_io import read_messages, recording_files
@@ -67,6 +72,60 @@ def test_write_then_mcap_reader_reads_equal(tmp_path: Path) -> None:
     assert sorted(back, key=lambda r: (r[1], r[0])) == sorted(written, key=lambda r: (r[1], r[0]))
     only_cmd = list(read_messages(path, keys=["gpmppi/jackal/cmd"]))
     assert len(only_cmd) == 50 and all(isinstance(m, Command) for _, _, m in only_cmd)
+
+
+def _shuffled_recording(path: Path) -> None:
+    """A recording of many small chunks whose log times run back across chunk boundaries, with ties in a chunk and
+    across chunks (the recorder's log times are receive times: two topics' messages arrive out of their stamps'
+    order): 400 states and commands on a 20 ms grid, each up to 60 ms off its place."""
+    rng = np.random.default_rng(7)
+    with McapWriter(path, chunk_size=1500) as writer:
+        for i in range(400):
+            t = 1_000_000_000 + 20_000_000 * (i // 2 + int(rng.integers(-3, 4)))
+            if i % 2:
+                writer.write("gpmppi/jackal/cmd", Command(header=Header(stamp_ns=t, seq=i), v_ref=1.0, omega_ref=0.0),
+                             log_time_ns=t)
+            else:
+                writer.write("gpmppi/jackal/state", State(header=Header(stamp_ns=t, seq=i), x=0.0, y=0.0, theta=0.0,
+                                                          v=1.0, omega=0.0), log_time_ns=t)
+
+
+def test_the_reader_gives_mcaps_log_time_order_ties_in_file_order(tmp_path: Path) -> None:
+    """`read_messages` sorts each chunk's messages by log time itself instead of mcap's heap
+    (`iter_messages(log_time_order=True)`): the same messages in the same order, ties by their place in the file,
+    all topics or some."""
+    path = tmp_path / "shuffled.mcap"
+    _shuffled_recording(path)
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None
+        chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+        # the case the order is about: many chunks, a chunk starting before an earlier one ended
+        assert len(chunks) > 10
+        assert any(b.message_start_time < a.message_end_time for a, b in zip(chunks, chunks[1:], strict=False))
+        in_file = [(c.topic, m.log_time, json.loads(m.data)["header"]["seq"])
+                   for _, c, m in reader.iter_messages(log_time_order=False)]
+        for topics in (None, ["gpmppi/jackal/cmd"]):
+            heap = [(c.topic, m.log_time, json.loads(m.data)["header"]["seq"])
+                    for _, c, m in reader.iter_messages(topics=topics, log_time_order=True)]
+            ours = [(k, t, m.header.seq) for k, t, m in read_messages(path, keys=topics)]
+            assert ours == heap
+    ours_all = [(k, t, m.header.seq) for k, t, m in read_messages(path)]
+    assert len(in_file) == 400 and sorted(ours_all) == sorted(in_file)
+    assert ours_all != in_file  # the file is out of order: the sort is what is checked
+    # log times that tie across chunks: their order is the file's, whatever the chunks' time ranges
+    chunk_of: dict[int, int] = {}
+    with open(path, "rb") as f:
+        for n, index in enumerate(chunks):
+            f.seek(index.chunk_start_offset + 1 + 8)
+            for record in breakup_chunk(Chunk.read(ReadDataStream(f))):
+                if isinstance(record, McapMessage):
+                    chunk_of[json.loads(record.data)["header"]["seq"]] = n
+    assert len(chunk_of) == 400
+    assert any(a[1] == b[1] and chunk_of[a[2]] != chunk_of[b[2]] for a, b in zip(ours_all, ours_all[1:], strict=False))
+    position = {seq: n for n, (_, _, seq) in enumerate(in_file)}
+    assert all((a[1], position[a[2]]) < (b[1], position[b[2]]) for a, b in zip(ours_all, ours_all[1:], strict=False))
 
 
 def test_crash_loses_at_most_the_open_chunk(tmp_path: Path) -> None:
