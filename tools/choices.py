@@ -11,3 +11,10 @@ class ModelName(str, Enum):
     gp = "gp"
     edd5 = "edd5"
     unicycle = "unicycle"
+
+
+class FitSelection(str, Enum):
+    """How `gpmppi train`'s fit chooses among its restarts and steps (`gpmppi.gp.fit.SELECTIONS`)."""
+
+    fold = "fold"
+    loo = "loo"

@@ -32,7 +32,7 @@ from scipy.linalg import cho_solve
 from sklearn.cluster import KMeans
 from sklearn.neighbors import NearestNeighbors
 
-from gpmppi.gp.fit import Hyperparameters, clip_outliers, fit_hyperparameters
+from gpmppi.gp.fit import DEFAULT_SELECTION, Hyperparameters, clip_outliers, fit_hyperparameters
 from gpmppi.gp.grid import predict_dense
 from gpmppi.gp.model_file import GPModel, task_names
 from gpmppi.models.dynamic_unicycle import velocity_step_exact
@@ -354,9 +354,11 @@ def train_model(
     holdout: float = 0.2,
     test_sets: dict[str, Transitions] | None = None,
     steady_points: int = 0,
+    selection: str = DEFAULT_SELECTION,
 ) -> tuple[GPModel, FitReport]:
     """Fit the GP batch to per-terrain residual transitions; return the model and its fit report. `steady_points`:
-    of the `points` inputs, this many at settled rows (module docstring; 0: none)."""
+    of the `points` inputs, this many at settled rows (module docstring; 0: none); `selection`: how the fit chooses
+    among its restarts and steps (`gpmppi.gp.fit.SELECTIONS`)."""
     if not sets:
         raise ValueError("no terrain data to train on")
     for t, s in sets.items():
@@ -380,7 +382,7 @@ def train_model(
         hp = hyperparameters_from_json(hyperparameters, tasks)
     else:
         train_y, clipped = clip_outliers(train_y)
-        hp, diag = fit_hyperparameters(train_x, train_y, iters, seed)
+        hp, diag = fit_hyperparameters(train_x, train_y, iters, seed, selection=selection)
         loss = diag.final_loss
     chol, alpha = factorize(train_x, train_y, hp)
     lo, hi = domain_box(np.concatenate([s.x for s in train_sets.values()]))
