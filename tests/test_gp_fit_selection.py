@@ -1,7 +1,7 @@
 """The fit's choice among its restarts and steps (`gpmppi.gp.fit`, `selection`): with one seeded validation fold
 ("fold") the chosen hyperparameters move with the fit's seed; chosen by leave-one-out on all the inputs ("loo") they
 do not. The closed-form leave-one-out density is what refitting without each point gives, and `gpmppi train
---selection` reaches the fit and is named in the profile's `made_by`."""
+--fit` reaches the fit and is named in the profile's `made_by`."""
 
 from __future__ import annotations
 
@@ -74,8 +74,8 @@ def test_an_unknown_selection_is_refused() -> None:
         fit_hyperparameters(x, y, iters=1, seed=0, selection="best")
 
 
-@pytest.mark.parametrize("selection", ["loo", "fold"])
-def test_train_takes_the_selection_and_names_it(tmp_path: Path, selection: str) -> None:
+@pytest.mark.parametrize("fit", ["stable", "seeded"])
+def test_train_takes_the_fit_and_names_it(tmp_path: Path, fit: str) -> None:
     rng = np.random.default_rng(2)
     x = rng.uniform(LO, HI, (100, 4))
     res = np.column_stack([0.01 * np.sin(2 * x[:, 0]), 0.02 * x[:, 1]]) + rng.normal(0, 0.002, (100, 2))
@@ -86,7 +86,32 @@ def test_train_takes_the_selection_and_names_it(tmp_path: Path, selection: str) 
     theta.write_text('{"theta": [0.2, 0.3, 0.05, 1.0, 0.15, 1.05]}')
     out = tmp_path / "m.npz"
     result = CliRunner().invoke(app, ["train", str(csv), "--theta", str(theta), "--iters", "20", "--min-coverage",
-                                      "0", "--grid-nodes", "0", "--selection", selection, "-o", str(out)])
+                                      "0", "--grid-nodes", "0", "--fit", fit, "-o", str(out)])
     assert result.exit_code == 0, result.output
     made_by = GPModel.load(out).made_by
-    assert made_by is not None and made_by.endswith(f"--selection {selection}")
+    assert made_by is not None and made_by.endswith(f"--fit {fit}")
+
+
+@pytest.mark.slow(seconds=6)  # four trainings of 60 inputs x 2 tasks
+def test_the_stable_fit_draws_nothing_from_the_seed_but_the_held_out_split() -> None:
+    """Without a held-out split, `train_model(fit="stable")` makes the same GP whatever the seed: its k-means of the
+    inputs, its restarts and its choice do not draw from it; the seeded fit's inputs and hyperparameters move."""
+    from gpmppi.gp.train import Transitions, train_model
+
+    rng = np.random.default_rng(5)
+    x = rng.uniform(LO, HI, (600, 4))
+    res = np.column_stack([0.02 * np.sin(2 * x[:, 0]) * np.cos(x[:, 3]), 0.05 * np.cos(1.5 * x[:, 1]) * x[:, 2]])
+    sets = {"sand": Transitions(x, res + rng.normal(0, [0.01, 0.02], (600, 2)))}
+    theta, edd5 = np.array([0.2, 0.3, 0.05, 1.0, 0.15, 1.05]), {"sand": np.ones(5)}
+
+    def model(fit: str, seed: int) -> GPModel:
+        return train_model(sets, theta, edd5, points=60, iters=60, seed=seed, holdout=0.0, fit=fit)[0]
+
+    stable, seeded = [model("stable", s) for s in (0, 1)], [model("seeded", s) for s in (0, 1)]
+    assert not np.array_equal(seeded[0].train_x, seeded[1].train_x)
+    assert not np.allclose(seeded[0].lengthscale, seeded[1].lengthscale, rtol=0.02)
+    np.testing.assert_array_equal(stable[0].train_x, stable[1].train_x)
+    for name in ("lengthscale", "outputscale", "noise", "alpha"):
+        np.testing.assert_allclose(getattr(stable[1], name), getattr(stable[0], name), rtol=1e-9, err_msg=name)
+    with pytest.raises(ValueError, match="fit must be one of"):
+        train_model(sets, theta, edd5, points=60, iters=1, fit="lucky")

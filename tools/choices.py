@@ -13,8 +13,8 @@ class ModelName(str, Enum):
     unicycle = "unicycle"
 
 
-class FitSelection(str, Enum):
-    """How `gpmppi train`'s fit chooses among its restarts and steps (`gpmppi.gp.fit.SELECTIONS`)."""
+class FitMode(str, Enum):
+    """What `gpmppi train`'s seed draws (`gpmppi.gp.train.FITS`)."""
 
-    fold = "fold"
-    loo = "loo"
+    seeded = "seeded"
+    stable = "stable"

@@ -53,7 +53,6 @@ CHECK_EVERY = 5
 NOISE_INIT = 0.1
 LOO_INIT_SEED = 0  # "loo": the restarts' initialisations, one fixed set whatever the fit's seed
 SELECTIONS = ("fold", "loo")  # how the (step, restart) is chosen: one seeded validation fold, or leave-one-out
-DEFAULT_SELECTION = "fold"
 
 
 @dataclass
@@ -114,7 +113,7 @@ def cv_folds(n: int, folds: int, seed: int, used: int | None = None) -> list[tup
 
 def fit_hyperparameters(
     train_x: np.ndarray, train_y: np.ndarray, iters: int, seed: int, lr: float = 0.05,
-    restarts: int | None = None, folds: int | None = None, selection: str = DEFAULT_SELECTION,
+    restarts: int | None = None, folds: int | None = None, selection: str = "fold",
 ) -> tuple[Hyperparameters, FitDiagnostics]:
     """Fit each task's hyperparameters (see the module docstring); train_y is (T, n) at shared inputs (n, 4)."""
     import gpytorch
