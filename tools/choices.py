@@ -11,3 +11,10 @@ class ModelName(str, Enum):
     gp = "gp"
     edd5 = "edd5"
     unicycle = "unicycle"
+
+
+class FitMode(str, Enum):
+    """What `gpmppi train`'s seed draws (`gpmppi.gp.train.FITS`)."""
+
+    seeded = "seeded"
+    stable = "stable"

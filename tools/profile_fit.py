@@ -77,7 +77,7 @@ def calibration_log_runs(paths: list[Path], data: list[Path], grounds: list[str]
 
 def train_command(data: list[str], output: str, robot: str, terrain: list[str] | None, points: int,
                   iters: int, seed: int, holdout: float | None, calibration_logs: list[str] | None = None,
-                  steady_points: int = 0) -> str:
+                  steady_points: int = 0, fit: str | None = None) -> str:
     """The `gpmppi train` command line that makes a profile, for its `made_by` metadata."""
     args = [*data, "-o", output, "--robot", robot, *[a for t in terrain or [] for a in ("--terrain", t)],
             *[a for c in calibration_logs or [] for a in ("--calibration-log", c)],
@@ -86,4 +86,6 @@ def train_command(data: list[str], output: str, robot: str, terrain: list[str] |
         args += ["--holdout", f"{holdout:g}"]
     if steady_points:
         args += ["--steady-points", str(steady_points)]
+    if fit is not None:  # named always: the default may change, the command must still remake the profile
+        args += ["--fit", fit]
     return "gpmppi train " + shlex.join(args)

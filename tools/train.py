@@ -22,6 +22,7 @@ from gpmppi.gp.coverage import (
 )
 from gpmppi.gp.grid_table import DEFAULT_SPACING
 from schemas.keys import DEFAULT_ROBOT
+from tools.choices import FitMode
 from tools.cli_checks import OUT_FILE, fail
 from tools.train_data import DataError, csv_inputs, csv_residuals, is_mcap, read_csv_columns, read_logs_series
 
@@ -248,6 +249,11 @@ def register(app: typer.Typer) -> None:
                         "those rows; targets their local mean): the GP's steady states (0: inputs chosen over all "
                         "rows alike)")] = 0,
         iters: Annotated[int, typer.Option(min=0, help="Adam iterations of the hyperparameter fit")] = 200,
+        fit: Annotated[FitMode, typer.Option(
+            "--fit", help="stable: the GP's inputs (k-means) and the restarts started alike whatever --seed, each "
+                          "task's hyperparameters chosen among the restarts' steps by leave-one-out on all the inputs "
+                          "(--seed draws only the held-out split); seeded: all of these drawn by --seed, the choice on "
+                          "one validation fold (the earlier fit, which made the shipped profile)")] = FitMode.seeded,
         seed: Annotated[int, typer.Option(min=0, help="seed of k-means, the holdout split and the fit")] = 0,
         dt: Annotated[float, typer.Option(min=0.001, max=10.0, help="sampling step of the data [s]")] = 0.1,
         robot: Annotated[str, typer.Option(
@@ -308,7 +314,7 @@ def register(app: typer.Typer) -> None:
             model, report = train_model(
                 sets, th, ed, dt=dt, points=points, iters=iters, seed=seed,
                 hyperparameters=_load_json(hyperparameters, "hyperparameter"), holdout=hold, test_sets=test_sets,
-                steady_points=steady_points,
+                steady_points=steady_points, fit=fit.value,
             )
             if grid_nodes is not None and (grid_nodes == 1 or grid_nodes < 0):
                 raise DataError(f"--grid-nodes must be 0 (no stored grid) or at least 2, got {grid_nodes}")
@@ -321,7 +327,8 @@ def register(app: typer.Typer) -> None:
                 {"terrain": c.terrain, "samples": c.samples, "commands_covered": c.command_covered,
                  "states_covered": c.state_covered, "held_commands": c.held} for c in coverage]}
             model.made_by = train_command([str(p) for p in data], str(output), robot, terrain, points, iters, seed,
-                                          holdout, [str(p) for p in calibration_log or []], steady_points)
+                                          holdout, [str(p) for p in calibration_log or []], steady_points,
+                                          fit.value)
             if calibration_runs is not None:
                 model.fit_report["logs"] = {  # which logs fed what
                     "training": [str(p) for p in data], "calibration_only": [str(p) for p in calibration_log or []],

@@ -41,6 +41,12 @@ from gpmppi.models.lateral_slip import N_LATERAL, body_lateral_velocity, fit_lat
 LOCAL_NEIGHBOURS = 3
 STEADY_HELD_S = 2.0  # a row counts as settled once its command has been held this long [s]
 STEADY_NEIGHBOURS = 5  # settled rows averaged into a steady input's target
+# "seeded": the k-means of the inputs, the restarts and the validation fold all drawn by the seed (the earlier fit);
+# "stable": the inputs' k-means and the restarts started alike whatever the seed, the choice among the restarts' steps
+# by leave-one-out on all the inputs (`gpmppi.gp.fit`, selection "loo"): the seed draws only the held-out split
+FITS = ("seeded", "stable")
+DEFAULT_FIT = "seeded"
+DESIGN_SEED = 0  # "stable": the k-means initialisation's seed, whatever the fit's
 
 
 @dataclass
@@ -354,9 +360,11 @@ def train_model(
     holdout: float = 0.2,
     test_sets: dict[str, Transitions] | None = None,
     steady_points: int = 0,
+    fit: str = DEFAULT_FIT,
 ) -> tuple[GPModel, FitReport]:
     """Fit the GP batch to per-terrain residual transitions; return the model and its fit report. `steady_points`:
-    of the `points` inputs, this many at settled rows (module docstring; 0: none)."""
+    of the `points` inputs, this many at settled rows (module docstring; 0: none); `fit`: one of `FITS` (what the seed
+    draws)."""
     if not sets:
         raise ValueError("no terrain data to train on")
     for t, s in sets.items():
@@ -371,16 +379,20 @@ def train_model(
         raise ValueError(f"no EDD5 parameters for terrains {missing}")
     if points < 2:
         raise ValueError(f"--points must be at least 2, got {points}")
+    if fit not in FITS:
+        raise ValueError(f"fit must be one of {FITS}, got {fit!r}")
     terrains = list(sets)
     tasks = task_names(terrains)
     train_sets, held = split_holdout(sets, 0.0 if test_sets is not None else holdout, seed)
-    train_x, train_y = select_training_data(train_sets, points, seed, steady_points)
+    train_x, train_y = select_training_data(train_sets, points, seed if fit == "seeded" else DESIGN_SEED,
+                                            steady_points)
     loss, clipped = None, 0
     if hyperparameters is not None:  # the paper's procedure: its hyperparameters, its targets as they are
         hp = hyperparameters_from_json(hyperparameters, tasks)
     else:
         train_y, clipped = clip_outliers(train_y)
-        hp, diag = fit_hyperparameters(train_x, train_y, iters, seed)
+        hp, diag = fit_hyperparameters(train_x, train_y, iters, seed,
+                                        selection="fold" if fit == "seeded" else "loo")
         loss = diag.final_loss
     chol, alpha = factorize(train_x, train_y, hp)
     lo, hi = domain_box(np.concatenate([s.x for s in train_sets.values()]))
