@@ -9,10 +9,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from torch_threads import one_torch_thread
 from typer.testing import CliRunner
 
-from gpmppi.gp.fit import Hyperparameters, clip_outliers, fit_hyperparameters, nn_noise_variance
+from gpmppi.gp.fit import (
+    Hyperparameters,
+    clip_outliers,
+    fit_hyperparameters,
+    nn_noise_variance,
+    one_torch_thread,
+)
 from gpmppi.gp.model_file import GPModel
 from gpmppi.gp.train import Transitions, factorize, train_model
 from services.planner import log_model_fit
@@ -68,7 +73,7 @@ def _plain_mll_fit(x: np.ndarray, y: np.ndarray, iters: int = 300) -> Hyperparam
     m.train()
     opt = torch.optim.Adam(m.parameters(), lr=0.05)
     mll = gpytorch.mlls.ExactMarginalLogLikelihood(m.likelihood, m)
-    with one_torch_thread():  # as `fit_hyperparameters` fits (tests/torch_threads.py)
+    with one_torch_thread():  # as `fit_hyperparameters` fits
         for _ in range(iters):
             opt.zero_grad()
             (-mll(m(xt), yt)).sum().backward()

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cached_models import shipped_model
-from torch_threads import one_torch_thread
 
+from gpmppi.gp.fit import one_torch_thread
 from gpmppi.gp.grid import GridPredictor
 from gpmppi.gp.grid_interp import simplex_interp_point
 from gpmppi.gp.grid_table import DEFAULT_SPACING, build_grid, grid_dims, model_grid_dims

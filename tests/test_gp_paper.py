@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from torch_threads import one_torch_thread
 from typer.testing import CliRunner
 
+from gpmppi.gp.fit import one_torch_thread
 from tools.cli import app
 
 runner = CliRunner()
